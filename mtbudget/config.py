@@ -1,0 +1,260 @@
+"""Configuration files (TOML with pint quantity strings) and the built-in default.
+
+Nothing in a config is evaluated: every value is a string that pint parses,
+a number, or a table.  Errors name the file and the key (``tracker.D``).
+See docs/configuration.md for every key.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from importlib import resources
+from pathlib import Path
+
+import numpy as np
+import pint
+
+from .errors import ConfigError
+from .machine import AXES, COMPONENT_ERRORS, SQUARENESS, Configuration
+from .plan import Plan, Sensor, build_plan, mesh
+from .units import Q_, ureg
+
+try:
+    import tomllib
+except ModuleNotFoundError:  # pragma: no cover
+    import tomli as tomllib
+
+CONFIG_FORMAT = "mtbudget-config/1"
+DEFAULT_CONFIG = "paper_xfyz.toml"
+
+
+def default_config_path() -> Path:
+    """Path of the built-in default configuration (the paper's XFYZ study)."""
+    return Path(str(resources.files("mtbudget") / "data" / DEFAULT_CONFIG))
+
+
+def example_recording(name: str) -> Path:
+    """Path of a bundled example recording (null, thermal_x, reversal_y, tracker_drift)."""
+    p = Path(str(resources.files("mtbudget") / "data" / "recordings" / name))
+    if not p.is_dir():
+        raise ConfigError(f"no bundled example recording {name!r}")
+    return p
+
+
+class _Reader:
+    """Typed access to a TOML table with errors that name file and key."""
+
+    def __init__(self, data: dict, path, prefix: str = ""):
+        self.data, self.path, self.prefix = data, path, prefix
+
+    def where(self, key):
+        return f"{self.path}: {self.prefix}{key}" if self.path else f"{self.prefix}{key}"
+
+    def has(self, key):
+        return key in self.data
+
+    def sub(self, key, required=False) -> "_Reader":
+        v = self.data.get(key)
+        if v is None:
+            if required:
+                raise ConfigError(f"{self.where(key)}: missing table [{self.prefix}{key}]")
+            v = {}
+        if not isinstance(v, dict):
+            raise ConfigError(f"{self.where(key)}: expected a table")
+        return _Reader(v, self.path, f"{self.prefix}{key}.")
+
+    def raw(self, key, default=None):
+        return self.data.get(key, default)
+
+    def quantity(self, key, unit: str, default=None, value=None) -> float:
+        text = self.data.get(key, default) if value is None else value
+        if text is None:
+            raise ConfigError(f"{self.where(key)}: missing (a quantity in {unit})")
+        return to_unit(text, unit, self.where(key))
+
+    def number(self, key, default=None, kind=float):
+        v = self.data.get(key, default)
+        if v is None:
+            raise ConfigError(f"{self.where(key)}: missing")
+        try:
+            return kind(v)
+        except (TypeError, ValueError):
+            raise ConfigError(f"{self.where(key)}: expected a {kind.__name__}, got {v!r}") from None
+
+
+def to_unit(text, unit: str, where: str = "value") -> float:
+    """Parse a quantity string and convert it to ``unit``; ConfigError names ``where``."""
+    try:
+        q = Q_(float(text)) if isinstance(text, (int, float)) else ureg.Quantity(str(text))
+    except Exception as exc:
+        raise ConfigError(f"{where}: cannot parse {text!r} as a quantity ({exc.__class__.__name__})") from None
+    if not isinstance(q, pint.Quantity):
+        q = Q_(float(q))
+    try:
+        return float(q.to(unit).magnitude)
+    except pint.DimensionalityError:
+        raise ConfigError(f"{where}: {text!r} is not a quantity of {ureg.Unit(unit).dimensionality} (expected e.g. {unit})") from None
+
+
+@dataclass
+class SensorSpec:
+    sensor: Sensor
+    start: float  # K
+    rate: float  # K/s
+    noise: float  # K (standard deviation of each reading)
+
+
+@dataclass
+class SimulationConfig:
+    """Everything needed to simulate one verification (internal units)."""
+
+    name: str
+    description: str
+    machine: str
+    reference_temperature: float
+    seed: int
+    mesh_ranges: dict
+    mesh_step: dict
+    runs: int
+    tools: list
+    feed: float
+    stop_time: float
+    tool_change_time: float
+    pose: np.ndarray  # D, L, H, a, b, d
+    angular: float
+    distance: float
+    distance_per_length: float
+    repeatability: float
+    max_degree: int
+    geometric: dict  # {"coefficients": {...}, "squareness": {...}} or generation std
+    sensors: list = field(default_factory=list)
+    effects: dict = field(default_factory=dict)  # thermal {axis: 1/K}, reversal {axis: mm}, drift (3,) mm/s
+    source: dict = field(default_factory=dict)  # the raw TOML (for logging)
+    path: Path | None = None
+
+    def plan(self, rng: np.random.Generator | None = None) -> Plan:
+        """Build the plan (mesh, passes, timing) and its sensor readings."""
+        pts = mesh(self.mesh_ranges, self.mesh_step)
+        plan = build_plan(pts, self.tools, self.runs, self.feed, self.stop_time, self.tool_change_time)
+        rng = rng or np.random.default_rng(self.seed)
+        plan.sensors = [s.sensor for s in self.sensors]
+        for s in self.sensors:
+            plan.temperature[s.sensor.column] = s.start + s.rate * plan.time + rng.normal(0.0, s.noise, len(plan)) * (s.noise > 0)
+        return plan
+
+
+def load_config(path=None) -> SimulationConfig:
+    """Load a configuration file (the built-in default when ``path`` is None)."""
+    path = Path(path) if path is not None else default_config_path()
+    if not path.exists():
+        raise ConfigError(f"{path}: no such configuration file")
+    try:
+        data = tomllib.loads(path.read_text(encoding="utf-8"))
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(f"{path}: invalid TOML ({exc})") from None
+    return parse_config(data, path)
+
+
+def parse_config(data: dict, path=None) -> SimulationConfig:
+    r = _Reader(data, path)
+    fmt = r.raw("format")
+    if fmt != CONFIG_FORMAT:
+        raise ConfigError(f"{r.where('format')}: expected \"{CONFIG_FORMAT}\", got {fmt!r}")
+    machine = str(r.raw("machine", "XFYZ"))
+    try:
+        Configuration.parse(machine)
+    except ConfigError as exc:
+        raise ConfigError(f"{r.where('machine')}: {exc}") from None
+    m = r.sub("mesh", required=True)
+    ranges, step = {}, {}
+    for a in AXES:
+        v = m.raw(a)
+        if not (isinstance(v, list) and len(v) == 2):
+            raise ConfigError(f"{m.where(a)}: expected [low, high], e.g. [\"800 mm\", \"1200 mm\"]")
+        ranges[a] = (to_unit(v[0], "mm", m.where(a)), to_unit(v[1], "mm", m.where(a)))
+        if not ranges[a][1] >= ranges[a][0]:
+            raise ConfigError(f"{m.where(a)}: low must not exceed high")
+        st = m.raw(f"step_{a}", m.raw("step"))
+        step[a] = to_unit(st, "mm", m.where("step"))
+    pl = r.sub("plan")
+    tools_raw = pl.raw("tools", [["0 mm", "0 mm", "0 mm"]])
+    tools = []
+    for i, t in enumerate(tools_raw):
+        if not (isinstance(t, list) and len(t) == 3):
+            raise ConfigError(f"{pl.where('tools')}[{i}]: expected [tx, ty, tz]")
+        tools.append([to_unit(v, "mm", f"{pl.where('tools')}[{i}]") for v in t])
+    tr = r.sub("tracker", required=True)
+    pose = np.array([tr.quantity(k, "mm") for k in "DLH"] + [tr.quantity(k, "rad") for k in "abd"])
+    mt = r.sub("machine_tool")
+    ge = r.sub("geometric_errors")
+    geometric: dict = {"seed": int(ge.raw("seed", 1))}
+    if ge.has("coefficients"):
+        co = ge.sub("coefficients")
+        coefs = {}
+        for name, vals in co.data.items():
+            if name not in COMPONENT_ERRORS:
+                raise ConfigError(f"{co.where(name)}: unknown component error; expected one of {', '.join(COMPONENT_ERRORS)}")
+            unit = "mm" if name[0] == "d" else "rad"
+            coefs[name] = [to_unit(v, unit, co.where(name)) for v in vals]
+        geometric["coefficients"] = coefs
+        sq = ge.sub("squareness")
+        geometric["squareness"] = {k: sq.quantity(k, "rad") for k in sq.data}
+        for k in geometric["squareness"]:
+            if k not in SQUARENESS:
+                raise ConfigError(f"{sq.where(k)}: unknown squareness; expected one of {SQUARENESS}")
+    else:
+        geometric["translational"] = [to_unit(v, "mm", ge.where("translational")) for v in ge.raw("translational", ["8 um", "3 um", "1.5 um"])]
+        geometric["angular"] = [to_unit(v, "rad", ge.where("angular")) for v in ge.raw("angular", ["10 urad", "5 urad", "2.5 urad"])]
+        geometric["squareness"] = ge.quantity("squareness", "rad", "30 urad")
+    tref = r.quantity("reference_temperature", "K", "20 degC")
+    sensors = []
+    for i, s in enumerate(data.get("sensors", [])):
+        sr = _Reader(s, path, f"sensors[{i}].")
+        if "column" not in s or "attached_to" not in s:
+            raise ConfigError(f"{sr.where('column')}: each [[sensors]] needs column and attached_to")
+        pos = s.get("position")
+        sensor = Sensor(s["column"], s["attached_to"], None if pos is None else sr.quantity("position", "mm"))
+        start = sr.quantity("start", "K", "20 degC")
+        rate = sr.quantity("rate", "K/s", "0 K/h")
+        noise = sr.quantity("noise", "K", "0 K")
+        sensors.append(SensorSpec(sensor, start, rate, noise))
+    eff = r.sub("effects")
+    effects = {
+        "thermal": {a: eff.sub("thermal").quantity(a, "1/K") for a in eff.sub("thermal").data},
+        "reversal": {a: eff.sub("reversal").quantity(a, "mm") for a in eff.sub("reversal").data},
+        "drift": None,
+    }
+    for kind in ("thermal", "reversal"):
+        for a in effects[kind]:
+            if a not in AXES:
+                raise ConfigError(f"{eff.where(kind)}.{a}: unknown axis; expected x, y or z")
+    if eff.has("drift"):
+        dv = eff.raw("drift")
+        if not (isinstance(dv, list) and len(dv) == 3):
+            raise ConfigError(f"{eff.where('drift')}: expected [vx, vy, vz], e.g. [\"4 um/h\", \"0 um/h\", \"0 um/h\"]")
+        effects["drift"] = np.array([to_unit(v, "mm/s", eff.where("drift")) for v in dv])
+    return SimulationConfig(
+        name=str(r.raw("name", Path(path).stem if path else "simulation")),
+        description=str(r.raw("description", "")),
+        machine=machine,
+        reference_temperature=tref,
+        seed=int(r.raw("seed", 1)),
+        mesh_ranges=ranges,
+        mesh_step=step,
+        runs=pl.number("runs", 2, int),
+        tools=tools,
+        feed=pl.quantity("feed", "mm/s", "2000 mm/min"),
+        stop_time=pl.quantity("stop_time", "s", "12 s"),
+        tool_change_time=pl.quantity("tool_change_time", "s", "120 s"),
+        pose=pose,
+        angular=tr.quantity("angular", "rad", "5 urad"),
+        distance=tr.quantity("distance", "mm", "4 um"),
+        distance_per_length=tr.quantity("distance_per_length", "mm/mm", "0.8 um/m"),
+        repeatability=mt.quantity("repeatability", "mm", "1.5 um"),
+        max_degree=mt.number("max_degree", 3, int),
+        geometric=geometric,
+        sensors=sensors,
+        effects=effects,
+        source=data,
+        path=path,
+    )

@@ -1,0 +1,422 @@
+"""Batched weighted least-squares identification (the optimisation strategy).
+
+From tracker points of one recording or of N simulated trials at once
+(leading trial axis), identify the tracker pose (6 parameters) and the
+coefficients of the geometric error functions by minimising
+
+    sum_i r_i^T C_i^-1 r_i,   r_i = measured_i - predicted_i   (tracker frame)
+
+the weighted form of the paper's Eq. 27 objective: ``C_i`` is each point's
+tracker covariance (range vs transverse, :func:`mtbudget.tracker.covariance`)
+plus the machine repeatability.
+
+Algorithm: closed-form rigid registration (Kabsch) for the starting pose,
+then Gauss-Newton on all trials at once with the exact analytic Jacobian of
+the Eq. 6 chain.  Parameters are scaled (um for lengths, urad for angles,
+which on a 1 m lever are both um) before any rank decision.
+
+Identifiability: the structural null space of the plan is computed once,
+from the machine-frame Jacobian of the rigid motions (the tracker pose) and
+the geometric parameters.  Directions in it cannot be told from the data;
+they are reported by name and fixed by the minimum-norm convention (in the
+scaled parameters, from the initial parameters).  The remaining problem has
+full rank, so every trial is solved by a Cholesky factorisation.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from . import tracker as lt
+from .errors import IdentificationError
+from .machine import AXES, AXIS_INDEX, _K
+from .model import MeasurementModel
+
+GROUPS = ("pose", "translational", "angular", "squareness")
+
+
+@dataclass
+class Strategy:
+    """An optimisation strategy (paper Section 2.2.4, Figs. 5-6).
+
+    phases: each phase is the list of parameter groups it frees, from
+    ``pose``, ``translational``, ``angular``, ``squareness``; parameters of a
+    later phase start from the values of the earlier phase.  ``[GROUPS]`` is
+    the paper's one-phase identification.
+    """
+
+    phases: list = field(default_factory=lambda: [list(GROUPS)])
+    max_iter: int = 30
+    xtol: float = 1e-8  # convergence: largest step of any scaled parameter (um or urad) ...
+    ftol: float = 1e-12  # ... or a relative decrease of the weighted cost below this
+    rank_tol: float = 1e-7  # singular values below rank_tol * largest are treated as null
+    weighted: bool = True
+
+    @classmethod
+    def one_phase(cls, **kw):
+        return cls(phases=[list(GROUPS)], **kw)
+
+    @classmethod
+    def multi_phase(cls, **kw):
+        return cls(phases=[["pose"], ["pose", "translational"], list(GROUPS)], **kw)
+
+
+@dataclass
+class Noise:
+    """Stated standard uncertainties of one verification (internal units)."""
+
+    angular: float  # rad
+    distance: float  # mm
+    distance_per_length: float  # mm/mm
+    repeatability: float  # mm
+
+    @classmethod
+    def of(cls, rec):
+        return cls(rec.angular, rec.distance, rec.distance_per_length, rec.repeatability)
+
+
+@dataclass
+class Identifiability:
+    names: list  # parameter names (geometric)
+    rank: int  # rank of [rigid | geometric] (scaled)
+    n_params: int
+    singular_values: np.ndarray
+    null_space: np.ndarray  # (p, k) in scaled geometric parameters
+    pose_identifiable: bool
+
+    @property
+    def identifiable(self) -> int:
+        return self.n_params - self.null_space.shape[1]
+
+    def combinations(self, threshold: float = 0.2, top: int = 6) -> list[list[tuple[str, float]]]:
+        """Each non-identifiable direction as [(parameter, weight), ...] (scaled, unit norm)."""
+        out = []
+        if self.null_space.size == 0:
+            return out
+        # rotate the basis to something readable: reduced row echelon-like via QR with pivoting
+        from scipy.linalg import qr
+
+        N = self.null_space
+        _, _, piv = qr(N.T, pivoting=True)
+        B = N @ np.linalg.inv(N[piv[: N.shape[1]], :])  # unit weight on pivot parameters
+        for k in range(B.shape[1]):
+            v = B[:, k] / np.linalg.norm(B[:, k])
+            idx = [i for i in np.argsort(-np.abs(v)) if abs(v[i]) >= threshold][:top]
+            out.append([(self.names[i], float(v[i])) for i in idx])
+        return out
+
+    def unidentifiable_parameters(self, threshold: float = 1e-6) -> list[str]:
+        """Parameters that take part in any non-identifiable direction."""
+        if self.null_space.size == 0:
+            return []
+        w = np.linalg.norm(self.null_space, axis=1)
+        return [n for n, x in zip(self.names, w) if x > threshold]
+
+
+@dataclass
+class Identification:
+    """Result of identifying N trials (N = 1 for one recording)."""
+
+    model: MeasurementModel
+    theta: np.ndarray  # (N, p) geometric parameters (mm, rad)
+    pose: np.ndarray  # (N, 6)
+    residual: np.ndarray  # (N, M, 3) measured - predicted, tracker frame (mm)
+    residual_machine: np.ndarray  # (N, M, 3) the same in the machine frame
+    chi2: np.ndarray  # (N,)
+    dof: int
+    cov_theta: np.ndarray  # (N, p, p)
+    cov_pose: np.ndarray  # (N, 6, 6)
+    initial_error: np.ndarray  # (N, M, 3) machine-frame deviation after pose-only registration
+    converged: np.ndarray  # (N,) bool
+    iterations: int
+    identifiability: Identifiability
+    whitened: np.ndarray | None = None  # (N, M, 3) whitened residuals
+
+    @property
+    def chi2_per_dof(self):
+        return self.chi2 / self.dof
+
+    @property
+    def mean_error_before(self):
+        """Paper Eq. 27 before compensation (mm): mean distance nominal vs measured after registration."""
+        return np.linalg.norm(self.initial_error, axis=-1).mean(axis=-1)
+
+    @property
+    def mean_error_after(self):
+        """Paper Eq. 27 after compensation (mm): mean residual distance."""
+        return np.linalg.norm(self.residual, axis=-1).mean(axis=-1)
+
+    @property
+    def max_residual(self):
+        return np.linalg.norm(self.residual, axis=-1).max(axis=-1)
+
+    @property
+    def rms(self):
+        """Root mean square of the 3D residual distance (mm)."""
+        return np.sqrt((self.residual**2).sum(-1).mean(-1))
+
+    def u_theta(self):
+        return np.sqrt(np.maximum(np.diagonal(self.cov_theta, axis1=1, axis2=2), 0))
+
+
+def scale_vector(model: MeasurementModel) -> np.ndarray:
+    """um per mm and urad per rad: parameters in comparable effect units."""
+    return np.array([1e3 if u == "mm" else 1e6 for u in model.errors.units])
+
+
+POSE_SCALE = np.array([1e3, 1e3, 1e3, 1e6, 1e6, 1e6])
+
+
+def group_of(param) -> str:
+    if param.order == 0:
+        return "squareness"
+    return "translational" if param.error[0] == "d" else "angular"
+
+
+def analyse(model: MeasurementModel, active: np.ndarray | None = None, rank_tol: float = 1e-7) -> Identifiability:
+    """Structural identifiability of the plan for the active geometric parameters."""
+    p = model.n_params
+    active = np.ones(p, bool) if active is None else np.asarray(active, bool)
+    P0, J = model.machine_points(np.zeros((1, p)), jacobian=True)
+    P0, J = P0[0], J[0]  # (M,3), (M,3,p)
+    M = P0.shape[0]
+    rigid = np.zeros((M, 3, 6))
+    rigid[:, :, :3] = np.eye(3)[None] / 1e3
+    centred = P0 - P0.mean(axis=0)
+    for c in range(3):
+        rigid[:, :, 3 + c] = (centred @ _K[c].T) / 1e6
+    Js = J[:, :, active] / scale_vector(model)[active]
+    A = np.concatenate([rigid, Js], axis=2).reshape(3 * M, -1)
+    # equilibrate columns for the rank decision (scaling does not change the null space)
+    norms = np.linalg.norm(A, axis=0)
+    norms[norms == 0] = 1.0
+    U, s, Vt = np.linalg.svd(A / norms, full_matrices=True)
+    tol = rank_tol * (s[0] if s.size else 1.0)
+    rank = int((s > tol).sum())
+    V = (Vt.T / norms[:, None])  # back to scaled (unequilibrated) coordinates
+    null = V[:, rank:]
+    # rigid-only rank
+    sr = np.linalg.svd(rigid.reshape(3 * M, 6) / np.linalg.norm(rigid.reshape(3 * M, 6), axis=0), compute_uv=False)
+    pose_ok = bool(sr[-1] > rank_tol * sr[0])
+    null_geo = np.zeros((p, null.shape[1]))
+    if null.shape[1]:
+        # orthonormal basis of the geometric part of the null space
+        ng = null[6:, :]
+        q, r = np.linalg.qr(ng)
+        keep = np.abs(np.diag(r)) > 1e-12 if r.size else np.zeros(0, bool)
+        null_geo[active] = q[:, keep] if keep.size else q
+        null_geo = null_geo[:, : int(keep.sum())] if keep.size else null_geo
+    names = model.errors.names
+    return Identifiability(names, rank, int(active.sum()), s, null_geo, pose_ok)
+
+
+def _whitener(C: np.ndarray) -> np.ndarray:
+    """L^-1 with C = L L^T, batched (…, 3, 3)."""
+    L = np.linalg.cholesky(C)
+    return np.linalg.inv(L)
+
+
+def _check_inputs(model: MeasurementModel, meas: np.ndarray):
+    if meas.shape[-2:] != (model.n_points, 3):
+        raise IdentificationError(f"measured points have shape {meas.shape[-2:]}, the plan has {model.n_points} points x 3")
+    bad = ~np.isfinite(meas).all(axis=-1)
+    if bad.any():
+        rows = np.unique(np.nonzero(bad)[-1])[:10]
+        raise IdentificationError(
+            f"measured coordinates are NaN or infinite at plan rows {rows.tolist()} "
+            "(0-based); remove or repair those points before identifying")
+    nominal = model.plan.nominal
+    for a in AXES:
+        npos = len(np.unique(np.round(nominal[:, AXIS_INDEX[a]], 6)))
+        for name, deg in model.errors.degrees.items():
+            if name[3] == a and deg and deg > npos - 1:
+                raise IdentificationError(
+                    f"{name} has degree {deg} but axis {a} is measured at only {npos} distinct position(s); "
+                    f"at most degree {max(npos - 1, 0)} can be identified (lower it in the error model)")
+    pts = nominal + model.plan.tool
+    sv = np.linalg.svd(pts - pts.mean(0), compute_uv=False)
+    if sv[1] <= 1e-9 * max(sv[0], 1e-12):
+        raise IdentificationError("all measured points lie on one line: the tracker rotation about it cannot be identified")
+
+
+def identify(
+    model: MeasurementModel,
+    measured: np.ndarray,
+    noise: Noise,
+    strategy: Strategy | None = None,
+    theta0: np.ndarray | None = None,
+    pose0: np.ndarray | None = None,
+    fixed: dict | None = None,
+) -> Identification:
+    """Identify pose and geometric errors for one or N trials.
+
+    measured: (M, 3) or (N, M, 3) tracker coordinates (mm).
+    theta0: initial geometric parameters (p,) or (N, p); non-identifiable
+    directions keep their initial value (zero by default).
+    pose0: initial pose; by default the Kabsch registration of the nominal points.
+    fixed: perturbations known a priori (``MODEL_INPUTS`` keys), e.g. a thermal
+    scale that a diagnosis candidate asserts.
+    """
+    strategy = strategy or Strategy()
+    meas = np.asarray(measured, float)
+    single = meas.ndim == 2
+    if single:
+        meas = meas[None]
+    _check_inputs(model, meas)
+    N, M = meas.shape[:2]
+    p = model.n_params
+    sv = scale_vector(model)
+    fixed = fixed or {}
+    theta = np.zeros((N, p)) if theta0 is None else np.broadcast_to(np.asarray(theta0, float), (N, p)).copy()
+
+    # weights from the stated uncertainties, evaluated at the measured points
+    if strategy.weighted:
+        C = model.covariance(meas, noise.angular, noise.distance, noise.distance_per_length, noise.repeatability)
+    else:
+        C = np.broadcast_to(np.eye(3) * (noise.distance**2 + noise.repeatability**2), (N, M, 3, 3))
+    Wh = _whitener(C)
+
+    # start: rigid registration of the predicted points at theta onto the measurement
+    if pose0 is None:
+        P_W0 = model.machine_points(theta, fixed)
+        pose = lt.register(P_W0, meas)
+    else:
+        pose = np.broadcast_to(np.asarray(pose0, float), (N, 6)).copy()
+
+    # pose-only fit: the "before compensation" deviations (Eq. 27 before)
+    pose_only, _ = _gauss_newton(model, meas, Wh, np.zeros((N, p)), pose.copy(), np.zeros(p, bool), None, strategy, fixed)
+    P_nom = model.machine_points(np.zeros((1, p)), fixed)
+    meas_machine = lt.to_machine(meas, pose_only)
+    initial_error = meas_machine - P_nom
+
+    ident = None
+    iters = 0
+    converged = np.ones(N, bool)
+    for phase in strategy.phases:
+        unknown = set(phase) - set(GROUPS)
+        if unknown:
+            raise IdentificationError(f"unknown parameter group(s) {sorted(unknown)} in strategy phase; expected {GROUPS}")
+        active = np.array([group_of(par) in phase for par in model.errors.params])
+        ident = analyse(model, active, strategy.rank_tol)
+        if not ident.pose_identifiable:
+            raise IdentificationError("the plan's points do not fix the tracker pose (all points on a line)")
+        n_unknown = (6 if "pose" in phase else 0) + ident.identifiable
+        if 3 * M <= n_unknown:
+            raise IdentificationError(
+                f"too few points: {M} points give {3 * M} coordinates for {n_unknown} identifiable unknowns; "
+                "measure more points or lower the degrees of the error functions")
+        if "pose" not in phase:
+            raise IdentificationError("every phase must include the pose (the tracker pose is always unknown)")
+        (pose, info) = _gauss_newton(model, meas, Wh, theta, pose, active, ident.null_space, strategy, fixed)
+        theta = info["theta"]
+        iters += info["iterations"]
+        converged &= info["converged"]
+
+    # final quantities and covariance at the solution
+    Q = _range_basis(active, ident.null_space)
+    P_W, J = model.machine_points(theta, fixed, jacobian=True)
+    pred = lt.to_tracker(P_W, pose)
+    for k in ("spherical_noise", "tracker_offset"):
+        if k in fixed:
+            raise IdentificationError(f"{k} cannot be a fixed perturbation in identification")
+    res = meas - pred
+    A = _design(P_W, J, pose, Wh, Q, sv)
+    wres = np.einsum("nmij,nmj->nmi", Wh, res)
+    chi2 = (wres**2).sum(axis=(1, 2))
+    n_unknown = 6 + Q.shape[1]
+    dof = 3 * M - n_unknown
+    AtA = np.einsum("nki,nkj->nij", A, A)
+    cov_z = np.linalg.inv(AtA)
+    T = np.zeros((6 + p, n_unknown))
+    T[:6, :6] = np.diag(1.0 / POSE_SCALE)
+    T[6:, 6:] = Q / sv[:, None]
+    cov_full = T @ cov_z @ T.T
+    Rm = lt.rotation(pose[:, 3], pose[:, 4], pose[:, 5])
+    res_machine = np.einsum("nij,nmj->nmi", Rm, res)
+    out = Identification(
+        model=model, theta=theta, pose=pose, residual=res, residual_machine=res_machine, chi2=chi2, dof=dof,
+        cov_theta=cov_full[:, 6:, 6:], cov_pose=cov_full[:, :6, :6], initial_error=initial_error,
+        converged=converged, iterations=iters, identifiability=ident, whitened=wres,
+    )
+    return out
+
+
+def _range_basis(active: np.ndarray, null: np.ndarray | None) -> np.ndarray:
+    """Orthonormal basis (scaled coords) of the active parameters minus the null space: (p, r)."""
+    p = active.size
+    E = np.eye(p)[:, active]
+    if null is None or null.size == 0:
+        return E
+    # project the active coordinate directions off the null space, then orthonormalise
+    Pn = np.eye(p) - null @ null.T
+    U, s, _ = np.linalg.svd(Pn @ E, full_matrices=False)
+    r = int((s > 1e-8).sum())
+    return U[:, :r]
+
+
+def _design(P_W, J, pose, Wh, Q, sv):
+    """Whitened, scaled design matrix (N, 3M, 6 + r)."""
+    N, M = P_W.shape[:2]
+    Jp = lt.pose_jacobian(P_W, pose) / POSE_SCALE  # (N,M,3,6)
+    Rm = lt.rotation(pose[:, 3], pose[:, 4], pose[:, 5])
+    # d P_LT / d theta = R^T dP_W/dtheta ; scaled and projected: (N,M,3,r)
+    Jg = np.einsum("nji,nmjk->nmik", Rm, J) @ (Q / sv[:, None])
+    A = np.concatenate([Jp, Jg], axis=3)
+    A = np.einsum("nmij,nmjk->nmik", Wh, A)
+    return A.reshape(N, 3 * M, -1)
+
+
+def _gauss_newton(model, meas, Wh, theta, pose, active, null, strategy, fixed):
+    """Gauss-Newton over all trials; returns (pose, info)."""
+    N, M = meas.shape[:2]
+    p = model.n_params
+    sv = scale_vector(model)
+    Q = _range_basis(active, null) if active.any() else np.zeros((p, 0))
+    theta = theta.copy()
+    pose = pose.copy()
+    conv = np.zeros(N, bool)
+    it = 0
+
+    def cost(th, po):
+        P_W = model.machine_points(th, fixed)
+        r = meas - lt.to_tracker(P_W, po)
+        w = np.einsum("nmij,nmj->nmi", Wh, r)
+        return (w**2).sum(axis=(1, 2))
+
+    for it in range(1, strategy.max_iter + 1):
+        P_W, J = model.machine_points(theta, fixed, jacobian=True)
+        r = meas - lt.to_tracker(P_W, pose)
+        w = np.einsum("nmij,nmj->nmi", Wh, r).reshape(N, -1)
+        A = _design(P_W, J, pose, Wh, Q, sv)
+        AtA = np.einsum("nki,nkj->nij", A, A)
+        Atr = np.einsum("nki,nk->ni", A, w)
+        try:
+            L = np.linalg.cholesky(AtA)
+            z = np.linalg.solve(np.swapaxes(L, 1, 2), np.linalg.solve(L, Atr[..., None]))[..., 0]
+        except np.linalg.LinAlgError:
+            z = np.stack([np.linalg.lstsq(AtA[n], Atr[n], rcond=None)[0] for n in range(N)])
+        z[conv] = 0.0
+        c0 = (w**2).sum(axis=1)
+        step = 1.0
+        new_pose = pose + z[:, :6] / POSE_SCALE
+        new_theta = theta + (z[:, 6:] @ Q.T) / sv
+        c1 = cost(new_theta, new_pose)
+        # step halving for the (rare) trials whose cost went up
+        worse = c1 > c0 * (1 + 1e-12) + 1e-300
+        k = 0
+        while worse.any() and k < 20:
+            step *= 0.5
+            k += 1
+            zz = z[worse] * step
+            new_pose[worse] = pose[worse] + zz[:, :6] / POSE_SCALE
+            new_theta[worse] = theta[worse] + (zz[:, 6:] @ Q.T) / sv
+            c1 = cost(new_theta, new_pose)
+            worse = c1 > c0 * (1 + 1e-12) + 1e-300
+        pose, theta = new_pose, new_theta
+        small = (np.abs(z).max(axis=1) * step < strategy.xtol) | (c0 - c1 <= strategy.ftol * c0)
+        conv |= small
+        if conv.all():
+            break
+    return pose, {"theta": theta, "iterations": it, "converged": conv}

@@ -1,0 +1,404 @@
+"""The one kinematic chain of a 3-axis machine tool (paper Eq. 1-2, 5-9, 15-20).
+
+Configuration codes follow the paper: letters left of ``F`` move the
+workpiece, letters right of it move the tool, and the letter next to ``F`` is
+the axis mounted on the bed.  ``XFYZ`` (the paper's machine) has the X
+carriage carrying the part, Y on the bed carrying Z, Z carrying the tool.
+
+Conventions (all internal units: mm, rad):
+
+* Each axis ``k`` is a carriage with a translation vector ``t_k`` and a
+  rotation ``R_k`` (Eq. 6: ``R_k = I + [eps_k]x``, or the exact rotation
+  ``expm([eps_k]x)`` when ``exact=True``).
+* ``t_k = s_k * d_k + delta_k`` where ``s_k`` is +1 for tool-side axes and -1
+  for workpiece-side axes, ``delta_k = (dx(k), dy(k), dz(k))`` are the carriage's
+  own translational errors and ``d_k`` the commanded relative displacement
+  including squareness: ``d_x = (p_x, 0, 0)``, ``d_y = (-p_y s_xy, p_y, 0)``,
+  ``d_z = (-p_z s_xz, -p_z s_yz, p_z)`` (Eq. 7-9, 16-17).  X is the squareness
+  reference.  For XFYZ this is exactly the paper's X, Y, Z vectors.
+* ``p_k`` is the effective axis position: ``(p + offset) * (1 + scale)``
+  (Eq. 15: backlash, repeatability and control add to the position, thermal
+  expansion scales it about the axis zero).
+* Tool point: ``P = A_1(A_2(...A_n(T)))`` over the tool-side axes, ``A(v) = R v + t``;
+  workpiece frame: ``P_W = B_m^-1(...B_1^-1(P))``, ``B^-1(v) = R^-1 (v - t)``.
+  For XFYZ: ``P_W = R_X^-1 (R_Y (R_Z T + Z) + Y - X)``, the bracket of Eq. 2.
+
+Every component error is an approximation function of its own axis position:
+Legendre polynomials P1..Pn of the position normalised to [-1, 1] over the
+measured range (the recordings' ``truth.json`` convention).  Constant terms
+are never modelled (they are indistinguishable from the tracker pose).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.polynomial import legendre as npleg
+
+from .errors import ConfigError
+
+AXES = ("x", "y", "z")
+AXIS_INDEX = {"x": 0, "y": 1, "z": 2}
+#: names of the 18 component errors, in parameter order ("dy(x)": straightness of X in Y)
+COMPONENT_ERRORS = tuple(f"{kind}{c}({a})" for a in AXES for kind in ("d", "e") for c in AXES)
+SQUARENESS = ("sxy", "sxz", "syz")
+
+
+def parse_error_name(name: str):
+    """Split ``"dy(x)"`` into ``("d", "y", "x")``."""
+    if name not in COMPONENT_ERRORS:
+        raise ConfigError(f"unknown component error {name!r}; expected one of {', '.join(COMPONENT_ERRORS)}")
+    return name[0], name[1], name[3]
+
+
+def is_straightness(name: str) -> bool:
+    kind, comp, axis = parse_error_name(name)
+    return kind == "d" and comp != axis
+
+
+@dataclass(frozen=True)
+class Configuration:
+    """A 3-axis kinematic configuration such as ``XFYZ``."""
+
+    code: str
+    workpiece: tuple  # workpiece-side axes, the one on the bed first
+    tool: tuple  # tool-side axes, the one on the bed first
+
+    @classmethod
+    def parse(cls, code: str) -> "Configuration":
+        c = str(code).strip().upper()
+        if sorted(c) != sorted("FXYZ"):
+            raise ConfigError(
+                f"machine configuration {code!r}: expected the letters X, Y, Z and F once each "
+                "(for example XFYZ, FXYZ, XYFZ)"
+            )
+        i = c.index("F")
+        workpiece = tuple(ch.lower() for ch in reversed(c[:i]))
+        tool = tuple(ch.lower() for ch in c[i + 1 :])
+        return cls(c, workpiece, tool)
+
+    def side(self, axis: str) -> int:
+        """+1 for a tool-side axis, -1 for a workpiece-side axis."""
+        return 1 if axis in self.tool else -1
+
+
+ALL_CONFIGURATIONS = tuple(
+    "".join(p) for p in __import__("itertools").permutations("FXYZ")
+)
+
+
+@dataclass
+class Param:
+    """One identifiable or simulated parameter of the error model."""
+
+    name: str  # e.g. "dy(x)[P2]" or "sxy"
+    unit: str  # "mm" or "rad"
+    error: str  # component error name or squareness name
+    order: int  # Legendre order (0 for squareness)
+
+
+@dataclass
+class ErrorModel:
+    """Parameterisation of the 21 rigid-body errors.
+
+    ``degrees`` maps each component error to its Legendre degree (0 = not
+    modelled).  ``ranges`` gives each axis' normalisation interval.  With
+    ``straightness_convention="iso230"`` the P1 term of each straightness
+    error is left out: its linear part is carried by squareness and the
+    tracker rotation, which the data cannot tell apart from it (the
+    reporting convention of mtbudget, see docs/identification.md).
+    """
+
+    ranges: dict
+    degrees: dict
+    squareness: bool = True
+    straightness_convention: str = "iso230"  # or "free"
+    params: list = field(init=False)
+
+    def __post_init__(self):
+        for name in self.degrees:
+            parse_error_name(name)
+        for a in AXES:
+            lo, hi = self.ranges[a]
+            used = any(int(d) > 0 for n, d in self.degrees.items() if n[3] == a)
+            if used and not hi > lo:
+                raise ConfigError(f"axis {a}: measured range [{lo}, {hi}] mm is empty; cannot normalise its error functions")
+        if self.straightness_convention not in ("iso230", "free"):
+            raise ConfigError("straightness_convention must be 'iso230' or 'free'")
+        self.params = []
+        for name in COMPONENT_ERRORS:
+            deg = int(self.degrees.get(name, 0))
+            if deg < 0:
+                raise ConfigError(f"{name}: degree must be >= 0, got {deg}")
+            first = 2 if (self.straightness_convention == "iso230" and is_straightness(name)) else 1
+            unit = "mm" if name[0] == "d" else "rad"
+            for n in range(first, deg + 1):
+                self.params.append(Param(f"{name}[P{n}]", unit, name, n))
+        if self.squareness:
+            for s in SQUARENESS:
+                self.params.append(Param(s, "rad", s, 0))
+
+    @classmethod
+    def default(cls, nominal: np.ndarray, max_degree: int = 3, **kw) -> "ErrorModel":
+        """Degrees ``min(max_degree, distinct positions - 1)`` per axis, ranges from the data."""
+        nominal = np.asarray(nominal, float)
+        ranges, degrees = {}, {}
+        for a in AXES:
+            col = nominal[:, AXIS_INDEX[a]]
+            ranges[a] = (float(col.min()), float(col.max()))
+            npos = len(np.unique(np.round(col, 6)))
+            deg = max(0, min(max_degree, npos - 1))
+            for kind in "de":
+                for c in AXES:
+                    degrees[f"{kind}{c}({a})"] = deg
+        return cls(ranges=ranges, degrees=degrees, **kw)
+
+    @property
+    def names(self):
+        return [p.name for p in self.params]
+
+    @property
+    def units(self):
+        return [p.unit for p in self.params]
+
+    def index(self, name: str) -> int:
+        return self.names.index(name)
+
+    def normalised(self, axis: str, positions) -> np.ndarray:
+        lo, hi = self.ranges[axis]
+        half = 0.5 * (hi - lo) if hi > lo else 1.0
+        return (np.asarray(positions, float) - 0.5 * (lo + hi)) / half
+
+    def basis(self, nominal: np.ndarray) -> np.ndarray:
+        """Basis value of every parameter at every point: (M, p).
+
+        Squareness columns are 0 here (they act through the effective
+        positions, see :func:`chain`).
+        """
+        nominal = np.asarray(nominal, float)
+        M = nominal.shape[0]
+        B = np.zeros((M, len(self.params)))
+        cache = {}
+        for j, p in enumerate(self.params):
+            if p.order == 0:
+                continue
+            axis = p.error[3]
+            if axis not in cache:
+                cache[axis] = self.normalised(axis, nominal[:, AXIS_INDEX[axis]])
+            coef = np.zeros(p.order + 1)
+            coef[p.order] = 1.0
+            B[:, j] = npleg.legval(cache[axis], coef)
+        return B
+
+    def from_coefficients(self, coefficients: dict, squareness: dict | None = None) -> np.ndarray:
+        """Parameter vector from ``{"dx(x)": [P1, P2, ...]}`` (mm / rad) and squareness (rad).
+
+        Terms that the model does not carry (a degree lower than given, or the
+        P1 of a straightness under the iso230 convention) must be zero;
+        otherwise a :class:`ConfigError` says which.
+        """
+        theta = np.zeros(len(self.params))
+        names = self.names
+        for err, coefs in coefficients.items():
+            parse_error_name(err)
+            for n, value in enumerate(coefs, start=1):
+                key = f"{err}[P{n}]"
+                if key in names:
+                    theta[names.index(key)] = value
+                elif value != 0.0:
+                    raise ConfigError(f"{key} = {value} is not a parameter of this error model (degree or convention)")
+        for s, value in (squareness or {}).items():
+            if s not in SQUARENESS:
+                raise ConfigError(f"unknown squareness {s!r}; expected one of {SQUARENESS}")
+            if s in names:
+                theta[names.index(s)] = value
+            elif value != 0.0:
+                raise ConfigError(f"squareness {s} is not modelled")
+        return theta
+
+    def coefficients(self, theta: np.ndarray) -> tuple[dict, dict]:
+        """Inverse of :meth:`from_coefficients` for one parameter vector."""
+        coefs, sq = {}, {}
+        for j, p in enumerate(self.params):
+            if p.order == 0:
+                sq[p.error] = float(theta[j])
+            else:
+                lst = coefs.setdefault(p.error, [0.0] * int(self.degrees[p.error]))
+                lst[p.order - 1] = float(theta[j])
+        return coefs, sq
+
+
+def skew_basis() -> np.ndarray:
+    """K[c] with K[c] @ v = e_c x v (so I + sum eps_c K[c] is the paper's Eq. 6)."""
+    K = np.zeros((3, 3, 3))
+    K[0] = [[0, 0, 0], [0, 0, -1], [0, 1, 0]]
+    K[1] = [[0, 0, 1], [0, 0, 0], [-1, 0, 0]]
+    K[2] = [[0, -1, 0], [1, 0, 0], [0, 0, 0]]
+    return K
+
+
+_K = skew_basis()
+
+
+def rotation_small(eps: np.ndarray) -> np.ndarray:
+    """Eq. 6: ``I + [eps]x`` for eps (..., 3)."""
+    R = np.einsum("...c,cij->...ij", eps, _K)
+    R[..., 0, 0] += 1.0
+    R[..., 1, 1] += 1.0
+    R[..., 2, 2] += 1.0
+    return R
+
+
+def rotation_exact(eps: np.ndarray) -> np.ndarray:
+    """Exact rotation ``expm([eps]x)`` (Rodrigues) for eps (..., 3)."""
+    th = np.linalg.norm(eps, axis=-1)[..., None, None]
+    S = np.einsum("...c,cij->...ij", eps, _K)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        a = np.where(th > 1e-12, np.sin(th) / np.where(th > 0, th, 1), 1.0 - th**2 / 6)
+        b = np.where(th > 1e-12, (1 - np.cos(th)) / np.where(th > 0, th, 1) ** 2, 0.5 - th**2 / 24)
+    return np.eye(3) + a * S + b * (S @ S)
+
+
+@dataclass
+class ChainInputs:
+    """Per-point inputs of the chain, internal units.
+
+    nominal: (M, 3) commanded axis positions; tool: (M, 3) tool offset T;
+    offset / scale: dict axis -> array broadcastable to (N, M) added to the
+    position / relative scale error of the axis (Eq. 15).
+    """
+
+    nominal: np.ndarray
+    tool: np.ndarray
+    offset: dict = field(default_factory=dict)
+    scale: dict = field(default_factory=dict)
+
+    def effective(self, axis: str) -> np.ndarray:
+        p = self.nominal[:, AXIS_INDEX[axis]][None, :]
+        off = self.offset.get(axis)
+        if off is not None:
+            p = p + np.asarray(off)
+        sc = self.scale.get(axis)
+        if sc is not None:
+            p = p * (1.0 + np.asarray(sc))
+        return np.atleast_2d(p)
+
+
+def _axis_terms(model: ErrorModel, theta: np.ndarray, B: np.ndarray):
+    """Translational and angular errors per axis: dict axis -> (delta (N,M,3), eps (N,M,3))."""
+    N = theta.shape[0]
+    M = B.shape[0]
+    out = {a: [np.zeros((N, M, 3)), np.zeros((N, M, 3))] for a in AXES}
+    # group parameters by component error for one matmul each
+    groups: dict = {}
+    for j, p in enumerate(model.params):
+        if p.order:
+            groups.setdefault(p.error, []).append(j)
+    for err, idx in groups.items():
+        kind, comp, axis = err[0], AXIS_INDEX[err[1]], err[3]
+        vals = theta[:, idx] @ B[:, idx].T  # (N, M)
+        out[axis][0 if kind == "d" else 1][:, :, comp] += vals
+    return out
+
+
+def _squareness(model: ErrorModel, theta: np.ndarray):
+    names = model.names
+    return {s: (theta[:, names.index(s)][:, None] if s in names else 0.0) for s in SQUARENESS}
+
+
+def chain(
+    config: Configuration,
+    model: ErrorModel,
+    theta: np.ndarray,
+    inputs: ChainInputs,
+    *,
+    exact: bool = False,
+    jacobian: bool = False,
+    B: np.ndarray | None = None,
+):
+    """Tool point in the workpiece frame for N parameter vectors.
+
+    theta: (N, p) or (p,).  Returns P_W (N, M, 3), and with ``jacobian=True``
+    also dP_W/dtheta (N, M, 3, p), exact for the Eq. 6 small-angle chain
+    (``exact=False``).
+    """
+    theta = np.atleast_2d(np.asarray(theta, float))
+    N, M = theta.shape[0], inputs.nominal.shape[0]
+    if B is None:
+        B = model.basis(inputs.nominal)
+    terms = _axis_terms(model, theta, B)
+    sq = _squareness(model, theta)
+    rot = rotation_exact if exact else rotation_small
+    t, R, peff = {}, {}, {}
+    for a in AXES:
+        p = np.broadcast_to(inputs.effective(a), (N, M))
+        peff[a] = p
+        d = np.zeros((N, M, 3))
+        d[:, :, AXIS_INDEX[a]] = p
+        if a == "y":
+            d[:, :, 0] -= p * sq["sxy"]
+        elif a == "z":
+            d[:, :, 0] -= p * sq["sxz"]
+            d[:, :, 1] -= p * sq["syz"]
+        t[a] = config.side(a) * d + terms[a][0]
+        R[a] = rot(terms[a][1])
+    # tool side: P = A_1(A_2(...A_n(T)))
+    v = np.broadcast_to(np.asarray(inputs.tool, float), (N, M, 3)).copy()
+    v_in = {}
+    for a in reversed(config.tool):
+        v_in[a] = v
+        v = np.einsum("nmij,nmj->nmi", R[a], v) + t[a]
+    P = v
+    # workpiece side: P_W = B_m^-1(...B_1^-1(P))
+    w = P
+    Rinv, w_out = {}, {}
+    for a in config.workpiece:
+        Rinv[a] = np.linalg.inv(R[a])
+        w = np.einsum("nmij,nmj->nmi", Rinv[a], w - t[a])
+        w_out[a] = w
+    if not jacobian:
+        return w
+    if exact:
+        raise ValueError("the analytic Jacobian is defined for the Eq. 6 small-angle chain only")
+
+    eye = np.broadcast_to(np.eye(3), (N, M, 3, 3))
+    # M_W = R_bm^-1 ... R_b1^-1 (dP_W/dP); suffix products for workpiece axes
+    MW = eye
+    suffix = {}
+    for a in reversed(config.workpiece):
+        suffix[a] = MW  # product of the inverses after axis a
+        MW = MW @ Rinv[a]
+    # tool side prefix products Q_i = R_1 ... R_{i-1}
+    dT, dE = {}, {}  # dP_W/dt_a (N,M,3,3), dP_W/deps_a (N,M,3,3)
+    Q = eye
+    for a in config.tool:
+        G = MW @ Q
+        dT[a] = G
+        dE[a] = np.stack([np.einsum("nmij,jk,nmk->nmi", G, _K[c], v_in[a]) for c in range(3)], axis=-1)
+        Q = Q @ R[a]
+    for a in config.workpiece:
+        G = suffix[a] @ Rinv[a]
+        dT[a] = -G
+        dE[a] = np.stack([-np.einsum("nmij,jk,nmk->nmi", G, _K[c], w_out[a]) for c in range(3)], axis=-1)
+    p = len(model.params)
+    J = np.zeros((N, M, 3, p))
+    for j, par in enumerate(model.params):
+        if par.order:
+            kind, comp, axis = par.error[0], AXIS_INDEX[par.error[1]], par.error[3]
+            G = dT[axis] if kind == "d" else dE[axis]
+            J[..., j] = G[..., comp] * B[None, :, j, None]
+        else:
+            s = config.side
+            if par.error == "sxy":
+                J[..., j] = dT["y"][..., 0] * (-s("y") * peff["y"])[..., None]
+            elif par.error == "sxz":
+                J[..., j] = dT["z"][..., 0] * (-s("z") * peff["z"])[..., None]
+            else:
+                J[..., j] = dT["z"][..., 1] * (-s("z") * peff["z"])[..., None]
+    return w, J
+
+
+def nominal_point(inputs: ChainInputs) -> np.ndarray:
+    """Error-free tool point in the workpiece frame: nominal + tool offset (M, 3)."""
+    return np.asarray(inputs.nominal, float) + np.asarray(inputs.tool, float)

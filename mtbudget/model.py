@@ -1,0 +1,129 @@
+"""The measurement model: machine chain + tracker, shared by simulation, identification and diagnosis.
+
+:class:`MeasurementModel` binds a kinematic configuration, an error model and
+a plan.  Its :meth:`predict` maps (geometric parameters, tracker pose,
+perturbations) to tracker coordinates for N trials at once; every
+uncertainty source, every simulated effect and every diagnosis candidate
+acts through one of the :data:`MODEL_INPUTS` below.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from . import tracker as lt
+from .errors import ConfigError
+from .machine import AXES, AXIS_INDEX, ChainInputs, Configuration, ErrorModel, chain
+from .plan import Plan
+
+#: every model input a perturbation may target: key -> (internal unit, shape after the trial axis)
+#: ("M" is the number of measured points, "p" the number of geometric parameters)
+MODEL_INPUTS = {
+    "axis_offset.x": ("mm", ("M",)),
+    "axis_offset.y": ("mm", ("M",)),
+    "axis_offset.z": ("mm", ("M",)),
+    "axis_scale.x": ("", ("M",)),
+    "axis_scale.y": ("", ("M",)),
+    "axis_scale.z": ("", ("M",)),
+    "geometry": ("", ("p",)),  # parameter vector in mm / rad, see ErrorModel.params
+    "pose": ("", (6,)),  # D, L, H (mm), a, b, d (rad)
+    "point_offset": ("mm", ("M", 3)),  # machine (workpiece) frame
+    "tracker_offset": ("mm", ("M", 3)),  # tracker frame
+    "spherical_noise": ("", ("M", 3)),  # range (mm), azimuth (rad), elevation (rad)
+}
+
+
+@dataclass
+class MeasurementModel:
+    config: Configuration
+    errors: ErrorModel
+    plan: Plan
+
+    def __post_init__(self):
+        self.inputs = ChainInputs(self.plan.nominal, self.plan.tool)
+        self.B = self.errors.basis(self.plan.nominal)
+
+    @classmethod
+    def for_plan(cls, machine: str, plan: Plan, max_degree: int = 3, **kw) -> "MeasurementModel":
+        return cls(Configuration.parse(machine), ErrorModel.default(plan.nominal, max_degree=max_degree, **kw), plan)
+
+    @property
+    def n_points(self) -> int:
+        return len(self.plan)
+
+    @property
+    def n_params(self) -> int:
+        return len(self.errors.params)
+
+    def shape_of(self, key: str) -> tuple:
+        unit, shape = MODEL_INPUTS[key]
+        return tuple(self.n_points if s == "M" else self.n_params if s == "p" else s for s in shape)
+
+    def machine_points(self, theta, perturbations: dict | None = None, *, exact=False, jacobian=False):
+        """Tool points in the workpiece frame (N, M, 3) (and dP_W/dtheta)."""
+        pert = perturbations or {}
+        theta = np.atleast_2d(np.asarray(theta, float))
+        if "geometry" in pert:
+            theta = theta + pert["geometry"]
+        inp = ChainInputs(
+            self.plan.nominal, self.plan.tool,
+            offset={a: pert[f"axis_offset.{a}"] for a in AXES if f"axis_offset.{a}" in pert},
+            scale={a: pert[f"axis_scale.{a}"] for a in AXES if f"axis_scale.{a}" in pert},
+        )
+        out = chain(self.config, self.errors, theta, inp, exact=exact, jacobian=jacobian, B=self.B)
+        if "point_offset" in pert:
+            if jacobian:
+                out = (out[0] + pert["point_offset"], out[1])
+            else:
+                out = out + pert["point_offset"]
+        return out
+
+    def predict(self, theta, pose, perturbations: dict | None = None, *, exact=False) -> np.ndarray:
+        """Tracker coordinates (N, M, 3) of every point."""
+        pert = perturbations or {}
+        pose = np.atleast_2d(np.asarray(pose, float))
+        if "pose" in pert:
+            pose = pose + pert["pose"]
+        P_W = self.machine_points(theta, pert, exact=exact)
+        P = lt.to_tracker(P_W, pose)
+        if "spherical_noise" in pert:
+            P = lt.add_spherical_noise(P, pert["spherical_noise"])
+        if "tracker_offset" in pert:
+            P = P + pert["tracker_offset"]
+        return P
+
+    def covariance(self, P_LT, angular, distance, distance_per_length, repeatability) -> np.ndarray:
+        """Per-point covariance (…, M, 3, 3) in the tracker frame: tracker noise + machine repeatability."""
+        C = lt.covariance(P_LT, angular, distance, distance_per_length)
+        return C + (np.asarray(repeatability) ** 2)[..., None, None] * np.eye(3)
+
+
+def thermal_scale(plan: Plan, cte: dict, reference: float) -> dict:
+    """``axis_scale`` perturbations of a thermal expansion ``{axis: CTE (1/K)}``."""
+    return {f"axis_scale.{a}": (c * (plan.axis_temperature(a, reference) - reference))[None, :]
+            for a, c in cte.items() if c}
+
+
+def reversal_offset(plan: Plan, reversal: dict) -> dict:
+    """``axis_offset`` of a reversal ``{axis: B (mm)}``: the axis stops B/2 short of its target."""
+    return {f"axis_offset.{a}": (-plan.direction[:, AXIS_INDEX[a]] * b / 2.0)[None, :]
+            for a, b in reversal.items() if b}
+
+
+def drift_offset(plan: Plan, velocity) -> dict:
+    """``point_offset`` of an apparent drift velocity (mm/s) in the machine frame."""
+    v = np.asarray(velocity, float)
+    return {"point_offset": (plan.time[:, None] * v[None, :])[None]}
+
+
+def merge(*perts: dict) -> dict:
+    """Sum perturbation dictionaries key by key (broadcasting over trials)."""
+    out: dict = {}
+    for p in perts:
+        for k, v in p.items():
+            if k not in MODEL_INPUTS:
+                raise ConfigError(f"unknown model input {k!r}; expected one of {', '.join(MODEL_INPUTS)}")
+            out[k] = out[k] + v if k in out else v
+    return out

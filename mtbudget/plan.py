@@ -1,0 +1,147 @@
+"""The verification plan: mesh, passes, approach directions, tool offsets, timing (Eq. 4).
+
+A :class:`Plan` holds, per measured point (internal units): the mesh point
+index, the run (pass), the time, the nominal axis positions, the approach
+direction of each axis, the tool offset and the temperature of every sensor.
+Recordings and simulations share it.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .errors import ConfigError
+from .machine import AXES, AXIS_INDEX
+
+T20 = 293.15  # K
+
+
+@dataclass
+class Sensor:
+    """A temperature sensor column and what it is attached to."""
+
+    column: str
+    attached_to: str  # "x axis", "y axis", "z axis" or "air"
+    position: float | None = None  # mm along its axis (for interpolation); None = whole axis
+
+    @property
+    def axis(self) -> str | None:
+        s = self.attached_to.strip().lower()
+        return s[0] if s in ("x axis", "y axis", "z axis") else None
+
+
+@dataclass
+class Plan:
+    point: np.ndarray  # (M,) int
+    run: np.ndarray  # (M,) int
+    time: np.ndarray  # (M,) s
+    nominal: np.ndarray  # (M, 3) mm
+    direction: np.ndarray  # (M, 3) +1/-1
+    tool: np.ndarray  # (M, 3) mm
+    temperature: dict = field(default_factory=dict)  # column -> (M,) K
+    sensors: list = field(default_factory=list)
+
+    def __len__(self):
+        return len(self.point)
+
+    def axis_temperature(self, axis: str, reference: float = T20) -> np.ndarray:
+        """Temperature of an axis at each point (K).
+
+        Sensors attached to the axis with a ``position`` are interpolated
+        linearly along the axis (the paper's assumption); sensors without one
+        are averaged.  With no sensor on the axis the reference is returned.
+        """
+        sens = [s for s in self.sensors if s.axis == axis and s.column in self.temperature]
+        if not sens:
+            return np.full(len(self), reference)
+        placed = sorted([s for s in sens if s.position is not None], key=lambda s: s.position)
+        if len(placed) >= 2:
+            pos = self.nominal[:, AXIS_INDEX[axis]]
+            xs = np.array([s.position for s in placed])
+            T = np.stack([self.temperature[s.column] for s in placed], axis=1)  # (M, S)
+            k = np.clip(np.searchsorted(xs, pos) - 1, 0, len(xs) - 2)
+            f = np.clip((pos - xs[k]) / (xs[k + 1] - xs[k]), 0.0, 1.0)
+            rows = np.arange(len(self))
+            return T[rows, k] * (1 - f) + T[rows, k + 1] * f
+        return np.mean([self.temperature[s.column] for s in sens], axis=0)
+
+    def subset(self, mask) -> "Plan":
+        return Plan(
+            self.point[mask], self.run[mask], self.time[mask], self.nominal[mask], self.direction[mask],
+            self.tool[mask], {k: v[mask] for k, v in self.temperature.items()}, list(self.sensors),
+        )
+
+
+def mesh(ranges: dict, step: dict | float) -> np.ndarray:
+    """Grid of nominal positions, x fastest (the recordings' order): (M, 3)."""
+    axes = []
+    for a in AXES:
+        lo, hi = ranges[a]
+        st = step[a] if isinstance(step, dict) else step
+        if st <= 0:
+            raise ConfigError(f"mesh step of axis {a} must be positive, got {st} mm")
+        n = int(round((hi - lo) / st)) + 1
+        if n < 1 or abs(lo + (n - 1) * st - hi) > 1e-6 * max(1.0, abs(hi)):
+            raise ConfigError(f"mesh axis {a}: range {lo}..{hi} mm is not a whole number of {st} mm steps")
+        axes.append(lo + st * np.arange(n))
+    zz, yy, xx = np.meshgrid(axes[2], axes[1], axes[0], indexing="ij")
+    return np.stack([xx.ravel(), yy.ravel(), zz.ravel()], axis=1)
+
+
+def build_plan(
+    points: np.ndarray,
+    tools: list,
+    runs: int = 2,
+    feed: float = 2000.0 / 60.0,
+    stop_time: float = 12.0,
+    tool_change_time: float = 120.0,
+    start_direction: float = 1.0,
+) -> Plan:
+    """Sequence the mesh into passes and time it with Eq. 4.
+
+    Each run visits every point once per tool offset; even runs go through
+    the mesh in reverse order (passes alternate direction).  The time of the
+    i-th measurement is ``L_T(i)/F + T_s * i`` (Eq. 4, ``L_T`` the path length
+    travelled so far) plus a tool-change time between tool offsets.  The
+    approach direction of an axis is the sign of its last move (it keeps the
+    previous sign when the axis does not move); it starts at
+    ``start_direction``.
+    """
+    points = np.asarray(points, float)
+    if feed <= 0 or stop_time < 0:
+        raise ConfigError("feed must be > 0 and stop time >= 0")
+    M0 = len(points)
+    rows_point, rows_run, rows_tool = [], [], []
+    for r in range(1, runs + 1):
+        order = np.arange(M0) if r % 2 == 1 else np.arange(M0)[::-1]
+        for tool in tools:
+            rows_point.append(order)
+            rows_run.append(np.full(M0, r))
+            rows_tool.append(np.tile(np.asarray(tool, float), (M0, 1)))
+    point = np.concatenate(rows_point)
+    run = np.concatenate(rows_run)
+    tool = np.concatenate(rows_tool)
+    nominal = points[point]
+    M = len(point)
+    time = np.zeros(M)
+    direction = np.zeros((M, 3))
+    last_dir = np.full(3, float(start_direction))
+    t = 0.0
+    for i in range(M):
+        if i > 0:
+            move = nominal[i] - nominal[i - 1]
+            t += np.linalg.norm(move) / feed + stop_time
+            if np.any(tool[i] != tool[i - 1]):
+                t += tool_change_time
+            nz = move != 0
+            last_dir[nz] = np.sign(move[nz])
+        time[i] = t
+        direction[i] = last_dir
+    return Plan(point.astype(int), run.astype(int), time, nominal, direction, tool)
+
+
+def verification_time(path_length: float, feed: float, stop_time: float, n: int) -> float:
+    """Eq. 4: ``T_v = L_T / F + T_s (n - 1)``."""
+    return path_length / feed + stop_time * (n - 1)

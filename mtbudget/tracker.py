@@ -1,0 +1,181 @@
+"""The one laser-tracker model: pose (paper Eq. 21-22), spherical measurement, noise.
+
+Pose: the tracker frame in the machine (workpiece) frame is given by the
+translation ``T_LT = (D, L, H)`` (Eq. 21) and the rotation ``R_LT(a, b, d)``
+of Eq. 22.  A point ``P_W`` in the workpiece frame is seen by the tracker at
+``P_LT = R_LT^T (P_W - T_LT)`` (the outer part of Eq. 2).
+
+Measurement: the tracker measures range ``r``, azimuth ``az`` (about its own z
+axis, from x) and elevation ``el`` (from its xy plane).  Noise is normal with
+``u_r = a + b r`` and the same angular standard uncertainty for both angles.
+The Cartesian covariance is ``J diag(u_r^2, u_az^2, u_el^2) J^T`` with the
+exact Jacobian of the spherical-to-Cartesian map.
+
+About the paper's Eq. 23: its rows are the diagonal of that same product
+when its ``theta`` is read as the polar angle from the z axis and ``phi`` as
+the azimuth (the text names them the other way round), and it drops the
+off-diagonal covariances.  Eq. 24 (the trace) is unaffected; a weighted fit
+that used only the diagonal would mis-weight points whose beam is not along
+a machine axis.  ``tests/test_tracker.py`` shows both facts numerically.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+POSE_NAMES = ("D", "L", "H", "a", "b", "d")
+POSE_UNITS = ("mm", "mm", "mm", "rad", "rad", "rad")
+
+
+def rotation(a, b, d) -> np.ndarray:
+    """Eq. 22 rotation matrix, vectorised over the shapes of a, b, d: (..., 3, 3)."""
+    a, b, d = np.broadcast_arrays(np.asarray(a), np.asarray(b), np.asarray(d))
+    ca, sa, cb, sb, cd, sd = np.cos(a), np.sin(a), np.cos(b), np.sin(b), np.cos(d), np.sin(d)
+    R = np.empty(a.shape + (3, 3), dtype=np.result_type(a, float))
+    R[..., 0, 0] = cb * cd
+    R[..., 0, 1] = -cb * sd
+    R[..., 0, 2] = sb
+    R[..., 1, 0] = ca * sd + sa * sb * cd
+    R[..., 1, 1] = ca * cd - sa * sb * sd
+    R[..., 1, 2] = -sa * cb
+    R[..., 2, 0] = sa * sd - ca * sb * cd
+    R[..., 2, 1] = sa * cd + ca * sb * sd
+    R[..., 2, 2] = ca * cb
+    return R
+
+
+def euler_from_rotation(R: np.ndarray) -> np.ndarray:
+    """Angles (a, b, d) of Eq. 22 from a rotation matrix (..., 3, 3); |b| < pi/2."""
+    b = np.arcsin(np.clip(R[..., 0, 2], -1.0, 1.0))
+    d = np.arctan2(-R[..., 0, 1], R[..., 0, 0])
+    a = np.arctan2(-R[..., 1, 2], R[..., 2, 2])
+    return np.stack([a, b, d], axis=-1)
+
+
+def to_tracker(P_W: np.ndarray, pose: np.ndarray) -> np.ndarray:
+    """Points (N, M, 3) in the workpiece frame to the tracker frame, pose (N, 6)."""
+    pose = np.atleast_2d(pose)
+    R = rotation(pose[:, 3], pose[:, 4], pose[:, 5])
+    return np.einsum("nij,nmi->nmj", R, P_W - pose[:, None, :3])
+
+
+def to_machine(P_LT: np.ndarray, pose: np.ndarray) -> np.ndarray:
+    """Inverse of :func:`to_tracker`."""
+    pose = np.atleast_2d(pose)
+    R = rotation(pose[:, 3], pose[:, 4], pose[:, 5])
+    return np.einsum("nij,nmj->nmi", R, P_LT) + pose[:, None, :3]
+
+
+def pose_jacobian(P_W: np.ndarray, pose: np.ndarray) -> np.ndarray:
+    """d P_LT / d pose (N, M, 3, 6), exact (angle derivatives by complex step)."""
+    pose = np.atleast_2d(pose)
+    N, M = P_W.shape[:2]
+    R = rotation(pose[:, 3], pose[:, 4], pose[:, 5])
+    J = np.empty((N, M, 3, 6))
+    J[..., :3] = -np.swapaxes(R, 1, 2)[:, None, :, :]
+    h = 1e-30
+    diff = P_W - pose[:, None, :3]
+    for k in range(3):
+        ang = pose[:, 3:].astype(complex)
+        ang[:, k] += 1j * h
+        dR = rotation(ang[:, 0], ang[:, 1], ang[:, 2]).imag / h
+        J[..., 3 + k] = np.einsum("nij,nmi->nmj", dR, diff)
+    return J
+
+
+def spherical(P_LT: np.ndarray):
+    """(r, azimuth, elevation) of Cartesian tracker points (..., 3)."""
+    x, y, z = P_LT[..., 0], P_LT[..., 1], P_LT[..., 2]
+    rho = np.hypot(x, y)
+    return np.hypot(rho, z), np.arctan2(y, x), np.arctan2(z, rho)
+
+
+def cartesian(r, az, el) -> np.ndarray:
+    ce = np.cos(el)
+    return np.stack([r * ce * np.cos(az), r * ce * np.sin(az), r * np.sin(el)], axis=-1)
+
+
+def spherical_jacobian(P_LT: np.ndarray) -> np.ndarray:
+    """d(x, y, z)/d(r, az, el) at the points: (..., 3, 3)."""
+    r, az, el = spherical(P_LT)
+    ca, sa, ce, se = np.cos(az), np.sin(az), np.cos(el), np.sin(el)
+    J = np.empty(P_LT.shape[:-1] + (3, 3))
+    J[..., 0, 0], J[..., 0, 1], J[..., 0, 2] = ce * ca, -r * ce * sa, -r * se * ca
+    J[..., 1, 0], J[..., 1, 1], J[..., 1, 2] = ce * sa, r * ce * ca, -r * se * sa
+    J[..., 2, 0], J[..., 2, 1], J[..., 2, 2] = se, 0.0, r * ce
+    return J
+
+
+def covariance(P_LT: np.ndarray, angular, distance, distance_per_length) -> np.ndarray:
+    """Cartesian covariance (..., 3, 3) of a tracker point, internal units.
+
+    angular: rad (both angles), distance: mm, distance_per_length: mm/mm.
+    """
+    r = np.linalg.norm(P_LT, axis=-1)
+    ur = np.asarray(distance) + np.asarray(distance_per_length) * r
+    ua = np.broadcast_to(np.asarray(angular, float), r.shape)
+    J = spherical_jacobian(P_LT)
+    S = np.stack([ur**2, ua**2, ua**2], axis=-1)
+    return np.einsum("...ij,...j,...kj->...ik", J, S, J)
+
+
+def eq23_variances(P_LT: np.ndarray, u_r, u_angle) -> np.ndarray:
+    """The paper's Eq. 23 as printed, theta = polar angle from z, phi = azimuth: (..., 3)."""
+    x, y, z = P_LT[..., 0], P_LT[..., 1], P_LT[..., 2]
+    r = np.linalg.norm(P_LT, axis=-1)
+    th = np.arccos(z / r)
+    ph = np.arctan2(y, x)
+    s2t, c2t, s2p, c2p = np.sin(th) ** 2, np.cos(th) ** 2, np.sin(ph) ** 2, np.cos(ph) ** 2
+    ur2, ut2, up2 = np.asarray(u_r) ** 2, np.asarray(u_angle) ** 2, np.asarray(u_angle) ** 2
+    ux2 = s2t * c2p * ur2 + r**2 * c2t * c2p * ut2 + r**2 * s2t * s2p * up2
+    uy2 = s2t * s2p * ur2 + r**2 * c2t * s2p * ut2 + r**2 * s2t * c2p * up2
+    uz2 = c2t * ur2 + r**2 * s2t * ut2
+    return np.stack([ux2, uy2, uz2], axis=-1)
+
+
+def add_spherical_noise(P_LT: np.ndarray, noise: np.ndarray) -> np.ndarray:
+    """Apply (dr, daz, del) offsets (..., 3) in spherical coordinates exactly."""
+    r, az, el = spherical(P_LT)
+    return cartesian(r + noise[..., 0], az + noise[..., 1], el + noise[..., 2])
+
+
+def smr_offset(P_LT: np.ndarray, lateral: np.ndarray) -> np.ndarray:
+    """Shift of the measured centre when the beam strikes the reflector off centre.
+
+    ``lateral`` (..., 2) are offsets (mm) in the plane perpendicular to the
+    beam (along the azimuth and elevation directions).
+    """
+    J = spherical_jacobian(P_LT)
+    e_az = J[..., :, 1] / np.linalg.norm(J[..., :, 1], axis=-1, keepdims=True)
+    e_el = J[..., :, 2] / np.linalg.norm(J[..., :, 2], axis=-1, keepdims=True)
+    return lateral[..., :1] * e_az + lateral[..., 1:2] * e_el
+
+
+def register(P_W: np.ndarray, P_LT: np.ndarray, weights: np.ndarray | None = None) -> np.ndarray:
+    """Closed-form rigid registration (Kabsch) of tracker points onto machine points.
+
+    Returns the pose (N, 6) such that ``to_tracker(P_W, pose) ~ P_LT``; used as
+    the starting point of every identification, so a tracker far from any
+    guess is still found.
+    """
+    P_W = np.asarray(P_W, float)
+    P_LT = np.asarray(P_LT, float)
+    if P_W.ndim == 2:
+        P_W = P_W[None]
+    N = P_LT.shape[0]
+    P_W = np.broadcast_to(P_W, P_LT.shape)
+    w = np.ones(P_LT.shape[:2]) if weights is None else np.broadcast_to(weights, P_LT.shape[:2])
+    w = w / w.sum(axis=1, keepdims=True)
+    cw = np.einsum("nm,nmi->ni", w, P_W)
+    cl = np.einsum("nm,nmi->ni", w, P_LT)
+    H = np.einsum("nm,nmi,nmj->nij", w, P_LT - cl[:, None], P_W - cw[:, None])
+    U, _, Vt = np.linalg.svd(H)
+    det = np.sign(np.linalg.det(np.einsum("nij,njk->nik", U, Vt)))
+    D = np.zeros((N, 3, 3))
+    D[:, 0, 0] = 1
+    D[:, 1, 1] = 1
+    D[:, 2, 2] = det
+    # R maps tracker-frame vectors to machine-frame vectors: P_W = R P_LT + T
+    R = np.einsum("nji,njk,nlk->nil", Vt, D, U)
+    T = cw - np.einsum("nij,nj->ni", R, cl)
+    return np.concatenate([T, euler_from_rotation(R)], axis=1)

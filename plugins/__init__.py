@@ -1,0 +1,1 @@
+"""Built-in plugins of mtbudget, installed under the import name mtbudget_plugins."""

@@ -1,0 +1,1 @@
+"""Built-in machine_tool plugins (see docs/plugins.md)."""

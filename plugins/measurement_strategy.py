@@ -1,0 +1,1 @@
+"""Built-in measurement_strategy plugins (see docs/plugins.md)."""

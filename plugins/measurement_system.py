@@ -1,0 +1,1 @@
+"""Built-in measurement_system plugins (see docs/plugins.md)."""

@@ -1,0 +1,1 @@
+"""Built-in optimisation_strategy plugins (see docs/plugins.md)."""

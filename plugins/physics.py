@@ -1,0 +1,1 @@
+"""Built-in physics plugins (see docs/plugins.md)."""

@@ -1,0 +1,57 @@
+"""The mtbudget command: --help everywhere, --version, and the main jobs end to end."""
+
+import json
+import subprocess
+import sys
+
+import pytest
+from click.testing import CliRunner
+
+from mtbudget import __version__
+from mtbudget.cli import main
+
+
+def all_commands(group=main, prefix=()):
+    for name, cmd in group.commands.items():
+        yield prefix + (name,)
+        if hasattr(cmd, "commands"):
+            yield from all_commands(cmd, prefix + (name,))
+
+
+@pytest.mark.parametrize("path", [()] + list(all_commands()), ids=lambda p: " ".join(p) or "mtbudget")
+def test_every_command_has_help(path):
+    res = CliRunner().invoke(main, list(path) + ["--help"])
+    assert res.exit_code == 0, res.output
+    assert "Usage:" in res.output
+    assert len(res.output.splitlines()) > 4
+
+
+def test_version():
+    res = CliRunner().invoke(main, ["--version"])
+    assert res.exit_code == 0 and __version__ in res.output
+
+
+def test_simulate_then_identify(tmp_path):
+    out = tmp_path / "sim"
+    res = CliRunner().invoke(main, ["simulate", "--out", str(out), "--seed", "3"])
+    assert res.exit_code == 0, res.output
+    assert (out / "points.csv").exists() and (out / "truth.json").exists()
+    assert "chi-square per dof" in res.output
+    res = CliRunner().invoke(main, ["identify", str(out), "--json"])
+    assert res.exit_code == 0, res.output
+    data = json.loads(res.output)
+    assert 0.8 < data["chi2_per_dof"] < 1.25
+    assert {p["unit"] for p in data["parameters"]} == {"um", "urad"}
+
+
+def test_bad_recording_is_one_line_error_not_a_traceback(tmp_path):
+    (tmp_path / "r").mkdir()
+    res = CliRunner().invoke(main, ["identify", str(tmp_path / "r")])
+    assert res.exit_code == 2
+    assert "Traceback" not in res.output
+    assert "recording.toml" in res.output
+
+
+def test_python_dash_m_entry_point():
+    res = subprocess.run([sys.executable, "-m", "mtbudget", "--version"], capture_output=True, text=True)
+    assert res.returncode == 0 and __version__ in res.stdout
