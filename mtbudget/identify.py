@@ -49,7 +49,8 @@ class Strategy:
 
     phases: list = field(default_factory=lambda: [list(GROUPS)])
     max_iter: int = 30
-    xtol: float = 1e-8  # convergence: largest step of any scaled parameter (um or urad) ...
+    xtol: float = 1e-4  # convergence: largest step of any scaled parameter (um or urad; Gauss-Newton
+    #                     converges quadratically here, so what remains after it is ~1e-10) ...
     ftol: float = 1e-12  # ... or a relative decrease of the weighted cost below this
     rank_tol: float = 1e-7  # singular values below rank_tol * largest are treated as null
     weighted: bool = True
@@ -249,28 +250,74 @@ def identify(
     theta0: np.ndarray | None = None,
     pose0: np.ndarray | None = None,
     fixed: dict | None = None,
+    chunk: int | None = None,
 ) -> Identification:
     """Identify pose and geometric errors for one or N trials.
 
     measured: (M, 3) or (N, M, 3) tracker coordinates (mm).
     theta0: initial geometric parameters (p,) or (N, p); non-identifiable
     directions keep their initial value (zero by default).
-    pose0: initial pose; by default the Kabsch registration of the nominal points.
-    fixed: perturbations known a priori (``MODEL_INPUTS`` keys), e.g. a thermal
-    scale that a diagnosis candidate asserts.
+    pose0: initial pose; by default the Kabsch registration of the predicted points.
+    fixed: perturbations known a priori (``MODEL_INPUTS`` keys, broadcastable
+    over trials), e.g. a thermal scale that a diagnosis candidate asserts.
+    chunk: trials solved together (default: about 8 MB of Jacobian per chunk, which
+    keeps the working set in cache; larger chunks are slower, not faster).
     """
     strategy = strategy or Strategy()
     meas = np.asarray(measured, float)
-    single = meas.ndim == 2
-    if single:
+    if meas.ndim == 2:
         meas = meas[None]
     _check_inputs(model, meas)
+    fixed = fixed or {}
+    for k in ("spherical_noise", "tracker_offset"):
+        if k in fixed:
+            raise IdentificationError(f"{k} cannot be a fixed perturbation in identification")
+    N, M = meas.shape[:2]
+    p = model.n_params
+
+    # identifiability of each phase (depends on the plan only, computed once)
+    phases = []
+    for phase in strategy.phases:
+        unknown = set(phase) - set(GROUPS)
+        if unknown:
+            raise IdentificationError(f"unknown parameter group(s) {sorted(unknown)} in strategy phase; expected {GROUPS}")
+        if "pose" not in phase:
+            raise IdentificationError("every phase must include the pose (the tracker pose is always unknown)")
+        active = np.array([group_of(par) in phase for par in model.errors.params])
+        ident = analyse(model, active, strategy.rank_tol)
+        if not ident.pose_identifiable:
+            raise IdentificationError("the plan's points do not fix the tracker pose (all points on a line)")
+        n_unknown = 6 + ident.identifiable
+        if 3 * M <= n_unknown:
+            raise IdentificationError(
+                f"too few points: {M} points give {3 * M} coordinates for {n_unknown} identifiable unknowns "
+                f"(no redundancy left); measure more points or lower the degrees of the error functions")
+        phases.append((active, ident, _range_basis(active, ident.null_space)))
+
+    theta0 = np.zeros((N, p)) if theta0 is None else np.broadcast_to(np.asarray(theta0, float), (N, p))
+    pose0 = None if pose0 is None else np.broadcast_to(np.asarray(pose0, float), (N, 6))
+    if chunk is None:
+        chunk = max(16, int(8e6 // (M * 3 * max(p, 1) * 8)))
+    parts = []
+    for lo in range(0, N, chunk):
+        sl = slice(lo, min(N, lo + chunk))
+        fx = {k: (v[sl] if np.ndim(v) and np.shape(v)[0] == N and N > 1 else v) for k, v in fixed.items()}
+        parts.append(_identify_chunk(model, meas[sl], noise, strategy, theta0[sl].copy(),
+                                     None if pose0 is None else pose0[sl].copy(), fx, phases))
+    cat = lambda key: np.concatenate([q[key] for q in parts], axis=0)  # noqa: E731
+    return Identification(
+        model=model, theta=cat("theta"), pose=cat("pose"), residual=cat("residual"),
+        residual_machine=cat("residual_machine"), chi2=cat("chi2"), dof=parts[0]["dof"],
+        cov_theta=cat("cov_theta"), cov_pose=cat("cov_pose"), initial_error=cat("initial_error"),
+        converged=cat("converged"), iterations=max(q["iterations"] for q in parts),
+        identifiability=phases[-1][1], whitened=cat("whitened"),
+    )
+
+
+def _identify_chunk(model, meas, noise, strategy, theta, pose, fixed, phases):
     N, M = meas.shape[:2]
     p = model.n_params
     sv = scale_vector(model)
-    fixed = fixed or {}
-    theta = np.zeros((N, p)) if theta0 is None else np.broadcast_to(np.asarray(theta0, float), (N, p)).copy()
-
     # weights from the stated uncertainties, evaluated at the measured points
     if strategy.weighted:
         C = model.covariance(meas, noise.angular, noise.distance, noise.distance_per_length, noise.repeatability)
@@ -278,69 +325,40 @@ def identify(
         C = np.broadcast_to(np.eye(3) * (noise.distance**2 + noise.repeatability**2), (N, M, 3, 3))
     Wh = _whitener(C)
 
-    # start: rigid registration of the predicted points at theta onto the measurement
-    if pose0 is None:
-        P_W0 = model.machine_points(theta, fixed)
-        pose = lt.register(P_W0, meas)
-    else:
-        pose = np.broadcast_to(np.asarray(pose0, float), (N, 6)).copy()
+    # registration: Kabsch start, then the weighted pose-only fit of the nominal points.
+    # Its deviations are the "before compensation" errors of Eq. 27.
+    P_nom = np.broadcast_to(model.machine_points(np.zeros((1, p)), fixed), (N, M, 3))
+    if pose is None:
+        pose = lt.register(model.machine_points(theta, fixed), meas)
+    pose_nom = _fit_pose(P_nom, meas, Wh, lt.register(P_nom, meas), strategy)
+    initial_error = lt.to_machine(meas, pose_nom) - P_nom
 
-    # pose-only fit: the "before compensation" deviations (Eq. 27 before)
-    pose_only, _ = _gauss_newton(model, meas, Wh, np.zeros((N, p)), pose.copy(), np.zeros(p, bool), None, strategy, fixed)
-    P_nom = model.machine_points(np.zeros((1, p)), fixed)
-    meas_machine = lt.to_machine(meas, pose_only)
-    initial_error = meas_machine - P_nom
-
-    ident = None
     iters = 0
     converged = np.ones(N, bool)
-    for phase in strategy.phases:
-        unknown = set(phase) - set(GROUPS)
-        if unknown:
-            raise IdentificationError(f"unknown parameter group(s) {sorted(unknown)} in strategy phase; expected {GROUPS}")
-        active = np.array([group_of(par) in phase for par in model.errors.params])
-        ident = analyse(model, active, strategy.rank_tol)
-        if not ident.pose_identifiable:
-            raise IdentificationError("the plan's points do not fix the tracker pose (all points on a line)")
-        n_unknown = (6 if "pose" in phase else 0) + ident.identifiable
-        if 3 * M <= n_unknown:
-            raise IdentificationError(
-                f"too few points: {M} points give {3 * M} coordinates for {n_unknown} identifiable unknowns; "
-                "measure more points or lower the degrees of the error functions")
-        if "pose" not in phase:
-            raise IdentificationError("every phase must include the pose (the tracker pose is always unknown)")
-        (pose, info) = _gauss_newton(model, meas, Wh, theta, pose, active, ident.null_space, strategy, fixed)
-        theta = info["theta"]
-        iters += info["iterations"]
-        converged &= info["converged"]
+    for active, ident, Q in phases:
+        theta, pose, conv, it, (P_W, J, w) = _gauss_newton(model, meas, Wh, theta, pose, Q, strategy, fixed)
+        iters += it
+        converged &= conv
 
-    # final quantities and covariance at the solution
-    Q = _range_basis(active, ident.null_space)
-    P_W, J = model.machine_points(theta, fixed, jacobian=True)
-    pred = lt.to_tracker(P_W, pose)
-    for k in ("spherical_noise", "tracker_offset"):
-        if k in fixed:
-            raise IdentificationError(f"{k} cannot be a fixed perturbation in identification")
-    res = meas - pred
+    # final quantities and covariance at the solution (the last Gauss-Newton evaluation)
+    Q = phases[-1][2]
+    res = meas - lt.to_tracker(P_W, pose)
     A = _design(P_W, J, pose, Wh, Q, sv)
-    wres = np.einsum("nmij,nmj->nmi", Wh, res)
-    chi2 = (wres**2).sum(axis=(1, 2))
+    wres = w.reshape(N, M, 3)
+    chi2 = (w**2).sum(axis=1)
     n_unknown = 6 + Q.shape[1]
-    dof = 3 * M - n_unknown
-    AtA = np.einsum("nki,nkj->nij", A, A)
+    AtA = np.swapaxes(A, 1, 2) @ A
     cov_z = np.linalg.inv(AtA)
     T = np.zeros((6 + p, n_unknown))
     T[:6, :6] = np.diag(1.0 / POSE_SCALE)
     T[6:, 6:] = Q / sv[:, None]
     cov_full = T @ cov_z @ T.T
     Rm = lt.rotation(pose[:, 3], pose[:, 4], pose[:, 5])
-    res_machine = np.einsum("nij,nmj->nmi", Rm, res)
-    out = Identification(
-        model=model, theta=theta, pose=pose, residual=res, residual_machine=res_machine, chi2=chi2, dof=dof,
-        cov_theta=cov_full[:, 6:, 6:], cov_pose=cov_full[:, :6, :6], initial_error=initial_error,
-        converged=converged, iterations=iters, identifiability=ident, whitened=wres,
-    )
-    return out
+    return {
+        "theta": theta, "pose": pose, "residual": res, "residual_machine": np.einsum("nij,nmj->nmi", Rm, res),
+        "chi2": chi2, "dof": 3 * M - n_unknown, "cov_theta": cov_full[:, 6:, 6:], "cov_pose": cov_full[:, :6, :6],
+        "initial_error": initial_error, "converged": converged, "iterations": iters, "whitened": wres,
+    }
 
 
 def _range_basis(active: np.ndarray, null: np.ndarray | None) -> np.ndarray:
@@ -360,63 +378,91 @@ def _design(P_W, J, pose, Wh, Q, sv):
     """Whitened, scaled design matrix (N, 3M, 6 + r)."""
     N, M = P_W.shape[:2]
     Jp = lt.pose_jacobian(P_W, pose) / POSE_SCALE  # (N,M,3,6)
+    if J is None or Q.shape[1] == 0:
+        return (Wh @ Jp).reshape(N, 3 * M, -1)
     Rm = lt.rotation(pose[:, 3], pose[:, 4], pose[:, 5])
-    # d P_LT / d theta = R^T dP_W/dtheta ; scaled and projected: (N,M,3,r)
-    Jg = np.einsum("nji,nmjk->nmik", Rm, J) @ (Q / sv[:, None])
-    A = np.concatenate([Jp, Jg], axis=3)
-    A = np.einsum("nmij,nmjk->nmik", Wh, A)
-    return A.reshape(N, 3 * M, -1)
+    # J is dP_W/dtheta already projected on the free directions (N,M,3,r): rotate into the tracker frame
+    Jt = np.concatenate([Jp, np.swapaxes(Rm, 1, 2)[:, None] @ J], axis=3)
+    return (Wh @ Jt).reshape(N, 3 * M, -1)
 
 
-def _gauss_newton(model, meas, Wh, theta, pose, active, null, strategy, fixed):
-    """Gauss-Newton over all trials; returns (pose, info)."""
-    N, M = meas.shape[:2]
-    p = model.n_params
-    sv = scale_vector(model)
-    Q = _range_basis(active, null) if active.any() else np.zeros((p, 0))
-    theta = theta.copy()
+def _solve(A, w):
+    """Least-squares step of each trial from the normal equations (full column rank by construction)."""
+    At = np.swapaxes(A, 1, 2)
+    AtA = At @ A
+    Atr = (At @ w[..., None])[..., 0]
+    try:
+        L = np.linalg.cholesky(AtA)
+        return np.linalg.solve(np.swapaxes(L, 1, 2), np.linalg.solve(L, Atr[..., None]))[..., 0]
+    except np.linalg.LinAlgError:
+        return np.stack([np.linalg.lstsq(AtA[n], Atr[n], rcond=None)[0] for n in range(len(A))])
+
+
+def _whitened_residual(meas, P_W, pose, Wh):
+    r = meas - lt.to_tracker(P_W, pose)
+    return np.einsum("nmij,nmj->nmi", Wh, r).reshape(len(meas), -1)
+
+
+def _fit_pose(P_W, meas, Wh, pose, strategy):
+    """Weighted fit of the pose alone to fixed machine points (a few Gauss-Newton steps)."""
     pose = pose.copy()
+    for _ in range(strategy.max_iter):
+        w = _whitened_residual(meas, P_W, pose, Wh)
+        z = _solve(_design(P_W, None, pose, Wh, np.zeros((0, 0)), None), w)
+        pose += z / POSE_SCALE
+        if np.abs(z).max() < strategy.xtol:
+            break
+    return pose
+
+
+def _gauss_newton(model, meas, Wh, theta, pose, Q, strategy, fixed):
+    """Gauss-Newton over all trials of a chunk, with step halving where the cost rises.
+
+    Returns (theta, pose, converged, iterations, (P_W, J, whitened residual) at the
+    returned point).  Q (p, r) is the basis of
+    the free, identifiable parameter directions (scaled coordinates).
+    """
+    N = meas.shape[0]
+    sv = scale_vector(model)
+    theta, pose = theta.copy(), pose.copy()
     conv = np.zeros(N, bool)
+
+    def subset(fx, idx):
+        return {k: (v[idx] if np.ndim(v) and np.shape(v)[0] == N and N > 1 else v) for k, v in fx.items()}
+
+    proj = Q / sv[:, None]
+    P_W, J = model.machine_points(theta, fixed, jacobian=True, project=proj)
+    w = _whitened_residual(meas, P_W, pose, Wh)
+    cost = (w**2).sum(axis=1)
     it = 0
-
-    def cost(th, po):
-        P_W = model.machine_points(th, fixed)
-        r = meas - lt.to_tracker(P_W, po)
-        w = np.einsum("nmij,nmj->nmi", Wh, r)
-        return (w**2).sum(axis=(1, 2))
-
     for it in range(1, strategy.max_iter + 1):
-        P_W, J = model.machine_points(theta, fixed, jacobian=True)
-        r = meas - lt.to_tracker(P_W, pose)
-        w = np.einsum("nmij,nmj->nmi", Wh, r).reshape(N, -1)
-        A = _design(P_W, J, pose, Wh, Q, sv)
-        AtA = np.einsum("nki,nkj->nij", A, A)
-        Atr = np.einsum("nki,nk->ni", A, w)
-        try:
-            L = np.linalg.cholesky(AtA)
-            z = np.linalg.solve(np.swapaxes(L, 1, 2), np.linalg.solve(L, Atr[..., None]))[..., 0]
-        except np.linalg.LinAlgError:
-            z = np.stack([np.linalg.lstsq(AtA[n], Atr[n], rcond=None)[0] for n in range(N)])
-        z[conv] = 0.0
-        c0 = (w**2).sum(axis=1)
-        step = 1.0
-        new_pose = pose + z[:, :6] / POSE_SCALE
+        todo = ~conv
+        z = np.zeros((N, 6 + Q.shape[1]))
+        z[todo] = _solve(_design(P_W[todo], J[todo], pose[todo], Wh[todo], Q, sv), w[todo])
+        step = np.ones(N)
         new_theta = theta + (z[:, 6:] @ Q.T) / sv
-        c1 = cost(new_theta, new_pose)
-        # step halving for the (rare) trials whose cost went up
-        worse = c1 > c0 * (1 + 1e-12) + 1e-300
+        new_pose = pose + z[:, :6] / POSE_SCALE
+        P_new, J_new = model.machine_points(new_theta, fixed, jacobian=True, project=proj)
+        w_new = _whitened_residual(meas, P_new, new_pose, Wh)
+        c_new = (w_new**2).sum(axis=1)
+        # step halving for the (rare) trials whose cost rose beyond round-off
+        worse = c_new > cost * (1 + 1e-10) + 1e-300
         k = 0
-        while worse.any() and k < 20:
-            step *= 0.5
+        while worse.any() and k < 30:
             k += 1
-            zz = z[worse] * step
-            new_pose[worse] = pose[worse] + zz[:, :6] / POSE_SCALE
-            new_theta[worse] = theta[worse] + (zz[:, 6:] @ Q.T) / sv
-            c1 = cost(new_theta, new_pose)
-            worse = c1 > c0 * (1 + 1e-12) + 1e-300
-        pose, theta = new_pose, new_theta
-        small = (np.abs(z).max(axis=1) * step < strategy.xtol) | (c0 - c1 <= strategy.ftol * c0)
+            idx = np.flatnonzero(worse)
+            step[idx] *= 0.5
+            zz = z[idx] * step[idx, None]
+            new_theta[idx] = theta[idx] + (zz[:, 6:] @ Q.T) / sv
+            new_pose[idx] = pose[idx] + zz[:, :6] / POSE_SCALE
+            P_i, J_i = model.machine_points(new_theta[idx], subset(fixed, idx), jacobian=True, project=proj)
+            P_new[idx], J_new[idx] = P_i, J_i
+            w_new[idx] = _whitened_residual(meas[idx], P_i, new_pose[idx], Wh[idx])
+            c_new[idx] = (w_new[idx] ** 2).sum(axis=1)
+            worse[idx] = c_new[idx] > cost[idx] * (1 + 1e-10) + 1e-300
+        small = (np.abs(z).max(axis=1) * step < strategy.xtol) | (cost - c_new <= strategy.ftol * cost)
         conv |= small
+        theta, pose, P_W, J, w, cost = new_theta, new_pose, P_new, J_new, w_new, c_new
         if conv.all():
             break
-    return pose, {"theta": theta, "iterations": it, "converged": conv}
+    return theta, pose, conv, it, (P_W, J, w)

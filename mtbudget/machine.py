@@ -243,11 +243,20 @@ _K = skew_basis()
 
 def rotation_small(eps: np.ndarray) -> np.ndarray:
     """Eq. 6: ``I + [eps]x`` for eps (..., 3)."""
-    R = np.einsum("...c,cij->...ij", eps, _K)
+    R = skew(eps)
     R[..., 0, 0] += 1.0
     R[..., 1, 1] += 1.0
     R[..., 2, 2] += 1.0
     return R
+
+
+def inverse_small(eps: np.ndarray) -> np.ndarray:
+    """Closed-form inverse of Eq. 6: ``(I - [eps]x + eps eps^T) / (1 + |eps|^2)``."""
+    Rinv = eps[..., :, None] * eps[..., None, :] - skew(eps)
+    Rinv[..., 0, 0] += 1.0
+    Rinv[..., 1, 1] += 1.0
+    Rinv[..., 2, 2] += 1.0
+    return Rinv / (1.0 + (eps * eps).sum(-1))[..., None, None]
 
 
 def rotation_exact(eps: np.ndarray) -> np.ndarray:
@@ -285,17 +294,43 @@ class ChainInputs:
         return np.atleast_2d(p)
 
 
+def skew(v: np.ndarray) -> np.ndarray:
+    """[v]x for v (..., 3): the matrix with [v]x u = v x u."""
+    S = np.zeros(v.shape + (3,))
+    S[..., 0, 1], S[..., 0, 2] = -v[..., 2], v[..., 1]
+    S[..., 1, 0], S[..., 1, 2] = v[..., 2], -v[..., 0]
+    S[..., 2, 0], S[..., 2, 1] = -v[..., 1], v[..., 0]
+    return S
+
+
+def _groups(model: ErrorModel) -> dict:
+    """Parameter indices of each modelled component error (contiguous slices)."""
+    groups: dict = {}
+    for j, p in enumerate(model.params):
+        if p.order:
+            groups.setdefault(p.error, []).append(j)
+    return {k: slice(v[0], v[-1] + 1) for k, v in groups.items()}
+
+
+def _basis_map(model: ErrorModel, B: np.ndarray) -> np.ndarray:
+    """C (M, g, p): basis value of parameter j in sensitivity column g (groups, then squareness)."""
+    M, p = B.shape
+    groups = _groups(model)
+    sq = [n for n in SQUARENESS if n in model.names]
+    C = np.zeros((M, len(groups) + len(sq), p))
+    for g, idx in enumerate(groups.values()):
+        C[:, g, idx] = B[:, idx]
+    for k, n in enumerate(sq):
+        C[:, len(groups) + k, model.names.index(n)] = 1.0
+    return C
+
+
 def _axis_terms(model: ErrorModel, theta: np.ndarray, B: np.ndarray):
     """Translational and angular errors per axis: dict axis -> (delta (N,M,3), eps (N,M,3))."""
     N = theta.shape[0]
     M = B.shape[0]
     out = {a: [np.zeros((N, M, 3)), np.zeros((N, M, 3))] for a in AXES}
-    # group parameters by component error for one matmul each
-    groups: dict = {}
-    for j, p in enumerate(model.params):
-        if p.order:
-            groups.setdefault(p.error, []).append(j)
-    for err, idx in groups.items():
+    for err, idx in _groups(model).items():
         kind, comp, axis = err[0], AXIS_INDEX[err[1]], err[3]
         vals = theta[:, idx] @ B[:, idx].T  # (N, M)
         out[axis][0 if kind == "d" else 1][:, :, comp] += vals
@@ -316,12 +351,14 @@ def chain(
     exact: bool = False,
     jacobian: bool = False,
     B: np.ndarray | None = None,
+    project: np.ndarray | None = None,
 ):
     """Tool point in the workpiece frame for N parameter vectors.
 
     theta: (N, p) or (p,).  Returns P_W (N, M, 3), and with ``jacobian=True``
     also dP_W/dtheta (N, M, 3, p), exact for the Eq. 6 small-angle chain
-    (``exact=False``).
+    (``exact=False``).  With ``project`` (p, r) the Jacobian is returned
+    already multiplied by it, (N, M, 3, r), without forming the full one.
     """
     theta = np.atleast_2d(np.asarray(theta, float))
     N, M = theta.shape[0], inputs.nominal.shape[0]
@@ -354,7 +391,7 @@ def chain(
     w = P
     Rinv, w_out = {}, {}
     for a in config.workpiece:
-        Rinv[a] = np.linalg.inv(R[a])
+        Rinv[a] = np.swapaxes(R[a], -1, -2) if exact else inverse_small(terms[a][1])
         w = np.einsum("nmij,nmj->nmi", Rinv[a], w - t[a])
         w_out[a] = w
     if not jacobian:
@@ -362,40 +399,47 @@ def chain(
     if exact:
         raise ValueError("the analytic Jacobian is defined for the Eq. 6 small-angle chain only")
 
-    eye = np.broadcast_to(np.eye(3), (N, M, 3, 3))
+    def mul(A, Bm):  # matrix product where None stands for the identity
+        return Bm if A is None else A if Bm is None else A @ Bm
+
     # M_W = R_bm^-1 ... R_b1^-1 (dP_W/dP); suffix products for workpiece axes
-    MW = eye
+    MW = None
     suffix = {}
     for a in reversed(config.workpiece):
         suffix[a] = MW  # product of the inverses after axis a
-        MW = MW @ Rinv[a]
+        MW = mul(MW, Rinv[a])
     # tool side prefix products Q_i = R_1 ... R_{i-1}
     dT, dE = {}, {}  # dP_W/dt_a (N,M,3,3), dP_W/deps_a (N,M,3,3)
-    Q = eye
+    Q = None
     for a in config.tool:
-        G = MW @ Q
+        G = mul(MW, Q)
+        G = np.broadcast_to(np.eye(3), (N, M, 3, 3)) if G is None else G
         dT[a] = G
-        dE[a] = np.stack([np.einsum("nmij,jk,nmk->nmi", G, _K[c], v_in[a]) for c in range(3)], axis=-1)
-        Q = Q @ R[a]
+        # column c is G (e_c x v) = -G [v]x e_c
+        dE[a] = -(G @ skew(v_in[a]))
+        Q = mul(Q, R[a])
     for a in config.workpiece:
-        G = suffix[a] @ Rinv[a]
+        G = mul(suffix[a], Rinv[a])
         dT[a] = -G
-        dE[a] = np.stack([-np.einsum("nmij,jk,nmk->nmi", G, _K[c], w_out[a]) for c in range(3)], axis=-1)
-    p = len(model.params)
-    J = np.zeros((N, M, 3, p))
-    for j, par in enumerate(model.params):
-        if par.order:
-            kind, comp, axis = par.error[0], AXIS_INDEX[par.error[1]], par.error[3]
-            G = dT[axis] if kind == "d" else dE[axis]
-            J[..., j] = G[..., comp] * B[None, :, j, None]
-        else:
-            s = config.side
-            if par.error == "sxy":
-                J[..., j] = dT["y"][..., 0] * (-s("y") * peff["y"])[..., None]
-            elif par.error == "sxz":
-                J[..., j] = dT["z"][..., 0] * (-s("z") * peff["z"])[..., None]
-            else:
-                J[..., j] = dT["z"][..., 1] * (-s("z") * peff["z"])[..., None]
+        dE[a] = G @ skew(w_out[a])
+    # dP_W/dtheta[n,m,:,j] = sum_g H[n,m,:,g] C[m,g,j]: H holds the chain's sensitivity to each
+    # component error (and squareness), C the basis values; one batched BLAS product forms it.
+    H, C = [], _basis_map(model, B)
+    for err in _groups(model):
+        kind, comp, axis = err[0], AXIS_INDEX[err[1]], err[3]
+        H.append((dT[axis] if kind == "d" else dE[axis])[..., comp])
+    s = config.side
+    names = model.names
+    if "sxy" in names:
+        H.append(dT["y"][..., 0] * (-s("y") * peff["y"])[..., None])
+    if "sxz" in names:
+        H.append(dT["z"][..., 0] * (-s("z") * peff["z"])[..., None])
+    if "syz" in names:
+        H.append(dT["z"][..., 1] * (-s("z") * peff["z"])[..., None])
+    if project is not None:
+        C = C @ project
+    Hm = np.stack(H, axis=-1).transpose(1, 0, 2, 3).reshape(M, 3 * N, len(H))
+    J = (Hm @ C).reshape(M, N, 3, C.shape[-1]).transpose(1, 0, 2, 3)
     return w, J
 
 

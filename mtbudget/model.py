@@ -61,8 +61,8 @@ class MeasurementModel:
         unit, shape = MODEL_INPUTS[key]
         return tuple(self.n_points if s == "M" else self.n_params if s == "p" else s for s in shape)
 
-    def machine_points(self, theta, perturbations: dict | None = None, *, exact=False, jacobian=False):
-        """Tool points in the workpiece frame (N, M, 3) (and dP_W/dtheta)."""
+    def machine_points(self, theta, perturbations: dict | None = None, *, exact=False, jacobian=False, project=None):
+        """Tool points in the workpiece frame (N, M, 3) (and dP_W/dtheta, optionally times ``project``)."""
         pert = perturbations or {}
         theta = np.atleast_2d(np.asarray(theta, float))
         if "geometry" in pert:
@@ -72,7 +72,7 @@ class MeasurementModel:
             offset={a: pert[f"axis_offset.{a}"] for a in AXES if f"axis_offset.{a}" in pert},
             scale={a: pert[f"axis_scale.{a}"] for a in AXES if f"axis_scale.{a}" in pert},
         )
-        out = chain(self.config, self.errors, theta, inp, exact=exact, jacobian=jacobian, B=self.B)
+        out = chain(self.config, self.errors, theta, inp, exact=exact, jacobian=jacobian, B=self.B, project=project)
         if "point_offset" in pert:
             if jacobian:
                 out = (out[0] + pert["point_offset"], out[1])

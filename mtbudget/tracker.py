@@ -78,8 +78,8 @@ def pose_jacobian(P_W: np.ndarray, pose: np.ndarray) -> np.ndarray:
     for k in range(3):
         ang = pose[:, 3:].astype(complex)
         ang[:, k] += 1j * h
-        dR = rotation(ang[:, 0], ang[:, 1], ang[:, 2]).imag / h
-        J[..., 3 + k] = np.einsum("nij,nmi->nmj", dR, diff)
+        dR = rotation(ang[:, 0], ang[:, 1], ang[:, 2]).imag / h  # (N,3,3), exact by complex step
+        J[..., 3 + k] = diff @ dR  # (dR^T (P - T)) for every point
     return J
 
 
