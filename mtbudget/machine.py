@@ -107,7 +107,7 @@ class ErrorModel:
     ``straightness_convention="iso230"`` the P1 term of each straightness
     error is left out: its linear part is carried by squareness and the
     tracker rotation, which the data cannot tell apart from it (the
-    reporting convention of mtbudget, see docs/identification.md).
+    reporting convention of mtbudget, see docs/model.md).
     """
 
     ranges: dict
