@@ -134,5 +134,131 @@ def identify(recording, example, as_json, max_degree, strategy):
     _print_identification(folder, as_json, max_degree, strategy)
 
 
+@main.command("plugins")
+@click.option("--json", "as_json", is_flag=True, help="Print one JSON object instead of the table.")
+def plugins_cmd(as_json):
+    """List every plugin, uncertainty source and diagnosis candidate.
+
+    For each source: its group (the paper's four), distribution, parameters
+    with units, and the plugin, distribution and version it came from.
+    MTBUDGET_DISABLE_PLUGINS=a,b and MTBUDGET_PLUGINS=a,b (allow-list) select
+    which plugins load.
+    """
+    from .plugins import PluginHost
+
+    host = PluginHost()
+    sources = host.sources()
+    data = {
+        "plugins": [vars(p) for p in host.plugins()],
+        "sources": [{"name": s.name, "group": str(s.group.value if hasattr(s.group, "value") else s.group),
+                     "distribution": s.distribution, "plugin": s.plugin, "package": s.dist_name, "version": s.dist_version,
+                     "targets": list(s.targets),
+                     "parameters": {k: (f"{v:~P}" if hasattr(v, "units") else str(v)) for k, v in s.parameters.items()},
+                     "description": (type(s).__doc__ or "").strip().splitlines()[0] if type(s).__doc__ else ""}
+                    for s in sources],
+    }
+    try:
+        data["candidates"] = [{"effect": c.effect, "axis": c.axis, "plugin": c.plugin, "package": c.dist_name}
+                              for c in host.candidates()]
+    except ImportError:
+        data["candidates"] = []
+    if as_json:
+        click.echo(json.dumps(data, indent=1))
+        return
+    click.echo("plugins:")
+    for p in data["plugins"]:
+        click.echo(f"  {p['name']:<24} {p['module']:<40} {p['distribution']} {p['version']}")
+    click.echo("\nuncertainty sources:")
+    for s in data["sources"]:
+        params = ", ".join(f"{k}={v}" for k, v in s["parameters"].items()) or "-"
+        click.echo(f"  {s['name']:<32} [{s['group']}] {s['distribution']}")
+        click.echo(f"      {params}   (plugin {s['plugin']}, {s['package']} {s['version']})")
+    if data["candidates"]:
+        click.echo("\ndiagnosis candidates:")
+        for c in data["candidates"]:
+            click.echo(f"  {c['effect']:<24} axis {c['axis'] or '-':<4} (plugin {c['plugin']})")
+
+
+@main.command("run")
+@click.argument("config", required=False, type=click.Path(dir_okay=False, path_type=Path))
+@click.option("--trials", type=int, default=1000, show_default=True,
+              help="Monte Carlo trials; 0 runs the adaptive procedure of JCGM 101 7.9.")
+@click.option("--seed", type=int, default=None, help="Seed of the run (default: the config's seed).")
+@click.option("--coverage", type=float, default=0.95, show_default=True, help="Coverage probability of the intervals.")
+@click.option("--executor", type=click.Choice(["inline", "process", "dask"]), default="inline", show_default=True,
+              help="Where trials run: this process, a local process pool, or a Dask cluster (extra 'dask').")
+@click.option("--workers", type=int, default=None, help="Workers of the process pool or local Dask cluster.")
+@click.option("--address", default=None, help="Address of an existing Dask scheduler (with --executor dask).")
+@click.option("--attribution-trials", type=int, default=512, show_default=True,
+              help="Trials per source for the budget (one source at a time); 0 skips the budget.")
+@click.option("--log", "log_path", type=click.Path(dir_okay=False, path_type=Path), default=None,
+              help="Write the run to this MCAP file (default: mtbudget-run.mcap).")
+@click.option("--resume", "resume_path", type=click.Path(dir_okay=False, exists=True, path_type=Path), default=None,
+              help="Finish an interrupted run from its MCAP log (same config and seed).")
+@click.option("--json", "as_json", is_flag=True, help="Print the results as one JSON object.")
+@click.option("--quiet", is_flag=True, help="No progress bar.")
+def run_cmd(config, trials, seed, coverage, executor, workers, address, attribution_trials, log_path, resume_path,
+            as_json, quiet):
+    """Monte Carlo uncertainty of a verification, with its budget.
+
+    CONFIG is a TOML configuration (default: the built-in paper study). Each
+    trial draws every enabled uncertainty source (see `mtbudget plugins`),
+    simulates the verification, identifies the machine as the real
+    verification would, and records the error left after compensation. The
+    output gives, for each result, the MCM estimate, standard uncertainty
+    and coverage intervals, and a budget by source and by group.
+    """
+    from .runlog import execute
+
+    res = execute(config, trials=trials or None, seed=seed, coverage=coverage, executor=executor, workers=workers,
+                  address=address, attribution_trials=attribution_trials, log_path=log_path, resume_path=resume_path,
+                  progress=not quiet and not as_json)
+    from .report import budget_text, result_json
+
+    if as_json:
+        click.echo(json.dumps(result_json(res), indent=1))
+    else:
+        click.echo(budget_text(res))
+
+
+@main.command()
+@click.argument("runlog", type=click.Path(dir_okay=False, path_type=Path))
+@click.option("--verify", is_flag=True, help="Re-run from the logged config and seed and compare bit for bit.")
+@click.option("--json", "as_json", is_flag=True, help="Print the rebuilt results as one JSON object.")
+def replay(runlog, verify, as_json):
+    """Rebuild a logged run's budget and intervals from its MCAP file.
+
+    Nothing is recomputed: the per-trial results in the log are merged again
+    in the same order. A run that was cut short is read up to its last
+    complete block and marked INCOMPLETE (finish it with `mtbudget run
+    --resume`). With --verify the trials are recomputed from the logged
+    configuration and seed and compared bit for bit; plugin versions that
+    differ from the logged ones are named first.
+    """
+    from .report import budget_text, result_json
+    from .runlog import replay as do_replay
+    from .runlog import verify as do_verify
+
+    if verify:
+        v = do_verify(runlog)
+        for n in v["notes"]:
+            click.echo(f"note: {n}")
+        if v["identical"]:
+            click.echo(f"verified: {v['trials']} trials in {v['blocks']} blocks recomputed, bit for bit identical")
+        else:
+            click.echo(f"NOT identical: {len(v['mismatches'])} differences")
+            for m in v["mismatches"][:20]:
+                click.echo(f"  {m}")
+            raise SystemExit(1)
+        return
+    res = do_replay(runlog)
+    if as_json:
+        click.echo(json.dumps(result_json(res), indent=1))
+        return
+    if not res.complete:
+        click.echo(f"INCOMPLETE run log ({res.log.problem}); results from the {res.trials} trials it holds:")
+    click.echo(budget_text(res))
+
+
 if __name__ == "__main__":  # pragma: no cover
     sys.exit(main())

@@ -171,7 +171,7 @@ POSE_SCALE = np.array([1e3, 1e3, 1e3, 1e6, 1e6, 1e6])
 
 
 def group_of(param) -> str:
-    if param.order == 0:
+    if param.is_squareness:
         return "squareness"
     return "translational" if param.error[0] == "d" else "angular"
 

@@ -95,7 +95,11 @@ class Param:
     name: str  # e.g. "dy(x)[P2]" or "sxy"
     unit: str  # "mm" or "rad"
     error: str  # component error name or squareness name
-    order: int  # Legendre order (0 for squareness)
+    order: int  # Legendre order (0 for squareness and for constant terms)
+
+    @property
+    def is_squareness(self) -> bool:
+        return self.error in SQUARENESS
 
 
 @dataclass
@@ -107,13 +111,18 @@ class ErrorModel:
     ``straightness_convention="iso230"`` the P1 term of each straightness
     error is left out: its linear part is carried by squareness and the
     tracker rotation, which the data cannot tell apart from it (the
-    reporting convention of mtbudget, see docs/model.md).
+    reporting convention of mtbudget, see docs/model.md).  A rigid rotation
+    also turns the tool offset, which linear straightness does not; to keep
+    the same model space, the angular errors of ``tool_axis`` (the axis that
+    carries the tool) then get a constant P0 term: a tilt of the tool holder
+    that shows only through tool offsets.
     """
 
     ranges: dict
     degrees: dict
     squareness: bool = True
     straightness_convention: str = "iso230"  # or "free"
+    tool_axis: str | None = None
     params: list = field(init=False)
 
     def __post_init__(self):
@@ -132,6 +141,8 @@ class ErrorModel:
             if deg < 0:
                 raise ConfigError(f"{name}: degree must be >= 0, got {deg}")
             first = 2 if (self.straightness_convention == "iso230" and is_straightness(name)) else 1
+            if (self.straightness_convention == "iso230" and deg and name[0] == "e" and name[3] == self.tool_axis):
+                first = 0
             unit = "mm" if name[0] == "d" else "rad"
             for n in range(first, deg + 1):
                 self.params.append(Param(f"{name}[P{n}]", unit, name, n))
@@ -181,14 +192,14 @@ class ErrorModel:
         B = np.zeros((M, len(self.params)))
         cache = {}
         for j, p in enumerate(self.params):
-            if p.order == 0:
+            if p.error in SQUARENESS:
                 continue
             axis = p.error[3]
             if axis not in cache:
                 cache[axis] = self.normalised(axis, nominal[:, AXIS_INDEX[axis]])
             coef = np.zeros(p.order + 1)
             coef[p.order] = 1.0
-            B[:, j] = npleg.legval(cache[axis], coef)
+            B[:, j] = npleg.legval(cache[axis], coef) if p.order else 1.0
         return B
 
     def from_coefficients(self, coefficients: dict, squareness: dict | None = None) -> np.ndarray:
@@ -221,8 +232,10 @@ class ErrorModel:
         """Inverse of :meth:`from_coefficients` for one parameter vector."""
         coefs, sq = {}, {}
         for j, p in enumerate(self.params):
-            if p.order == 0:
+            if p.is_squareness:
                 sq[p.error] = float(theta[j])
+            elif p.order == 0:
+                sq[f"{p.error}[P0]"] = float(theta[j])
             else:
                 lst = coefs.setdefault(p.error, [0.0] * int(self.degrees[p.error]))
                 lst[p.order - 1] = float(theta[j])
@@ -307,7 +320,7 @@ def _groups(model: ErrorModel) -> dict:
     """Parameter indices of each modelled component error (contiguous slices)."""
     groups: dict = {}
     for j, p in enumerate(model.params):
-        if p.order:
+        if not p.is_squareness:
             groups.setdefault(p.error, []).append(j)
     return {k: slice(v[0], v[-1] + 1) for k, v in groups.items()}
 

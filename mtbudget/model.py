@@ -47,7 +47,9 @@ class MeasurementModel:
 
     @classmethod
     def for_plan(cls, machine: str, plan: Plan, max_degree: int = 3, **kw) -> "MeasurementModel":
-        return cls(Configuration.parse(machine), ErrorModel.default(plan.nominal, max_degree=max_degree, **kw), plan)
+        config = Configuration.parse(machine)
+        kw.setdefault("tool_axis", config.tool[-1] if config.tool else None)
+        return cls(config, ErrorModel.default(plan.nominal, max_degree=max_degree, **kw), plan)
 
     @property
     def n_points(self) -> int:
@@ -116,6 +118,35 @@ def drift_offset(plan: Plan, velocity) -> dict:
     """``point_offset`` of an apparent drift velocity (mm/s) in the machine frame."""
     v = np.asarray(velocity, float)
     return {"point_offset": (plan.time[:, None] * v[None, :])[None]}
+
+
+def from_targets(arrays: dict) -> dict:
+    """Model perturbations from source targets (internal float arrays keyed as in ``sources.TARGETS``).
+
+    Sums what several sources contribute to one input; joins the split keys
+    (geometry, pose, spherical noise) into the model's own.
+    """
+    out: dict = {}
+
+    def add(k, v):
+        out[k] = out[k] + v if k in out else v
+
+    for key, v in arrays.items():
+        if key in ("geometry.translational", "geometry.angular"):
+            add("geometry", v)
+        elif key == "pose.position":
+            add("pose", np.concatenate([v, np.zeros_like(v)], axis=-1))
+        elif key == "pose.orientation":
+            add("pose", np.concatenate([np.zeros_like(v), v], axis=-1))
+        elif key == "spherical_noise.range":
+            add("spherical_noise", np.concatenate([v[..., None], np.zeros(v.shape + (2,))], axis=-1))
+        elif key == "spherical_noise.angles":
+            add("spherical_noise", np.concatenate([np.zeros(v.shape[:-1] + (1,)), v], axis=-1))
+        elif key == "strategy":
+            continue
+        else:
+            add(key, v)
+    return out
 
 
 def merge(*perts: dict) -> dict:

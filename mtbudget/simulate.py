@@ -28,7 +28,7 @@ def machine_parameters(cfg: SimulationConfig, model: MeasurementModel) -> np.nda
     rng = np.random.default_rng(g.get("seed", 1))
     theta = np.zeros(model.n_params)
     for j, p in enumerate(model.errors.params):
-        if p.order == 0:
+        if p.is_squareness:
             theta[j] = rng.normal(0.0, g["squareness"])
         else:
             stds = g["translational"] if p.unit == "mm" else g["angular"]

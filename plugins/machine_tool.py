@@ -1,1 +1,212 @@
-"""Built-in machine_tool plugins (see docs/plugins.md)."""
+"""Built-in sources of the machine-tool group (paper Section 2.2.1, Eq. 3, 10, 14-20)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from mtbudget.hookspecs import hookimpl
+from mtbudget.sources import Group, Source
+from mtbudget.units import Q_, ureg
+
+AXES = ("x", "y", "z")
+
+
+def _axis_temperatures(ctx):
+    return {a: ctx.plan.axis_temperature(a, ctx.reference_temperature) for a in AXES}
+
+
+class TemperatureSensorCalibration(Source):
+    """Each axis sensor reads with a calibration offset (Eq. 3: u_device = u_calibration / k).
+
+    The compensation uses the reading, so the scale of each axis is off by
+    CTE * offset for the whole test.
+    """
+
+    name = "temperature_sensor_calibration"
+    group = Group.MACHINE_TOOL
+    distribution = "normal (Type B, Eq. 3)"
+    targets = ("axis_scale.x", "axis_scale.y", "axis_scale.z")
+    parameters = {"u_calibration": Q_(0.1, "K"), "k": Q_(2.0), "cte": Q_(11.5, "um/(m*K)")}
+
+    def standard_uncertainty(self):
+        return (self.parameters["u_calibration"] / self.parameters["k"]).to("K")
+
+    def sample(self, n, rng, ctx):
+        u = self.value("u_calibration", "K") / float(self.parameters["k"].magnitude)
+        cte = self.value("cte", "1/K")
+        out = {}
+        for a in AXES:
+            dT = rng.normal(0.0, u, (n, 1))
+            out[f"axis_scale.{a}"] = Q_(np.broadcast_to(cte * dT, (n, ctx.n_points)).copy(), "")
+        return out
+
+
+class CTEUncertainty(Source):
+    """Uncertainty of each axis' expansion coefficient (Eq. 10).
+
+    The full width is 10 % of the nominal CTE but never below 0.002 um/(mm K);
+    the coefficient error is rectangular over it (u = width / (2 sqrt 3)) and
+    scales each axis by dalpha * (T_axis - T_ref).
+    """
+
+    name = "cte_uncertainty"
+    group = Group.MACHINE_TOOL
+    distribution = "rectangular (Eq. 10)"
+    targets = ("axis_scale.x", "axis_scale.y", "axis_scale.z")
+    parameters = {"cte": Q_(11.5, "um/(m*K)"), "fraction": Q_(0.10), "floor": Q_(0.002, "um/(mm*K)")}
+
+    def width(self) -> float:
+        return max(float(self.parameters["fraction"].magnitude) * self.value("cte", "1/K"), self.value("floor", "1/K"))
+
+    def standard_uncertainty(self):
+        return Q_(self.width() / (2 * math.sqrt(3)), "1/K").to("um/(m*K)")
+
+    def sample(self, n, rng, ctx):
+        w = self.width()
+        T = _axis_temperatures(ctx)
+        return {f"axis_scale.{a}": Q_(rng.uniform(-w / 2, w / 2, (n, 1)) * (T[a] - ctx.reference_temperature)[None, :], "")
+                for a in AXES}
+
+
+class EnvironmentalVariation(Source):
+    """ISO/TR 230-9 environmental variation error E_VE (Eq. 14: u = E_VE / (2 sqrt 3)).
+
+    Modelled as a drift of the measured points that grows linearly over the
+    test and reaches a rectangularly distributed value in [-E_VE/2, E_VE/2]
+    per axis at its end.
+    """
+
+    name = "environmental_variation"
+    group = Group.MACHINE_TOOL
+    distribution = "rectangular (Eq. 14)"
+    targets = ("point_offset",)
+    parameters = {"E_VE": Q_(2.0, "um")}
+
+    def standard_uncertainty(self):
+        return (self.parameters["E_VE"] / (2 * math.sqrt(3))).to("um")
+
+    def sample(self, n, rng, ctx):
+        e = self.value("E_VE", "mm")
+        t = ctx.plan.time
+        frac = t / t[-1] if t[-1] > 0 else np.zeros_like(t)
+        end = rng.uniform(-e / 2, e / 2, (n, 1, 3))
+        return {"point_offset": Q_(end * frac[None, :, None], "mm")}
+
+
+class TemperatureDrift(Source):
+    """Temperature drift of each axis during the test, not followed by the compensation.
+
+    A drift rate per axis, normal with standard deviation ``rate``, applied
+    over the measurement times of Eq. 4: the axis scale changes by
+    CTE * rate * t.
+    """
+
+    name = "temperature_drift"
+    group = Group.MACHINE_TOOL
+    distribution = "normal rate"
+    targets = ("axis_scale.x", "axis_scale.y", "axis_scale.z")
+    parameters = {"rate": Q_(0.2, "K/h"), "cte": Q_(11.5, "um/(m*K)")}
+
+    def standard_uncertainty(self):
+        return self.parameters["rate"]
+
+    def sample(self, n, rng, ctx):
+        rate, cte = self.value("rate", "K/s"), self.value("cte", "1/K")
+        t = ctx.plan.time[None, :]
+        return {f"axis_scale.{a}": Q_(cte * rng.normal(0.0, rate, (n, 1)) * t, "") for a in AXES}
+
+
+class Backlash(Source):
+    """Reversal (backlash) of each axis, rectangular in [0, B_max] (Eq. 15-17): the axis stops B/2 short."""
+
+    name = "backlash"
+    group = Group.MACHINE_TOOL
+    distribution = "rectangular [0, B_max]"
+    targets = ("axis_offset.x", "axis_offset.y", "axis_offset.z")
+    parameters = {"B_max": Q_(3.0, "um")}
+
+    def standard_uncertainty(self):
+        return (self.parameters["B_max"] / math.sqrt(12)).to("um")
+
+    def sample(self, n, rng, ctx):
+        bmax = self.value("B_max", "mm")
+        return {f"axis_offset.{a}": Q_(-ctx.plan.direction[None, :, i] * rng.uniform(0, bmax, (n, 1)) / 2, "mm")
+                for i, a in enumerate(AXES)}
+
+
+class _PerPointNormal(Source):
+    distribution = "normal"
+    targets = ("axis_offset.x", "axis_offset.y", "axis_offset.z")
+    key = "u"
+
+    def standard_uncertainty(self):
+        return self.parameters[self.key].to("um")
+
+    def sample(self, n, rng, ctx):
+        u = self.value(self.key, "mm")
+        return {f"axis_offset.{a}": Q_(rng.normal(0.0, u, (n, ctx.n_points)), "mm") for a in AXES}
+
+
+class Repeatability(_PerPointNormal):
+    """Positioning repeatability R of each axis at every point (Eq. 15-17)."""
+
+    name = "repeatability"
+    group = Group.MACHINE_TOOL
+    key = "R"
+    parameters = {"R": Q_(1.5, "um")}
+
+
+class ControlError(_PerPointNormal):
+    """Control (servo, interpolation) error C of each axis at every point (Eq. 15-17)."""
+
+    name = "control_error"
+    group = Group.MACHINE_TOOL
+    key = "C"
+    parameters = {"C": Q_(0.5, "um")}
+
+
+class GeometricErrorUncertainty(Source):
+    """Each geometric error coefficient varies about its value (Eq. 18-20), normal or beta.
+
+    The beta option is symmetric Beta(a, a) on +-sqrt(2a + 1) u, which has
+    standard deviation u.
+    """
+
+    name = "geometric_error_uncertainty"
+    group = Group.MACHINE_TOOL
+    distribution = "normal or beta (Eq. 18-20)"
+    targets = ("geometry.translational", "geometry.angular")
+    parameters = {"translational": Q_(0.5, "um"), "angular": Q_(0.5, "urad"), "shape": "normal", "beta_a": Q_(2.0)}
+
+    def standard_uncertainty(self):
+        return self.parameters["translational"].to("um")
+
+    def _draw(self, rng, size):
+        if self.parameters["shape"] == "beta":
+            a = float(self.parameters["beta_a"].magnitude)
+            half = math.sqrt(2 * a + 1)
+            return (rng.beta(a, a, size) * 2 - 1) * half
+        if self.parameters["shape"] != "normal":
+            from mtbudget.errors import PluginError
+
+            raise PluginError(f"shape must be 'normal' or 'beta', got {self.parameters['shape']!r}", self.plugin, self.name)
+        return rng.standard_normal(size)
+
+    def sample(self, n, rng, ctx):
+        p = len(ctx.theta)
+        z = self._draw(rng, (n, p))
+        mm, rad = ctx.parameter_mask("mm"), ctx.parameter_mask("rad")
+        return {"geometry.translational": Q_(z * mm * self.value("translational", "mm"), "mm"),
+                "geometry.angular": Q_(z * rad * self.value("angular", "rad"), "rad")}
+
+
+SOURCES = (TemperatureSensorCalibration, CTEUncertainty, EnvironmentalVariation, TemperatureDrift, Backlash,
+           Repeatability, ControlError, GeometricErrorUncertainty)
+
+
+@hookimpl
+def mtbudget_register_sources(register):
+    for cls in SOURCES:
+        register(cls())

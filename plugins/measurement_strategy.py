@@ -1,1 +1,36 @@
-"""Built-in measurement_strategy plugins (see docs/plugins.md)."""
+"""Built-in sources of the measurement-strategy group (paper Section 2.2.3, Eq. 25-26)."""
+
+from __future__ import annotations
+
+from mtbudget.hookspecs import hookimpl
+from mtbudget.sources import Group, Source
+from mtbudget.units import Q_
+
+
+class Registration(Source):
+    """Uncertainty of the tracker pose (Eq. 25-26): random terms on T_LT and on the Euler angles.
+
+    mtbudget identifies the pose together with the errors in every
+    verification, so a pose offset is re-estimated from the data and this
+    source's contribution is expected near zero; it becomes visible when the
+    pose is held fixed (a separate registration), and it changes where the
+    tracker's noise falls on the mesh.
+    """
+
+    name = "registration"
+    group = Group.MEASUREMENT_STRATEGY
+    distribution = "normal"
+    targets = ("pose.position", "pose.orientation")
+    parameters = {"u_position": Q_(0.5, "mm"), "u_orientation": Q_(100.0, "urad")}
+
+    def standard_uncertainty(self):
+        return self.parameters["u_position"]
+
+    def sample(self, n, rng, ctx):
+        return {"pose.position": Q_(rng.normal(0.0, self.value("u_position", "mm"), (n, 3)), "mm"),
+                "pose.orientation": Q_(rng.normal(0.0, self.value("u_orientation", "rad"), (n, 3)), "rad")}
+
+
+@hookimpl
+def mtbudget_register_sources(register):
+    register(Registration())
