@@ -260,5 +260,51 @@ def replay(runlog, verify, as_json):
     click.echo(budget_text(res))
 
 
+@main.command("diagnose")
+@click.argument("recording", required=False, type=click.Path(file_okay=False, path_type=Path))
+@click.option("--example", type=click.Choice(["null", "thermal_x", "reversal_y", "tracker_drift"]),
+              help="Diagnose a bundled example recording.")
+@click.option("--json", "as_json", is_flag=True, help="Print exactly one JSON object on stdout.")
+@click.option("--report", "report_dir", type=click.Path(file_okay=False, path_type=Path), default=None,
+              help="Write a Markdown report with residual plots before and after into this folder.")
+@click.option("--alpha", type=float, default=0.01, show_default=True,
+              help="Family-wise false-discovery level over all candidates (Bonferroni).")
+@click.option("--max-degree", type=int, default=3, show_default=True, help="Legendre degree of the baseline error functions.")
+def diagnose_cmd(recording, example, as_json, report_dir, alpha, max_degree):
+    """Find the physics a recording shows that the rigid-body model leaves out.
+
+    The recording is identified like a simulated verification (weighted by
+    its stated uncertainties); the residuals are located by run, time,
+    approach direction, axis position and temperature; every candidate
+    physics term (thermal expansion, reversal, tracker drift, ... see
+    `mtbudget plugins`) is tested, sets of them are compared, and the effects
+    that hold up are named with their estimate, uncertainty and the fit
+    before and after. Candidates the data cannot tell apart are reported as
+    confounded. No finding means the recording is explained by the baseline
+    model within its stated uncertainty.
+    """
+    from .config import example_recording
+    from .diagnose import diagnose
+    from .recording import read_recording
+
+    if recording is None and example is None:
+        raise click.UsageError("give a RECORDING folder or --example NAME")
+    folder = example_recording(example) if example else recording
+    rec = read_recording(folder)
+    d = diagnose(rec, alpha=alpha, max_degree=max_degree)
+    if report_dir is not None:
+        from .report import diagnosis_report
+
+        diagnosis_report(d, rec, report_dir)
+    if as_json:
+        click.echo(json.dumps(d.to_dict()))
+        return
+    from .report import diagnosis_text
+
+    click.echo(diagnosis_text(d))
+    if report_dir is not None:
+        click.echo(f"\nreport: {report_dir}/diagnosis.md")
+
+
 if __name__ == "__main__":  # pragma: no cover
     sys.exit(main())

@@ -98,10 +98,23 @@ def to_unit(text, unit: str, where: str = "value") -> float:
 
 @dataclass
 class SensorSpec:
+    """A simulated sensor: start + rate t + a cycle (air conditioning) + reading noise."""
+
     sensor: Sensor
     start: float  # K
     rate: float  # K/s
     noise: float  # K (standard deviation of each reading)
+    cycle_amplitude: float = 0.0  # K
+    cycle_period: float = 1800.0  # s
+    cycle_phase: float = 0.0  # rad
+
+    def values(self, t: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+        T = self.start + self.rate * t
+        if self.cycle_amplitude:
+            T = T + self.cycle_amplitude * np.sin(2 * np.pi * t / self.cycle_period + self.cycle_phase)
+        if self.noise > 0:
+            T = T + rng.normal(0.0, self.noise, len(t))
+        return T
 
 
 @dataclass
@@ -139,7 +152,7 @@ class SimulationConfig:
         rng = rng or np.random.default_rng(self.seed)
         plan.sensors = [s.sensor for s in self.sensors]
         for s in self.sensors:
-            plan.temperature[s.sensor.column] = s.start + s.rate * plan.time + rng.normal(0.0, s.noise, len(plan)) * (s.noise > 0)
+            plan.temperature[s.sensor.column] = s.values(plan.time, rng)
         return plan
 
 
@@ -217,7 +230,8 @@ def parse_config(data: dict, path=None) -> SimulationConfig:
         start = sr.quantity("start", "K", "20 degC")
         rate = sr.quantity("rate", "K/s", "0 K/h")
         noise = sr.quantity("noise", "K", "0 K")
-        sensors.append(SensorSpec(sensor, start, rate, noise))
+        sensors.append(SensorSpec(sensor, start, rate, noise, sr.quantity("cycle_amplitude", "K", "0 K"),
+                                  sr.quantity("cycle_period", "s", "30 min"), sr.quantity("cycle_phase", "rad", "0 rad")))
     eff = r.sub("effects")
     effects = {
         "thermal": {a: eff.sub("thermal").quantity(a, "1/K") for a in eff.sub("thermal").data},

@@ -268,10 +268,11 @@ def identify(
     if meas.ndim == 2:
         meas = meas[None]
     _check_inputs(model, meas)
-    fixed = fixed or {}
-    for k in ("spherical_noise", "tracker_offset"):
-        if k in fixed:
-            raise IdentificationError(f"{k} cannot be a fixed perturbation in identification")
+    fixed = dict(fixed or {})
+    if "spherical_noise" in fixed:
+        raise IdentificationError("spherical_noise cannot be a fixed perturbation in identification")
+    if "tracker_offset" in fixed:  # a known displacement in the tracker frame: take it off the measurement
+        meas = meas - np.broadcast_to(fixed.pop("tracker_offset"), meas.shape)
     N, M = meas.shape[:2]
     p = model.n_params
 

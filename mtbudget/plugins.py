@@ -75,14 +75,17 @@ class PluginHost:
     def _register(self, obj, name, module, dist, version):
         if self.pm.has_plugin(name):
             raise PluginError(f"a plugin named {name!r} is already registered", name, hook="register")
-        self.pm.register(obj, name=name)
+        try:
+            self.pm.register(obj, name=name)
+        except pluggy.PluginValidationError as exc:
+            raise PluginError(f"invalid hook implementation: {exc}".replace("\n", " "), name, hook="register") from None
         self.info[name] = PluginInfo(name, module, dist, version)
 
     # ---------------------------------------------------------------- calling hooks
     def _collect(self, hook_name: str, kind: type, check):
         hook = getattr(self.pm.hook, hook_name)
         found, names = [], {}
-        for impl in reversed(hook.get_hookimpls()):  # registration order
+        for impl in hook.get_hookimpls():  # registration order
             plugin = impl.plugin_name
             info = self.info.get(plugin, PluginInfo(plugin, "?", "?", "?"))
 

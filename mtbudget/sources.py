@@ -108,7 +108,13 @@ class Source:
                 raise PluginError(f"unknown parameter {k!r}; it has {', '.join(self.parameters) or 'none'}",
                                   self.plugin or None, self.name)
             old = self.parameters[k]
-            new = v if isinstance(v, pint.Quantity) else (ureg.Quantity(v) if isinstance(v, str) else v)
+            if isinstance(old, str):  # a word-valued parameter (a choice), kept as text
+                self.parameters[k] = str(v)
+                continue
+            try:
+                new = v if isinstance(v, pint.Quantity) else (ureg.Quantity(v) if isinstance(v, str) else v)
+            except Exception:
+                raise PluginError(f"parameter {k!r}: cannot parse {v!r} as a quantity", self.plugin or None, self.name) from None
             if isinstance(old, pint.Quantity):
                 if not isinstance(new, pint.Quantity):
                     new = Q_(float(new))

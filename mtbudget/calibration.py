@@ -1,0 +1,178 @@
+"""Simulated recordings with concealed effects, for calibrating and proving the diagnosis.
+
+Every case is drawn from a seed: a machine with random geometric errors
+(larger than the effect), a tracker at a random pose, drifting temperatures,
+the tracker and machine noise of the example recordings, and optionally one
+or two effects at a chosen multiple of the noise.  The recordings go through
+the same writer and reader as real ones (optionally in inch, minutes and
+degF), so the diagnosis sees exactly what a shop would send.
+"""
+
+from __future__ import annotations
+
+import copy
+import math
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+from .config import SimulationConfig, parse_config
+from .diagnose import diagnose
+from .machine import AXIS_INDEX
+from .recording import read_recording, write_recording
+from .simulate import effect_perturbations, simulate, truth_model
+
+BASE = {
+    "format": "mtbudget-config/1", "name": "calibration", "machine": "XFYZ", "seed": 1,
+    "mesh": {"x": ["800 mm", "1200 mm"], "y": ["100 mm", "500 mm"], "z": ["200 mm", "400 mm"], "step": "100 mm"},
+    "plan": {"runs": 2, "tools": [["0 mm", "0 mm", "-150 mm"], ["0 mm", "0 mm", "-300 mm"]], "feed": "2000 mm/min",
+             "stop_time": "12 s", "tool_change_time": "120 s"},
+    "tracker": {"D": "-800 mm", "L": "200 mm", "H": "650 mm", "a": "0 rad", "b": "0 rad", "d": "0.3 rad",
+                "angular": "5 urad", "distance": "4 um", "distance_per_length": "0.8 um/m"},
+    "machine_tool": {"repeatability": "1.5 um", "max_degree": 3},
+    "geometric_errors": {"seed": 1, "translational": ["8 um", "3 um", "1.5 um"], "angular": ["12 urad", "5 urad", "2.5 urad"],
+                         "squareness": "30 urad"},
+}
+EFFECTS = ("thermal_expansion", "reversal", "tracker_drift", "tracker_range_offset", "axis_coupling", "air_temperature_drift")
+
+
+def case_config(seed: int, effects: tuple = (), multiple: float = 2.5) -> tuple[SimulationConfig, dict]:
+    """A random verification with ``effects`` ((name, axis) pairs) at ``multiple`` x the point noise.
+
+    Returns the config and the truth of the effects in display units.
+    """
+    rng = np.random.default_rng(np.random.SeedSequence([seed, 7919]))
+    raw = copy.deepcopy(BASE)
+    raw["seed"] = int(seed)
+    raw["geometric_errors"]["seed"] = int(seed) + 1000
+    t = raw["tracker"]
+    t["D"] = f"{rng.uniform(-1100, -550):.3f} mm"
+    t["L"] = f"{rng.uniform(-100, 500):.3f} mm"
+    t["H"] = f"{rng.uniform(500, 800):.3f} mm"
+    t["a"], t["b"] = f"{rng.normal(0, 0.003):.6f} rad", f"{rng.normal(0, 0.003):.6f} rad"
+    t["d"] = f"{rng.uniform(-0.45, 0.45):.6f} rad"
+    raw["sensors"] = []
+    for col, att in (("T_x", "x axis"), ("T_y", "y axis"), ("T_z", "z axis"), ("T_air", "air")):
+        # a slow drift, the air conditioning's cycle (stronger in the air than in the structure), reading noise
+        cyc = rng.uniform(0.08, 0.2) if att == "air" else rng.uniform(0.0, 0.04)
+        raw["sensors"].append({"column": col, "attached_to": att, "start": f"{rng.uniform(19.8, 20.8):.3f} degC",
+                               "rate": f"{rng.choice([-1, 1]) * rng.uniform(0.25, 0.6):.3f} K/h",
+                               "noise": "0.015 K", "cycle_amplitude": f"{cyc:.3f} K",
+                               "cycle_period": f"{rng.uniform(15, 40):.1f} min", "cycle_phase": f"{rng.uniform(0, 6.28):.3f} rad"})
+    cfg = parse_config(raw)
+    sigma = point_noise(cfg)
+    truth: dict = {}
+    plan = cfg.plan(np.random.default_rng(np.random.SeedSequence(cfg.seed)))
+    cfg_effects = {"thermal": {}, "reversal": {}, "drift": None}
+    extra = []
+    for name, axis in effects:
+        amp = multiple * sigma
+        if name == "thermal_expansion":
+            i = AXIS_INDEX[axis]
+            dT = plan.axis_temperature(axis, cfg.reference_temperature) - cfg.reference_temperature
+            cte = amp / np.ptp(plan.nominal[:, i] * dT)  # the effect spans amp over the test
+            cfg_effects["thermal"][axis] = cte
+            truth[(name, axis)] = cte * 1e6
+        elif name == "reversal":
+            cfg_effects["reversal"][axis] = amp
+            truth[(name, axis)] = amp * 1e3
+        elif name == "tracker_drift":
+            v = rng.normal(0, 1, 3)
+            v = v / np.linalg.norm(v) * amp / plan.time[-1]
+            cfg_effects["drift"] = v
+            truth[(name, None)] = (v * 1e3 * 3600).tolist()
+        elif name in ("tracker_range_offset", "axis_coupling", "air_temperature_drift"):
+            value = amp * rng.choice([-1, 1])
+            extra.append((name, axis, value))
+            truth[(name, axis)] = value * 1e3
+        else:
+            raise ValueError(f"unknown effect {name!r}")
+    cfg.effects = cfg_effects
+    cfg._extra_effects = extra
+    return cfg, truth
+
+
+def point_noise(cfg: SimulationConfig) -> float:
+    """Typical standard deviation of one measured coordinate (mm): tracker transverse and range, and repeatability."""
+    r = math.sqrt(cfg.pose[0] ** 2 + cfg.pose[2] ** 2) + 1000.0
+    ua, ur = cfg.angular * r, cfg.distance + cfg.distance_per_length * r
+    return math.sqrt((2 * ua**2 + ur**2) / 3 + cfg.repeatability**2)
+
+
+def simulate_case(cfg: SimulationConfig, folder: Path, imperial: bool = False):
+    """Simulate (with the non-standard effects added), write and read back a recording."""
+    from .model import MeasurementModel, merge
+    from . import tracker as lt
+
+    rec, truth = simulate(cfg)
+    extra = getattr(cfg, "_extra_effects", [])
+    if extra:
+        plan = rec.plan
+        model = truth_model(cfg, plan)
+        # add the non-standard effects on top of the simulated measurement
+        P_LT = model.predict(np.zeros(model.n_params), cfg.pose)[0]
+        for name, axis, value in extra:
+            if name == "tracker_range_offset":
+                rec.lt = rec.lt + value * P_LT / np.linalg.norm(P_LT, axis=1, keepdims=True)
+            elif name == "axis_coupling":
+                a, b = axis
+                em = model.errors
+                ua = em.normalised(a, plan.nominal[:, AXIS_INDEX[a]])
+                ub = em.normalised(b, plan.nominal[:, AXIS_INDEX[b]])
+                disp = np.zeros((len(plan), 3))
+                third = ({"x", "y", "z"} - set(axis)).pop()
+                disp[:, AXIS_INDEX[third]] = value * ua * ub
+                R = lt.rotation(*cfg.pose[3:])
+                rec.lt = rec.lt + disp @ R
+            elif name == "air_temperature_drift":
+                T = plan.temperature["T_air"]
+                disp = np.zeros((len(plan), 3))
+                disp[:, 2] = value * (T - T[0]) / np.ptp(T)
+                R = lt.rotation(*cfg.pose[3:])
+                rec.lt = rec.lt + disp @ R
+    write_recording(rec, folder)
+    if imperial:
+        _to_imperial(folder)
+    return read_recording(folder)
+
+
+def _to_imperial(folder: Path):
+    p = folder / "points.csv"
+    lines = p.read_text().splitlines()
+    head = lines[0].split(",")
+    conv = []
+    for h in head:
+        if h.endswith("[mm]"):
+            conv.append((h.replace("[mm]", "[in]"), lambda v: f"{float(v) / 25.4:.9f}"))
+        elif h.endswith("[s]"):
+            conv.append((h.replace("[s]", "[min]"), lambda v: f"{float(v) / 60:.8f}"))
+        elif h.endswith("[degC]"):
+            conv.append((h.replace("[degC]", "[degF]"), lambda v: f"{float(v) * 1.8 + 32:.6f}"))
+        else:
+            conv.append((h, lambda v: v))
+    out = [",".join(c[0] for c in conv)]
+    for line in lines[1:]:
+        out.append(",".join(f(v) for (_, f), v in zip(conv, line.split(","))))
+    p.write_text("\n".join(out) + "\n")
+
+
+def run_case(seed: int, effects: tuple = (), multiple: float = 2.5, imperial: bool = False, candidates=None):
+    """Simulate one case and diagnose it: (diagnosis, truth)."""
+    cfg, truth = case_config(seed, effects, multiple)
+    with tempfile.TemporaryDirectory() as tmp:
+        rec = simulate_case(cfg, Path(tmp) / "rec", imperial)
+        return diagnose(rec, candidates), truth
+
+
+def named(diag) -> set:
+    """The effects a diagnosis names outright."""
+    return {(f.candidate.effect, f.candidate.axis) for f in diag.findings}
+
+
+def named_or_confounded(diag) -> set:
+    """The effects a diagnosis names, with those it declares it cannot tell apart from them."""
+    out = named(diag)
+    for f in diag.findings:
+        out |= {(c["effect"], c["axis"]) for c in f.confounded_with}
+    return out

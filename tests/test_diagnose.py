@@ -1,0 +1,174 @@
+"""Diagnosis: the examples, the output contract, units, calibration on concealed cases, bad input."""
+
+import json
+import shutil
+import types
+from pathlib import Path
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from mtbudget.calibration import case_config, named, named_or_confounded, run_case, simulate_case
+from mtbudget.cli import main
+from mtbudget.config import example_recording
+from mtbudget.diagnose import Candidate, DiagnosisError, diagnose
+from mtbudget.errors import PluginError
+from mtbudget.hookspecs import hookimpl
+from mtbudget.plugins import PluginHost, default_host
+from mtbudget.recording import read_recording
+
+from test_recording import convert_to_imperial
+
+
+@pytest.fixture(scope="module")
+def candidates():
+    return default_host().candidates()
+
+
+def truth(name):
+    return json.loads((example_recording(name) / "truth.json").read_text())["effects"]
+
+
+def test_null_example_has_no_finding(candidates):
+    d = diagnose(read_recording(example_recording("null")), candidates)
+    assert d.findings == []
+
+
+@pytest.mark.parametrize("name,effect,axis", [("thermal_x", "thermal_expansion", "x"), ("reversal_y", "reversal", "y"),
+                                              ("tracker_drift", "tracker_drift", None)])
+def test_examples_name_the_hidden_effect_and_estimate_it(name, effect, axis, candidates):
+    d = diagnose(read_recording(example_recording(name)), candidates)
+    assert named(d) == {(effect, axis)}
+    f = d.findings[0]
+    t = truth(name)
+    want = {"thermal_expansion": t["thermal"].get(axis), "reversal": t["reversal"].get(axis), "tracker_drift": t["drift"]}[effect]
+    est, unc = np.atleast_1d(f.estimate), np.atleast_1d(f.uncertainty)
+    assert np.all(np.abs(est - np.atleast_1d(want)) < 3.5 * unc), (est, unc, want)
+    assert d.final["chi2_per_dof"] < d.baseline["chi2_per_dof"]
+    assert 0.8 < d.final["chi2_per_dof"] < 1.25
+
+
+def test_same_findings_in_inch_minutes_and_fahrenheit(tmp_path, candidates):
+    convert_to_imperial(example_recording("reversal_y"), tmp_path / "r")
+    a = diagnose(read_recording(example_recording("reversal_y")), candidates)
+    b = diagnose(read_recording(tmp_path / "r"), candidates)
+    assert named(a) == named(b)
+    assert a.findings[0].estimate[0] == pytest.approx(b.findings[0].estimate[0], rel=1e-6)
+
+
+def test_json_contract_is_one_object():
+    res = CliRunner().invoke(main, ["diagnose", "--example", "thermal_x", "--json"])
+    assert res.exit_code == 0, res.output
+    d = json.loads(res.output)
+    assert set(d) >= {"recording", "baseline", "mismatch", "findings", "final"}
+    assert d["recording"] == "thermal_x"
+    f = d["findings"][0]
+    assert f["effect"] == "thermal_expansion" and f["axis"] == "x"
+    assert f["estimate"]["unit"] == "um/(m*K)" and f["uncertainty"]["value"] > 0
+    assert {"chi2_per_dof", "rms"} <= set(f["after"]) and f["after"]["rms"]["unit"] == "um"
+    assert {"by_run", "by_time", "by_direction", "by_position", "by_temperature"} <= set(d["mismatch"])
+    from mtbudget.units import ureg
+
+    ureg.Unit(f["estimate"]["unit"])  # parses
+
+
+def test_human_output_and_report(tmp_path):
+    res = CliRunner().invoke(main, ["diagnose", "--example", "null", "--report", str(tmp_path / "rep")])
+    assert res.exit_code == 0
+    assert "explained by the baseline model within its stated uncertainty" in res.output
+    assert (tmp_path / "rep" / "residuals.png").stat().st_size > 10_000
+    assert "# Diagnosis of null" in (tmp_path / "rep" / "diagnosis.md").read_text()
+
+
+# --------------------------------------------------------------------------- calibration
+def test_calibration_no_effect_no_claim(candidates):
+    """100 simulated recordings with no hidden effect: an effect is claimed in at most 5 % of them."""
+    claims = sum(bool(run_case(seed, (), candidates=candidates)[0].findings) for seed in range(100))
+    assert claims <= 5
+
+
+CALIBRATED = [("thermal_expansion", "x"), ("thermal_expansion", "y"), ("thermal_expansion", "z"), ("reversal", "x"),
+              ("reversal", "y"), ("reversal", "z"), ("tracker_drift", None), ("axis_coupling", "xy"),
+              ("air_temperature_drift", None)]
+
+
+@pytest.mark.parametrize("effect", CALIBRATED, ids=lambda e: f"{e[0]}-{e[1]}")
+def test_calibration_effect_at_2_5_noise_is_named(effect, candidates):
+    """Named: reported as the finding, or inside the group of candidates it says it cannot tell apart.
+
+    A wrong effect claimed without declaring the confusion counts as a miss.
+    """
+    n = 30
+    hits = sum(effect in named_or_confounded(run_case(500 + seed, (effect,), 2.5, candidates=candidates)[0])
+               for seed in range(n))
+    assert hits >= 0.9 * n
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("effect", CALIBRATED, ids=lambda e: f"{e[0]}-{e[1]}")
+def test_calibration_full_100_cases(effect, candidates):
+    hits = sum(effect in named_or_confounded(run_case(10_000 + seed, (effect,), 2.5, candidates=candidates)[0])
+               for seed in range(100))
+    assert hits >= 90
+
+
+@pytest.mark.parametrize("pair", [(("thermal_expansion", "x"), ("reversal", "y")),
+                                  (("tracker_drift", None), ("reversal", "x"))], ids=["thermal+reversal", "drift+reversal"])
+def test_pairs_in_imperial_units_are_both_named(pair, candidates):
+    hits = 0
+    for seed in range(10):
+        d, _ = run_case(900 + seed, pair, 3.0, imperial=True, candidates=candidates)
+        hits += set(pair) <= named_or_confounded(d)
+    assert hits >= 9
+
+
+def test_confounded_candidates_are_said_to_be(tmp_path, candidates):
+    """Air temperature rising in step with time: tracker drift and air-temperature drift cannot be told apart."""
+    cfg, _ = case_config(3, (("tracker_drift", None),), 4.0)
+    for s in cfg.sensors:
+        s.cycle_amplitude, s.noise = 0.0, 0.0005
+    d = diagnose(simulate_case(cfg, tmp_path / "c"), candidates)
+    assert d.findings
+    f = d.findings[0]
+    pair = {f.candidate.effect} | {c["effect"] for c in f.confounded_with}
+    assert {"tracker_drift", "air_temperature_drift"} <= pair
+
+
+# --------------------------------------------------------------------------- bad input and plugins
+def test_too_small_recording(tmp_path):
+    rec = read_recording(example_recording("null"))
+    keep = np.arange(len(rec)) < 8
+    rec.plan, rec.lt = rec.plan.subset(keep), rec.lt[keep]
+    with pytest.raises(DiagnosisError, match=r"null: only \d+ degrees of freedom are left after the baseline \(8 points\)"):
+        diagnose(rec)
+    # a little larger: identifiable, and diagnosed with the candidates it can test
+    rec = read_recording(example_recording("null"))
+    keep = np.arange(len(rec)) < 30
+    rec.plan, rec.lt = rec.plan.subset(keep), rec.lt[keep]
+    d = diagnose(rec)
+    assert any(s["effect"] == "approximation_degree" for s in d.skipped)
+
+
+def test_missing_columns_skip_candidates_and_say_so(tmp_path, candidates):
+    dst = tmp_path / "nosensor"
+    shutil.copytree(example_recording("thermal_x"), dst)
+    toml = (dst / "recording.toml").read_text()
+    (dst / "recording.toml").write_text(toml.split("[[sensors]]")[0])
+    d = diagnose(read_recording(dst), candidates)
+    reasons = {(s["effect"], s["axis"]): s["reason"] for s in d.skipped}
+    assert "no temperature sensor is attached to the x axis" == reasons[("thermal_expansion", "x")]
+    assert ("air_temperature_drift", None) in reasons
+
+
+def test_candidate_plugin_through_the_hook_and_its_errors():
+    def cols(ctx):
+        return np.zeros((len(ctx.plan), 2))  # wrong shape
+
+    mod = types.ModuleType("broken_candidates")
+    mod.mtbudget_register_candidates = hookimpl(lambda register: register(Candidate("wobble", None, "bad", [("a", "um", "mm")], cols)))
+    host = PluginHost(entry_points=False, plugins=(mod,))
+    cands = host.candidates()
+    assert [c.effect for c in cands] == ["wobble"] and cands[0].plugin == "broken_candidates"
+    with pytest.raises(PluginError, match="plugin 'broken_candidates'.*wobble.*shape"):
+        diagnose(read_recording(example_recording("null")), cands)

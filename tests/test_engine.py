@@ -1,0 +1,103 @@
+"""The Monte Carlo engine: determinism across chunking and executors, budgets that add up, consistency."""
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from mtbudget.config import load_config
+from mtbudget.engine import SCALARS, Engine, run
+from mtbudget.identify import analyse
+
+SMALL = Path(__file__).parent / "data" / "small.toml"
+
+
+@pytest.fixture(scope="module")
+def small():
+    return load_config(SMALL)
+
+
+def samples(res):
+    return {k: res.acc.scalar_samples(k) for k in SCALARS}
+
+
+def test_same_seed_same_numbers_whatever_the_chunking(small):
+    a = run(small, trials=80, block=16, chunk_blocks=1, attribution_trials=0)
+    b = run(small, trials=80, block=16, chunk_blocks=3, attribution_trials=0)
+    for k in SCALARS:
+        assert np.array_equal(samples(a)[k], samples(b)[k]), k
+    assert np.array_equal(a.acc.moments["point_error"].mean, b.acc.moments["point_error"].mean)
+    assert a.trials == 80 and len(samples(a)["compensation_rms"]) == 80
+
+
+def test_process_pool_gives_bit_identical_results(small):
+    a = run(small, trials=64, block=16, attribution_trials=32)
+    b = run(small, trials=64, block=16, attribution_trials=32, executor="process", workers=2)
+    for k in SCALARS:
+        assert np.array_equal(samples(a)[k], samples(b)[k]), k
+    assert a.budget == b.budget
+
+
+def test_dask_local_cluster_gives_the_same_numbers(small):
+    pytest.importorskip("dask.distributed", reason="the dask extra is not installed")
+    a = run(small, trials=48, block=16, attribution_trials=0)
+    b = run(small, trials=48, block=16, attribution_trials=0, executor="dask", workers=2)
+    for k in SCALARS:
+        assert np.array_equal(samples(a)[k], samples(b)[k]), k
+
+
+def test_different_seeds_differ(small):
+    a = run(small, trials=32, block=16, attribution_trials=0, seed=1)
+    b = run(small, trials=32, block=16, attribution_trials=0, seed=2)
+    assert not np.array_equal(samples(a)["compensation_rms"], samples(b)["compensation_rms"])
+
+
+def test_common_random_numbers_a_source_does_not_change_the_others(small):
+    eng_all = Engine(small, block=16)
+    eng_one = Engine(small, block=16, sources=["tracker_noise"])
+    src_a = [s for s in eng_all.sources if s.name == "tracker_noise"][0]
+    src_b = eng_one.sources[0]
+    x = eng_all._sample(src_a, 16, eng_all.stream(3, src_a))
+    y = eng_one._sample(src_b, 16, eng_one.stream(3, src_b))
+    assert all(np.array_equal(x[k], y[k]) for k in x)
+
+
+def test_chi_square_matches_its_expectation_when_weights_are_right(small):
+    """Only tracker noise, drawn with exactly the stated uncertainties: E[chi2/dof] = 1."""
+    cfg = load_config(SMALL)
+    cfg.repeatability = 1e-9  # weights: tracker only
+    res = run(cfg, trials=256, block=32, sources=["tracker_noise"], attribution_trials=0)
+    s = res.summary("chi2_per_dof")
+    eng = Engine(cfg, sources=["tracker_noise"])
+    dof = 3 * len(eng.plan) - 6 - analyse(eng.id_model).identifiable
+    # chi2/dof has standard deviation sqrt(2/dof); its mean over N trials sqrt(2/dof/N)
+    assert abs(s["mean"] - 1.0) < 4 * np.sqrt(2 / dof / 256)
+    assert s["std"] == pytest.approx(np.sqrt(2 / dof), rel=0.2)
+
+
+def test_mean_square_budget_adds_up(small):
+    res = run(small, trials=32, block=32, attribution_trials=256)
+    b = res.budget["compensation_rms"]
+    assert b["basis"] == "mean_square"
+    assert abs(b["interaction"]) < 0.05 * b["total"]  # independent sources, near-linear model: additive
+    assert sum(r["share"] for r in b["rows"]) == pytest.approx(b["sum_of_contributions"] / b["total"])
+    groups = {g["group"]: g["share"] for g in b["groups"]}
+    assert groups["measurement system"] > groups["measurement strategy"]
+    assert b["u_combined"] == pytest.approx(np.sqrt(b["sum_of_contributions"]), rel=1e-9)
+
+
+def test_no_source_means_no_uncertainty(small):
+    res = run(small, trials=32, block=16, sources=[], attribution_trials=0)
+    s = res.summary("compensation_rms")
+    assert s["mean"] < 1e-3 and s["std"] < 1e-3  # um: noise-free verification compensates exactly
+
+
+def test_bad_run_arguments(small):
+    from mtbudget.errors import ConfigError
+
+    with pytest.raises(ConfigError, match="unknown source 'nope'"):
+        run(small, trials=10, sources=["nope"])
+    with pytest.raises(ConfigError, match="trials must be >= 2"):
+        run(small, trials=1)
+    with pytest.raises(ConfigError, match="coverage"):
+        run(small, trials=10, coverage=1.5)
