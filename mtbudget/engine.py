@@ -474,10 +474,15 @@ def run(config: SimulationConfig | str | None = None, *, trials: int | None = 10
                         bar.update(sum(b.n for b in merged))
                     if on_chunk:
                         on_chunk(merged, result)
-            while pending:  # blocks that were all resumed
-                b = cache[pending.pop(0)]
-                acc.add(b if acc.n + b.n <= target_n else _truncate(b, target_n - acc.n))
+            if pending:  # blocks that were all resumed from a log
+                merged = []
+                while pending:
+                    b = cache[pending.pop(0)]
+                    acc.add(b if acc.n + b.n <= target_n else _truncate(b, target_n - acc.n))
+                    merged.append(b)
                 _record(result, acc, coverage)
+                if on_chunk:
+                    on_chunk(merged, result)
 
         if trials is not None:
             nblocks = math.ceil(int(trials) / eng.block)

@@ -156,8 +156,8 @@ class RunLogWriter:
         for b in blocks:
             self.write("/mtbudget/blocks", {
                 "block": b.block, "n": b.n, "scalars": {k: _enc(v) for k, v in b.scalars.items()},
-                "point_error_moments": _moments_enc(Moments.of(b.point_error)),
-                "parameter_moments": _moments_enc(Moments.of(b.parameters))})
+                "point_error_moments": _moments_enc(getattr(b, "point_moments", None) or Moments.of(b.point_error)),
+                "parameter_moments": _moments_enc(getattr(b, "parameter_moments", None) or Moments.of(b.parameters))})
         c = result.convergence[-1]
         self.write("/mtbudget/convergence", c)
         self.flush()

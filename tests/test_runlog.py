@@ -1,0 +1,122 @@
+"""MCAP run logs: replay without recomputing, survive SIGKILL, resume bit for bit, refuse bad files clearly."""
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from mtbudget.cli import main
+from mtbudget.config import load_config
+from mtbudget.engine import SCALARS, run
+from mtbudget.runlog import RunLogError, execute, read_runlog, replay, verify
+
+SMALL = Path(__file__).parent / "data" / "small.toml"
+
+
+@pytest.fixture(scope="module")
+def logged(tmp_path_factory):
+    path = tmp_path_factory.mktemp("log") / "run.mcap"
+    res = execute(SMALL, trials=80, log_path=path, progress=False, attribution_trials=32, block=16)
+    return path, res
+
+
+def test_replay_rebuilds_every_number_without_recomputing(logged):
+    path, res = logged
+    rep = replay(path)
+    assert rep.complete and rep.trials == 80
+    for k in SCALARS:
+        assert np.array_equal(rep.acc.scalar_samples(k), res.acc.scalar_samples(k))
+        assert rep.summary(k) == res.summary(k)
+    assert rep.budget == json.loads(json.dumps(res.budget))
+    assert np.array_equal(rep.acc.moments["point_error"].mean, res.acc.moments["point_error"].mean)
+
+
+def test_log_contents_and_foxglove_topics(logged):
+    from mcap.reader import make_reader
+
+    path, _ = logged
+    with open(path, "rb") as fh:
+        reader = make_reader(fh)
+        summary = reader.get_summary()
+        schemas = {s.name for s in summary.schemas.values()}
+        topics = {c.topic: summary.schemas[c.schema_id].name for c in summary.channels.values()}
+        attachments = list(reader.iter_attachments())
+        metadata = {m.name: m.metadata for m in reader.iter_metadata()}
+    assert {"foxglove.PointCloud", "foxglove.Log", "mtbudget.Convergence"} <= schemas
+    assert topics["/mtbudget/points"] == "foxglove.PointCloud"
+    assert attachments[0].name == "config.toml" and b"small" in attachments[0].data
+    meta = metadata["mtbudget.run"]
+    assert meta["format"] == "mtbudget-runlog/1" and meta["seed"] == "5"
+    assert "tracker_noise" in meta["plugins"]
+    log = read_runlog(path)
+    assert len(log.convergence) >= 1 and {"trials", "mean", "std", "low", "high"} <= set(log.convergence[-1])
+    # no pickle anywhere: every message is JSON
+    assert b"pickle" not in path.read_bytes()
+
+
+def test_verify_recomputes_bit_for_bit(logged):
+    path, _ = logged
+    v = verify(path)
+    assert v["identical"] and v["trials"] == 80 and v["notes"] == []
+
+
+def test_killed_run_is_readable_and_resumes_bit_identical(tmp_path):
+    path = tmp_path / "killed.mcap"
+    cmd = [sys.executable, "-m", "mtbudget", "run", str(SMALL), "--trials", "1600", "--log", str(path),
+           "--attribution-trials", "0", "--quiet"]
+    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    deadline = time.time() + 120
+    blocks = 0
+    while time.time() < deadline and proc.poll() is None:
+        time.sleep(0.3)
+        try:
+            blocks = len(read_runlog(path).blocks)
+        except (RunLogError, OSError):
+            continue
+        if blocks >= 8:
+            break
+    assert proc.poll() is None, "the run ended before it could be killed"
+    os.kill(proc.pid, signal.SIGKILL)
+    proc.wait()
+    log = read_runlog(path)
+    assert not log.complete and log.truncated and len(log.blocks) >= 8
+    res = CliRunner().invoke(main, ["replay", str(path)])
+    assert res.exit_code == 0 and "INCOMPLETE" in res.output
+    resumed = execute(resume_path=path, progress=False, attribution_trials=0)
+    full = run(load_config(SMALL), trials=1600, attribution_trials=0)
+    assert resumed.trials == 1600
+    for k in SCALARS:
+        assert np.array_equal(resumed.acc.scalar_samples(k), full.acc.scalar_samples(k)), k
+        assert resumed.summary(k) == full.summary(k)
+    assert np.array_equal(resumed.acc.moments["parameters"].m2, full.acc.moments["parameters"].m2)
+    assert read_runlog(path).complete
+
+
+def test_bad_files_give_clear_errors(tmp_path, logged):
+    path, _ = logged
+    junk = tmp_path / "junk.mcap"
+    junk.write_bytes(b"hello, not mcap at all")
+    cut = tmp_path / "cut.mcap"
+    data = path.read_bytes()
+    cut.write_bytes(data[: len(data) // 2])
+    res = CliRunner().invoke(main, ["replay", str(junk)])
+    assert res.exit_code == 2 and "not an MCAP file" in res.output and "Traceback" not in res.output
+    res = CliRunner().invoke(main, ["replay", str(cut)])
+    assert res.exit_code == 0 and "INCOMPLETE" in res.output
+    # a file from a newer format version
+    newer = tmp_path / "newer.mcap"
+    newer.write_bytes(data.replace(b"mtbudget-runlog/1", b"mtbudget-runlog/9"))
+    res = CliRunner().invoke(main, ["replay", str(newer)])
+    assert res.exit_code == 2 and "newer mtbudget" in res.output
+    # our topic with a schema we do not know
+    odd = tmp_path / "odd.mcap"
+    odd.write_bytes(data.replace(b"mtbudget.Convergence", b"mtbudget.Convergencf"))
+    res = CliRunner().invoke(main, ["replay", str(odd)])
+    assert res.exit_code == 2 and "unknown schema" in res.output
