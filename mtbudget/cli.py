@@ -306,5 +306,32 @@ def diagnose_cmd(recording, example, as_json, report_dir, alpha, max_degree):
         click.echo(f"\nreport: {report_dir}/diagnosis.md")
 
 
+@main.command()
+@click.argument("runlog", type=click.Path(dir_okay=False, path_type=Path))
+@click.option("--out", "out", type=click.Path(file_okay=False, path_type=Path), default=Path("mtbudget-report"),
+              show_default=True, help="Folder for report.md, report.html (self-contained) and the figures.")
+@click.option("--tolerance", default=None,
+              help='Tolerance on the positioning error after compensation, e.g. "20 um": adds the ISO 14253-1 conformance statement.')
+def report(runlog, out, tolerance):
+    """Write an uncertainty budget report (Markdown and HTML) from a run log.
+
+    The report has the budget by source and by group (u_i, c_i, contribution,
+    share), GUF vs MCM with the JCGM 101 clause 8 verdict, symmetric and
+    shortest coverage intervals, the output distributions with the GUF normal
+    overlaid, the contributions chart, the convergence of the Monte Carlo
+    estimate, the per-point error map of the mesh, and a conformance
+    statement when a tolerance is given. The HTML opens in a browser with no
+    network.
+    """
+    from .config import to_unit
+    from .report import run_report
+    from .runlog import replay as do_replay
+
+    res = do_replay(runlog)
+    tol = None if tolerance is None else to_unit(tolerance, "um", "--tolerance")
+    paths = run_report(res, out, tol)
+    click.echo(f"wrote {paths['markdown']} and {paths['html']}" + ("" if res.complete else " (INCOMPLETE run)"))
+
+
 if __name__ == "__main__":  # pragma: no cover
     sys.exit(main())

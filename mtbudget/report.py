@@ -200,3 +200,198 @@ def diagnosis_report(d, rec, folder) -> "Path":
                          f"{f.after['chi2_per_dof']:.3f} | {', '.join(c['effect'] for c in f.confounded_with) or '-'} |")
     (folder / "diagnosis.md").write_text("\n".join(lines) + "\n")
     return folder / "diagnosis.md"
+
+
+# ----------------------------------------------------------------------------- run reports
+def _figures(res: RunResult, folder):
+    """PNG figures of a run; returns {name: path}."""
+    from pathlib import Path
+
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from scipy import stats as st
+
+    folder = Path(folder)
+    figs = {}
+    # output distributions with the GUF normal overlaid
+    names = [k for k in SCALARS if res.acc.scalar_samples(k) is not None]
+    fig, axes = plt.subplots(2, 4, figsize=(14, 6.5))
+    for ax, k in zip(axes.ravel(), names):
+        y = res.acc.scalar_samples(k)
+        ax.hist(y, bins=60, density=True, color="#7aa6c2", label="MCM")
+        s = res.summary(k)
+        lo, hi = s["symmetric"]
+        ax.axvline(lo, color="k", ls="--", lw=1)
+        ax.axvline(hi, color="k", ls="--", lw=1, label=f"{res.coverage:.0%} interval")
+        b = res.budget.get(k)
+        if b and b.get("u_combined"):
+            xs = np.linspace(y.min(), y.max(), 200)
+            ax.plot(xs, st.norm.pdf(xs, b["nominal_value"], b["u_combined"]), color="#c0392b", label="GUF normal")
+        ax.set_title(k, fontsize=9)
+        ax.set_xlabel(SCALARS[k][0] or "1")
+        ax.legend(fontsize=6)
+    for ax in axes.ravel()[len(names):]:
+        ax.axis("off")
+    fig.tight_layout()
+    figs["distributions"] = folder / "distributions.png"
+    fig.savefig(figs["distributions"], dpi=100)
+    plt.close(fig)
+    # contributions
+    b = res.budget.get(MAIN_OUTPUT)
+    if b:
+        rows = sorted(b["rows"], key=lambda r: r["contribution"])
+        fig, ax = plt.subplots(figsize=(8, 0.32 * len(rows) + 1.5))
+        colours = {"machine tool": "#1f77b4", "measurement system": "#ff7f0e", "measurement strategy": "#2ca02c",
+                   "optimisation strategy": "#9467bd"}
+        ax.barh([r["source"] for r in rows], [r["share"] * 100 for r in rows], color=[colours.get(r["group"], "grey") for r in rows])
+        ax.set_xlabel(f"share of the {b['basis'].replace('_', ' ')} of {MAIN_OUTPUT} [%]")
+        for g, c in colours.items():
+            ax.barh([], [], color=c, label=g)
+        ax.legend(fontsize=7, loc="lower right")
+        fig.tight_layout()
+        figs["contributions"] = folder / "contributions.png"
+        fig.savefig(figs["contributions"], dpi=100)
+        plt.close(fig)
+    # convergence
+    if res.convergence:
+        c = res.convergence
+        n = [x["trials"] for x in c]
+        fig, ax = plt.subplots(1, 2, figsize=(11, 3.5))
+        ax[0].plot(n, [x["mean"] for x in c], label="mean")
+        ax[0].plot(n, [x["low"] for x in c], "--", label="interval low")
+        ax[0].plot(n, [x["high"] for x in c], "--", label="interval high")
+        ax[1].plot(n, [x["std"] for x in c], color="k", label="standard uncertainty")
+        for a in ax:
+            a.set_xlabel("trials")
+            a.legend(fontsize=7)
+        ax[0].set_ylabel(f"{MAIN_OUTPUT} [um]")
+        fig.suptitle("convergence of the Monte Carlo estimate")
+        fig.tight_layout()
+        figs["convergence"] = folder / "convergence.png"
+        fig.savefig(figs["convergence"], dpi=100)
+        plt.close(fig)
+    # per-point error map (paper Figs. 13 and 15): mean and spread of the error left after compensation
+    pm = res.acc.moments.get("point_error")
+    mesh = None
+    log = getattr(res, "log", None)
+    if log is not None and log.header.get("mesh"):
+        mesh = np.asarray(log.header["mesh"])
+    elif getattr(res, "mesh", None) is not None:
+        mesh = res.mesh
+    if pm is not None and mesh is not None:
+        fig = plt.figure(figsize=(12, 5))
+        for j, (vals, title) in enumerate(((np.asarray(pm.mean), "mean error after compensation [um]"),
+                                           (np.asarray(pm.std), "its standard deviation over trials [um]"))):
+            ax = fig.add_subplot(1, 2, j + 1, projection="3d")
+            sc = ax.scatter(mesh[:, 0], mesh[:, 1], mesh[:, 2], c=vals, cmap="viridis", s=40)
+            fig.colorbar(sc, ax=ax, shrink=0.7)
+            ax.set_title(title, fontsize=9)
+            ax.set_xlabel("x [mm]")
+            ax.set_ylabel("y [mm]")
+            ax.set_zlabel("z [mm]")
+        fig.tight_layout()
+        figs["error_map"] = folder / "error_map.png"
+        fig.savefig(figs["error_map"], dpi=100)
+        plt.close(fig)
+    return figs
+
+
+def conformance(res: RunResult, tolerance_um: float) -> dict:
+    """ISO 14253-1 decision zones for an upper tolerance on the error left after compensation."""
+    s = res.summary(MAIN_OUTPUT)
+    U = s["symmetric"][1] - 0.0  # the verification contributes at most this (upper end of the interval)
+    return {"tolerance": tolerance_um, "U": U, "conformance_limit": tolerance_um - U, "nonconformance_limit": tolerance_um + U,
+            "statement": (f"A machine verified this way can be declared to conform to {tolerance_um:g} um only when its "
+                          f"measured error is at most {tolerance_um - U:.2f} um (guard band U = {U:.2f} um); it is proven "
+                          f"not to conform above {tolerance_um + U:.2f} um; in between, neither can be proven (ISO 14253-1).")
+            if tolerance_um > U else
+            (f"The verification's own uncertainty (U = {U:.2f} um) exceeds the tolerance of {tolerance_um:g} um: "
+             "conformance cannot be proven for any result (ISO 14253-1).")}
+
+
+def run_report(res: RunResult, folder, tolerance_um: float | None = None) -> dict:
+    """Write report.md and a self-contained report.html (figures inlined) into ``folder``."""
+    import base64
+    import html
+    from pathlib import Path
+
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    figs = _figures(res, folder)
+    data = result_json(res)
+    md = ["# mtbudget uncertainty budget", ""]
+    md.append(f"{res.trials} Monte Carlo trials, coverage probability {res.coverage:.0%}, seed {res.spec.get('seed')}"
+              + ("" if res.complete else " — **INCOMPLETE run: partial results**"))
+    md += ["", "## Coverage intervals", "", "| output | unit | estimate | u | symmetric interval | shortest interval |",
+           "| --- | --- | --- | --- | --- | --- |"]
+    for k, v in data["outputs"].items():
+        sh = "-" if v["shortest"] is None else f"[{v['shortest'][0]:.3f}, {v['shortest'][1]:.3f}]"
+        md.append(f"| {k} | {v['unit']} | {v['mean']:.3f} | {v['std']:.3f} | [{v['symmetric'][0]:.3f}, {v['symmetric'][1]:.3f}] | {sh} |")
+    b = res.budget.get(MAIN_OUTPUT)
+    if b:
+        md += ["", f"## Budget of {MAIN_OUTPUT} (by source)", "",
+               f"Each source alone on the same {b['trials']} trials; contributions by {b['basis'].replace('_', ' ')}, which add "
+               "up for independent sources; what they do not explain is the interaction.", "",
+               "| source | group | u(x_i) | c_i | u_i(y) [um] | share |", "| --- | --- | --- | --- | --- | --- |"]
+        for r in sorted(b["rows"], key=lambda r: -r["contribution"]):
+            ux = "-" if r["u_x"] is None else f"{r['u_x']['value']:.3g} {r['u_x']['unit']}"
+            ci = "-" if "sensitivity" not in r else f"{r['sensitivity']['value']:.3g} {r['sensitivity']['unit']}"
+            md.append(f"| {r['source']} | {r['group']} | {ux} | {ci} | {r['u_y']:.3f} | {r['share']:.1%} |")
+        md.append(f"| interaction | | | | | {b['interaction'] / b['total'] if b['total'] else 0:.1%} |")
+        md.append(f"| **total** | | | | {b['u_total']:.3f} | 100 % |")
+        md += ["", "## Budget by group", "", "| group | share |", "| --- | --- |"]
+        md += [f"| {g['group']} | {g['share']:.1%} |" for g in b["groups"]]
+    v = data.get("validation")
+    if v:
+        md += ["", "## GUF vs MCM (JCGM 101 clause 8)", "",
+               f"GUF: {v['guf_estimate']:.3f} um with u_c = {v['guf_u']:.3f} um (law of propagation over the source "
+               f"contributions), interval [{v['guf_interval'][0]:.3f}, {v['guf_interval'][1]:.3f}] um; MCM interval "
+               f"[{v['mcm_interval'][0]:.3f}, {v['mcm_interval'][1]:.3f}] um. d_low = {v['d_low']:.3g}, d_high = "
+               f"{v['d_high']:.3g}, delta = {v['delta']:.3g}: **{'validated' if v['passed'] else 'not validated'}**."]
+    if tolerance_um is not None:
+        conf = conformance(res, tolerance_um)
+        md += ["", "## Conformance (ISO 14253-1)", "", conf["statement"]]
+        data["conformance"] = conf
+    md += ["", "## Figures", ""] + [f"![{k}]({p.name})" for k, p in figs.items()]
+    (folder / "report.md").write_text("\n".join(md) + "\n")
+    # HTML: the same content, tables as tables, figures inlined (opens with no network)
+    body = []
+    for line in md:
+        if line.startswith("# "):
+            body.append(f"<h1>{html.escape(line[2:])}</h1>")
+        elif line.startswith("## "):
+            body.append(f"<h2>{html.escape(line[3:])}</h2>")
+        elif line.startswith("| ---"):
+            continue
+        elif line.startswith("|"):
+            cells = [c.strip() for c in line.strip("|").split("|")]
+            tag = "th" if body and not body[-1].startswith("<tr") and not body[-1].startswith("<table") else "td"
+            if not body or not (body[-1].startswith("<tr") or body[-1].startswith("<table")):
+                body.append('<table class="budget">')
+                tag = "th"
+            body.append("<tr>" + "".join(f"<{tag}>{html.escape(c.replace('**', ''))}</{tag}>" for c in cells) + "</tr>")
+        elif line.startswith("!["):
+            name = line[line.index("(") + 1:-1]
+            b64 = base64.b64encode((folder / name).read_bytes()).decode()
+            body.append(f'<figure><img alt="{html.escape(name)}" src="data:image/png;base64,{b64}"></figure>')
+        else:
+            if body and body[-1].startswith("<tr"):
+                body.append("</table>")
+            if line.strip():
+                body.append(f"<p>{html.escape(line.replace('**', ''))}</p>")
+    if body and body[-1].startswith("<tr"):
+        body.append("</table>")
+    page = ("<!DOCTYPE html><html><head><meta charset='utf-8'><title>mtbudget report</title><style>"
+            "body{font-family:sans-serif;max-width:1100px;margin:2em auto;color:#222}"
+            "table{border-collapse:collapse;margin:1em 0}td,th{border:1px solid #bbb;padding:3px 8px;font-size:13px}"
+            "th{background:#eef}img{max-width:100%}</style>"
+            "<script>window.addEventListener('load',function(){var im=document.images,ok=0;"
+            "for(var i=0;i<im.length;i++){if(im[i].complete&&im[i].naturalWidth>0)ok++;}"
+            "document.body.setAttribute('data-images',ok+'/'+im.length);"
+            "document.body.setAttribute('data-tables',document.querySelectorAll('table.budget').length);});</script>"
+            "</head><body>" + "\n".join(body) + "</body></html>")
+    (folder / "report.html").write_text(page)
+    (folder / "results.json").write_text(__import__("json").dumps(data, indent=1))
+    return {"markdown": folder / "report.md", "html": folder / "report.html", "figures": figs}
