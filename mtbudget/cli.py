@@ -333,5 +333,89 @@ def report(runlog, out, tolerance):
     click.echo(f"wrote {paths['markdown']} and {paths['html']}" + ("" if res.complete else " (INCOMPLETE run)"))
 
 
+@main.group()
+def study():
+    """The paper's studies: tracker placement and 1000 simulated verifications.
+
+    \b
+      mtbudget study all --out paper-study          both, on the built-in paper configuration
+      mtbudget study placement --tests 100000       paper Figs. 9-11
+      mtbudget study verification --trials 1000     paper Figs. 12-15 with the full budget
+    """
+
+
+def _placement(config, tests, out, quiet):
+    from .config import load_config
+    from .study import placement, placement_report, write_placement_log
+
+    cfg = load_config(config)
+    res = placement(cfg, tests=tests, progress=not quiet)
+    out.mkdir(parents=True, exist_ok=True)
+    write_placement_log(res, out / "placement.mcap", cfg)
+    md = placement_report(res, out)
+    red = res["reduction"]
+    click.echo(f"placement: {res['settings']['tests']} tests per direction in {res['seconds']:.0f} s; mean maximum error "
+               f"{red['mean_better_um']:.1f} um ({red['better']} direction) vs {red['mean_worse_um']:.1f} um "
+               f"({red['worse']}): {red['reduction']:.0%} lower (paper: about 30 %)")
+    click.echo(f"  report: {md}, log: {out / 'placement.mcap'}")
+
+
+def _verification(config, trials, out, quiet, attribution_trials):
+    from .config import load_config
+    from .report import budget_text, run_report
+    from .runlog import execute, replay
+    from .study import verification_figures, verification_summary
+
+    cfg = load_config(config)
+    out.mkdir(parents=True, exist_ok=True)
+    execute(cfg, trials=trials, log_path=out / "verification.mcap", progress=not quiet,
+            attribution_trials=attribution_trials)
+    res = replay(out / "verification.mcap")
+    run_report(res, out / "report")
+    figs = verification_figures(res, out / "report", cfg)
+    summ = verification_summary(res)
+    (out / "verification.json").write_text(json.dumps(summ, indent=1, default=float))
+    fm = summ["final_mean_error_um"]
+    click.echo(budget_text(res))
+    click.echo(f"\nfinal mean volumetric error (Eq. 27): mean {fm['mean']:.2f} um, sigma {fm['sigma']:.2f} um, "
+               f"95 % below {fm['p95']:.2f} um (paper: 13.77, 5.02, 23.81 um); largest residual "
+               f"{summ['max_residual_um']['max']:.1f} um (paper: about 50 um)")
+    click.echo(f"  report: {out / 'report' / 'report.html'}; figures: {', '.join(p.name for p in figs.values())}")
+
+
+@study.command("placement")
+@click.argument("config", required=False, type=click.Path(dir_okay=False, path_type=Path))
+@click.option("--tests", type=int, default=None, help="Monte Carlo tests per direction (default: the config's, 100000).")
+@click.option("--out", type=click.Path(file_okay=False, path_type=Path), default=Path("paper-study"), show_default=True)
+@click.option("--quiet", is_flag=True, help="No progress bar.")
+def study_placement(config, tests, out, quiet):
+    """Tracker placement (paper Figs. 9-11): best station and maximum error per test, along X and along Y."""
+    _placement(config, tests, out, quiet)
+
+
+@study.command("verification")
+@click.argument("config", required=False, type=click.Path(dir_okay=False, path_type=Path))
+@click.option("--trials", type=int, default=1000, show_default=True, help="Simulated verifications.")
+@click.option("--attribution-trials", type=int, default=256, show_default=True, help="Trials per source for the budget.")
+@click.option("--out", type=click.Path(file_okay=False, path_type=Path), default=Path("paper-study"), show_default=True)
+@click.option("--quiet", is_flag=True, help="No progress bar.")
+def study_verification(config, trials, attribution_trials, out, quiet):
+    """1000 verifications from the chosen station (paper Figs. 12-15), with the budget by group."""
+    _verification(config, trials, out, quiet, attribution_trials)
+
+
+@study.command("all")
+@click.argument("config", required=False, type=click.Path(dir_okay=False, path_type=Path))
+@click.option("--tests", type=int, default=None, help="Placement tests per direction (default: the config's).")
+@click.option("--trials", type=int, default=1000, show_default=True, help="Simulated verifications.")
+@click.option("--attribution-trials", type=int, default=256, show_default=True, help="Trials per source for the budget.")
+@click.option("--out", type=click.Path(file_okay=False, path_type=Path), default=Path("paper-study"), show_default=True)
+@click.option("--quiet", is_flag=True, help="No progress bars.")
+def study_all(config, tests, trials, attribution_trials, out, quiet):
+    """Both studies of the paper, on the built-in paper configuration unless CONFIG is given."""
+    _placement(config, tests, out, quiet)
+    _verification(config, trials, out, quiet, attribution_trials)
+
+
 if __name__ == "__main__":  # pragma: no cover
     sys.exit(main())
