@@ -317,12 +317,12 @@ def verification_figures(res, folder: Path, cfg: SimulationConfig) -> dict:
     fig = plt.figure(figsize=(13, 5.5))
     for j, (data, title) in enumerate(((init, "initial (paper Fig. 13)"), (final, "final (paper Fig. 15)"))):
         ax = fig.add_subplot(1, 2, j + 1, projection="3d")
-        scale = 1.0 / max(np.abs(data).max(), 1e-9) * 40.0  # exaggerate the clouds to be visible on the mesh
+        scale = 40.0 / max(np.abs(data).max(), 1e-9)  # mm of plot per um of error: clouds 40 mm across at most
         cloud = mesh_pts[None] + data * scale
         norm = np.linalg.norm(data, axis=2)
         sc = ax.scatter(cloud[..., 0].ravel(), cloud[..., 1].ravel(), cloud[..., 2].ravel(), c=norm.ravel(), s=1, cmap="viridis")
         fig.colorbar(sc, ax=ax, shrink=0.6, label="error [um]")
-        ax.set_title(f"{title}: error clouds, exaggerated x{scale:.0f}", fontsize=9)
+        ax.set_title(f"{title}: error clouds, exaggerated x{scale * 1e3:.0f}", fontsize=9)
     fig.tight_layout()
     p = folder / "error_clouds.png"
     fig.savefig(p, dpi=100)
