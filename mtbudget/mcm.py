@@ -123,17 +123,27 @@ def _as_distribution(name, d) -> Distribution:
     raise ModelError(f"input {name!r}: expected a Distribution from mtbudget.distributions, got {type(d).__name__}")
 
 
-def _sample_inputs(inputs: dict, n: int, rng: np.random.Generator, corr: np.ndarray | None, names: list) -> dict:
+def _sample_inputs(inputs: dict, n: int, seed_seq: np.random.SeedSequence, corr: np.ndarray | None, names: list) -> dict:
+    """Draw every input; each from its own stream (so the draws do not depend on threads or order)."""
+    children = seed_seq.spawn(len(names) + 1)
     out = {}
     if corr is not None:
         L = np.linalg.cholesky(corr)
-        z = L @ rng.standard_normal((len(names), n))
+        z = L @ np.random.default_rng(children[-1]).standard_normal((len(names), n))
         for i, k in enumerate(names):
             out[k] = Q_(inputs[k].standard_normal_map(z[i]), inputs[k].units)
         return out
-    for k in names:
-        out[k] = inputs[k].sample(n, rng)
-    return out
+
+    def draw(i):
+        return names[i], inputs[names[i]].sample(n, np.random.default_rng(children[i]))
+
+    if n >= 200_000 and len(names) > 1:
+        # numpy's generators release the GIL while filling large arrays: draw the inputs on both cores
+        from concurrent.futures import ThreadPoolExecutor
+
+        with ThreadPoolExecutor(max_workers=2) as pool:
+            return dict(pool.map(draw, range(len(names))))
+    return dict(draw(i) for i in range(len(names)))
 
 
 def _correlation_matrix(inputs: dict, names: list, correlations: dict | None):
@@ -242,8 +252,7 @@ def propagate(model, inputs: dict, coverage: float = 0.95, trials: int | None = 
     ss = np.random.SeedSequence(seed)
 
     def run(n, child):
-        rng = np.random.default_rng(child)
-        arrays = _sample_inputs(inputs, n, rng, R, names)
+        arrays = _sample_inputs(inputs, n, child, R, names)
         y = _evaluate(model, arrays, names)
         try:
             ym = np.asarray(y.to(out_units).magnitude, float)
