@@ -21,7 +21,7 @@ from .config import SimulationConfig, parse_config
 from .diagnose import diagnose
 from .machine import AXIS_INDEX
 from .recording import read_recording, write_recording
-from .simulate import effect_perturbations, simulate, truth_model
+from .simulate import simulate, truth_model
 
 BASE = {
     "format": "mtbudget-config/1", "name": "calibration", "machine": "XFYZ", "seed": 1,
@@ -102,7 +102,6 @@ def point_noise(cfg: SimulationConfig) -> float:
 
 def simulate_case(cfg: SimulationConfig, folder: Path, imperial: bool = False):
     """Simulate (with the non-standard effects added), write and read back a recording."""
-    from .model import MeasurementModel, merge
     from . import tracker as lt
 
     rec, truth = simulate(cfg)

@@ -40,8 +40,8 @@ from scipy import stats
 
 from . import tracker as lt
 from .errors import MtbudgetError, PluginError
-from .identify import Noise, POSE_SCALE, _design, _range_basis, _whitener, identify, scale_vector
-from .machine import AXES, AXIS_INDEX
+from .identify import Noise, _design, _range_basis, _whitener, identify, scale_vector
+from .machine import AXES
 from .model import MeasurementModel, merge
 from .recording import Recording
 

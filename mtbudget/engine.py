@@ -27,7 +27,6 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from . import tracker as lt
 from .config import SimulationConfig, load_config, parse_config
 from .errors import ConfigError, PluginError
 from .identify import Noise, Strategy, identify
@@ -36,7 +35,6 @@ from .plugins import PluginHost, default_host
 from .simulate import machine_parameters, truth_model
 from .sources import Context, Group, Source, TARGETS, check_sample
 from .stats import Moments, numerical_tolerance, shortest_interval, symmetric_interval
-from .units import Q_
 
 #: scalar outputs per trial: name -> (unit, description)
 SCALARS = {

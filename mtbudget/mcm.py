@@ -21,7 +21,7 @@ import numpy as np
 import pint
 import uncertainties
 
-from .distributions import Distribution, Normal, _q, t_factor
+from .distributions import Distribution, Normal, t_factor
 from .errors import MtbudgetError
 from .stats import numerical_tolerance, shortest_interval, symmetric_interval
 from .units import Q_

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 import numpy as np
 
@@ -154,7 +155,7 @@ def disambiguation(effect, confounded):
     return " ".join(tips) or "A second pass with other approach directions, temperatures or tool offsets would separate them."
 
 
-def diagnosis_report(d, rec, folder) -> "Path":
+def diagnosis_report(d, rec, folder) -> Path:
     """Markdown report with residual plots before and after (PNG beside it)."""
     from pathlib import Path
 

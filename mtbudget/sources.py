@@ -9,12 +9,13 @@ internal units once per call and checks shapes, dimensions and NaN.
 from __future__ import annotations
 
 import enum
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 import pint
 
 from .errors import PluginError
+from .model import MODEL_INPUTS
 from .units import Q_, ureg
 
 
@@ -28,20 +29,15 @@ class Group(str, enum.Enum):
 
 
 #: what a source may perturb: key -> (unit, shape after the trial axis)
-#: "M" = measured points of the plan, "p" = geometric parameters of the machine model
+#: "M" = measured points of the plan, "p" = geometric parameters of the machine model.
+#: Inputs the model takes as they are come from MODEL_INPUTS; the model's mixed-unit
+#: inputs (geometry, pose, spherical noise) are split here so each key has one unit.
 TARGETS = {
-    "axis_offset.x": ("mm", ("M",)),
-    "axis_offset.y": ("mm", ("M",)),
-    "axis_offset.z": ("mm", ("M",)),
-    "axis_scale.x": ("", ("M",)),
-    "axis_scale.y": ("", ("M",)),
-    "axis_scale.z": ("", ("M",)),
+    **{k: v for k, v in MODEL_INPUTS.items() if k not in ("geometry", "pose", "spherical_noise")},
     "geometry.translational": ("mm", ("p",)),
     "geometry.angular": ("rad", ("p",)),
     "pose.position": ("mm", (3,)),
     "pose.orientation": ("rad", (3,)),
-    "point_offset": ("mm", ("M", 3)),
-    "tracker_offset": ("mm", ("M", 3)),
     "spherical_noise.range": ("mm", ("M",)),
     "spherical_noise.angles": ("rad", ("M", 2)),
     "strategy": ("", ()),  # index into Source.options(context), optimisation-strategy sources

@@ -22,16 +22,13 @@ distribution.
 from __future__ import annotations
 
 import json
-import math
 import time
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-from . import tracker as lt
-from .config import SimulationConfig, _Reader, load_config, to_unit
-from .errors import ConfigError
+from .config import SimulationConfig, _Reader, to_unit
 from .plan import mesh
 
 

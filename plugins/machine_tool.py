@@ -8,7 +8,7 @@ import numpy as np
 
 from mtbudget.hookspecs import hookimpl
 from mtbudget.sources import Group, Source
-from mtbudget.units import Q_, ureg
+from mtbudget.units import Q_
 
 AXES = ("x", "y", "z")
 

@@ -1,6 +1,5 @@
 """The kinematic chain against an independent transcription of the paper's equations."""
 
-import itertools
 
 import numpy as np
 import pytest

@@ -12,7 +12,7 @@ import pytest
 
 from mtbudget import hookspecs
 from mtbudget.config import load_config
-from mtbudget.engine import Engine, run
+from mtbudget.engine import Engine
 from mtbudget.errors import PluginError
 from mtbudget.hookspecs import hookimpl
 from mtbudget.plugins import PluginHost
@@ -55,7 +55,7 @@ def test_environment_switches(monkeypatch):
     assert "tracker_noise" not in {s.name for s in PluginHost().sources()}
     monkeypatch.delenv("MTBUDGET_DISABLE_PLUGINS")
     monkeypatch.setenv("MTBUDGET_PLUGINS", "measurement_strategy")
-    assert {s.name for s in PluginHost().sources()} == {"registration"}
+    assert {s.name for s in PluginHost().sources()} == {"registration", "multilateration"}
 
 
 def engine_with(*mods):
