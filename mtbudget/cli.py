@@ -152,7 +152,8 @@ def plugins_cmd(as_json):
         "sources": [{"name": s.name, "group": str(s.group.value if hasattr(s.group, "value") else s.group),
                      "distribution": s.distribution, "plugin": s.plugin, "package": s.dist_name, "version": s.dist_version,
                      "targets": list(s.targets),
-                     "parameters": {k: (f"{v:~P}" if hasattr(v, "units") else str(v)) for k, v in s.parameters.items()},
+                     "parameters": {k: ({"value": float(v.magnitude), "unit": str(v.units)} if hasattr(v, "units") else str(v))
+                                    for k, v in s.parameters.items()},
                      "description": (type(s).__doc__ or "").strip().splitlines()[0] if type(s).__doc__ else ""}
                     for s in sources],
     }
@@ -169,7 +170,8 @@ def plugins_cmd(as_json):
         click.echo(f"  {p['name']:<24} {p['module']:<40} {p['distribution']} {p['version']}")
     click.echo("\nuncertainty sources:")
     for s in data["sources"]:
-        params = ", ".join(f"{k}={v}" for k, v in s["parameters"].items()) or "-"
+        params = ", ".join(f"{k}={v['value']:g} {v['unit']}".rstrip() if isinstance(v, dict) else f"{k}={v}"
+                           for k, v in s["parameters"].items()) or "-"
         click.echo(f"  {s['name']:<32} [{s['group']}] {s['distribution']}")
         click.echo(f"      {params}   (plugin {s['plugin']}, {s['package']} {s['version']})")
     if data["candidates"]:

@@ -417,7 +417,7 @@ class _Executor:
 def run(config: SimulationConfig | str | None = None, *, trials: int | None = 1000, seed: int | None = None,
         coverage: float = 0.95, block: int = 64, chunk_blocks: int = 4, sources: list | None = None,
         executor: str = "inline", workers: int | None = None, address=None, progress: bool = False,
-        attribution_trials: int | None = 512, keep_samples: bool = True, ndig: int = 2,
+        attribution_trials: int | None = 512, keep_samples: bool | None = None, ndig: int = 2,
         adaptive_batch: int | None = None, on_chunk=None, resume_blocks: list | None = None,
         engine: Engine | None = None, host: PluginHost | None = None) -> RunResult:
     """Run the Monte Carlo of a verification.
@@ -427,7 +427,10 @@ def run(config: SimulationConfig | str | None = None, *, trials: int | None = 10
     in batches of ``adaptive_batch`` trials (default 10^4 / (1 - p) rule).
     on_chunk(blocks, results, acc) is called after each chunk (the run log
     hooks in here).  resume_blocks: block results already computed (from a
-    log); they are merged first and not recomputed.
+    log); they are merged first and not recomputed.  keep_samples: keep every
+    trial's scalar outputs in memory for exact intervals (default: for runs of
+    up to 200 000 trials and adaptive runs); otherwise memory stays bounded and
+    intervals come from fine histograms.
     """
     if not isinstance(config, SimulationConfig):
         config = load_config(config)
@@ -437,6 +440,8 @@ def run(config: SimulationConfig | str | None = None, *, trials: int | None = 10
         raise ConfigError(f"coverage must lie in (0, 1), got {coverage}")
     eng = engine or Engine(config, host, block=block, sources=sources, seed=seed)
     spec = make_spec(config, seed=eng.seed, block=eng.block, sources=[s.name for s in eng.sources], coverage=coverage)
+    if keep_samples is None:
+        keep_samples = trials is None or int(trials) <= 200_000
     acc = Accumulator(keep_samples)
     result = RunResult(spec, 0, coverage, acc, eng.parameter_names, eng.parameter_units)
     done = {b.block: b for b in (resume_blocks or [])}

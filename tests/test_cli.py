@@ -55,3 +55,19 @@ def test_bad_recording_is_one_line_error_not_a_traceback(tmp_path):
 def test_python_dash_m_entry_point():
     res = subprocess.run([sys.executable, "-m", "mtbudget", "--version"], capture_output=True, text=True)
     assert res.returncode == 0 and __version__ in res.stdout
+
+
+def test_plugins_lists_sources_by_group_with_units_and_origin():
+    res = CliRunner().invoke(main, ["plugins", "--json"])
+    assert res.exit_code == 0, res.output
+    data = json.loads(res.output)
+    src = {s["name"]: s for s in data["sources"]}
+    assert src["tracker_noise"]["group"] == "measurement system"
+    p = src["tracker_noise"]["parameters"]["angular_mean"]
+    from mtbudget.units import Q_
+
+    assert Q_(p["value"], p["unit"]).to("urad").magnitude == pytest.approx(20.0)
+    assert src["backlash"]["package"] == "mtbudget" and src["backlash"]["plugin"] == "machine_tool"
+    assert {c["effect"] for c in data["candidates"]} >= {"thermal_expansion", "reversal", "tracker_drift"}
+    text = CliRunner().invoke(main, ["plugins"]).output
+    assert "uncertainty sources:" in text and "[optimisation strategy]" in text

@@ -101,3 +101,15 @@ def test_bad_run_arguments(small):
         run(small, trials=1)
     with pytest.raises(ConfigError, match="coverage"):
         run(small, trials=10, coverage=1.5)
+
+
+def test_long_runs_do_not_keep_every_sample(small):
+    """Memory stays bounded: without samples, intervals come from the histograms and agree with exact ones."""
+    exact = run(small, trials=256, block=32, attribution_trials=0)
+    streamed = run(small, trials=256, block=32, attribution_trials=0, keep_samples=False)
+    assert streamed.acc.scalar_samples("compensation_rms") is None
+    a, b = exact.summary("compensation_rms"), streamed.summary("compensation_rms")
+    assert a["mean"] == pytest.approx(b["mean"], rel=1e-12) and a["std"] == pytest.approx(b["std"], rel=1e-12)
+    width = a["symmetric"][1] - a["symmetric"][0]
+    assert abs(a["symmetric"][0] - b["symmetric"][0]) < 0.05 * width
+    assert abs(a["symmetric"][1] - b["symmetric"][1]) < 0.05 * width
