@@ -454,8 +454,3 @@ def chain(
     Hm = np.stack(H, axis=-1).transpose(1, 0, 2, 3).reshape(M, 3 * N, len(H))
     J = (Hm @ C).reshape(M, N, 3, C.shape[-1]).transpose(1, 0, 2, 3)
     return w, J
-
-
-def nominal_point(inputs: ChainInputs) -> np.ndarray:
-    """Error-free tool point in the workpiece frame: nominal + tool offset (M, 3)."""
-    return np.asarray(inputs.nominal, float) + np.asarray(inputs.tool, float)

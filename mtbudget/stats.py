@@ -6,7 +6,7 @@ Everything here works on plain float arrays (internal units).
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -88,61 +88,3 @@ class Moments:
     def from_dict(cls, d) -> "Moments":
         return cls(int(d["n"]), np.asarray(d["mean"], float), np.asarray(d["m2"], float),
                    np.asarray(d["min"], float), np.asarray(d["max"], float))
-
-
-@dataclass
-class Histogram:
-    """Fixed-range histogram with overflow bins, for quantiles of runs too long to keep.
-
-    The range is fixed from the first block (its range widened 4x about its
-    centre); values beyond it land in the two overflow counts, which the
-    quantile read-out reports so a caller can tell when the tails were clipped.
-    """
-
-    low: float
-    high: float
-    counts: np.ndarray = field(default=None)
-    under: int = 0
-    over: int = 0
-    bins: int = 20000
-
-    def __post_init__(self):
-        if self.counts is None:
-            self.counts = np.zeros(self.bins, np.int64)
-
-    @classmethod
-    def for_sample(cls, x: np.ndarray, bins: int = 20000) -> "Histogram":
-        lo, hi = float(np.min(x)), float(np.max(x))
-        c, w = (lo + hi) / 2, max(hi - lo, abs(lo + hi) * 1e-12, 1e-300)
-        return cls(c - 2 * w, c + 2 * w, bins=bins)
-
-    def add(self, x: np.ndarray):
-        x = np.asarray(x, float)
-        self.under += int((x < self.low).sum())
-        self.over += int((x >= self.high).sum())
-        inside = x[(x >= self.low) & (x < self.high)]
-        idx = ((inside - self.low) / (self.high - self.low) * self.bins).astype(np.int64)
-        self.counts += np.bincount(np.clip(idx, 0, self.bins - 1), minlength=self.bins)
-
-    def merge(self, other: "Histogram"):
-        if (other.low, other.high, other.bins) != (self.low, self.high, self.bins):
-            raise ValueError("histograms with different ranges cannot be merged")
-        self.counts += other.counts
-        self.under += other.under
-        self.over += other.over
-
-    def quantile(self, prob: np.ndarray) -> np.ndarray:
-        total = self.counts.sum() + self.under + self.over
-        cdf = (self.under + np.concatenate([[0], np.cumsum(self.counts)])) / total
-        edges = np.linspace(self.low, self.high, self.bins + 1)
-        return np.interp(prob, cdf, edges)
-
-    def intervals(self, p: float) -> dict:
-        lo, hi = self.quantile(np.array([(1 - p) / 2, (1 + p) / 2]))
-        # shortest: scan lower tail probabilities
-        a = np.linspace(0, 1 - p, 2001)
-        low = self.quantile(a)
-        high = self.quantile(a + p)
-        k = int(np.argmin(high - low))
-        return {"symmetric": (float(lo), float(hi)), "shortest": (float(low[k]), float(high[k])),
-                "clipped": self.under + self.over}
