@@ -183,7 +183,8 @@ def plugins_cmd(as_json):
 @main.command("run")
 @click.argument("config", required=False, type=click.Path(dir_okay=False, path_type=Path))
 @click.option("--trials", type=int, default=1000, show_default=True,
-              help="Monte Carlo trials; 0 runs the adaptive procedure of JCGM 101 7.9.")
+              help="Monte Carlo trials; 0 runs the adaptive procedure of JCGM 101 7.9 on the main output "
+                   "(two significant digits: expect tens of thousands of trials; at most 10^6).")
 @click.option("--seed", type=int, default=None, help="Seed of the run (default: the config's seed).")
 @click.option("--coverage", type=float, default=0.95, show_default=True, help="Coverage probability of the intervals.")
 @click.option("--executor", type=click.Choice(["inline", "process", "dask"]), default="inline", show_default=True,
@@ -196,10 +197,12 @@ def plugins_cmd(as_json):
               help="Write the run to this MCAP file (default: mtbudget-run.mcap).")
 @click.option("--resume", "resume_path", type=click.Path(dir_okay=False, exists=True, path_type=Path), default=None,
               help="Finish an interrupted run from its MCAP log (same config and seed).")
+@click.option("--adaptive-batch", type=int, default=None,
+              help="With --trials 0: trials per adaptive batch (default: JCGM 101's max(100/(1-p), 10^4)).")
 @click.option("--json", "as_json", is_flag=True, help="Print the results as one JSON object.")
 @click.option("--quiet", is_flag=True, help="No progress bar.")
 def run_cmd(config, trials, seed, coverage, executor, workers, address, attribution_trials, log_path, resume_path,
-            as_json, quiet):
+            adaptive_batch, as_json, quiet):
     """Monte Carlo uncertainty of a verification, with its budget.
 
     CONFIG is a TOML configuration (default: the built-in paper study). Each
@@ -213,7 +216,7 @@ def run_cmd(config, trials, seed, coverage, executor, workers, address, attribut
 
     res = execute(config, trials=trials or None, seed=seed, coverage=coverage, executor=executor, workers=workers,
                   address=address, attribution_trials=attribution_trials, log_path=log_path, resume_path=resume_path,
-                  progress=not quiet and not as_json)
+                  progress=not quiet and not as_json, adaptive_batch=adaptive_batch)
     from .report import budget_text, result_json
 
     if as_json:

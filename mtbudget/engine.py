@@ -347,6 +347,7 @@ class RunResult:
     convergence: list = field(default_factory=list)  # per chunk: {"trials", "mean", "std", "low", "high"} of MAIN_OUTPUT
     budget: dict = field(default_factory=dict)  # output -> budget table
     complete: bool = True
+    stopped_at_limit: bool = False  # adaptive run that hit max_trials before reaching its tolerance
 
     def summary(self, name: str = MAIN_OUTPUT) -> dict:
         return self.acc.summary(name, self.coverage)
@@ -418,13 +419,15 @@ def run(config: SimulationConfig | str | None = None, *, trials: int | None = 10
         coverage: float = 0.95, block: int = 64, chunk_blocks: int = 4, sources: list | None = None,
         executor: str = "inline", workers: int | None = None, address=None, progress: bool = False,
         attribution_trials: int | None = 512, keep_samples: bool | None = None, ndig: int = 2,
-        adaptive_batch: int | None = None, on_chunk=None, resume_blocks: list | None = None,
+        adaptive_batch: int | None = None, adaptive_outputs: tuple = (MAIN_OUTPUT,), max_trials: int = 1_000_000,
+        on_chunk=None, resume_blocks: list | None = None,
         engine: Engine | None = None, host: PluginHost | None = None) -> RunResult:
     """Run the Monte Carlo of a verification.
 
     trials: an int runs that many (rounded up to whole blocks and truncated);
-    None runs the adaptive procedure of JCGM 101 7.9 on every scalar output
-    in batches of ``adaptive_batch`` trials (default 10^4 / (1 - p) rule).
+    None runs the adaptive procedure of JCGM 101 7.9 on ``adaptive_outputs``
+    (default the main output) in batches of ``adaptive_batch`` trials
+    (default max(100 / (1 - p), 10^4)), stopping at ``max_trials`` at most.
     on_chunk(blocks, results, acc) is called after each chunk (the run log
     hooks in here).  resume_blocks: block results already computed (from a
     log); they are merged first and not recomputed.  keep_samples: keep every
@@ -499,12 +502,15 @@ def run(config: SimulationConfig | str | None = None, *, trials: int | None = 10
                 before = acc.n
                 consume(list(range(k * per, (k + 1) * per)), before + per * eng.block)
                 k += 1
-                batch_stats.append(_batch_summary(acc, before, coverage))
+                batch_stats.append(_batch_summary(acc, before, coverage, adaptive_outputs))
                 if len(batch_stats) >= 2:
-                    arr = np.array(batch_stats)  # (h, outputs, 4)
+                    arr = np.array(batch_stats)  # (h, outputs, 4): mean, u, interval ends of each batch
                     s = arr.std(axis=0, ddof=1) / math.sqrt(len(arr))
-                    deltas = np.array([numerical_tolerance(acc.summary(o, coverage)["std"], ndig) for o in SCALARS])
+                    deltas = np.array([numerical_tolerance(acc.summary(o, coverage)["std"], ndig) for o in adaptive_outputs])
                     if np.all(2 * s <= deltas[:, None]):
+                        break
+                    if acc.n >= max_trials:
+                        result.stopped_at_limit = True
                         break
         result.trials = acc.n
     finally:
@@ -530,9 +536,9 @@ def _record(result: RunResult, acc: Accumulator, coverage: float):
     result.trials = acc.n
 
 
-def _batch_summary(acc: Accumulator, start: int, coverage: float):
+def _batch_summary(acc: Accumulator, start: int, coverage: float, outputs=tuple(SCALARS)):
     rows = []
-    for o in SCALARS:
+    for o in outputs:
         y = np.sort(acc.scalar_samples(o)[start:])
         lo, hi = symmetric_interval(y, coverage)
         rows.append([y.mean(), y.std(ddof=1), lo, hi])

@@ -53,6 +53,8 @@ def budget_text(res: RunResult) -> str:
     lines = []
     status = "" if res.complete else "  (INCOMPLETE: partial results)"
     lines.append(f"Monte Carlo: {res.trials} trials, coverage {res.coverage:.0%}, seed {res.spec.get('seed')}{status}")
+    if getattr(res, "stopped_at_limit", False):
+        lines.append("  note: the adaptive run stopped at its trial limit before reaching its numerical tolerance")
     lines.append("")
     lines.append(f"{'output':<20} {'unit':<5} {'mean':>9} {'u (std)':>9}   {'symmetric interval':>22}   {'shortest interval':>22}")
     for k, v in res.outputs().items():

@@ -339,7 +339,7 @@ class _ResumedBlock(BlockResult):
 # ------------------------------------------------------------------ the run command
 def execute(config=None, *, trials=1000, seed=None, coverage=0.95, executor="inline", workers=None, address=None,
             attribution_trials=512, log_path=None, resume_path=None, progress=True, block=64, chunk_blocks=4,
-            sources=None) -> RunResult:
+            sources=None, adaptive_batch=None) -> RunResult:
     """Run (or resume) a Monte Carlo study and log it to MCAP; what ``mtbudget run`` does."""
     resume_blocks = None
     if resume_path is not None:
@@ -376,7 +376,8 @@ def execute(config=None, *, trials=1000, seed=None, coverage=0.95, executor="inl
     try:
         result = run(cfg, trials=trials, seed=eng.seed, coverage=coverage, engine=eng, executor=executor,
                      workers=workers, address=address, progress=progress, attribution_trials=attribution_trials,
-                     chunk_blocks=chunk_blocks, on_chunk=on_chunk, resume_blocks=resume_blocks)
+                     chunk_blocks=chunk_blocks, on_chunk=on_chunk, resume_blocks=resume_blocks,
+                     adaptive_batch=adaptive_batch)
         from .report import result_json
 
         pm = result.acc.moments.get("point_error")

@@ -113,3 +113,15 @@ def test_long_runs_do_not_keep_every_sample(small):
     width = a["symmetric"][1] - a["symmetric"][0]
     assert abs(a["symmetric"][0] - b["symmetric"][0]) < 0.05 * width
     assert abs(a["symmetric"][1] - b["symmetric"][1]) < 0.05 * width
+
+
+def test_adaptive_run_stops_at_its_tolerance(small):
+    from mtbudget.stats import numerical_tolerance
+
+    # one significant digit keeps the test short: two need ~40 000 trials here (the interval ends converge slowly)
+    res = run(small, trials=None, block=32, adaptive_batch=256, attribution_trials=0, max_trials=20_000, ndig=1)
+    assert not res.stopped_at_limit and res.trials % 256 == 0 and res.trials >= 512
+    y = res.acc.scalar_samples("compensation_rms")
+    batches = y.reshape(-1, 256)
+    s = batches.mean(axis=1).std(ddof=1) / np.sqrt(len(batches))
+    assert 2 * s <= numerical_tolerance(y.std(ddof=1), 1)
