@@ -115,7 +115,6 @@ class _Fit:
     chi2: float
     beta: np.ndarray
     cov: np.ndarray
-    columns: list  # candidate labels
 
 
 class _Linear:
@@ -132,7 +131,7 @@ class _Linear:
 
     def fit(self, Cs: list) -> _Fit:
         if not Cs:
-            return _Fit(self.chi2_0, np.zeros(0), np.zeros((0, 0)), [])
+            return _Fit(self.chi2_0, np.zeros(0), np.zeros((0, 0)))
         C = np.concatenate(Cs, axis=1)
         Cp = self.project(C)
         # scale columns for conditioning
@@ -142,7 +141,7 @@ class _Linear:
         beta_s, *_ = np.linalg.lstsq(G, self.w, rcond=1e-10)
         r = self.w - G @ beta_s
         cov_s = np.linalg.pinv(G.T @ G, rcond=1e-12)
-        return _Fit(float(r @ r), beta_s / s, cov_s / np.outer(s, s), [])
+        return _Fit(float(r @ r), beta_s / s, cov_s / np.outer(s, s))
 
     @property
     def dof0(self):

@@ -23,7 +23,7 @@ import uncertainties
 
 from .distributions import Distribution, Normal, t_factor
 from .errors import MtbudgetError
-from .stats import numerical_tolerance, shortest_interval, symmetric_interval
+from .stats import clause8, numerical_tolerance, shortest_interval, symmetric_interval
 from .units import Q_
 
 
@@ -109,12 +109,10 @@ class Result:
     def validate(self, kind: str = "symmetric", ndig: int | None = None) -> Validation:
         """Compare the GUF interval with the MCM interval (JCGM 101 8.2)."""
         nd = self.ndig if ndig is None else ndig
-        g_lo, g_hi = self.gum.interval()
-        m_lo, m_hi = self.interval(kind)
-        d_low = abs(g_lo - m_lo).to(self.units)
-        d_high = abs(g_hi - m_hi).to(self.units)
-        delta = Q_(numerical_tolerance(self.gum.std_uncertainty.to(self.units).magnitude, nd), self.units)
-        return Validation(d_low, d_high, delta, bool(d_low <= delta and d_high <= delta))
+        mag = lambda pair: [q.to(self.units).magnitude for q in pair]  # noqa: E731
+        d_low, d_high, delta, ok = clause8(mag(self.gum.interval()), mag(self.interval(kind)),
+                                           self.gum.std_uncertainty.to(self.units).magnitude, nd)
+        return Validation(Q_(d_low, self.units), Q_(d_high, self.units), Q_(delta, self.units), ok)
 
 
 def _as_distribution(name, d) -> Distribution:

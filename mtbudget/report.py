@@ -9,7 +9,7 @@ import numpy as np
 
 from .distributions import t_factor
 from .engine import MAIN_OUTPUT, SCALARS, RunResult
-from .stats import numerical_tolerance
+from .stats import clause8
 
 
 def guf_validation(res: RunResult, output: str = MAIN_OUTPUT) -> dict | None:
@@ -22,10 +22,9 @@ def guf_validation(res: RunResult, output: str = MAIN_OUTPUT) -> dict | None:
     u_c = b["u_combined"]
     y = b["nominal_value"]
     lo, hi = y - k * u_c, y + k * u_c
-    delta = numerical_tolerance(s["std"], 2)
-    d_low, d_high = abs(lo - s["symmetric"][0]), abs(hi - s["symmetric"][1])
+    d_low, d_high, delta, ok = clause8((lo, hi), s["symmetric"], u_c, 2)
     return {"guf_estimate": y, "guf_u": u_c, "k": k, "guf_interval": [lo, hi], "mcm_interval": list(s["symmetric"]),
-            "d_low": d_low, "d_high": d_high, "delta": delta, "passed": bool(d_low <= delta and d_high <= delta)}
+            "d_low": d_low, "d_high": d_high, "delta": delta, "passed": ok}
 
 
 def result_json(res: RunResult) -> dict:

@@ -44,6 +44,17 @@ def numerical_tolerance(u: float, ndig: int = 2) -> float:
     return 0.5 * 10.0**l
 
 
+def clause8(guf_interval, mcm_interval, u: float, ndig: int = 2):
+    """JCGM 101 8.2: (d_low, d_high, delta, passed) for a GUF and an MCM coverage interval.
+
+    delta is the numerical tolerance of the GUF standard uncertainty ``u``.
+    """
+    d_low = abs(guf_interval[0] - mcm_interval[0])
+    d_high = abs(guf_interval[1] - mcm_interval[1])
+    delta = numerical_tolerance(u, ndig)
+    return d_low, d_high, delta, bool(d_low <= delta and d_high <= delta)
+
+
 @dataclass
 class Moments:
     """Mergeable count / mean / M2 (Chan et al.), for streaming runs of any length."""
