@@ -235,8 +235,12 @@ class Engine:
         return np.random.default_rng(np.random.SeedSequence(self.seed, spawn_key=key))
 
     # ------------------------------------------------------------------ one block
-    def run_block(self, block: int, active: list | None = None) -> BlockResult:
-        """Trials ``block*B .. (block+1)*B - 1`` with the ``active`` sources (default: all selected)."""
+    def simulate(self, block: int, active: list | None = None):
+        """The simulated measurements of one block: (measured (B, M, 3), true parameters (B, p), strategy choices).
+
+        Every source in ``active`` (default: all selected) is drawn from its own stream for this block;
+        the choices are (source, option index per trial) of the optimisation-strategy sources.
+        """
         n = self.block
         active = self.sources if active is None else active
         targets: dict = {}
@@ -251,7 +255,12 @@ class Engine:
         pert = from_targets(targets)
         theta_true = self.theta[None, :] + pert.pop("geometry", 0.0)
         theta_true = np.broadcast_to(theta_true, (n, self.truth.n_params))
-        meas = self.truth.predict(theta_true, self.pose, pert)
+        return self.truth.predict(theta_true, self.pose, pert), theta_true, choices
+
+    def run_block(self, block: int, active: list | None = None) -> BlockResult:
+        """Trials ``block*B .. (block+1)*B - 1`` with the ``active`` sources (default: all selected)."""
+        n = self.block
+        meas, theta_true, choices = self.simulate(block, active)
         F_true = self.truth.machine_points(theta_true)[:, self.mesh_rows]
 
         # group trials by the identification settings the optimisation-strategy sources chose

@@ -214,13 +214,15 @@ class RunLog:
         return out
 
 
-@dataclass
-class LoggedBlock:
-    block: int
-    n: int
-    scalars: dict
-    point_moments: Moments
-    parameter_moments: Moments
+class LoggedBlock(BlockResult):
+    """A block read back from a log: scalars exact, the vector outputs known by their moments.
+
+    It merges into an Accumulator (replay, resume) exactly as the block it was written from.
+    """
+
+    def __init__(self, block: int, n: int, scalars: dict, point_moments: Moments, parameter_moments: Moments):
+        super().__init__(block, n, scalars, None, None)
+        self.point_moments, self.parameter_moments = point_moments, parameter_moments
 
 
 def read_runlog(path) -> RunLog:
@@ -304,7 +306,7 @@ def accumulate(log: RunLog, keep_samples: bool = True) -> Accumulator:
     """Rebuild the statistics of a run from its logged blocks, in the same merge order as the run."""
     acc = Accumulator(keep_samples)
     for b in sorted(log.block_results(), key=lambda b: b.block):
-        acc.add(_ResumedBlock(b))
+        acc.add(b)
     return acc
 
 
@@ -318,22 +320,6 @@ def replay(path) -> RunResult:
                     budget=(log.result or {}).get("budget", {}), complete=log.complete)
     res.log = log
     return res
-
-
-def _blocks_for_resume(log: RunLog) -> list:
-    out = []
-    for b in log.block_results():
-        # the vector outputs of resumed blocks are known only by their moments: keep them so
-        out.append(_ResumedBlock(b))
-    return out
-
-
-class _ResumedBlock(BlockResult):
-    """A logged block fed back into a run: scalars exact, vectors through their moments."""
-
-    def __init__(self, lb: LoggedBlock):
-        super().__init__(lb.block, lb.n, lb.scalars, None, None)
-        self.point_moments, self.parameter_moments = lb.point_moments, lb.parameter_moments
 
 
 # ------------------------------------------------------------------ the run command
@@ -351,7 +337,7 @@ def execute(config=None, *, trials=1000, seed=None, coverage=0.95, executor="inl
         trials, seed, coverage, block = old.header["trials"], spec["seed"], spec.get("coverage", coverage), spec["block"]
         sources = spec.get("sources")
         config_text = old.config_text or ""
-        resume_blocks = _blocks_for_resume(old)
+        resume_blocks = old.block_results()
         log_path = Path(log_path or resume_path)
         if log_path.resolve() == Path(resume_path).resolve():
             partial = Path(str(resume_path) + ".partial")

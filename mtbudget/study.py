@@ -276,7 +276,6 @@ def verification_figures(res, folder: Path, cfg: SimulationConfig) -> dict:
 
     from .engine import Engine
     from .identify import identify
-    from .model import from_targets
 
     folder.mkdir(parents=True, exist_ok=True)
     figs = {}
@@ -285,14 +284,7 @@ def verification_figures(res, folder: Path, cfg: SimulationConfig) -> dict:
     blocks = max(1, min(4, res.trials // eng.block))
     init, final = [], []
     for b in range(blocks):
-        targets = {}
-        for src in eng.sources:
-            for k, v in eng._sample(src, eng.block, eng.stream(b, src)).items():
-                if k != "strategy":
-                    targets[k] = targets[k] + v if k in targets else v
-        pert = from_targets(targets)
-        th = eng.theta[None] + pert.pop("geometry", 0.0)
-        meas = eng.truth.predict(np.broadcast_to(th, (eng.block, eng.truth.n_params)), eng.pose, pert)
+        meas, _, _ = eng.simulate(b)  # the run's own trials of block b (identified with the default strategy)
         ident = identify(eng.id_model, meas, eng.noise, chunk=eng.block)
         init.append(ident.initial_error[:, eng.mesh_rows])
         final.append(ident.residual_machine[:, eng.mesh_rows])

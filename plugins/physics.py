@@ -121,15 +121,18 @@ def air_drift():
 
 
 def degree(axis):
+    def next_degree(ctx):
+        """One more than the highest degree the baseline gives this axis' errors."""
+        return max(int(v) for k, v in ctx.model.errors.degrees.items() if k[3] == axis) + 1
+
     def extra_model(ctx):
-        base = ctx.model.errors
-        d = max(int(v) for k, v in base.degrees.items() if k[3] == axis)
-        return ErrorModel(ranges=base.ranges, degrees={f"{k}{c}({axis})": d + 1 for k in "de" for c in AXES},
-                          squareness=False, straightness_convention="free"), d + 1
+        top = next_degree(ctx)
+        return ErrorModel(ranges=ctx.model.errors.ranges, degrees={f"{k}{c}({axis})": top for k in "de" for c in AXES},
+                          squareness=False, straightness_convention="free"), top
 
     def requires(ctx):
         npos = len(np.unique(np.round(ctx.plan.nominal[:, AXIS_INDEX[axis]], 6)))
-        top = max(int(v) for k, v in ctx.model.errors.degrees.items() if k[3] == axis) + 1
+        top = next_degree(ctx)
         return None if npos > top else f"the {axis} axis has {npos} positions: degree {top} cannot be told from the lower ones"
 
     def columns(ctx):
