@@ -5,6 +5,7 @@ Internal unit system of every hot-path array: mm, rad, K, s (see :mod:`mtbudget.
 
 __version__ = "0.1.0"
 
-from .units import ureg, Q_  # noqa: E402
+from .hookspecs import hookimpl  # noqa: E402
+from .units import Q_, ureg  # noqa: E402
 
-__all__ = ["ureg", "Q_", "__version__"]
+__all__ = ["ureg", "Q_", "hookimpl", "__version__"]

@@ -297,13 +297,13 @@ def diagnose_cmd(recording, example, as_json, report_dir, alpha, max_degree):
     rec = read_recording(folder)
     d = diagnose(rec, alpha=alpha, max_degree=max_degree)
     if report_dir is not None:
-        from .report import diagnosis_report
+        from .report_diagnosis import diagnosis_report
 
         diagnosis_report(d, rec, report_dir)
     if as_json:
         click.echo(json.dumps(d.to_dict()))
         return
-    from .report import diagnosis_text
+    from .report_diagnosis import diagnosis_text
 
     click.echo(diagnosis_text(d))
     if report_dir is not None:

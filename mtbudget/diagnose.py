@@ -33,80 +33,17 @@ from __future__ import annotations
 import itertools
 import math
 from dataclasses import dataclass, field
-from typing import Callable
 
 import numpy as np
 from scipy import stats
 
 from . import tracker as lt
-from .errors import MtbudgetError, PluginError
+from .contracts import Candidate, DiagnosisContext
+from .errors import DiagnosisError, MtbudgetError, PluginError
 from .identify import Noise, _design, _range_basis, _whitener, identify, scale_vector
 from .machine import AXES
 from .model import MeasurementModel, merge
 from .recording import Recording
-
-
-class DiagnosisError(MtbudgetError, ValueError):
-    """The recording cannot be diagnosed (too small, nothing to identify)."""
-
-
-@dataclass
-class Candidate:
-    """A physics term a rigid-body model leaves out.
-
-    effect: fixed name of the effect (``thermal_expansion``, ``reversal``, ...).
-    axis: "x", "y", "z", a pair such as "yz", or None.
-    parameters: [(name, display unit, internal unit)], e.g. [("cte", "um/(m*K)", "1/K")].
-    columns(ctx) -> (M, 3, k): displacement of each measured point per internal unit of each
-        parameter, in ``frame`` ("machine": workpiece frame; "tracker": tracker frame).
-    perturbation(ctx, beta) -> model perturbations (MODEL_INPUTS keys) that put the effect
-        into the full model at parameter values ``beta`` (internal units), for the refit.
-    requires(ctx) -> None, or the reason the recording cannot test this candidate.
-    """
-
-    effect: str
-    axis: str | None
-    description: str
-    parameters: list
-    columns: Callable
-    frame: str = "machine"
-    perturbation: Callable | None = None
-    requires: Callable | None = None
-    summary: Callable | None = None  # (beta, cov) -> (estimate, uncertainty) for multi-parameter effects
-    plugin: str = ""
-    dist_name: str = ""
-    dist_version: str = ""
-
-    @property
-    def label(self) -> str:
-        return self.effect if not self.axis else f"{self.effect}[{self.axis}]"
-
-
-@dataclass
-class DiagnosisContext:
-    recording: Recording
-    model: MeasurementModel
-    pose: np.ndarray  # (6,)
-    theta: np.ndarray  # (p,)
-    P_W: np.ndarray  # (M, 3) predicted machine-frame points of the baseline
-    P_LT: np.ndarray  # (M, 3) predicted tracker points
-
-    @property
-    def plan(self):
-        return self.recording.plan
-
-    def axis_temperature_column(self, axis: str):
-        """Temperature (K) of an axis at each point, or None when no sensor is attached to it."""
-        sens = [s for s in self.plan.sensors if s.axis == axis and s.column in self.plan.temperature]
-        if not sens:
-            return None
-        return self.plan.axis_temperature(axis, self.recording.reference_temperature)
-
-    def air_temperature(self):
-        cols = [s.column for s in self.plan.sensors if s.attached_to.strip().lower() == "air" and s.column in self.plan.temperature]
-        if not cols:
-            return None
-        return np.mean([self.plan.temperature[c] for c in cols], axis=0)
 
 
 # --------------------------------------------------------------------- fitting

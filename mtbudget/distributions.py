@@ -18,12 +18,9 @@ import numpy as np
 import pint
 from scipy import stats
 
-from .errors import MtbudgetError
+from .errors import DistributionError, MtbudgetError
 from .units import Q_, ureg
 
-
-class DistributionError(MtbudgetError, ValueError):
-    """Bad parameters of a distribution."""
 
 
 def _q(x, what) -> pint.Quantity:

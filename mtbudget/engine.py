@@ -33,7 +33,7 @@ from .identify import Noise, Strategy, identify
 from .model import MeasurementModel, from_targets
 from .plugins import PluginHost, default_host
 from .simulate import machine_parameters, truth_model
-from .sources import Context, Group, Source, TARGETS, check_sample
+from .contracts import Context, Group, Source, TARGETS, check_sample
 from .stats import Moments, numerical_tolerance, shortest_interval, symmetric_interval
 
 #: scalar outputs per trial: name -> (unit, description)

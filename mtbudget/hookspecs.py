@@ -27,7 +27,7 @@ def mtbudget_register_sources(register):
     """Register uncertainty sources for the Monte Carlo engine.
 
     :param register: call ``register(source)`` once per source, with an
-        instance of :class:`mtbudget.sources.Source`.  mtbudget stamps each
+        instance of :class:`mtbudget.contracts.Source`.  mtbudget stamps each
         source with the plugin that registered it, checks its name is unique,
         its group one of the paper's four, its parameters pint quantities, and
         (when a run is built) that a probe sample has the declared keys,

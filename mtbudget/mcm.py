@@ -22,13 +22,10 @@ import pint
 import uncertainties
 
 from .distributions import Distribution, Normal, t_factor
-from .errors import MtbudgetError
+from .errors import ModelError, MtbudgetError
 from .stats import clause8, numerical_tolerance, shortest_interval, symmetric_interval
 from .units import Q_
 
-
-class ModelError(MtbudgetError, ValueError):
-    """The model failed, returned NaN, or its units do not fit its inputs."""
 
 
 @dataclass

@@ -24,7 +24,7 @@ import pluggy
 
 from . import hookspecs
 from .errors import PluginError
-from .sources import Group, Source, TARGETS
+from .contracts import Candidate, Group, Source, TARGETS
 
 ENTRY_POINT_GROUP = "mtbudget"
 
@@ -123,7 +123,7 @@ class PluginHost:
                 raise PluginError(f"group {src.group!r} is not one of {[g.value for g in Group]}", **where) from None
             bad = [t for t in src.targets if t not in TARGETS]
             if bad:
-                raise PluginError(f"unknown target(s) {bad}; expected keys of mtbudget.sources.TARGETS", **where)
+                raise PluginError(f"unknown target(s) {bad}; expected keys of mtbudget.contracts.TARGETS", **where)
             if not src.targets:
                 raise PluginError("declares no targets", **where)
             import pint
@@ -137,8 +137,6 @@ class PluginHost:
 
     def candidates(self) -> list:
         """Every registered diagnosis candidate, validated."""
-        from .diagnose import Candidate
-
         def check(c):
             if not c.effect:
                 raise PluginError("a candidate needs an effect name", c.plugin, None, "mtbudget_register_candidates")
@@ -148,6 +146,37 @@ class PluginHost:
 
     def plugins(self) -> list[PluginInfo]:
         return [self.info[n] for n in sorted(self.info)]
+
+
+def _hook_of(obj) -> str | None:
+    if isinstance(obj, Source):
+        return "mtbudget_register_sources"
+    if isinstance(obj, Candidate):
+        return "mtbudget_register_candidates"
+    return None
+
+
+def call(obj, method: str, *args, **kwargs):
+    """Call ``obj.method(*args, **kwargs)`` on a registered plugin object (a source, a candidate).
+
+    Every call into plugin code goes through here: an exception inside it
+    becomes one :class:`~mtbudget.errors.PluginError` that names the plugin,
+    the object, the hook it was registered by and the method.
+    """
+    try:
+        return getattr(obj, method)(*args, **kwargs)
+    except PluginError as exc:
+        if exc.method is None and exc.plugin in (None, getattr(obj, "plugin", None)):
+            raise PluginError(exc.reason, exc.plugin or getattr(obj, "plugin", None) or None,
+                              exc.source or _label(obj), exc.hook or _hook_of(obj), method) from exc
+        raise
+    except Exception as exc:
+        raise PluginError(f"raised {type(exc).__name__}: {exc}", getattr(obj, "plugin", None) or None, _label(obj),
+                          _hook_of(obj), method) from exc
+
+
+def _label(obj):
+    return getattr(obj, "label", None) or getattr(obj, "name", None) or type(obj).__name__
 
 
 _default: PluginHost | None = None

@@ -39,15 +39,12 @@ import numpy as np
 from . import __version__
 from .config import SimulationConfig, load_config, parse_config
 from .engine import SCALARS, Accumulator, BlockResult, Engine, RunResult, run
-from .errors import MtbudgetError
+from .errors import RunLogError, MtbudgetError
 from .stats import Moments
 
 FORMAT = "mtbudget-runlog/1"
 FORMAT_MAJOR = 1
 
-
-class RunLogError(MtbudgetError, ValueError):
-    """A run log cannot be read (not MCAP, newer format, unknown schema)."""
 
 
 # ------------------------------------------------------------------ schemas

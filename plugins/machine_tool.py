@@ -7,7 +7,7 @@ import math
 import numpy as np
 
 from mtbudget.hookspecs import hookimpl
-from mtbudget.sources import Group, Source
+from mtbudget.contracts import Group, Source
 from mtbudget.units import Q_
 
 AXES = ("x", "y", "z")

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from mtbudget.hookspecs import hookimpl
-from mtbudget.sources import Group, Source
+from mtbudget.contracts import Group, Source
 from mtbudget.units import Q_
 
 

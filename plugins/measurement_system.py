@@ -6,7 +6,7 @@ import numpy as np
 
 from mtbudget import tracker as lt
 from mtbudget.hookspecs import hookimpl
-from mtbudget.sources import Group, Source
+from mtbudget.contracts import Group, Source
 from mtbudget.units import Q_
 
 

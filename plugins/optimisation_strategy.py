@@ -7,7 +7,7 @@ settings; the spread of the results between them is its contribution.
 from __future__ import annotations
 
 from mtbudget.hookspecs import hookimpl
-from mtbudget.sources import Group, Source
+from mtbudget.contracts import Group, Source
 from mtbudget.units import Q_
 
 

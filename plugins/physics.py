@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from mtbudget.diagnose import Candidate
+from mtbudget.contracts import Candidate
 from mtbudget.hookspecs import hookimpl
 from mtbudget.machine import AXES, AXIS_INDEX, ChainInputs, ErrorModel, chain
 from mtbudget.model import drift_offset, reversal_offset, thermal_scale

@@ -11,7 +11,9 @@ from click.testing import CliRunner
 from mtbudget.calibration import case_config, named, named_or_confounded, run_case, simulate_case
 from mtbudget.cli import main
 from mtbudget.config import example_recording
-from mtbudget.diagnose import Candidate, DiagnosisError, diagnose
+from mtbudget.contracts import Candidate
+from mtbudget.diagnose import diagnose
+from mtbudget.errors import DiagnosisError
 from mtbudget.errors import PluginError
 from mtbudget.hookspecs import hookimpl
 from mtbudget.plugins import PluginHost, default_host

@@ -16,7 +16,7 @@ from mtbudget.engine import Engine
 from mtbudget.errors import PluginError
 from mtbudget.hookspecs import hookimpl
 from mtbudget.plugins import PluginHost
-from mtbudget.sources import Group, Source
+from mtbudget.contracts import Group, Source
 from mtbudget.units import Q_
 
 ROOT = Path(__file__).resolve().parents[1]

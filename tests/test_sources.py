@@ -9,7 +9,7 @@ from scipy import stats
 
 from mtbudget.config import load_config
 from mtbudget.engine import Engine
-from mtbudget.sources import TARGETS, Group
+from mtbudget.contracts import TARGETS, Group
 from mtbudget.units import ureg
 
 N = 20000

@@ -1,22 +1,39 @@
-"""The uncertainty-source contract: Group, Source, Context.
+"""The plugin contracts: what a plugin implements and what it is given.
 
-A source belongs to one of the paper's four groups, declares its parameters
-as pint quantities and the model inputs it perturbs, and draws perturbations
-for N trials at once.  The engine converts what ``sample`` returns to the
-internal units once per call and checks shapes, dimensions and NaN.
+* :class:`Source` (hook ``mtbudget_register_sources``): an uncertainty source
+  of one of the paper's four :class:`Group` s.  It declares its parameters as
+  pint quantities and the model inputs it perturbs (:data:`TARGETS`), and
+  draws perturbations for N trials at once from a :class:`Context`.  The
+  engine converts what ``sample`` returns to the internal units once per call
+  and checks shapes, dimensions and NaN.
+* :class:`Candidate` (hook ``mtbudget_register_candidates``): a physics term
+  a rigid-body verification model leaves out, for ``mtbudget diagnose``.  It
+  gives the displacement of every measured point per unit of its parameters
+  from a :class:`DiagnosisContext`.
+
+Both are plain classes with declared parameters (with units) and methods;
+the plugin host calls every method through :func:`mtbudget.plugins.call`, so
+an exception inside a plugin names the plugin, the hook and the method.
 """
 
 from __future__ import annotations
 
 import enum
 from dataclasses import dataclass
+from typing import Callable
 
 import numpy as np
 import pint
 
+from typing import TYPE_CHECKING
+
 from .errors import PluginError
 from .model import MODEL_INPUTS
-from .units import Q_, ureg
+from .units import Q_, parse_quantity, ureg
+
+if TYPE_CHECKING:  # annotations only: the contract does not import the layers that use it
+    from .model import MeasurementModel
+    from .recording import Recording
 
 
 class Group(str, enum.Enum):
@@ -86,6 +103,12 @@ class Source:
     description: str = ""
     targets: tuple = ()
     parameters: dict = {}
+    #: an opt-in source is off unless the configuration enables it (simulated physics such as a
+    #: thermal expansion the verification does not know about); the others are on by default
+    opt_in: bool = False
+    #: parameter -> the configuration key of the physical input it draws (for example
+    #: ``{"R": "machine_tool.repeatability"}``): one key per physical input, see mtbudget.scenario
+    links: dict = {}
 
     # stamped by the plugin host
     plugin: str = ""
@@ -107,13 +130,14 @@ class Source:
             if isinstance(old, str):  # a word-valued parameter (a choice), kept as text
                 self.parameters[k] = str(v)
                 continue
-            try:
-                new = v if isinstance(v, pint.Quantity) else (ureg.Quantity(v) if isinstance(v, str) else v)
-            except Exception:
-                raise PluginError(f"parameter {k!r}: cannot parse {v!r} as a quantity", self.plugin or None, self.name) from None
+            new = parse_quantity(v, where=f"parameter {k!r}",
+                                 error=lambda m: PluginError(m, self.plugin or None, self.name))
             if isinstance(old, pint.Quantity):
                 if not isinstance(new, pint.Quantity):
                     new = Q_(float(new))
+                if old.dimensionless and not old.unitless and new.unitless:
+                    raise PluginError(f"parameter {k!r}: {v!r} needs an explicit unit (for example \"{v} {old.units:~P}\"); "
+                                      "a bare number is ambiguous for an angle", self.plugin or None, self.name)
                 if new.dimensionality != old.dimensionality:
                     raise PluginError(f"parameter {k!r}: {new:~P} does not have the dimension of {old:~P}",
                                       self.plugin or None, self.name)
@@ -166,3 +190,63 @@ def check_sample(source: Source, out: dict, n: int, shapes: dict) -> dict:
                               source.plugin, source.name, "sample")
         conv[key] = arr
     return conv
+
+
+# ----------------------------------------------------------------------------- diagnosis candidates
+@dataclass
+class Candidate:
+    """A physics term a rigid-body model leaves out.
+
+    effect: fixed name of the effect (``thermal_expansion``, ``reversal``, ...).
+    axis: "x", "y", "z", a pair such as "yz", or None.
+    parameters: [(name, display unit, internal unit)], e.g. [("cte", "um/(m*K)", "1/K")].
+    columns(ctx) -> (M, 3, k): displacement of each measured point per internal unit of each
+        parameter, in ``frame`` ("machine": workpiece frame; "tracker": tracker frame).
+    perturbation(ctx, beta) -> model perturbations (MODEL_INPUTS keys) that put the effect
+        into the full model at parameter values ``beta`` (internal units), for the refit.
+    requires(ctx) -> None, or the reason the recording cannot test this candidate.
+    """
+
+    effect: str
+    axis: str | None
+    description: str
+    parameters: list
+    columns: Callable
+    frame: str = "machine"
+    perturbation: Callable | None = None
+    requires: Callable | None = None
+    summary: Callable | None = None  # (beta, cov) -> (estimate, uncertainty) for multi-parameter effects
+    plugin: str = ""
+    dist_name: str = ""
+    dist_version: str = ""
+
+    @property
+    def label(self) -> str:
+        return self.effect if not self.axis else f"{self.effect}[{self.axis}]"
+
+
+@dataclass
+class DiagnosisContext:
+    recording: Recording
+    model: MeasurementModel
+    pose: np.ndarray  # (6,)
+    theta: np.ndarray  # (p,)
+    P_W: np.ndarray  # (M, 3) predicted machine-frame points of the baseline
+    P_LT: np.ndarray  # (M, 3) predicted tracker points
+
+    @property
+    def plan(self):
+        return self.recording.plan
+
+    def axis_temperature_column(self, axis: str):
+        """Temperature (K) of an axis at each point, or None when no sensor is attached to it."""
+        sens = [s for s in self.plan.sensors if s.axis == axis and s.column in self.plan.temperature]
+        if not sens:
+            return None
+        return self.plan.axis_temperature(axis, self.recording.reference_temperature)
+
+    def air_temperature(self):
+        cols = [s.column for s in self.plan.sensors if s.attached_to.strip().lower() == "air" and s.column in self.plan.temperature]
+        if not cols:
+            return None
+        return np.mean([self.plan.temperature[c] for c in cols], axis=0)
