@@ -18,7 +18,7 @@ import numpy as np
 import pint
 from scipy import stats
 
-from .errors import DistributionError, MtbudgetError
+from .errors import DistributionError
 from .units import Q_, ureg
 
 

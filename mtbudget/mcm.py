@@ -22,7 +22,7 @@ import pint
 import uncertainties
 
 from .distributions import Distribution, Normal, t_factor
-from .errors import ModelError, MtbudgetError
+from .errors import ModelError
 from .stats import clause8, numerical_tolerance, shortest_interval, symmetric_interval
 from .units import Q_
 

@@ -89,7 +89,6 @@ def budget_text(res: RunResult) -> str:
 # ----------------------------------------------------------------------------- run reports
 def _figures(res: RunResult, folder):
     """PNG figures of a run; returns {name: path}."""
-    from pathlib import Path
 
     import matplotlib
 
@@ -199,7 +198,6 @@ def run_report(res: RunResult, folder, tolerance_um: float | None = None) -> dic
     """Write report.md and a self-contained report.html (figures inlined) into ``folder``."""
     import base64
     import html
-    from pathlib import Path
 
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)

@@ -39,7 +39,7 @@ import numpy as np
 from . import __version__
 from .config import SimulationConfig, load_config, parse_config
 from .engine import SCALARS, Accumulator, BlockResult, Engine, RunResult, run
-from .errors import RunLogError, MtbudgetError
+from .errors import RunLogError
 from .stats import Moments
 
 FORMAT = "mtbudget-runlog/1"
