@@ -18,10 +18,9 @@ import numpy as np
 from scipy import optimize
 
 from mtbudget import tracker as lt
-from mtbudget.identify import Noise, _range_basis, analyse, identify, scale_vector
+from mtbudget.identify import Noise, analyse, identify, range_basis, scale_vector
 from mtbudget.model import MeasurementModel
 from mtbudget.plan import build_plan, mesh
-from mtbudget.simulate import noise_perturbations
 
 NOISE = Noise(angular=5e-6, distance=4e-3, distance_per_length=0.8e-6, repeatability=1.5e-3)
 POSE = np.array([-700.0, 250.0, 650.0, 0.002, -0.001, 0.3])
@@ -35,11 +34,23 @@ def make_model(tools=((0, 0, -150),), runs=1):
 def trials(model, N, seed=1):
     rng = np.random.default_rng(seed)
     sv = scale_vector(model)
-    Q = _range_basis(np.ones(model.n_params, bool), analyse(model).null_space)
+    Q = range_basis(np.ones(model.n_params, bool), analyse(model).null_space)
     theta = (Q @ (Q.T @ rng.normal(0, 8.0, model.n_params))) / sv
     clean = np.broadcast_to(model.predict(theta, POSE), (N, model.n_points, 3))
-    noise = noise_perturbations(model, clean, rng, NOISE.angular, NOISE.distance, NOISE.distance_per_length, NOISE.repeatability)
-    return model.predict(np.broadcast_to(theta, (N, model.n_params)), POSE, noise)
+    return model.predict(np.broadcast_to(theta, (N, model.n_params)), POSE, draw_noise(clean, rng))
+
+
+def draw_noise(P_LT, rng):
+    """Tracker noise (range and both angles) and machine repeatability, drawn here for the benchmark alone."""
+    N, M = P_LT.shape[:2]
+    r = np.linalg.norm(P_LT, axis=-1)
+    sph = np.empty((N, M, 3))
+    sph[..., 0] = rng.standard_normal((N, M)) * (NOISE.distance + NOISE.distance_per_length * r)
+    sph[..., 1:] = rng.standard_normal((N, M, 2)) * NOISE.angular
+    out = {"spherical_noise": sph}
+    for a in "xyz":
+        out[f"axis_offset.{a}"] = rng.standard_normal((N, M)) * NOISE.repeatability
+    return out
 
 
 def scipy_one(model, meas, Q, sv):
@@ -85,7 +96,7 @@ def main():
     meas = trials(model, N)
     t_batch, res = time_batched(model, meas)
     sv = scale_vector(model)
-    Q = _range_basis(np.ones(model.n_params, bool), res.identifiability.null_space)
+    Q = range_basis(np.ones(model.n_params, bool), res.identifiability.null_space)
     K = args.scipy_trials
     t = time.perf_counter()
     worst = 0.0

@@ -11,7 +11,7 @@ in distribution (different blocks draw different streams).
 import time
 
 from mtbudget.config import load_config
-from mtbudget.engine import run
+from mtbudget.runner import run
 
 
 def per_trial(trials, block):

@@ -15,7 +15,7 @@ import argparse
 import time
 from collections import Counter
 
-from mtbudget.calibration import named, named_or_confounded, run_case
+from mtbudget.testing import named, named_or_confounded, run_case
 from mtbudget.plugins import default_host
 
 SINGLE = [("thermal_expansion", "x"), ("thermal_expansion", "y"), ("thermal_expansion", "z"), ("reversal", "x"),

@@ -15,6 +15,12 @@ from .errors import MtbudgetError
 class _Group(click.Group):
     """Turn mtbudget's own errors into one-line messages and exit code 2."""
 
+    ORDER = ("study", "run", "report", "replay", "simulate", "identify", "diagnose", "plugins")
+
+    def list_commands(self, ctx):
+        names = super().list_commands(ctx)
+        return [n for n in self.ORDER if n in names] + [n for n in names if n not in self.ORDER]
+
     def invoke(self, ctx):
         try:
             return super().invoke(ctx)
@@ -30,9 +36,12 @@ def main():
 
     \b
     Start with:
-      mtbudget simulate --out sim        simulate the built-in paper study into ./sim
-      mtbudget identify sim              identify the machine's errors from it
-      mtbudget identify --example null   the same on a bundled example recording
+      mtbudget study all --out paper-study   the paper's studies on the built-in default (a few minutes)
+      mtbudget run --trials 1000             Monte Carlo uncertainty and budget of the built-in verification
+      mtbudget report mtbudget-run.mcap      a Markdown and HTML report of that run
+      mtbudget simulate --out sim            one simulated verification written as a recording
+      mtbudget identify sim                  identify the machine's errors from a recording
+      mtbudget diagnose --example thermal_x  find the physics a recording shows that the model leaves out
 
     Every command has --help. Quantities in configs and recordings carry units
     (pint syntax: "5 um", "20 degC", "0.8 um/m").
@@ -43,33 +52,45 @@ def main():
 @click.argument("config", required=False, type=click.Path(dir_okay=False, path_type=Path))
 @click.option("--out", "out", type=click.Path(file_okay=False, path_type=Path), default=Path("mtbudget-simulation"),
               show_default=True, help="Folder to write the simulated recording into (created if missing).")
-@click.option("--seed", type=int, default=None, help="Seed of the measurement noise (default: the config's seed).")
+@click.option("--seed", type=click.IntRange(min=0), default=None, help="Seed of the run whose trial is written (default: the config's seed).")
+@click.option("--trial", type=click.IntRange(min=0), default=0, show_default=True,
+              help="Which trial of that run: `mtbudget run` with the same seed simulates the same trial.")
 @click.option("--no-identify", is_flag=True, help="Only write the recording; skip the identification summary.")
-def simulate(config, out, seed, no_identify):
+def simulate(config, out, seed, trial, no_identify):
     """Simulate a verification and write it as a recording.
 
     CONFIG is a TOML configuration (default: the built-in paper study,
-    examples/paper_xfyz.toml). The folder gets recording.toml, points.csv
-    and truth.json (what the simulation put in), in the format of
+    examples/paper_xfyz.toml). The recording is one trial of the Monte
+    Carlo run of the same configuration: every enabled source (see
+    `mtbudget plugins CONFIG`) and the effects of [effects] are drawn by the
+    same simulator. The folder gets recording.toml, points.csv and
+    truth.json (what the simulation put in), in the format of
     docs/recording-format.md, so a simulation and a real recording can be
     compared point by point.
     """
     from .config import load_config
     from .recording import write_recording
-    from .simulate import simulate as run
+    from .scenario import build_scenario
+    from .simulate import simulate_recording
 
     cfg = load_config(config)
-    rec, truth = run(cfg, seed)
+    rec, truth = simulate_recording(build_scenario(cfg), seed, trial)
     write_recording(rec, out, truth=truth)
     click.echo(f"wrote {len(rec)} simulated points of {cfg.name!r} ({cfg.machine}) to {out}/")
     if not no_identify:
         _print_identification(out)
 
 
+def _shown(internal_unit: str) -> str:
+    """The unit results are shown in: um for lengths, urad for angles."""
+    return "um" if internal_unit == "mm" else "urad"
+
+
 def _print_identification(folder, as_json=False, max_degree=3, strategy="one-phase"):
     from .identify import Noise, Strategy, identify
     from .model import MeasurementModel
     from .recording import read_recording
+    from .units import display
 
     rec = read_recording(folder)
     model = MeasurementModel.for_plan(rec.machine, rec.plan, max_degree=max_degree)
@@ -81,14 +102,15 @@ def _print_identification(folder, as_json=False, max_degree=3, strategy="one-pha
         "points": len(rec),
         "chi2_per_dof": float(res.chi2_per_dof[0]),
         "dof": int(res.dof),
-        "mean_error_before_um": float(res.mean_error_before[0] * 1e3),
-        "mean_error_after_um": float(res.mean_error_after[0] * 1e3),
-        "max_residual_um": float(res.max_residual[0] * 1e3),
+        "mean_error_before_um": float(display(res.mean_error_before[0], "mm", "um")),
+        "mean_error_after_um": float(display(res.mean_error_after[0], "mm", "um")),
+        "max_residual_um": float(display(res.max_residual[0], "mm", "um")),
         "converged": bool(res.converged[0]),
         "pose": dict(zip("DLHabd", map(float, res.pose[0]))),
+        "pose_units": dict(zip("DLHabd", ["mm"] * 3 + ["rad"] * 3)),
         "parameters": [
-            {"name": p.name, "value": float(v * (1e3 if p.unit == "mm" else 1e6)),
-             "uncertainty": float(s * (1e3 if p.unit == "mm" else 1e6)), "unit": "um" if p.unit == "mm" else "urad"}
+            {"name": p.name, "value": float(display(v, p.unit, _shown(p.unit))),
+             "uncertainty": float(display(s, p.unit, _shown(p.unit))), "unit": _shown(p.unit)}
             for p, v, s in zip(model.errors.params, res.theta[0], u)
         ],
         "not_identifiable": [[{"parameter": n, "weight": w} for n, w in combo]
@@ -114,7 +136,8 @@ def _print_identification(folder, as_json=False, max_degree=3, strategy="one-pha
 @click.option("--example", type=click.Choice(["null", "thermal_x", "reversal_y", "tracker_drift"]),
               help="Use a bundled example recording instead of a folder.")
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object (parameters with units and uncertainties).")
-@click.option("--max-degree", type=int, default=3, show_default=True, help="Legendre degree of each error function.")
+@click.option("--max-degree", type=click.IntRange(min=1, max=9), default=3, show_default=True,
+              help="Legendre degree of each error function.")
 @click.option("--strategy", type=click.Choice(["one-phase", "multi-phase"]), default="one-phase", show_default=True,
               help="Optimisation strategy: all errors at once (the paper's choice) or pose, then translational, then all.")
 def identify(recording, example, as_json, max_degree, strategy):
@@ -182,43 +205,53 @@ def plugins_cmd(as_json):
 
 @main.command("run")
 @click.argument("config", required=False, type=click.Path(dir_okay=False, path_type=Path))
-@click.option("--trials", type=int, default=1000, show_default=True,
-              help="Monte Carlo trials; 0 runs the adaptive procedure of JCGM 101 7.9 on the main output "
+@click.option("--trials", type=click.IntRange(min=0), default=1000, show_default=True,
+              help="Monte Carlo trials (at least 2); 0 runs the adaptive procedure of JCGM 101 7.9 on the main output "
                    "(two significant digits: expect tens of thousands of trials; at most 10^6).")
-@click.option("--seed", type=int, default=None, help="Seed of the run (default: the config's seed).")
-@click.option("--coverage", type=float, default=0.95, show_default=True, help="Coverage probability of the intervals.")
+@click.option("--seed", type=click.IntRange(min=0), default=None, help="Seed of the run (default: the config's seed).")
+@click.option("--coverage", type=click.FloatRange(0, 1, min_open=True, max_open=True), default=0.95, show_default=True,
+              help="Coverage probability of the intervals.")
 @click.option("--executor", type=click.Choice(["inline", "process", "dask"]), default="inline", show_default=True,
               help="Where trials run: this process, a local process pool, or a Dask cluster (extra 'dask').")
-@click.option("--workers", type=int, default=None, help="Workers of the process pool or local Dask cluster.")
+@click.option("--workers", type=click.IntRange(min=1), default=None, help="Workers of the process pool or local Dask cluster.")
 @click.option("--address", default=None, help="Address of an existing Dask scheduler (with --executor dask).")
-@click.option("--attribution-trials", type=int, default=512, show_default=True,
+@click.option("--attribution-trials", type=click.IntRange(min=0), default=512, show_default=True,
               help="Trials per source for the budget (one source at a time); 0 skips the budget.")
 @click.option("--log", "log_path", type=click.Path(dir_okay=False, path_type=Path), default=None,
-              help="Write the run to this MCAP file (default: mtbudget-run.mcap).")
+              help="Write the run to this MCAP file (default: mtbudget-run.mcap; an existing file needs --force).")
+@click.option("--force", is_flag=True, help="Overwrite an existing run log.")
 @click.option("--resume", "resume_path", type=click.Path(dir_okay=False, exists=True, path_type=Path), default=None,
               help="Finish an interrupted run from its MCAP log (same config and seed).")
-@click.option("--adaptive-batch", type=int, default=None,
+@click.option("--adaptive-batch", type=click.IntRange(min=2), default=None,
               help="With --trials 0: trials per adaptive batch (default: JCGM 101's max(100/(1-p), 10^4)).")
-@click.option("--json", "as_json", is_flag=True, help="Print the results as one JSON object.")
-@click.option("--quiet", is_flag=True, help="No progress bar.")
-def run_cmd(config, trials, seed, coverage, executor, workers, address, attribution_trials, log_path, resume_path,
+@click.option("--json", "as_json", is_flag=True, help="Print the results as one JSON object (progress still goes to stderr).")
+@click.option("--quiet", is_flag=True, help="No progress bars.")
+def run_cmd(config, trials, seed, coverage, executor, workers, address, attribution_trials, log_path, force, resume_path,
             adaptive_batch, as_json, quiet):
     """Monte Carlo uncertainty of a verification, with its budget.
 
     CONFIG is a TOML configuration (default: the built-in paper study). Each
-    trial draws every enabled uncertainty source (see `mtbudget plugins`),
-    simulates the verification, identifies the machine as the real
+    trial draws every enabled uncertainty source (see `mtbudget plugins
+    CONFIG`), simulates the verification, identifies the machine as the real
     verification would, and records the error left after compensation. The
     output gives, for each result, the MCM estimate, standard uncertainty
-    and coverage intervals, and a budget by source and by group.
+    and coverage intervals, and a budget by source and by group. Progress
+    goes to stderr; the run is logged to MCAP as it goes (see `mtbudget
+    replay` and `mtbudget report`).
     """
-    from .runlog import execute
-
-    res = execute(config, trials=trials or None, seed=seed, coverage=coverage, executor=executor, workers=workers,
-                  address=address, attribution_trials=attribution_trials, log_path=log_path, resume_path=resume_path,
-                  progress=not quiet and not as_json, adaptive_batch=adaptive_batch)
     from .report import budget_text, result_json
+    from .runner import RunSettings, execute
 
+    if trials == 1:
+        raise click.BadParameter("a Monte Carlo run needs at least 2 trials (or 0 for an adaptive run)",
+                                 param_hint="--trials")
+    if attribution_trials == 1:
+        raise click.BadParameter("the budget needs at least 2 trials per source (or 0 to skip it)",
+                                 param_hint="--attribution-trials")
+    settings = RunSettings(trials=trials or None, seed=seed, coverage=coverage, executor=executor, workers=workers,
+                           address=address, attribution_trials=attribution_trials, progress=not quiet,
+                           adaptive_batch=adaptive_batch)
+    res = execute(config, settings, log_path=log_path, resume_path=resume_path, force=force)
     if as_json:
         click.echo(json.dumps(result_json(res), indent=1))
     else:
@@ -240,11 +273,11 @@ def replay(runlog, verify, as_json):
     differ from the logged ones are named first.
     """
     from .report import budget_text, result_json
-    from .runlog import replay as do_replay
-    from .runlog import verify as do_verify
+    from .runner import replay as do_replay
+    from .runner import verify as do_verify
 
     if verify:
-        v = do_verify(runlog)
+        v = do_verify(runlog, progress=True)
         for n in v["notes"]:
             click.echo(f"note: {n}")
         if v["identical"]:
@@ -271,9 +304,10 @@ def replay(runlog, verify, as_json):
 @click.option("--json", "as_json", is_flag=True, help="Print exactly one JSON object on stdout.")
 @click.option("--report", "report_dir", type=click.Path(file_okay=False, path_type=Path), default=None,
               help="Write a Markdown report with residual plots before and after into this folder.")
-@click.option("--alpha", type=float, default=0.01, show_default=True,
+@click.option("--alpha", type=click.FloatRange(0, 1, min_open=True, max_open=True), default=0.01, show_default=True,
               help="Family-wise false-discovery level over all candidates (Bonferroni).")
-@click.option("--max-degree", type=int, default=3, show_default=True, help="Legendre degree of the baseline error functions.")
+@click.option("--max-degree", type=click.IntRange(min=1, max=9), default=3, show_default=True,
+              help="Legendre degree of the baseline error functions.")
 def diagnose_cmd(recording, example, as_json, report_dir, alpha, max_degree):
     """Find the physics a recording shows that the rigid-body model leaves out.
 
@@ -329,7 +363,7 @@ def report(runlog, out, tolerance):
     """
     from .config import to_unit
     from .report import run_report
-    from .runlog import replay as do_replay
+    from .runner import replay as do_replay
 
     res = do_replay(runlog)
     tol = None if tolerance is None else to_unit(tolerance, "um", "--tolerance")
@@ -350,13 +384,18 @@ def study():
 
 def _placement(config, tests, out, quiet):
     from .config import load_config
-    from .study import placement, placement_report, write_placement_log
+    from .report_study import placement_report
+    from .runlog import write_placement_log
+    from .scenario import build_scenario
+    from .study import placement, placement_arrays, placement_json
 
     cfg = load_config(config)
-    res = placement(cfg, tests=tests, progress=not quiet)
+    res = placement(build_scenario(cfg), tests=tests, progress=not quiet)
     out.mkdir(parents=True, exist_ok=True)
-    write_placement_log(res, out / "placement.mcap", cfg)
-    md = placement_report(res, out)
+    summary = placement_json(res)
+    write_placement_log(summary, placement_arrays(res), out / "placement.mcap",
+                        cfg.path.read_text() if cfg.path else None, cfg.seed)
+    md = placement_report(res, summary, out)
     red = res["reduction"]
     click.echo(f"placement: {res['settings']['tests']} tests per direction in {res['seconds']:.0f} s; mean maximum error "
                f"{red['mean_better_um']:.1f} um ({red['better']} direction) vs {red['mean_worse_um']:.1f} um "
@@ -366,17 +405,22 @@ def _placement(config, tests, out, quiet):
 
 def _verification(config, trials, out, quiet, attribution_trials):
     from .config import load_config
+    from .progress import note
     from .report import budget_text, run_report
-    from .runlog import execute, replay
-    from .study import verification_figures, verification_summary
+    from .report_study import verification_figures
+    from .runner import RunSettings, execute, replay
+    from .scenario import build_scenario
+    from .study import verification_clouds, verification_summary
 
     cfg = load_config(config)
     out.mkdir(parents=True, exist_ok=True)
-    execute(cfg, trials=trials, log_path=out / "verification.mcap", progress=not quiet,
-            attribution_trials=attribution_trials)
+    execute(cfg, RunSettings(trials=trials, progress=not quiet, attribution_trials=attribution_trials),
+            log_path=out / "verification.mcap", force=True)
     res = replay(out / "verification.mcap")
+    note("writing the report and the figures of paper Figs. 12-15 ...", not quiet)
     run_report(res, out / "report")
-    figs = verification_figures(res, out / "report", cfg)
+    init, final = verification_clouds(res, build_scenario(cfg, sources=res.spec["sources"]))
+    figs = verification_figures(res, init, final, res.mesh, out / "report")
     summ = verification_summary(res)
     (out / "verification.json").write_text(json.dumps(summ, indent=1, default=float))
     fm = summ["final_mean_error_um"]
@@ -389,7 +433,7 @@ def _verification(config, trials, out, quiet, attribution_trials):
 
 @study.command("placement")
 @click.argument("config", required=False, type=click.Path(dir_okay=False, path_type=Path))
-@click.option("--tests", type=int, default=None, help="Monte Carlo tests per direction (default: the config's, 100000).")
+@click.option("--tests", type=click.IntRange(min=1), default=None, help="Monte Carlo tests per direction (default: the config's, 100000).")
 @click.option("--out", type=click.Path(file_okay=False, path_type=Path), default=Path("paper-study"), show_default=True)
 @click.option("--quiet", is_flag=True, help="No progress bar.")
 def study_placement(config, tests, out, quiet):
@@ -399,8 +443,9 @@ def study_placement(config, tests, out, quiet):
 
 @study.command("verification")
 @click.argument("config", required=False, type=click.Path(dir_okay=False, path_type=Path))
-@click.option("--trials", type=int, default=1000, show_default=True, help="Simulated verifications.")
-@click.option("--attribution-trials", type=int, default=256, show_default=True, help="Trials per source for the budget.")
+@click.option("--trials", type=click.IntRange(min=2), default=1000, show_default=True, help="Simulated verifications.")
+@click.option("--attribution-trials", type=click.IntRange(min=0), default=256, show_default=True,
+              help="Trials per source for the budget (0 skips it).")
 @click.option("--out", type=click.Path(file_okay=False, path_type=Path), default=Path("paper-study"), show_default=True)
 @click.option("--quiet", is_flag=True, help="No progress bar.")
 def study_verification(config, trials, attribution_trials, out, quiet):
@@ -410,9 +455,10 @@ def study_verification(config, trials, attribution_trials, out, quiet):
 
 @study.command("all")
 @click.argument("config", required=False, type=click.Path(dir_okay=False, path_type=Path))
-@click.option("--tests", type=int, default=None, help="Placement tests per direction (default: the config's).")
-@click.option("--trials", type=int, default=1000, show_default=True, help="Simulated verifications.")
-@click.option("--attribution-trials", type=int, default=256, show_default=True, help="Trials per source for the budget.")
+@click.option("--tests", type=click.IntRange(min=1), default=None, help="Placement tests per direction (default: the config's).")
+@click.option("--trials", type=click.IntRange(min=2), default=1000, show_default=True, help="Simulated verifications.")
+@click.option("--attribution-trials", type=click.IntRange(min=0), default=256, show_default=True,
+              help="Trials per source for the budget (0 skips it).")
 @click.option("--out", type=click.Path(file_okay=False, path_type=Path), default=Path("paper-study"), show_default=True)
 @click.option("--quiet", is_flag=True, help="No progress bars.")
 def study_all(config, tests, trials, attribution_trials, out, quiet):

@@ -7,17 +7,17 @@ See docs/configuration.md for every key.
 
 from __future__ import annotations
 
+import difflib
 from dataclasses import dataclass, field
 from importlib import resources
 from pathlib import Path
 
 import numpy as np
-import pint
 
 from .errors import ConfigError
 from .machine import AXES, COMPONENT_ERRORS, SQUARENESS, Configuration
 from .plan import Plan, Sensor, build_plan, mesh
-from .units import Q_, ureg
+from .units import to_internal
 
 try:
     import tomllib
@@ -41,7 +41,7 @@ def example_recording(name: str) -> Path:
     return p
 
 
-class _Reader:
+class Reader:
     """Typed access to a TOML table with errors that name file and key."""
 
     def __init__(self, data: dict, path, prefix: str = ""):
@@ -53,7 +53,7 @@ class _Reader:
     def has(self, key):
         return key in self.data
 
-    def sub(self, key, required=False) -> "_Reader":
+    def sub(self, key, required=False) -> "Reader":
         v = self.data.get(key)
         if v is None:
             if required:
@@ -61,39 +61,75 @@ class _Reader:
             v = {}
         if not isinstance(v, dict):
             raise ConfigError(f"{self.where(key)}: expected a table")
-        return _Reader(v, self.path, f"{self.prefix}{key}.")
+        return Reader(v, self.path, f"{self.prefix}{key}.")
 
     def raw(self, key, default=None):
         return self.data.get(key, default)
 
-    def quantity(self, key, unit: str, default=None, value=None) -> float:
+    def quantity(self, key, unit: str, default=None, value=None, absolute_temperature: bool = False) -> float:
         text = self.data.get(key, default) if value is None else value
         if text is None:
             raise ConfigError(f"{self.where(key)}: missing (a quantity in {unit})")
-        return to_unit(text, unit, self.where(key))
+        return to_unit(text, unit, self.where(key), absolute_temperature=absolute_temperature)
 
-    def number(self, key, default=None, kind=float):
+    def number(self, key, default=None, kind=float, low=None, high=None):
+        """A plain TOML number (an integer where ``kind`` is int: 2.5 is refused, never floored), within [low, high]."""
         v = self.data.get(key, default)
         if v is None:
             raise ConfigError(f"{self.where(key)}: missing")
-        try:
-            return kind(v)
-        except (TypeError, ValueError):
-            raise ConfigError(f"{self.where(key)}: expected a {kind.__name__}, got {v!r}") from None
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or (kind is int and not isinstance(v, int)):
+            what = "a whole number" if kind is int else "a number"
+            raise ConfigError(f"{self.where(key)}: expected {what}, got {v!r}")
+        v = kind(v)
+        if (low is not None and v < low) or (high is not None and v > high):
+            rng = f"at least {low}" if high is None else f"between {low} and {high}"
+            raise ConfigError(f"{self.where(key)}: must be {rng}, got {v!r}")
+        return v
+
+    def check_keys(self, allowed, what: str | None = None):
+        """Every key of the table is known; a typo gets the closest known key."""
+        for k in self.data:
+            if k not in allowed:
+                close = difflib.get_close_matches(str(k), list(allowed), n=1)
+                hint = f"; did you mean {close[0]!r}?" if close else f"; {what or 'it'} takes {', '.join(allowed)}"
+                raise ConfigError(f"{self.where(k)}: unknown key{hint}")
 
 
-def to_unit(text, unit: str, where: str = "value") -> float:
-    """Parse a quantity string and convert it to ``unit``; ConfigError names ``where``."""
-    try:
-        q = Q_(float(text)) if isinstance(text, (int, float)) else ureg.Quantity(str(text))
-    except Exception as exc:
-        raise ConfigError(f"{where}: cannot parse {text!r} as a quantity ({exc.__class__.__name__})") from None
-    if not isinstance(q, pint.Quantity):
-        q = Q_(float(q))
-    try:
-        return float(q.to(unit).magnitude)
-    except pint.DimensionalityError:
-        raise ConfigError(f"{where}: {text!r} is not a quantity of {ureg.Unit(unit).dimensionality} (expected e.g. {unit})") from None
+#: every key a configuration may hold, by table (docs/configuration.md documents each; a test checks it does).
+#: [placement] is checked by the placement study and [sources] by the scenario.
+SCHEMA = {
+    "": ("format", "name", "description", "machine", "reference_temperature", "seed", "mesh", "plan", "tracker",
+         "machine_tool", "geometric_errors", "sensors", "effects", "placement", "sources", "weights"),
+    "mesh": ("x", "y", "z", "step", "step_x", "step_y", "step_z"),
+    "plan": ("runs", "tools", "feed", "stop_time", "tool_change_time"),
+    "tracker": ("D", "L", "H", "a", "b", "d", "angular", "distance", "distance_per_length"),
+    "machine_tool": ("repeatability", "max_degree", "cte"),
+    "geometric_errors": ("seed", "translational", "angular", "squareness", "coefficients"),
+    "sensors": ("column", "attached_to", "position", "start", "rate", "noise", "cycle_amplitude", "cycle_period",
+                "cycle_phase"),
+    "effects": ("thermal", "reversal", "drift"),
+    "weights": ("angular", "distance", "distance_per_length", "repeatability"),
+}
+
+
+def to_unit(text, unit: str, where: str = "value", *, absolute_temperature: bool = False) -> float:
+    """Parse a quantity and convert it to ``unit`` (through :func:`mtbudget.units.to_internal`);
+    a ConfigError names ``where``."""
+    return to_internal(text, unit, where=where, error=ConfigError, absolute_temperature=absolute_temperature)
+
+
+#: the physical inputs a configuration states once: key -> (internal unit, SimulationConfig attribute, default).
+#: Sources draw them through their ``links``; the identification weights follow them unless [weights] says otherwise.
+PHYSICAL_INPUTS = {
+    "tracker.angular": ("rad", "angular", "20 urad"),
+    "tracker.distance": ("mm", "distance", "4 um"),
+    "tracker.distance_per_length": ("mm/mm", "distance_per_length", "0.8 um/m"),
+    "machine_tool.repeatability": ("mm", "repeatability", "1.5 um"),
+    "machine_tool.cte": ("1/K", "cte", "11.5 um/(m*K)"),
+}
+#: the identification weights a verification states (the [weights] table): key -> physical input
+WEIGHT_KEYS = {"angular": "tracker.angular", "distance": "tracker.distance",
+               "distance_per_length": "tracker.distance_per_length", "repeatability": "machine_tool.repeatability"}
 
 
 @dataclass
@@ -138,12 +174,26 @@ class SimulationConfig:
     distance: float
     distance_per_length: float
     repeatability: float
+    cte: float  # 1/K, nominal expansion coefficient of the axes' scales
     max_degree: int
     geometric: dict  # {"coefficients": {...}, "squareness": {...}} or generation std
     sensors: list = field(default_factory=list)
     effects: dict = field(default_factory=dict)  # thermal {axis: 1/K}, reversal {axis: mm}, drift (3,) mm/s
+    weights: dict | None = None  # [weights]: identification weights stated apart from the physical inputs
     source: dict = field(default_factory=dict)  # the raw TOML (for logging)
     path: Path | None = None
+
+    def stated(self, key: str) -> bool:
+        """Whether the configuration itself states ``key`` ("tracker.angular"), rather than leaving its default."""
+        node = self.source
+        for part in key.split("."):
+            if not isinstance(node, dict) or part not in node:
+                return False
+            node = node[part]
+        return True
+
+    def where(self, key: str) -> str:
+        return f"{self.path}: {key}" if self.path else key
 
     def plan(self, rng: np.random.Generator | None = None) -> Plan:
         """Build the plan (mesh, passes, timing) and its sensor readings."""
@@ -169,10 +219,22 @@ def load_config(path=None) -> SimulationConfig:
 
 
 def parse_config(data: dict, path=None) -> SimulationConfig:
-    r = _Reader(data, path)
+    r = Reader(data, path)
     fmt = r.raw("format")
     if fmt != CONFIG_FORMAT:
         raise ConfigError(f"{r.where('format')}: expected \"{CONFIG_FORMAT}\", got {fmt!r}")
+    r.check_keys(SCHEMA[""], "a configuration")
+    for table in ("mesh", "plan", "tracker", "machine_tool", "geometric_errors", "effects", "weights"):
+        if r.has(table):
+            r.sub(table).check_keys(SCHEMA[table], f"[{table}]")
+    sens = data.get("sensors", [])
+    if not isinstance(sens, list) or not all(isinstance(x, dict) for x in sens):
+        raise ConfigError(f"{r.where('sensors')}: expected [[sensors]] tables")
+    for i, x in enumerate(sens):
+        Reader(x, path, f"sensors[{i}].").check_keys(SCHEMA["sensors"], "[[sensors]]")
+    for name in ("name", "description", "machine"):
+        if r.has(name) and not isinstance(r.raw(name), str):
+            raise ConfigError(f"{r.where(name)}: expected a string, got {r.raw(name)!r}")
     machine = str(r.raw("machine", "XFYZ"))
     try:
         Configuration.parse(machine)
@@ -191,6 +253,8 @@ def parse_config(data: dict, path=None) -> SimulationConfig:
         step[a] = to_unit(st, "mm", m.where("step"))
     pl = r.sub("plan")
     tools_raw = pl.raw("tools", [["0 mm", "0 mm", "0 mm"]])
+    if not isinstance(tools_raw, list) or not tools_raw:
+        raise ConfigError(f"{pl.where('tools')}: expected at least one tool offset [tx, ty, tz]")
     tools = []
     for i, t in enumerate(tools_raw):
         if not (isinstance(t, list) and len(t) == 3):
@@ -200,7 +264,7 @@ def parse_config(data: dict, path=None) -> SimulationConfig:
     pose = np.array([tr.quantity(k, "mm") for k in "DLH"] + [tr.quantity(k, "rad") for k in "abd"])
     mt = r.sub("machine_tool")
     ge = r.sub("geometric_errors")
-    geometric: dict = {"seed": int(ge.raw("seed", 1))}
+    geometric: dict = {"seed": ge.number("seed", 1, int, low=0)}
     if ge.has("coefficients"):
         co = ge.sub("coefficients")
         coefs = {}
@@ -219,15 +283,15 @@ def parse_config(data: dict, path=None) -> SimulationConfig:
         geometric["translational"] = [to_unit(v, "mm", ge.where("translational")) for v in ge.raw("translational", ["8 um", "3 um", "1.5 um"])]
         geometric["angular"] = [to_unit(v, "rad", ge.where("angular")) for v in ge.raw("angular", ["10 urad", "5 urad", "2.5 urad"])]
         geometric["squareness"] = ge.quantity("squareness", "rad", "30 urad")
-    tref = r.quantity("reference_temperature", "K", "20 degC")
+    tref = r.quantity("reference_temperature", "K", "20 degC", absolute_temperature=True)
     sensors = []
     for i, s in enumerate(data.get("sensors", [])):
-        sr = _Reader(s, path, f"sensors[{i}].")
+        sr = Reader(s, path, f"sensors[{i}].")
         if "column" not in s or "attached_to" not in s:
             raise ConfigError(f"{sr.where('column')}: each [[sensors]] needs column and attached_to")
         pos = s.get("position")
         sensor = Sensor(s["column"], s["attached_to"], None if pos is None else sr.quantity("position", "mm"))
-        start = sr.quantity("start", "K", "20 degC")
+        start = sr.quantity("start", "K", "20 degC", absolute_temperature=True)
         rate = sr.quantity("rate", "K/s", "0 K/h")
         noise = sr.quantity("noise", "K", "0 K")
         sensors.append(SensorSpec(sensor, start, rate, noise, sr.quantity("cycle_amplitude", "K", "0 K"),
@@ -247,25 +311,39 @@ def parse_config(data: dict, path=None) -> SimulationConfig:
         if not (isinstance(dv, list) and len(dv) == 3):
             raise ConfigError(f"{eff.where('drift')}: expected [vx, vy, vz], e.g. [\"4 um/h\", \"0 um/h\", \"0 um/h\"]")
         effects["drift"] = np.array([to_unit(v, "mm/s", eff.where("drift")) for v in dv])
+    physical = {}
+    for key, (unit, attr, default) in PHYSICAL_INPUTS.items():
+        table, name = key.split(".")
+        physical[attr] = r.sub(table).quantity(name, unit, default)
+        if attr != "cte" and physical[attr] < 0:  # a standard uncertainty (a CTE may be negative)
+            raise ConfigError(f"{r.sub(table).where(name)}: a standard uncertainty must not be negative")
+    weights = None
+    if r.has("weights"):
+        w = r.sub("weights")
+        weights = {}
+        for name in w.data:
+            if name not in WEIGHT_KEYS:
+                raise ConfigError(f"{w.where(name)}: unknown key; [weights] takes {', '.join(WEIGHT_KEYS)}")
+            weights[name] = w.quantity(name, PHYSICAL_INPUTS[WEIGHT_KEYS[name]][0])
+            if weights[name] < 0:
+                raise ConfigError(f"{w.where(name)}: a standard uncertainty must not be negative")
     return SimulationConfig(
         name=str(r.raw("name", Path(path).stem if path else "simulation")),
         description=str(r.raw("description", "")),
         machine=machine,
         reference_temperature=tref,
-        seed=int(r.raw("seed", 1)),
+        seed=r.number("seed", 1, int, low=0),
         mesh_ranges=ranges,
         mesh_step=step,
-        runs=pl.number("runs", 2, int),
+        runs=pl.number("runs", 2, int, low=1),
         tools=tools,
         feed=pl.quantity("feed", "mm/s", "2000 mm/min"),
         stop_time=pl.quantity("stop_time", "s", "12 s"),
         tool_change_time=pl.quantity("tool_change_time", "s", "120 s"),
         pose=pose,
-        angular=tr.quantity("angular", "rad", "5 urad"),
-        distance=tr.quantity("distance", "mm", "4 um"),
-        distance_per_length=tr.quantity("distance_per_length", "mm/mm", "0.8 um/m"),
-        repeatability=mt.quantity("repeatability", "mm", "1.5 um"),
-        max_degree=mt.number("max_degree", 3, int),
+        **physical,
+        weights=weights,
+        max_degree=mt.number("max_degree", 3, int, low=1, high=9),
         geometric=geometric,
         sensors=sensors,
         effects=effects,

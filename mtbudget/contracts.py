@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import enum
 from dataclasses import dataclass
-from typing import Callable
 
 import numpy as np
 import pint
@@ -109,6 +108,10 @@ class Source:
     #: parameter -> the configuration key of the physical input it draws (for example
     #: ``{"R": "machine_tool.repeatability"}``): one key per physical input, see mtbudget.scenario
     links: dict = {}
+    #: names of other sources that model the same thing differently: both cannot be enabled
+    excludes: tuple = ()
+    #: parameters that must not be negative (standard uncertainties, widths, bounds)
+    nonnegative: tuple = ()
 
     # stamped by the plugin host
     plugin: str = ""
@@ -143,6 +146,14 @@ class Source:
                                       self.plugin or None, self.name)
             self.parameters[k] = new
         return self
+
+    def check(self) -> str | None:
+        """None when the parameters are valid, otherwise what is wrong (one sentence, naming the parameter)."""
+        for k in self.nonnegative:
+            v = self.parameters.get(k)
+            if isinstance(v, pint.Quantity) and v.magnitude < 0:
+                return f"parameter {k!r} must not be negative, got {v:~P}"
+        return None
 
     def value(self, key: str, unit: str) -> float:
         """A parameter as a float in ``unit``."""
@@ -193,40 +204,89 @@ def check_sample(source: Source, out: dict, n: int, shapes: dict) -> dict:
 
 
 # ----------------------------------------------------------------------------- diagnosis candidates
-@dataclass
 class Candidate:
-    """A physics term a rigid-body model leaves out.
+    """Base class of a diagnosis candidate: a physics term a rigid-body model leaves out.
+
+    Subclasses set the class attributes below and implement :meth:`columns`;
+    the other methods have defaults.  An instance is one candidate, for
+    example ``ThermalExpansion("x")``.
 
     effect: fixed name of the effect (``thermal_expansion``, ``reversal``, ...).
-    axis: "x", "y", "z", a pair such as "yz", or None.
-    parameters: [(name, display unit, internal unit)], e.g. [("cte", "um/(m*K)", "1/K")].
-    columns(ctx) -> (M, 3, k): displacement of each measured point per internal unit of each
-        parameter, in ``frame`` ("machine": workpiece frame; "tracker": tracker frame).
-    perturbation(ctx, beta) -> model perturbations (MODEL_INPUTS keys) that put the effect
-        into the full model at parameter values ``beta`` (internal units), for the refit.
-    requires(ctx) -> None, or the reason the recording cannot test this candidate.
+    axis: "x", "y", "z", a pair such as "yz", or None (given to the constructor).
+    description: one sentence on the physics (a subclass may set it per instance).
+    parameters: name -> display unit (for example ``{"cte": "um/(m*K)"}``), in the order of the
+        columns: one entry per column, or one entry for a vector parameter whose components are
+        all the columns (``{"velocity": "um/h"}`` with three columns).  The columns and the
+        parameter values the diagnosis passes back are in the internal unit of each
+        (:func:`mtbudget.units.internal_unit_of`: 1/K for um/(m*K), mm for um, mm/s for um/h).
+    frame: "machine" (workpiece frame) or "tracker": the frame of the columns' displacements.
+    hints: other effect -> one sentence on the measurement that would tell the two apart, shown
+        when the diagnosis cannot tell this candidate from that one.
+
+    The diagnosis calls every method through :func:`mtbudget.plugins.call`, so an exception
+    inside one names the plugin, the candidate, the hook and the method.
     """
 
-    effect: str
-    axis: str | None
-    description: str
-    parameters: list
-    columns: Callable
+    effect: str = ""
+    axis: str | None = None
+    description: str = ""
+    parameters: dict = {}
     frame: str = "machine"
-    perturbation: Callable | None = None
-    requires: Callable | None = None
-    summary: Callable | None = None  # (beta, cov) -> (estimate, uncertainty) for multi-parameter effects
+    hints: dict = {}
+
+    # stamped by the plugin host
     plugin: str = ""
     dist_name: str = ""
     dist_version: str = ""
+
+    def __init__(self, axis: str | None = None):
+        if axis is not None:
+            self.axis = axis
 
     @property
     def label(self) -> str:
         return self.effect if not self.axis else f"{self.effect}[{self.axis}]"
 
+    def units(self) -> list:
+        """[(parameter, display unit, internal unit)] in the order of :attr:`parameters`."""
+        from .units import internal_unit_of
+
+        return [(name, unit, internal_unit_of(unit)) for name, unit in self.parameters.items()]
+
+    def requires(self, ctx: DiagnosisContext) -> str | None:
+        """None, or the reason this recording cannot test the candidate (a missing sensor, one approach side)."""
+        return None
+
+    def columns(self, ctx: DiagnosisContext) -> np.ndarray:
+        """(M, 3, k): displacement (mm) of each measured point per internal unit of each parameter, in ``frame``."""
+        raise NotImplementedError
+
+    def perturbation(self, ctx: DiagnosisContext, beta: np.ndarray) -> dict | None:
+        """Model perturbations (``MODEL_INPUTS`` keys) that put the effect into the full model at ``beta``
+        (internal units), for the refit; None: the columns times ``beta`` as a displacement in ``frame``."""
+        return None
+
+    def summary(self, beta: np.ndarray, cov: np.ndarray) -> tuple[list, list, str] | None:
+        """(estimates, standard uncertainties, display unit) of the fitted parameters ``beta`` with covariance ``cov``.
+
+        The default gives every column in its parameter's display unit (all parameters must share
+        one); override it for anything else (for example an RMS of several coefficients).
+        """
+        from .units import factor
+
+        units = self.units()
+        if len({disp for _, disp, _ in units}) != 1:
+            raise ValueError(f"parameters in several display units ({', '.join(d for _, d, _ in units)}): "
+                             "the candidate must override summary()")
+        f = np.array([factor(i, d) for _, d, i in units]) if len(units) == len(beta) else factor(units[0][2], units[0][1])
+        u = np.sqrt(np.maximum(np.diag(cov), 0.0))
+        return [float(b) for b in beta * f], [float(s) for s in u * f], units[0][1]
+
 
 @dataclass
 class DiagnosisContext:
+    """What a candidate may use (internal units): the recording and the baseline fitted to it."""
+
     recording: Recording
     model: MeasurementModel
     pose: np.ndarray  # (6,)

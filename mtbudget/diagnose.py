@@ -8,9 +8,12 @@ Method (docs/diagnose.md has the reasoning and the calibration):
    design ``A0`` (pose + identifiable geometric directions) are kept.
 2. **Locate.** The residuals are summarised by run, time, approach
    direction, axis position and temperature: where the structure lives.
-3. **Candidates.** Every candidate physics term (plugins, hook
+3. **Candidates.** Every candidate physics term (a
+   :class:`~mtbudget.contracts.Candidate` from a plugin, hook
    ``mtbudget_register_candidates``) gives the displacement of every measured
-   point per unit of each of its parameters.  Only the part of those columns
+   point per unit of each of its parameters; every call into a candidate goes
+   through :func:`mtbudget.plugins.call`, so its errors name the plugin and
+   the method.  Only the part of those columns
    that the baseline cannot absorb (``C - P_A0 C``) can explain anything; a
    candidate with nothing left is *not testable* with this plan (for example
    thermal expansion with a constant temperature, indistinguishable from a
@@ -40,10 +43,27 @@ from scipy import stats
 from . import tracker as lt
 from .contracts import Candidate, DiagnosisContext
 from .errors import DiagnosisError, MtbudgetError, PluginError
-from .identify import Noise, _design, _range_basis, _whitener, identify, scale_vector
+from .identify import Noise, identify
 from .machine import AXES
-from .model import MeasurementModel, merge
+from .model import MODEL_INPUTS, MeasurementModel, merge
 from .recording import Recording
+from .units import display, internal_unit_of, ureg
+
+HOOK = "mtbudget_register_candidates"
+#: a candidate of which less than this fraction (whitened norm) is left once the baseline has absorbed
+#: what it can is not testable with the plan
+ABSORBED = 1e-3
+
+
+def _call(c: Candidate, method: str, *args):
+    """A candidate's method through the plugin host, so an error names the plugin, the candidate and the method."""
+    from .plugins import call  # plugins imports contracts; imported here to keep the layers apart
+
+    return call(c, method, *args)
+
+
+def _fail(c: Candidate, reason: str, method: str | None = None):
+    raise PluginError(reason, c.plugin or None, c.label, HOOK, method)
 
 
 # --------------------------------------------------------------------- fitting
@@ -85,27 +105,55 @@ class _Linear:
         return self.n - self.p0
 
 
-def _whitened_columns(cand: Candidate, ctx: DiagnosisContext, Wh: np.ndarray) -> np.ndarray:
-    C = np.asarray(cand.columns(ctx), float)
+def _check_declaration(c: Candidate):
+    """The candidate's declared attributes: parameters with units mtbudget knows, a frame, hints."""
+    params = c.parameters
+    if not isinstance(params, dict) or not params:
+        _fail(c, f"parameters must be a non-empty dict of name -> display unit (for example {{'cte': 'um/(m*K)'}}), "
+                 f"got {params!r}")
+    for name, unit in params.items():
+        try:
+            internal_unit_of(unit)
+        except Exception:
+            _fail(c, f"parameter {name!r}: {unit!r} is not a unit of a dimension mtbudget has an internal unit for")
+    if c.frame not in ("machine", "tracker"):
+        _fail(c, f"frame must be 'machine' or 'tracker', got {c.frame!r}")
+    if not isinstance(c.hints, dict):
+        _fail(c, f"hints must be a dict of other effect -> sentence, got {type(c.hints).__name__}")
+
+
+def _columns(c: Candidate, ctx: DiagnosisContext) -> np.ndarray:
+    """The candidate's columns (M, 3, k), checked."""
+    raw = _call(c, "columns", ctx)
+    try:
+        C = np.asarray(raw, float)
+    except (TypeError, ValueError):
+        _fail(c, f"must return a numeric array, got {type(raw).__name__}", "columns")
     M = len(ctx.plan)
-    if C.ndim != 3 or C.shape[:2] != (M, 3):
-        raise PluginError(f"columns() must return shape ({M}, 3, k), got {C.shape}", cand.plugin, cand.label,
-                          "mtbudget_register_candidates")
+    if C.ndim != 3 or C.shape[:2] != (M, 3) or C.shape[2] == 0:
+        _fail(c, f"must return shape ({M}, 3, k) with k >= 1, got {C.shape}", "columns")
     if not np.all(np.isfinite(C)):
-        raise PluginError("columns() returned NaN or infinity", cand.plugin, cand.label, "mtbudget_register_candidates")
-    if cand.frame == "machine":
+        _fail(c, "returned NaN or infinity", "columns")
+    k, n_par = C.shape[2], len(c.parameters)
+    if k != n_par and n_par != 1:
+        _fail(c, f"returned {k} columns for {n_par} parameters; give one column per parameter, "
+                 "or declare one (vector) parameter", "columns")
+    return C
+
+
+def _whitened(C: np.ndarray, frame: str, ctx: DiagnosisContext, Wh: np.ndarray) -> np.ndarray:
+    """Columns (M, 3, k) in ``frame`` -> whitened tracker-frame columns (3M, k)."""
+    if frame == "machine":
         R = lt.rotation(*ctx.pose[3:])
         C = np.einsum("ji,mjk->mik", R, C)  # R^T applied to each column: into the tracker frame
-    elif cand.frame != "tracker":
-        raise PluginError(f"frame must be 'machine' or 'tracker', got {cand.frame!r}", cand.plugin, cand.label)
-    return np.einsum("mij,mjk->mik", Wh, C).reshape(3 * M, -1)
+    return np.einsum("mij,mjk->mik", Wh, C).reshape(3 * C.shape[0], -1)
 
 
 # --------------------------------------------------------------------- locate
 def locate(ctx: DiagnosisContext, residual_machine: np.ndarray, whitened: np.ndarray) -> dict:
     """Where the baseline residuals are structured (machine frame, um)."""
     plan = ctx.plan
-    r = residual_machine * 1e3
+    r = display(residual_machine, "mm", "um")
     out: dict = {"unit": "um"}
     chi_pt = (whitened**2).sum(axis=1)
     n = len(plan)
@@ -117,7 +165,7 @@ def locate(ctx: DiagnosisContext, residual_machine: np.ndarray, whitened: np.nda
                         "mean": r[m].mean(0).round(3).tolist(), "chi2_per_point": float(chi_pt[m].mean() / 3)}
     out["by_run"] = runs
     # by time: slope of each component (um/h) with its standard error
-    t = plan.time / 3600.0
+    t = display(plan.time, "s", "h")
     trend = {}
     if np.ptp(t) > 0:
         X = np.column_stack([np.ones(n), t - t.mean()])
@@ -171,6 +219,7 @@ class Finding:
     evidence: dict
     after: dict
     confounded_with: list = field(default_factory=list)
+    hints: list = field(default_factory=list)  # measurements that would tell it from the confounded ones
 
     def to_dict(self) -> dict:
         scalar = len(self.estimate) == 1
@@ -206,7 +255,8 @@ class Diagnosis:
 
 def _quality(res) -> dict:
     return {"chi2_per_dof": float(res.chi2_per_dof[0]), "dof": int(res.dof),
-            "rms": {"value": float(res.rms[0] * 1e3), "unit": "um"}}
+            "rms": {"value": float(display(res.rms[0], "mm", "um")), "unit": "um"},
+            "converged": res.n_not_converged == 0}
 
 
 def diagnose(rec: Recording, candidates: list | None = None, *, alpha: float = 0.01, max_set: int = 3,
@@ -227,32 +277,30 @@ def diagnose(rec: Recording, candidates: list | None = None, *, alpha: float = 0
                              f"({len(rec)} points); measure more points or lower the error-function degrees")
     P_W = model.machine_points(base.theta)[0]
     ctx = DiagnosisContext(rec, model, base.pose[0], base.theta[0], P_W, lt.to_tracker(P_W[None], base.pose)[0])
-    C = model.covariance(rec.lt[None], noise.angular, noise.distance, noise.distance_per_length, noise.repeatability)
-    Wh = _whitener(C)[0]
-    # baseline design at the solution, whitened (pose + identifiable directions)
-    Q = _range_basis(np.ones(model.n_params, bool), base.identifiability.null_space)
-    sv = scale_vector(model)
-    _, J = model.machine_points(base.theta, jacobian=True, project=Q / sv[:, None])
-    A0 = _design(P_W[None], J, base.pose, Wh[None], Q, sv)[0]
-    w = base.whitened[0].reshape(-1)
-    lin = _Linear(A0, w)
+    Wh = base.whitener[0]
+    # the baseline's whitened design at its solution (pose + identifiable directions) and whitened residuals
+    lin = _Linear(base.design[0], base.whitened[0].reshape(-1))
     n_obs = lin.n
 
     mismatch = locate(ctx, base.residual_machine[0], base.whitened[0])
     skipped, untestable, usable = [], [], []
     for c in candidates:
-        reason = c.requires(ctx) if c.requires else None
+        _check_declaration(c)
+        reason = _call(c, "requires", ctx)
+        if reason is not None and not isinstance(reason, str):
+            _fail(c, f"must return None or a reason (str), got {type(reason).__name__}", "requires")
         if reason:
             skipped.append({"effect": c.effect, "axis": c.axis, "reason": reason})
             continue
-        col = _whitened_columns(c, ctx, Wh)
+        raw = _columns(c, ctx)
+        col = _whitened(raw, c.frame, ctx, Wh)
         left = np.linalg.norm(lin.project(col), axis=0) / np.maximum(np.linalg.norm(col, axis=0), 1e-300)
-        if left.max() < 1e-3:
+        if left.max() < ABSORBED:
             untestable.append({"effect": c.effect, "axis": c.axis,
                                "reason": "the baseline geometric errors absorb it completely with this plan "
                                          f"(what is left of it: {left.max():.1e})"})
             continue
-        usable.append((c, col))
+        usable.append((c, col, raw))
     K = max(len(usable), 1)
     level = alpha / K  # Bonferroni over the candidates tested
 
@@ -273,7 +321,7 @@ def diagnose(rec: Recording, candidates: list | None = None, *, alpha: float = 0
 
     considered = []
     single_sig = []
-    for i, (c, col) in enumerate(usable):
+    for i, (c, col, _) in enumerate(usable):
         f = fit([i])
         k = col.shape[1]
         F, p = ftest(lin.chi2_0, f.chi2, k, lin.dof0 - k)
@@ -316,25 +364,28 @@ def diagnose(rec: Recording, candidates: list | None = None, *, alpha: float = 0
         f_rest = fit(rest)
         F, p = ftest(f_rest.chi2, f_all.chi2, len(beta), dof_all)
         d_bic = bic(rest, f_rest) - bic(chosen, f_all)
-        conf = []
-        for j, (a, _) in enumerate(usable):
+        conf, hints = [], []
+        for j, (a, _, _) in enumerate(usable):
             if j in chosen:
                 continue
             alt = rest + [j]
             f_alt = fit(alt)
             if bic(alt, f_alt) - bic(chosen, f_all) < confound_margin:
                 conf.append({"effect": a.effect, "axis": a.axis, "delta_bic": bic(alt, f_alt) - bic(chosen, f_all)})
+                hint = c.hints.get(a.effect) or a.hints.get(c.effect)
+                if hint and hint not in hints:
+                    hints.append(hint)
         est, unc, unit = _present(c, beta, cov * scale)
         stab = _stability(lin, usable, chosen, pos, ctx)
         findings.append(Finding(c, est, unc, unit, {
             "F": F, "p_value": p, "p_value_bonferroni": min(1.0, p * K), "delta_chi2": f_rest.chi2 - f_all.chi2,
-            "delta_bic": d_bic, "candidates_tested": len(usable), "alpha": alpha, "by_run": stab}, {}, conf))
+            "delta_bic": d_bic, "candidates_tested": len(usable), "alpha": alpha, "by_run": stab}, {}, conf, hints))
     # refit the full model with the effects in it at their estimates: "after" each finding (cumulative)
     pert_parts, after = [], []
     for pos, i in enumerate(chosen):
-        c = usable[i][0]
+        c, _, raw = usable[i]
         beta_int = f_all.beta[offsets[pos]:offsets[pos + 1]]
-        pert_parts.append(_perturbation(c, ctx, beta_int))
+        pert_parts.append(_perturbation(c, ctx, beta_int, raw))
         res = identify(model, rec.lt, noise, fixed=merge(*pert_parts))
         findings[pos].after = _quality(res)
         after.append(findings[pos].after)
@@ -346,24 +397,36 @@ def diagnose(rec: Recording, candidates: list | None = None, *, alpha: float = 0
                      residuals_before=base.residual_machine[0], residuals_after=res_after)
 
 
-def _perturbation(c: Candidate, ctx: DiagnosisContext, beta: np.ndarray) -> dict:
-    """The candidate's effect at ``beta`` as model perturbations (its own, or its columns as a displacement)."""
-    if c.perturbation is not None:
-        return c.perturbation(ctx, beta)
-    disp = np.asarray(c.columns(ctx), float) @ beta  # (M, 3)
-    return {("point_offset" if c.frame == "machine" else "tracker_offset"): disp[None]}
+def _perturbation(c: Candidate, ctx: DiagnosisContext, beta: np.ndarray, columns: np.ndarray) -> dict:
+    """The candidate's effect at ``beta`` as model perturbations (its own, or its ``columns`` times ``beta``
+    as a displacement in its frame)."""
+    pert = _call(c, "perturbation", ctx, beta)
+    if pert is None:
+        disp = columns @ beta  # (M, 3)
+        return {("point_offset" if c.frame == "machine" else "tracker_offset"): disp[None]}
+    if not isinstance(pert, dict) or not set(pert) <= set(MODEL_INPUTS):
+        _fail(c, f"must return None or a dict with keys among {', '.join(MODEL_INPUTS)}, got "
+                 f"{sorted(pert) if isinstance(pert, dict) else type(pert).__name__}", "perturbation")
+    return pert
 
 
 def _present(c: Candidate, beta, cov):
-    """Estimate and standard uncertainty in the candidate's display units."""
-    from .units import Q_
-
-    if c.summary is not None:
-        return c.summary(beta, cov)
-    u = np.sqrt(np.maximum(np.diag(cov), 0.0))
-    disp = c.parameters[0][1]
-    factor = Q_(1.0, c.parameters[0][2]).to(disp).magnitude
-    return [float(b * factor) for b in beta], [float(s * factor) for s in u], disp
+    """Estimate and standard uncertainty in the candidate's display unit: (list, list, unit)."""
+    out = _call(c, "summary", beta, cov)
+    if out is None:  # the default presentation: every column in its parameter's display unit
+        try:
+            out = Candidate.summary(c, beta, cov)
+        except ValueError as exc:
+            _fail(c, f"returned None, and the default cannot present it: {exc}", "summary")
+    try:
+        est, unc, unit = out
+        est, unc = [float(x) for x in np.atleast_1d(est)], [float(x) for x in np.atleast_1d(unc)]
+        ureg.Unit(unit)
+    except Exception:
+        _fail(c, f"must return (estimates, uncertainties, unit), got {out!r}", "summary")
+    if len(est) != len(unc):
+        _fail(c, f"returned {len(est)} estimates and {len(unc)} uncertainties", "summary")
+    return est, unc, str(unit)
 
 
 def _stability(lin, usable, chosen, pos, ctx):

@@ -16,7 +16,7 @@ from __future__ import annotations
 import math
 import numpy as np
 import pint
-from scipy import stats
+
 
 from .errors import DistributionError
 from .units import Q_, ureg
@@ -312,5 +312,9 @@ class Beta(_Bounded):
 def t_factor(coverage: float, dof: float) -> float:
     """Coverage factor k from the t distribution (normal for infinite dof)."""
     if math.isinf(dof):
+        from scipy import stats
+
         return float(stats.norm.ppf(0.5 + coverage / 2))
+    from scipy import stats
+
     return float(stats.t.ppf(0.5 + coverage / 2, dof))

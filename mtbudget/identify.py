@@ -31,8 +31,9 @@ import numpy as np
 
 from . import tracker as lt
 from .errors import IdentificationError
-from .machine import AXES, AXIS_INDEX, _K
+from .machine import AXES, AXIS_INDEX, skew_basis
 from .model import MeasurementModel
+from .units import factor
 
 GROUPS = ("pose", "translational", "angular", "squareness")
 
@@ -134,6 +135,24 @@ class Identification:
     iterations: int
     identifiability: Identifiability
     whitened: np.ndarray | None = None  # (N, M, 3) whitened residuals
+    # at the solution (the last Gauss-Newton evaluation), for callers that continue from it (diagnosis):
+    whitener: np.ndarray | None = None  # (N, M, 3, 3) L^-1 of each point's covariance C = L L^T (tracker frame)
+    design: np.ndarray | None = None  # (N, 3M, 6 + r) whitened design in the scaled unknowns z, see below
+    basis: np.ndarray | None = None  # (p, r) orthonormal basis Q of the free, identifiable directions (scaled)
+    scale: np.ndarray | None = None  # (p,) scale_vector(model): um per mm, urad per rad
+
+    # The unknowns of the design are z = (pose * POSE_SCALE, Q^T (theta * scale)): a step z moves the
+    # pose by z[:6] / POSE_SCALE and theta by (Q z[6:]) / scale, and changes the whitened residual by
+    # -design @ z.  cov_theta and cov_pose are (design^T design)^-1 mapped back to mm and rad.
+
+    @property
+    def n_trials(self) -> int:
+        return len(self.chi2)
+
+    @property
+    def n_not_converged(self) -> int:
+        """How many trials did not converge (their results are not at the minimum: count them, do not average them in)."""
+        return int(np.count_nonzero(~np.asarray(self.converged, bool)))
 
     @property
     def chi2_per_dof(self):
@@ -162,12 +181,17 @@ class Identification:
         return np.sqrt(np.maximum(np.diagonal(self.cov_theta, axis1=1, axis2=2), 0))
 
 
+#: the scaled parameter units: lengths in um, angles in urad (on a 1 m lever both are um of effect)
+SCALED_UNIT = {"mm": "um", "rad": "urad"}
+
+
 def scale_vector(model: MeasurementModel) -> np.ndarray:
     """um per mm and urad per rad: parameters in comparable effect units."""
-    return np.array([1e3 if u == "mm" else 1e6 for u in model.errors.units])
+    return np.array([factor(u, SCALED_UNIT[u]) for u in model.errors.units])
 
 
-POSE_SCALE = np.array([1e3, 1e3, 1e3, 1e6, 1e6, 1e6])
+#: scale of the pose (D, L, H in mm; a, b, d in rad), as :func:`scale_vector`
+POSE_SCALE = np.array([factor("mm", "um")] * 3 + [factor("rad", "urad")] * 3)
 
 
 def group_of(param) -> str:
@@ -184,10 +208,11 @@ def analyse(model: MeasurementModel, active: np.ndarray | None = None, rank_tol:
     P0, J = P0[0], J[0]  # (M,3), (M,3,p)
     M = P0.shape[0]
     rigid = np.zeros((M, 3, 6))
-    rigid[:, :, :3] = np.eye(3)[None] / 1e3
+    rigid[:, :, :3] = np.eye(3)[None] / POSE_SCALE[:3]
     centred = P0 - P0.mean(axis=0)
+    K = skew_basis()
     for c in range(3):
-        rigid[:, :, 3 + c] = (centred @ _K[c].T) / 1e6
+        rigid[:, :, 3 + c] = (centred @ K[c].T) / POSE_SCALE[3 + c]
     Js = J[:, :, active] / scale_vector(model)[active]
     A = np.concatenate([rigid, Js], axis=2).reshape(3 * M, -1)
     # equilibrate columns for the rank decision (scaling does not change the null space)
@@ -213,8 +238,8 @@ def analyse(model: MeasurementModel, active: np.ndarray | None = None, rank_tol:
     return Identifiability(names, rank, int(active.sum()), s, null_geo, pose_ok)
 
 
-def _whitener(C: np.ndarray) -> np.ndarray:
-    """L^-1 with C = L L^T, batched (…, 3, 3)."""
+def whitener(C: np.ndarray) -> np.ndarray:
+    """L^-1 with C = L L^T, batched (…, 3, 3): ``whitener(C) @ r`` has unit covariance."""
     L = np.linalg.cholesky(C)
     return np.linalg.inv(L)
 
@@ -293,7 +318,7 @@ def identify(
             raise IdentificationError(
                 f"too few points: {M} points give {3 * M} coordinates for {n_unknown} identifiable unknowns "
                 f"(no redundancy left); measure more points or lower the degrees of the error functions")
-        phases.append((active, ident, _range_basis(active, ident.null_space)))
+        phases.append((active, ident, range_basis(active, ident.null_space)))
 
     theta0 = np.zeros((N, p)) if theta0 is None else np.broadcast_to(np.asarray(theta0, float), (N, p))
     pose0 = None if pose0 is None else np.broadcast_to(np.asarray(pose0, float), (N, 6))
@@ -311,7 +336,8 @@ def identify(
         residual_machine=cat("residual_machine"), chi2=cat("chi2"), dof=parts[0]["dof"],
         cov_theta=cat("cov_theta"), cov_pose=cat("cov_pose"), initial_error=cat("initial_error"),
         converged=cat("converged"), iterations=max(q["iterations"] for q in parts),
-        identifiability=phases[-1][1], whitened=cat("whitened"),
+        identifiability=phases[-1][1], whitened=cat("whitened"), whitener=cat("whitener"), design=cat("design"),
+        basis=phases[-1][2], scale=scale_vector(model),
     )
 
 
@@ -324,7 +350,7 @@ def _identify_chunk(model, meas, noise, strategy, theta, pose, fixed, phases):
         C = model.covariance(meas, noise.angular, noise.distance, noise.distance_per_length, noise.repeatability)
     else:
         C = np.broadcast_to(np.eye(3) * (noise.distance**2 + noise.repeatability**2), (N, M, 3, 3))
-    Wh = _whitener(C)
+    Wh = whitener(C)
 
     # registration: Kabsch start, then the weighted pose-only fit of the nominal points.
     # Its deviations are the "before compensation" errors of Eq. 27.
@@ -344,7 +370,7 @@ def _identify_chunk(model, meas, noise, strategy, theta, pose, fixed, phases):
     # final quantities and covariance at the solution (the last Gauss-Newton evaluation)
     Q = phases[-1][2]
     res = meas - lt.to_tracker(P_W, pose)
-    A = _design(P_W, J, pose, Wh, Q, sv)
+    A = design_matrix(P_W, J, pose, Wh, Q, sv)
     wres = w.reshape(N, M, 3)
     chi2 = (w**2).sum(axis=1)
     n_unknown = 6 + Q.shape[1]
@@ -359,10 +385,11 @@ def _identify_chunk(model, meas, noise, strategy, theta, pose, fixed, phases):
         "theta": theta, "pose": pose, "residual": res, "residual_machine": np.einsum("nij,nmj->nmi", Rm, res),
         "chi2": chi2, "dof": 3 * M - n_unknown, "cov_theta": cov_full[:, 6:, 6:], "cov_pose": cov_full[:, :6, :6],
         "initial_error": initial_error, "converged": converged, "iterations": iters, "whitened": wres,
+        "whitener": Wh, "design": A,
     }
 
 
-def _range_basis(active: np.ndarray, null: np.ndarray | None) -> np.ndarray:
+def range_basis(active: np.ndarray, null: np.ndarray | None) -> np.ndarray:
     """Orthonormal basis (scaled coords) of the active parameters minus the null space: (p, r)."""
     p = active.size
     E = np.eye(p)[:, active]
@@ -375,8 +402,14 @@ def _range_basis(active: np.ndarray, null: np.ndarray | None) -> np.ndarray:
     return U[:, :r]
 
 
-def _design(P_W, J, pose, Wh, Q, sv):
-    """Whitened, scaled design matrix (N, 3M, 6 + r)."""
+
+
+def design_matrix(P_W, J, pose, Wh, Q, sv):
+    """Whitened, scaled design matrix (N, 3M, 6 + r).
+
+    P_W (N, M, 3) machine points, J (N, M, 3, r) their derivative along the scaled directions
+    ``Q / sv`` (None: the pose alone), pose (N, 6), Wh (N, M, 3, 3) whiteners.
+    """
     N, M = P_W.shape[:2]
     Jp = lt.pose_jacobian(P_W, pose) / POSE_SCALE  # (N,M,3,6)
     if J is None or Q.shape[1] == 0:
@@ -409,7 +442,7 @@ def _fit_pose(P_W, meas, Wh, pose, strategy):
     pose = pose.copy()
     for _ in range(strategy.max_iter):
         w = _whitened_residual(meas, P_W, pose, Wh)
-        z = _solve(_design(P_W, None, pose, Wh, np.zeros((0, 0)), None), w)
+        z = _solve(design_matrix(P_W, None, pose, Wh, np.zeros((0, 0)), None), w)
         pose += z / POSE_SCALE
         if np.abs(z).max() < strategy.xtol:
             break
@@ -439,7 +472,7 @@ def _gauss_newton(model, meas, Wh, theta, pose, Q, strategy, fixed):
     for it in range(1, strategy.max_iter + 1):
         todo = ~conv
         z = np.zeros((N, 6 + Q.shape[1]))
-        z[todo] = _solve(_design(P_W[todo], J[todo], pose[todo], Wh[todo], Q, sv), w[todo])
+        z[todo] = _solve(design_matrix(P_W[todo], J[todo], pose[todo], Wh[todo], Q, sv), w[todo])
         step = np.ones(N)
         new_theta = theta + (z[:, 6:] @ Q.T) / sv
         new_pose = pose + z[:, :6] / POSE_SCALE

@@ -23,7 +23,7 @@ import uncertainties
 
 from .distributions import Distribution, Normal, t_factor
 from .errors import ModelError
-from .stats import clause8, numerical_tolerance, shortest_interval, symmetric_interval
+from .stats import AdaptiveStop, batch_row, clause8, shortest_interval, symmetric_interval
 from .units import Q_
 
 
@@ -268,20 +268,14 @@ def propagate(model, inputs: dict, coverage: float = 0.95, trials: int | None = 
 
     # adaptive Monte Carlo procedure (JCGM 101 7.9)
     h_size = batch or max(int(100 / (1 - coverage)), 10_000)
-    parts, stats_ = [], []
+    parts, stop = [], AdaptiveStop(ndig)
     for child in iter(lambda: ss.spawn(1)[0], None):
         y = np.sort(run(h_size, child))
         parts.append(y)
-        lo, hi = symmetric_interval(y, coverage)
-        stats_.append((y.mean(), y.std(ddof=1), lo, hi))
-        h = len(stats_)
-        if h >= 2:
-            arr = np.array(stats_)
-            s = arr.std(axis=0, ddof=1) / math.sqrt(h)
-            allu = np.sort(np.concatenate(parts)).std(ddof=1)
-            delta = numerical_tolerance(allu, ndig)
-            if np.all(2 * s <= delta) or h * h_size >= max_trials:
-                break
+        stop.add(batch_row(y, coverage))
+        allu = np.sort(np.concatenate(parts)).std(ddof=1)
+        if stop.done(allu) or len(stop.batches) * h_size >= max_trials:
+            break
     ally = np.sort(np.concatenate(parts))
     return Result(ally, out_units, coverage, g, rows, ndig,
-                  batches=[(h_size * (i + 1),) + tuple(map(float, st)) for i, st in enumerate(stats_)])
+                  batches=[(h_size * (i + 1),) + tuple(map(float, st[0])) for i, st in enumerate(stop.batches)])

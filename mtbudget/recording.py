@@ -15,11 +15,10 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
-import pint
 
 from .errors import RecordingError
 from .plan import Plan, Sensor, T20
-from .units import Q_, ureg
+from .units import Q_, display, to_internal, ureg
 
 try:  # Python 3.11+
     import tomllib
@@ -70,17 +69,13 @@ class Recording:
         return len(self.plan)
 
 
-def _quantity(text, *, path, key, dim, unit):
-    try:
-        q = ureg.Quantity(str(text))
-    except Exception as exc:
-        raise RecordingError(f"cannot parse {text!r} as a quantity ({exc.__class__.__name__})", path, column=key) from None
-    if not isinstance(q, pint.Quantity):
-        q = Q_(float(q))
-    target = ureg.Unit(unit)
-    if q.dimensionality != target.dimensionality:
-        raise RecordingError(f"{text!r} has dimension {q.dimensionality}, expected {dim}", path, column=key)
-    return float(q.to(target).magnitude)
+def _quantity(text, *, path, key, dim, unit, nonnegative=False, absolute_temperature=False):
+    """One value of recording.toml in internal units, through the one strict parser; errors name file and key."""
+    value = to_internal(text, unit, where=key, absolute_temperature=absolute_temperature,
+                        error=lambda m: RecordingError(m.split(": ", 1)[1] if m.startswith(key + ": ") else m, path, key=key))
+    if nonnegative and value < 0:
+        raise RecordingError(f"{text!r} is negative; a standard uncertainty must not be", path, key=key)
+    return value
 
 
 def read_recording(folder) -> Recording:
@@ -109,17 +104,17 @@ def read_recording(folder) -> Recording:
     def need(table, key, where, dim, unit):
         if key not in table:
             raise RecordingError(f"missing key {where}.{key}", toml_path)
-        return _quantity(table[key], path=toml_path, key=f"{where}.{key}", dim=dim, unit=unit)
+        return _quantity(table[key], path=toml_path, key=f"{where}.{key}", dim=dim, unit=unit, nonnegative=True)
 
     angular = need(tr, "angular", "tracker", "angle", "rad")
     distance = need(tr, "distance", "tracker", "[length]", "mm")
     dpl = need(tr, "distance_per_length", "tracker", "dimensionless (length per length)", "mm/mm")
     repeat = need(mt, "repeatability", "machine_tool", "[length]", "mm")
     tref = _quantity(meta.get("reference_temperature", "20 degC"), path=toml_path, key="reference_temperature",
-                     dim="[temperature]", unit="K")
+                     dim="[temperature]", unit="K", absolute_temperature=True)
     for key, val in (("tracker.angular", angular), ("tracker.distance", distance), ("machine_tool.repeatability", repeat)):
         if not val > 0:
-            raise RecordingError(f"must be positive, got {val}", toml_path, column=key)
+            raise RecordingError(f"must be positive, got {val}", toml_path, key=key)
     sensors = []
     for i, s in enumerate(meta.get("sensors", [])):
         if "column" not in s or "attached_to" not in s:
@@ -262,12 +257,12 @@ def write_recording(rec: Recording, folder, *, truth: dict | None = None) -> Pat
         f'reference_temperature = "{rec.reference_temperature - 273.15:.6g} degC"',
         "",
         "[tracker]",
-        f'angular = "{rec.angular * 1e6:.9g} urad"',
-        f'distance = "{rec.distance * 1e3:.9g} um"',
-        f'distance_per_length = "{rec.distance_per_length * 1e6:.9g} um/m"',
+        f'angular = "{display(rec.angular, "rad", "urad"):.9g} urad"',
+        f'distance = "{display(rec.distance, "mm", "um"):.9g} um"',
+        f'distance_per_length = "{display(rec.distance_per_length, "", "um/m"):.9g} um/m"',
         "",
         "[machine_tool]",
-        f'repeatability = "{rec.repeatability * 1e3:.9g} um"',
+        f'repeatability = "{display(rec.repeatability, "mm", "um"):.9g} um"',
     ]
     for s in p.sensors:
         lines += ["", "[[sensors]]", f"column = {json.dumps(s.column)}", f"attached_to = {json.dumps(s.attached_to)}"]

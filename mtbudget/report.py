@@ -7,29 +7,17 @@ from pathlib import Path
 
 import numpy as np
 
-from .distributions import t_factor
-from .engine import MAIN_OUTPUT, SCALARS, RunResult
-from .stats import clause8
+from .units import display, pretty
 
-
-def guf_validation(res: RunResult, output: str = MAIN_OUTPUT) -> dict | None:
-    """JCGM 101 clause 8 for a run output: the GUF interval (nominal value +- k u_c) vs the MCM interval."""
-    b = res.budget.get(output)
-    if not b:
-        return None
-    s = res.summary(output)
-    k = t_factor(res.coverage, math.inf)
-    u_c = b["u_combined"]
-    y = b["nominal_value"]
-    lo, hi = y - k * u_c, y + k * u_c
-    d_low, d_high, delta, ok = clause8((lo, hi), s["symmetric"], u_c, 2)
-    return {"guf_estimate": y, "guf_u": u_c, "k": k, "guf_interval": [lo, hi], "mcm_interval": list(s["symmetric"]),
-            "d_low": d_low, "d_high": d_high, "delta": delta, "passed": ok}
+from .budget import conformance, guf_validation
+from .outputs import MAIN_OUTPUT, SCALARS, RunResult
 
 
 def result_json(res: RunResult) -> dict:
     out = {"trials": res.trials, "coverage": res.coverage, "complete": res.complete, "seed": res.spec.get("seed"),
-           "outputs": {}, "budget": res.budget, "convergence": res.convergence}
+           "not_converged": res.not_converged, "outputs": {}, "budget": res.budget, "convergence": res.convergence}
+    if res.weights:
+        out["weights"] = res.weights
     for k, v in res.outputs().items():
         out["outputs"][k] = {"unit": v["unit"], "description": v["description"], "mean": v["mean"], "std": v["std"],
                              "symmetric": list(v["symmetric"]), "shortest": None if v["shortest"] is None else list(v["shortest"])}
@@ -44,6 +32,10 @@ def result_json(res: RunResult) -> dict:
     return out
 
 
+def _show_unit(internal_unit: str) -> str:
+    return {"rad": "urad", "mm": "um", "mm/mm": "um/m"}.get(internal_unit, internal_unit)
+
+
 def _fmt(x, nd=3):
     return "-" if x is None else f"{x:.{nd}g}"
 
@@ -54,6 +46,15 @@ def budget_text(res: RunResult) -> str:
     lines.append(f"Monte Carlo: {res.trials} trials, coverage {res.coverage:.0%}, seed {res.spec.get('seed')}{status}")
     if getattr(res, "stopped_at_limit", False):
         lines.append("  note: the adaptive run stopped at its trial limit before reaching its numerical tolerance")
+    if res.not_converged:
+        lines.append(f"  note: the identification of {res.not_converged} of {res.trials} trials did not converge; "
+                     "their results are included as they stood at the iteration limit")
+    if res.weights:
+        lines.append("  identification weights stated apart from what the run draws ([weights]):")
+        for name, w in res.weights.items():
+            lines.append(f"    {name:<20} stated {display(w['stated'], w['unit'], _show_unit(w['unit'])):.4g} "
+                         f"{pretty(_show_unit(w['unit']))}, drawn {display(w['drawn'], w['unit'], _show_unit(w['unit'])):.4g} "
+                         f"{pretty(_show_unit(w['unit']))}")
     lines.append("")
     lines.append(f"{'output':<20} {'unit':<5} {'mean':>9} {'u (std)':>9}   {'symmetric interval':>22}   {'shortest interval':>22}")
     for k, v in res.outputs().items():
@@ -157,12 +158,7 @@ def _figures(res: RunResult, folder):
         plt.close(fig)
     # per-point error map (paper Figs. 13 and 15): mean and spread of the error left after compensation
     pm = res.acc.moments.get("point_error")
-    mesh = None
-    log = getattr(res, "log", None)
-    if log is not None and log.header.get("mesh"):
-        mesh = np.asarray(log.header["mesh"])
-    elif getattr(res, "mesh", None) is not None:
-        mesh = res.mesh
+    mesh = res.mesh
     if pm is not None and mesh is not None:
         fig = plt.figure(figsize=(12, 5))
         for j, (vals, title) in enumerate(((np.asarray(pm.mean), "mean error after compensation [um]"),
@@ -179,19 +175,6 @@ def _figures(res: RunResult, folder):
         fig.savefig(figs["error_map"], dpi=100)
         plt.close(fig)
     return figs
-
-
-def conformance(res: RunResult, tolerance_um: float) -> dict:
-    """ISO 14253-1 decision zones for an upper tolerance on the error left after compensation."""
-    s = res.summary(MAIN_OUTPUT)
-    U = s["symmetric"][1] - 0.0  # the verification contributes at most this (upper end of the interval)
-    return {"tolerance": tolerance_um, "U": U, "conformance_limit": tolerance_um - U, "nonconformance_limit": tolerance_um + U,
-            "statement": (f"A machine verified this way can be declared to conform to {tolerance_um:g} um only when its "
-                          f"measured error is at most {tolerance_um - U:.2f} um (guard band U = {U:.2f} um); it is proven "
-                          f"not to conform above {tolerance_um + U:.2f} um; in between, neither can be proven (ISO 14253-1).")
-            if tolerance_um > U else
-            (f"The verification's own uncertainty (U = {U:.2f} um) exceeds the tolerance of {tolerance_um:g} um: "
-             "conformance cannot be proven for any result (ISO 14253-1).")}
 
 
 def run_report(res: RunResult, folder, tolerance_um: float | None = None) -> dict:

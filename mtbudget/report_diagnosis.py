@@ -4,6 +4,12 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from .units import display, pretty
+
+#: when the confounded candidates give no hint of their own
+GENERIC_HINT = "A second pass with other approach directions, temperatures or tool offsets would separate them."
+
+
 def _fmt_value(v, nd=3):
     if isinstance(v, list):
         return "(" + ", ".join(f"{x:.{nd}g}" for x in v) + ")"
@@ -14,15 +20,16 @@ def diagnosis_text(d) -> str:
     out = [f"recording {d.recording!r}"]
     b = d.baseline
     out.append(f"  baseline (rigid-body model): chi-square per dof {b['chi2_per_dof']:.3f} ({b['dof']} dof), "
-               f"RMS residual {b['rms']['value']:.2f} um")
+               f"RMS residual {_rms(b)}{_not_converged(b)}")
     m = d.mismatch
+    um = pretty(m.get("unit", "um"))
     hints = []
     for a, v in m.get("by_direction", {}).items():
         if abs(v["z"]) > 3:
-            hints.append(f"{a} residuals differ by {v['difference']:+.1f} um between + and - approaches ({v['z']:.1f} sigma)")
+            hints.append(f"{a} residuals differ by {v['difference']:+.1f} {um} between + and - approaches ({v['z']:.1f} sigma)")
     for a, v in m.get("by_time", {}).items():
         if abs(v["z"]) > 3:
-            hints.append(f"{a} residuals drift {v['slope_um_per_h']:+.1f} um/h over the test ({v['z']:.1f} sigma)")
+            hints.append(f"{a} residuals drift {v['slope_um_per_h']:+.1f} {pretty('um/h')} over the test ({v['z']:.1f} sigma)")
     for a, v in m.get("by_temperature", {}).items():
         if abs(v["correlation"]) > 0.3:
             hints.append(f"{a} residuals follow the {a}-axis temperature (correlation {v['correlation']:+.2f})")
@@ -37,18 +44,19 @@ def diagnosis_text(d) -> str:
         ax = f" of the {f.candidate.axis} axis" if f.candidate.axis and len(f.candidate.axis) == 1 else (
             f" ({f.candidate.axis})" if f.candidate.axis else "")
         out.append(f"  FOUND {f.candidate.effect}{ax}: {f.candidate.description}")
-        out.append(f"    estimate {_fmt_value(x['estimate']['value'])} {f.unit} +- {_fmt_value(x['uncertainty']['value'], 2)} "
-                   f"{f.unit} (k = 1)")
+        unit = pretty(f.unit)
+        out.append(f"    estimate {_fmt_value(x['estimate']['value'])} {unit} +- {_fmt_value(x['uncertainty']['value'], 2)} "
+                   f"{unit} (k = 1)")
         ev = f.evidence
         out.append(f"    evidence: F = {ev['F']:.1f}, p = {ev['p_value']:.2g} (Bonferroni over {ev['candidates_tested']}: "
                    f"{ev['p_value_bonferroni']:.2g}), BIC better by {ev['delta_bic']:.1f}")
-        out.append(f"    fit after: chi-square per dof {f.after['chi2_per_dof']:.3f}, RMS {f.after['rms']['value']:.2f} um")
+        out.append(f"    fit after: chi-square per dof {f.after['chi2_per_dof']:.3f}, RMS {_rms(f.after)}{_not_converged(f.after)}")
         if f.confounded_with:
             alts = ", ".join(f"{c['effect']}" + (f"[{c['axis']}]" if c["axis"] else "") for c in f.confounded_with)
             out.append(f"    CONFOUNDED: the data fit {alts} about as well; they cannot be told apart from this recording. "
-                       f"{disambiguation(f.candidate.effect, f.confounded_with)}")
+                       f"{' '.join(f.hints) or GENERIC_HINT}")
     if d.findings:
-        out.append(f"  final: chi-square per dof {d.final['chi2_per_dof']:.3f}, RMS {d.final['rms']['value']:.2f} um")
+        out.append(f"  final: chi-square per dof {d.final['chi2_per_dof']:.3f}, RMS {_rms(d.final)}")
     for s in d.skipped:
         out.append(f"  skipped {s['effect']}{'[' + s['axis'] + ']' if s['axis'] else ''}: {s['reason']}")
     for s in d.untestable:
@@ -56,27 +64,16 @@ def diagnosis_text(d) -> str:
     return "\n".join(out)
 
 
-DISAMBIGUATE = {
-    frozenset({"tracker_drift", "air_temperature_drift"}): "Repeat the test with the air temperature held, or measure a fixed reference point every few minutes.",
-    frozenset({"tracker_range_offset", "tracker_range_scale"}): "Measure a calibrated length, or the same points from a second tracker station.",
-    frozenset({"thermal_expansion", "tracker_drift"}): "Measure while the temperature goes up and then down (not steadily one way).",
-    frozenset({"thermal_expansion", "air_temperature_drift"}): "Add a sensor on the structure away from the air stream, or repeat at another temperature.",
-}
+def _rms(q) -> str:
+    return f"{q['rms']['value']:.2f} {pretty(q['rms']['unit'])}"
 
 
-def disambiguation(effect, confounded):
-    tips = []
-    for c in confounded:
-        tip = DISAMBIGUATE.get(frozenset({effect, c["effect"]}))
-        if tip and tip not in tips:
-            tips.append(tip)
-    return " ".join(tips) or "A second pass with other approach directions, temperatures or tool offsets would separate them."
+def _not_converged(q) -> str:
+    return "" if q.get("converged", True) else " (the identification did NOT converge: these numbers are not at its minimum)"
 
 
 def diagnosis_report(d, rec, folder) -> Path:
     """Markdown report with residual plots before and after (PNG beside it)."""
-    from pathlib import Path
-
     import matplotlib
 
     matplotlib.use("Agg")
@@ -85,7 +82,7 @@ def diagnosis_report(d, rec, folder) -> Path:
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
     plan = rec.plan
-    t = plan.time / 3600
+    t = display(plan.time, "s", "h")
     fig, axes = plt.subplots(3, 2, figsize=(11, 8), sharex="col")
     for i, a in enumerate("xyz"):
         for j, (res, label) in enumerate(((d.residuals_before, "before"), (d.residuals_after, "after"))):
@@ -95,9 +92,10 @@ def diagnosis_report(d, rec, folder) -> Path:
                 label = "after (no finding: unchanged)"
             for dirn, mk in ((1, "^"), (-1, "v")):
                 m = plan.direction[:, i] == dirn
-                ax.scatter(t[m], res[m, i] * 1e3, s=9, marker=mk, label=f"{a} approached {'+' if dirn > 0 else '-'}")
+                ax.scatter(t[m], display(res[m, i], "mm", "um"), s=9, marker=mk,
+                           label=f"{a} approached {'+' if dirn > 0 else '-'}")
             ax.axhline(0, color="k", lw=0.5)
-            ax.set_ylabel(f"{a} residual [um]")
+            ax.set_ylabel(f"{a} residual [{pretty('um')}]")
             if i == 0:
                 ax.set_title(f"residuals {label}")
             if i == 2:
@@ -114,8 +112,9 @@ def diagnosis_report(d, rec, folder) -> Path:
                   "| --- | --- | --- | --- | --- | --- | --- |"]
         for f in d.findings:
             x = f.to_dict()
-            lines.append(f"| {f.candidate.effect} | {f.candidate.axis or '-'} | {_fmt_value(x['estimate']['value'])} {f.unit} | "
-                         f"{_fmt_value(x['uncertainty']['value'], 2)} {f.unit} | {f.evidence['p_value_bonferroni']:.2g} | "
+            unit = pretty(f.unit)
+            lines.append(f"| {f.candidate.effect} | {f.candidate.axis or '-'} | {_fmt_value(x['estimate']['value'])} {unit} | "
+                         f"{_fmt_value(x['uncertainty']['value'], 2)} {unit} | {f.evidence['p_value_bonferroni']:.2g} | "
                          f"{f.after['chi2_per_dof']:.3f} | {', '.join(c['effect'] for c in f.confounded_with) or '-'} |")
     (folder / "diagnosis.md").write_text("\n".join(lines) + "\n")
     return folder / "diagnosis.md"

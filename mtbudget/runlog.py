@@ -37,10 +37,10 @@ from pathlib import Path
 import numpy as np
 
 from . import __version__
-from .config import SimulationConfig, load_config, parse_config
-from .engine import SCALARS, Accumulator, BlockResult, Engine, RunResult, run
 from .errors import RunLogError
+from .outputs import BlockResult
 from .stats import Moments
+from .units import factor
 
 FORMAT = "mtbudget-runlog/1"
 FORMAT_MAJOR = 1
@@ -112,11 +112,19 @@ def _moments_dec(d) -> Moments:
 
 # ------------------------------------------------------------------ writing
 class RunLogWriter:
-    def __init__(self, path, spec: dict, engine: Engine, trials, config_text: str):
+    """Writes a run log as the run goes: header first, then blocks (flushed and fsynced per chunk), then the end."""
+
+    def __init__(self, path, header: dict, config_text: str, force: bool = False):
         from mcap.writer import Writer
 
         self.path = Path(path)
-        self.fh = open(self.path, "wb")
+        if self.path.exists() and not force:
+            raise RunLogError(f"{self.path}: a run log is already there; choose another --log path or pass --force "
+                              "to overwrite it")
+        try:
+            self.fh = open(self.path, "wb")
+        except OSError as exc:
+            raise RunLogError(f"{self.path}: cannot write the run log ({exc.strerror})") from None
         self.w = Writer(self.fh, use_chunking=False, use_statistics=True)
         self.w.start(profile="", library=f"mtbudget {__version__}")
         self.ch = {}
@@ -127,18 +135,12 @@ class RunLogWriter:
         now = time.time_ns()
         self.w.add_attachment(create_time=now, log_time=now, name="config.toml", media_type="application/toml",
                               data=config_text.encode())
-        plugins = [{"name": s.plugin, "source": s.name, "package": s.dist_name, "version": s.dist_version}
-                   for s in engine.sources]
+        spec = header["spec"]
         self.w.add_metadata("mtbudget.run", {
-            "format": FORMAT, "mtbudget_version": __version__, "seed": str(spec["seed"]), "trials": str(trials),
+            "format": FORMAT, "mtbudget_version": __version__, "seed": str(spec["seed"]), "trials": str(header["trials"]),
             "host": socket.gethostname(), "platform": platform.platform(), "start_time": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
-            "plugins": json.dumps(plugins)})
-        self.write("/mtbudget/run", {"format": FORMAT, "mtbudget_version": __version__, "spec": spec, "trials": trials,
-                                     "plugins": plugins, "sources": [s.name for s in engine.sources],
-                                     "outputs": {k: v[0] for k, v in SCALARS.items()},
-                                     "parameter_names": engine.parameter_names, "parameter_units": engine.parameter_units,
-                                     "mesh": engine.truth.machine_points(np.zeros(engine.truth.n_params))[0][engine.mesh_rows].tolist()})
-        self.mesh = engine.truth.machine_points(np.zeros(engine.truth.n_params))[0][engine.mesh_rows]
+            "plugins": json.dumps(header.get("plugins", []))})
+        self.write("/mtbudget/run", {"format": FORMAT, "mtbudget_version": __version__, **header})
         self.flush()
 
     def write(self, topic, obj):
@@ -149,14 +151,15 @@ class RunLogWriter:
         self.fh.flush()
         os.fsync(self.fh.fileno())
 
-    def blocks(self, blocks: list, result: RunResult):
+    def blocks(self, blocks: list, convergence: dict):
+        """Log merged blocks and the convergence row after them; flushed to disk before returning."""
         for b in blocks:
+            vm = b.vector_moments()
             self.write("/mtbudget/blocks", {
                 "block": b.block, "n": b.n, "scalars": {k: _enc(v) for k, v in b.scalars.items()},
-                "point_error_moments": _moments_enc(getattr(b, "point_moments", None) or Moments.of(b.point_error)),
-                "parameter_moments": _moments_enc(getattr(b, "parameter_moments", None) or Moments.of(b.parameters))})
-        c = result.convergence[-1]
-        self.write("/mtbudget/convergence", c)
+                "point_error_moments": _moments_enc(vm["point_error"]),
+                "parameter_moments": _moments_enc(vm["parameters"]), "not_converged": int(b.not_converged)})
+        self.write("/mtbudget/convergence", convergence)
         self.flush()
 
     def log(self, level: int, message: str):
@@ -164,8 +167,9 @@ class RunLogWriter:
         self.write("/mtbudget/log", {"timestamp": {"sec": t // 10**9, "nsec": t % 10**9}, "level": level,
                                      "message": message, "name": "mtbudget", "file": "", "line": 0})
 
-    def points(self, mean_error: np.ndarray):
-        pts = np.column_stack([self.mesh, mean_error]).astype("<f4")
+    def points(self, mesh_mm: np.ndarray, mean_error: np.ndarray):
+        """The mesh as a foxglove.PointCloud (metres, as Foxglove reads them) coloured by the mean error (um)."""
+        pts = np.column_stack([mesh_mm * factor("mm", "m"), mean_error]).astype("<f4")
         t = time.time_ns()
         self.write("/mtbudget/points", {
             "timestamp": {"sec": t // 10**9, "nsec": t % 10**9}, "frame_id": "machine",
@@ -203,23 +207,13 @@ class RunLog:
         return bool(self.end and self.end.get("complete")) and not self.truncated
 
     def block_results(self) -> list:
-        """Logged blocks as BlockResults (vector outputs as their moments)."""
-        out = []
-        for b in self.blocks:
-            out.append(LoggedBlock(b["block"], b["n"], {k: _dec(v) for k, v in b["scalars"].items()},
-                                   _moments_dec(b["point_error_moments"]), _moments_dec(b["parameter_moments"])))
-        return out
+        """Logged blocks as BlockResults: scalars exact, the vector outputs known by their moments.
 
-
-class LoggedBlock(BlockResult):
-    """A block read back from a log: scalars exact, the vector outputs known by their moments.
-
-    It merges into an Accumulator (replay, resume) exactly as the block it was written from.
-    """
-
-    def __init__(self, block: int, n: int, scalars: dict, point_moments: Moments, parameter_moments: Moments):
-        super().__init__(block, n, scalars, None, None)
-        self.point_moments, self.parameter_moments = point_moments, parameter_moments
+        They merge into a run's statistics (replay, resume) exactly as the blocks they were written from.
+        """
+        return [BlockResult(b["block"], b["n"], {k: _dec(v) for k, v in b["scalars"].items()}, None, None,
+                            int(b.get("not_converged", 0)), _moments_dec(b["point_error_moments"]),
+                            _moments_dec(b["parameter_moments"])) for b in self.blocks]
 
 
 def read_runlog(path) -> RunLog:
@@ -299,112 +293,34 @@ def _check_format(path, fmt):
         raise RunLogError(f"{path}: written by a newer mtbudget (format {fmt}); this version reads {FORMAT}. Upgrade mtbudget.")
 
 
-def accumulate(log: RunLog, keep_samples: bool = True) -> Accumulator:
-    """Rebuild the statistics of a run from its logged blocks, in the same merge order as the run."""
-    acc = Accumulator(keep_samples)
-    for b in sorted(log.block_results(), key=lambda b: b.block):
-        acc.add(b)
-    return acc
+# ------------------------------------------------------------------ placement study logs
+PLACEMENT_FORMAT = "mtbudget-placement/1"
+PLACEMENT_SCHEMA = {"type": "object", "title": "mtbudget.PlacementStudy", "properties": {
+    "settings": {"type": "object", "description": "tests, candidate stations per test, tracker noise (units in the key names)"},
+    "reduction": {"type": "object", "description": "the better direction and its reduction of the mean maximum error"},
+    "directions": {"type": "object", "description": "per direction: the station space (mm) and statistics of the maximum u_p (um)"},
+    "fits": {"type": "object"}, "seconds": {"type": "number"},
+    "arrays": {"type": "object", "description": "per direction: best_location (tests, 3) in mm and max_error_um (tests,) in um",
+               "additionalProperties": {"type": "object", "additionalProperties": _arr_schema("float64 array")}}}}
 
 
-def replay(path) -> RunResult:
-    """The results of a logged run, rebuilt from the log without recomputing any trial."""
-    log = read_runlog(path)
-    h = log.header
-    acc = accumulate(log)
-    res = RunResult(h["spec"], acc.n, h["spec"].get("coverage", 0.95), acc, h.get("parameter_names", []),
-                    h.get("parameter_units", []), convergence=list(log.convergence),
-                    budget=(log.result or {}).get("budget", {}), complete=log.complete)
-    res.log = log
-    return res
+def write_placement_log(body: dict, arrays: dict, path: Path, config_text: str | None, seed: int):
+    """Log the placement study to MCAP: its summary (``body``) and per-test arrays (float64, base64)."""
+    from mcap.writer import Writer
 
-
-# ------------------------------------------------------------------ the run command
-def execute(config=None, *, trials=1000, seed=None, coverage=0.95, executor="inline", workers=None, address=None,
-            attribution_trials=512, log_path=None, resume_path=None, progress=True, block=64, chunk_blocks=4,
-            sources=None, adaptive_batch=None) -> RunResult:
-    """Run (or resume) a Monte Carlo study and log it to MCAP; what ``mtbudget run`` does."""
-    resume_blocks = None
-    if resume_path is not None:
-        old = read_runlog(resume_path)
-        if old.complete:
-            raise RunLogError(f"{resume_path}: the run is complete; nothing to resume (use mtbudget replay)")
-        spec = old.header["spec"]
-        cfg = parse_config(spec["config"], spec.get("config_path"))
-        trials, seed, coverage, block = old.header["trials"], spec["seed"], spec.get("coverage", coverage), spec["block"]
-        sources = spec.get("sources")
-        config_text = old.config_text or ""
-        resume_blocks = old.block_results()
-        log_path = Path(log_path or resume_path)
-        if log_path.resolve() == Path(resume_path).resolve():
-            partial = Path(str(resume_path) + ".partial")
-            os.replace(resume_path, partial)
-    else:
-        cfg = config if isinstance(config, SimulationConfig) else load_config(config)
-        config_text = cfg.path.read_text() if cfg.path else json.dumps(cfg.source)
-        log_path = Path(log_path or "mtbudget-run.mcap")
-    eng = Engine(cfg, block=block, sources=sources, seed=seed)
-    from .engine import make_spec
-
-    spec = make_spec(cfg, seed=eng.seed, block=eng.block, sources=[s.name for s in eng.sources], coverage=coverage)
-    writer = RunLogWriter(log_path, spec, eng, trials, config_text)
-    if resume_blocks:
-        writer.log(2, f"resumed from {resume_path}: {sum(b.n for b in resume_blocks)} trials in "
-                      f"{len(resume_blocks)} blocks taken from the log")
-
-    def on_chunk(blocks, result):
-        writer.blocks(blocks, result)
-
-    result = None
-    try:
-        result = run(cfg, trials=trials, seed=eng.seed, coverage=coverage, engine=eng, executor=executor,
-                     workers=workers, address=address, progress=progress, attribution_trials=attribution_trials,
-                     chunk_blocks=chunk_blocks, on_chunk=on_chunk, resume_blocks=resume_blocks,
-                     adaptive_batch=adaptive_batch)
-        from .report import result_json
-
-        pm = result.acc.moments.get("point_error")
-        if pm is not None:
-            writer.points(np.asarray(pm.mean))
-        writer.finish(result_json(result), True, result.trials)
-        if resume_path is not None and Path(str(resume_path) + ".partial").exists():
-            os.remove(str(resume_path) + ".partial")
-    except BaseException as exc:
-        try:
-            writer.log(4, f"run stopped: {type(exc).__name__}: {exc}")
-            writer.finish(None, False, result.trials if result else 0)
-        except Exception:
-            pass
-        raise
-    result.log_path = log_path
-    return result
-
-
-def verify(path) -> dict:
-    """Re-run a logged run from its config and seed and compare, bit for bit."""
-    from .plugins import PluginHost
-
-    log = read_runlog(path)
-    h = log.header
-    notes = []
-    host = PluginHost()
-    installed = {s.name: (s.dist_name, s.dist_version) for s in host.sources()}
-    for p in h.get("plugins", []):
-        now = installed.get(p["source"])
-        if now is None:
-            notes.append(f"source {p['source']!r} (plugin {p['name']}, {p['package']} {p['version']}) is not installed now")
-        elif now[1] != p["version"]:
-            notes.append(f"source {p['source']!r}: logged with {p['package']} {p['version']}, installed now {now[0]} {now[1]}")
-    spec = h["spec"]
-    cfg = parse_config(spec["config"], spec.get("config_path"))
-    eng = Engine(cfg, block=spec["block"], sources=spec.get("sources"), seed=spec["seed"])
-    logged = sorted(log.block_results(), key=lambda b: b.block)
-    mismatches = []
-    for lb in logged:
-        b = eng.run_block(lb.block)
-        for k, v in lb.scalars.items():
-            if not np.array_equal(b.scalars[k][: lb.n], v):
-                mismatches.append(f"block {lb.block}, output {k}: differs (largest difference "
-                                  f"{np.abs(b.scalars[k][:lb.n] - v).max():.3g})")
-    return {"notes": notes, "blocks": len(logged), "trials": sum(b.n for b in logged), "identical": not mismatches,
-            "mismatches": mismatches, "complete": log.complete}
+    with open(path, "wb") as fh:
+        w = Writer(fh, use_chunking=False)
+        w.start(profile="", library=f"mtbudget {__version__}")
+        sid = w.register_schema(name="mtbudget.PlacementStudy", encoding="jsonschema",
+                                data=json.dumps(PLACEMENT_SCHEMA).encode())
+        ch = w.register_channel(topic="/mtbudget/placement", message_encoding="json", schema_id=sid)
+        t = time.time_ns()
+        if config_text:
+            w.add_attachment(create_time=t, log_time=t, name="config.toml", media_type="application/toml",
+                             data=config_text.encode())
+        w.add_metadata("mtbudget.placement", {"format": PLACEMENT_FORMAT, "mtbudget_version": __version__,
+                                              "seed": str(seed)})
+        body = dict(body)
+        body["arrays"] = {k: {name: _enc(a) for name, a in d.items()} for k, d in arrays.items()}
+        w.add_message(channel_id=ch, log_time=t, publish_time=t, data=json.dumps(body).encode())
+        w.finish()

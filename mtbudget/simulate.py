@@ -1,85 +1,107 @@
-"""Simulate a verification: the same model the identification and diagnosis use, run forward.
+"""The one simulator: sources drawn from their own streams, put through the truth model.
 
-:func:`simulate` turns a :class:`~mtbudget.config.SimulationConfig` into a
-:class:`~mtbudget.recording.Recording` (and the ``truth.json`` of what it put
-in, in the convention of the bundled examples).
+Every simulated measurement of mtbudget comes from :func:`simulate_block`:
+the Monte Carlo engine's trials, ``mtbudget simulate`` (one engine trial
+written as a recording, :func:`simulate_recording`), the diagnosis
+calibration (:mod:`mtbudget.testing`) and ``replay --verify``.
+
+Random streams: the numbers source ``s`` draws for block ``b`` of a run come
+from ``SeedSequence(seed, spawn_key=(b, crc32(s.name)))``; they depend on the
+seed, the block and the source only, never on which other sources are
+active, how blocks are grouped, or where they run.
 """
 
 from __future__ import annotations
 
+import zlib
+
 import numpy as np
 
-from .config import SimulationConfig
-from .machine import AXES, COMPONENT_ERRORS, ErrorModel
-from .model import MeasurementModel, drift_offset, merge, reversal_offset, thermal_scale
+from .contracts import Source, check_sample
+from .errors import PluginError
+from .machine import COMPONENT_ERRORS
+from .model import from_targets
+from .plugins import call
 from .recording import Recording
+from .scenario import Scenario, target_shapes
+from .units import display
 
 
-def truth_model(cfg: SimulationConfig, plan) -> MeasurementModel:
-    """Error model used to *simulate*: free straightness convention (P1 terms allowed)."""
-    return MeasurementModel.for_plan(cfg.machine, plan, max_degree=cfg.max_degree, straightness_convention="free")
+def stream(seed: int, block: int, source: Source) -> np.random.Generator:
+    """The random stream of ``source`` in ``block`` of a run seeded ``seed``."""
+    key = (int(block), zlib.crc32(source.name.encode()))
+    return np.random.default_rng(np.random.SeedSequence(int(seed), spawn_key=key))
 
 
-def machine_parameters(cfg: SimulationConfig, model: MeasurementModel) -> np.ndarray:
-    """The simulated machine's geometric parameters: explicit, or drawn from the generation functions."""
-    g = cfg.geometric
-    if "coefficients" in g:
-        return model.errors.from_coefficients(g["coefficients"], g.get("squareness", {}))
-    rng = np.random.default_rng(g.get("seed", 1))
-    theta = np.zeros(model.n_params)
-    for j, p in enumerate(model.errors.params):
-        if p.is_squareness:
-            theta[j] = rng.normal(0.0, g["squareness"])
-        else:
-            stds = g["translational"] if p.unit == "mm" else g["angular"]
-            theta[j] = rng.normal(0.0, stds[min(p.order, len(stds)) - 1])
-    return theta
+def sample_source(scenario: Scenario, src: Source, n: int, rng: np.random.Generator, shapes: dict | None = None) -> dict:
+    """``n`` trials of one source as internal float arrays, checked (keys, shapes, units, NaN, strategy indices)."""
+    raw = call(src, "sample", n, rng, scenario.context)
+    arrays = check_sample(src, raw, n, shapes or target_shapes(scenario))
+    if "strategy" in arrays:
+        k = len(call(src, "options", scenario.context))
+        s = arrays["strategy"]
+        if np.any((s != np.round(s)) | (s < 0) | (s >= k)):
+            raise PluginError(f"'strategy' must hold option indices 0..{k - 1}", src.plugin, src.name,
+                              "mtbudget_register_sources", "sample")
+    return arrays
 
 
-def effect_perturbations(plan, effects: dict, reference: float) -> dict:
-    """Perturbations of the physics effects of a config or truth (thermal, reversal, drift)."""
-    parts = [thermal_scale(plan, effects.get("thermal", {}), reference),
-             reversal_offset(plan, effects.get("reversal", {}))]
-    if effects.get("drift") is not None:
-        parts.append(drift_offset(plan, effects["drift"]))
-    return merge(*parts)
+def simulate_block(scenario: Scenario, block: int, n: int, seed: int, active: list | None = None,
+                   shapes: dict | None = None):
+    """The simulated measurements of one block of ``n`` trials.
+
+    Returns (measured tracker points (n, M, 3), true parameters (n, p),
+    strategy choices [(source, option index per trial)]) for the ``active``
+    sources (default: all the scenario's sources).
+    """
+    active = scenario.sources if active is None else active
+    shapes = shapes or target_shapes(scenario)
+    targets: dict = {}
+    choices = []
+    for src in active:
+        arr = sample_source(scenario, src, n, stream(seed, block, src), shapes)
+        for k, v in arr.items():
+            if k == "strategy":
+                choices.append((src, v.astype(int)))
+            else:
+                targets[k] = targets[k] + v if k in targets else v
+    pert = from_targets(targets)
+    truth = scenario.truth
+    theta_true = scenario.theta[None, :] + pert.pop("geometry", 0.0)
+    theta_true = np.broadcast_to(theta_true, (n, truth.n_params))
+    return truth.predict(theta_true, scenario.pose, pert), theta_true, choices
 
 
-def noise_perturbations(model: MeasurementModel, P_LT: np.ndarray, rng, angular, distance, dpl, repeatability) -> dict:
-    """One draw of tracker (spherical) noise and machine repeatability for N trials."""
-    N, M = P_LT.shape[:2]
-    r = np.linalg.norm(P_LT, axis=-1)
-    sph = np.empty((N, M, 3))
-    sph[..., 0] = rng.standard_normal((N, M)) * (distance + dpl * r)
-    sph[..., 1:] = rng.standard_normal((N, M, 2)) * angular
-    out = {"spherical_noise": sph}
-    for a in AXES:
-        out[f"axis_offset.{a}"] = rng.standard_normal((N, M)) * repeatability
-    return out
-
-
-def simulate(cfg: SimulationConfig, seed: int | None = None) -> tuple[Recording, dict]:
-    """Simulate one verification of ``cfg`` (noise seeded by ``seed`` or ``cfg.seed``)."""
-    seed = cfg.seed if seed is None else seed
-    rng = np.random.default_rng(np.random.SeedSequence(seed))
-    plan = cfg.plan(rng)
-    model = truth_model(cfg, plan)
-    theta = machine_parameters(cfg, model)
-    physics = effect_perturbations(plan, cfg.effects, cfg.reference_temperature)
-    clean = model.predict(theta, cfg.pose, physics)
-    noise = noise_perturbations(model, clean, rng, cfg.angular, cfg.distance, cfg.distance_per_length, cfg.repeatability)
-    measured = model.predict(theta, cfg.pose, merge(physics, noise))[0]
+def simulate_recording(scenario: Scenario, seed: int | None = None, trial: int = 0, block: int = 64):
+    """Trial ``trial`` of the engine's run seeded ``seed`` (default: the config's), as a recording and its truth."""
+    cfg = scenario.config
+    seed = cfg.seed if seed is None else int(seed)
+    b, i = divmod(int(trial), int(block))
+    meas, _, _ = simulate_block(scenario, b, block, seed)
+    noise = scenario.noise
     rec = Recording(
-        name=cfg.name, machine=cfg.machine, plan=plan, lt=measured, angular=cfg.angular, distance=cfg.distance,
-        distance_per_length=cfg.distance_per_length, repeatability=cfg.repeatability,
-        reference_temperature=cfg.reference_temperature, description=cfg.description or f"simulated by mtbudget (seed {seed})",
+        name=cfg.name, machine=cfg.machine, plan=scenario.plan, lt=meas[i].copy(), angular=noise.angular,
+        distance=noise.distance, distance_per_length=noise.distance_per_length, repeatability=noise.repeatability,
+        reference_temperature=cfg.reference_temperature,
+        description=cfg.description or f"simulated by mtbudget (seed {seed}, trial {trial})",
     )
-    return rec, truth_dict(cfg, model, theta)
+    return rec, truth_dict(scenario, seed, trial)
 
 
-def truth_dict(cfg: SimulationConfig, model: MeasurementModel, theta: np.ndarray) -> dict:
-    coefs, sq = model.errors.coefficients(theta)
-    drift = cfg.effects.get("drift")
+def truth_dict(scenario: Scenario, seed: int, trial: int) -> dict:
+    """What a simulated recording holds, in display units (the ``truth.json`` beside it)."""
+    model = scenario.truth
+    coefs, sq = model.errors.coefficients(scenario.theta)
+    by_name = {s.name: s for s in scenario.sources}
+
+    def fixed(name, pattern, unit):
+        s = by_name.get(name)
+        if s is None:
+            return {}
+        vals = {a: float(s.parameters[pattern.format(a)].to(unit).magnitude) for a in "xyz"}
+        return {a: v for a, v in vals.items() if v}
+
+    drift = fixed("tracker_drift", "v_{}", "um/h")
     return {
         "conventions": {
             "thermal": "axis -> CTE in um/(m K): the axis scale reads the nominal position p but moves to p * (1 + CTE * (T_axis - 20 degC)), about the axis zero",
@@ -87,39 +109,49 @@ def truth_dict(cfg: SimulationConfig, model: MeasurementModel, theta: np.ndarray
             "drift": "apparent velocity of the measured points in the machine frame, um/h, from the start of the test",
             "tracker_pose": "D, L, H in mm and Euler angles a, b, d in rad of the tracker frame in the machine frame (the paper's Eq. 21-22)",
         },
+        "simulation": {"seed": int(seed), "trial": int(trial)},
         "effects": {
-            "thermal": {a: v * 1e6 for a, v in cfg.effects.get("thermal", {}).items()},
-            "reversal": {a: v * 1e3 for a, v in cfg.effects.get("reversal", {}).items()},
-            "drift": None if drift is None else [float(v) * 1e3 * 3600 for v in drift],
+            "thermal": fixed("thermal_expansion", "cte_{}", "um/(m*K)"),
+            "reversal": fixed("reversal", "B_{}", "um"),
+            "drift": [drift.get(a, 0.0) for a in "xyz"] if drift else None,
         },
-        "tracker_pose": dict(zip("DLHabd", map(float, cfg.pose))),
-        "noise": {"angular_urad": cfg.angular * 1e6, "dist_um": cfg.distance * 1e3,
-                  "dist_ppm": cfg.distance_per_length * 1e6, "repeat_um": cfg.repeatability * 1e3},
-        "squareness_urad": {k: v * 1e6 for k, v in sq.items()},
+        "sources": {s.name: {k: (f"{v:~P}" if hasattr(v, "units") else str(v)) for k, v in s.parameters.items()}
+                    for s in scenario.sources},
+        "tracker_pose": dict(zip("DLHabd", map(float, scenario.pose))),
+        "noise": {"angular_urad": display(scenario.noise.angular, "rad", "urad"),
+                  "dist_um": display(scenario.noise.distance, "mm", "um"),
+                  "dist_ppm": display(scenario.noise.distance_per_length, "", "ppm"),
+                  "repeat_um": display(scenario.noise.repeatability, "mm", "um")},
+        "squareness_urad": {k: display(v, "rad", "urad") for k, v in sq.items()},
         "geometric_errors": {
             "basis": "Legendre P1..Pn of the axis position normalised to [-1, 1] over the measured range; um for d*, urad for e*",
-            "coefficients": {k: [c * (1e3 if k[0] == "d" else 1e6) for c in v] for k, v in coefs.items() if k in COMPONENT_ERRORS},
+            "coefficients": {k: display(list(v), "mm" if k[0] == "d" else "rad", "um" if k[0] == "d" else "urad")
+                             for k, v in coefs.items() if k in COMPONENT_ERRORS},
         },
     }
 
 
-def parameters_from_truth(truth: dict, model: MeasurementModel) -> tuple[np.ndarray, np.ndarray, dict]:
+def parameters_from_truth(truth: dict, model) -> tuple[np.ndarray, np.ndarray, dict]:
     """(theta, pose, effects) in internal units from a ``truth.json`` dictionary."""
-    co = {k: [v * (1e-3 if k[0] == "d" else 1e-6) for v in vs] for k, vs in truth["geometric_errors"]["coefficients"].items()}
-    theta = model.errors.from_coefficients(co, {k: v * 1e-6 for k, v in truth.get("squareness_urad", {}).items()})
+    co = {k: display(list(vs), "um" if k[0] == "d" else "urad", "mm" if k[0] == "d" else "rad")
+          for k, vs in truth["geometric_errors"]["coefficients"].items()}
+    theta = model.errors.from_coefficients(co, {k: display(v, "urad", "rad") for k, v in truth.get("squareness_urad", {}).items()})
     tp = truth["tracker_pose"]
     pose = np.array([tp[k] for k in "DLHabd"], float)
     e = truth.get("effects", {})
     effects = {
-        "thermal": {a: v * 1e-6 for a, v in (e.get("thermal") or {}).items()},
-        "reversal": {a: v * 1e-3 for a, v in (e.get("reversal") or {}).items()},
-        "drift": None if not e.get("drift") else np.asarray(e["drift"], float) * 1e-3 / 3600.0,
+        "thermal": {a: display(v, "um/(m*K)", "1/K") for a, v in (e.get("thermal") or {}).items()},
+        "reversal": {a: display(v, "um", "mm") for a, v in (e.get("reversal") or {}).items()},
+        "drift": None if not e.get("drift") else display(np.asarray(e["drift"], float), "um/h", "mm/s"),
     }
     return theta, pose, effects
 
 
-def truth_error_model(plan, degrees_from: dict) -> ErrorModel:
+def truth_error_model(plan, degrees_from: dict):
     """An error model able to hold a truth.json (free convention, its degrees)."""
+    from .machine import ErrorModel
+
     base = ErrorModel.default(plan.nominal, straightness_convention="free")
     deg = {k: len(v) for k, v in degrees_from.items()}
     return ErrorModel(ranges=base.ranges, degrees={**{k: 0 for k in base.degrees}, **deg}, straightness_convention="free")
+

@@ -99,3 +99,121 @@ class Moments:
     def from_dict(cls, d) -> "Moments":
         return cls(int(d["n"]), np.asarray(d["mean"], float), np.asarray(d["m2"], float),
                    np.asarray(d["min"], float), np.asarray(d["max"], float))
+
+
+class VectorHistogram:
+    """Histograms of K components with ranges fixed from the first block (overflow counted)."""
+
+    def __init__(self, first: np.ndarray, bins: int = 4000):
+        lo, hi = first.min(axis=0), first.max(axis=0)
+        c, w = (lo + hi) / 2, np.maximum(hi - lo, np.maximum(np.abs(lo + hi) * 1e-9, 1e-12))
+        self.low, self.high, self.bins = c - 2 * w, c + 2 * w, bins
+        self.counts = np.zeros((first.shape[1], bins), np.int64)
+        self.under = np.zeros(first.shape[1], np.int64)
+        self.over = np.zeros(first.shape[1], np.int64)
+
+    def add(self, x: np.ndarray):
+        f = (x - self.low) / (self.high - self.low)
+        self.under += (f < 0).sum(axis=0)
+        self.over += (f >= 1).sum(axis=0)
+        ok = (f >= 0) & (f < 1)
+        idx = np.minimum((f * self.bins).astype(np.int64), self.bins - 1)
+        k = np.broadcast_to(np.arange(x.shape[1]), x.shape)
+        np.add.at(self.counts, (k[ok], idx[ok]), 1)
+
+    def quantiles(self, prob) -> np.ndarray:
+        """(K, len(prob)) quantiles by linear interpolation of the binned CDF."""
+        out = np.empty((self.counts.shape[0], len(prob)))
+        for k in range(self.counts.shape[0]):
+            tot = self.counts[k].sum() + self.under[k] + self.over[k]
+            cdf = (self.under[k] + np.concatenate([[0], np.cumsum(self.counts[k])])) / tot
+            edges = np.linspace(self.low[k], self.high[k], self.bins + 1)
+            out[k] = np.interp(prob, cdf, edges)
+        return out
+
+
+class Accumulator:
+    """Streaming statistics of a run, merged in block order (deterministic for any chunking or executor).
+
+    Scalar outputs: exact moments, a fine histogram (bounded memory) and, when
+    ``keep_samples``, every value (exact order-statistic intervals).  Vector
+    outputs: their moments only.
+    """
+
+    def __init__(self, keep_samples: bool = True):
+        self.keep = keep_samples
+        self.n = 0
+        self.not_converged = 0
+        self.moments: dict = {}
+        self.hist: dict = {}
+        self.samples: dict = {}
+        self.blocks: list = []
+
+    def add(self, block: int, n: int, scalars: dict, vector_moments: dict, not_converged: int = 0):
+        """Merge one block: ``scalars`` name -> (n,) values; ``vector_moments`` name -> Moments."""
+        self.blocks.append(block)
+        for k, v in scalars.items():
+            col = v[:, None]
+            m = Moments.of(col)
+            self.moments[k] = m if k not in self.moments else self.moments[k].merge(m)
+            if k not in self.hist:
+                self.hist[k] = VectorHistogram(col)
+            self.hist[k].add(col)
+            if self.keep:
+                self.samples.setdefault(k, []).append(v)
+        for key, m in vector_moments.items():
+            self.moments[key] = m if key not in self.moments else self.moments[key].merge(m)
+        self.n += n
+        self.not_converged += int(not_converged)
+
+    def scalar_samples(self, name: str) -> np.ndarray | None:
+        if not self.keep or not self.samples.get(name):
+            return None
+        return np.concatenate(self.samples[name])
+
+    def summary(self, name: str, coverage: float) -> dict:
+        m = self.moments[name]
+        y = self.scalar_samples(name)
+        if y is not None:
+            ys = np.sort(y)
+            sym, short = symmetric_interval(ys, coverage), shortest_interval(ys, coverage)
+            exact = True
+        else:
+            h = self.hist[name]
+            q = h.quantiles(np.array([(1 - coverage) / 2, (1 + coverage) / 2]))
+            sym, short, exact = (float(q[0, 0]), float(q[0, 1])), None, False
+        return {"mean": float(np.asarray(m.mean).ravel()[0]), "std": float(np.asarray(m.std).ravel()[0]),
+                "symmetric": sym, "shortest": short, "exact_intervals": exact, "n": m.n}
+
+
+class AdaptiveStop:
+    """The adaptive Monte Carlo procedure's stopping rule (JCGM 101 7.9), shared by every MCM of mtbudget.
+
+    After each batch of h trials, ``add`` takes, per output, the batch's
+    (mean, standard deviation, interval low, interval high).  ``done(u)`` is
+    true when twice the standard deviation of the batch means of every
+    quantity is within the numerical tolerance of the standard uncertainty
+    ``u`` of its output (JCGM 101 7.9.4, 7.9.2).
+    """
+
+    def __init__(self, ndig: int = 2):
+        self.ndig = ndig
+        self.batches: list = []
+
+    def add(self, rows) -> None:
+        self.batches.append(np.atleast_2d(np.asarray(rows, float)))
+
+    def done(self, u) -> bool:
+        if len(self.batches) < 2:
+            return False
+        arr = np.array(self.batches)  # (h, outputs, 4)
+        s = arr.std(axis=0, ddof=1) / math.sqrt(len(arr))
+        deltas = np.array([numerical_tolerance(float(x), self.ndig) for x in np.atleast_1d(u)])
+        return bool(np.all(2 * s <= deltas[:, None]))
+
+
+def batch_row(y: np.ndarray, coverage: float) -> list:
+    """(mean, std, interval low, interval high) of one batch of an output."""
+    ys = np.sort(y)
+    lo, hi = symmetric_interval(ys, coverage)
+    return [float(ys.mean()), float(ys.std(ddof=1)), lo, hi]

@@ -106,17 +106,33 @@ def spherical_jacobian(P_LT: np.ndarray) -> np.ndarray:
     return J
 
 
-def covariance(P_LT: np.ndarray, angular, distance, distance_per_length) -> np.ndarray:
-    """Cartesian covariance (..., 3, 3) of a tracker point, internal units.
+def covariance(P_LT: np.ndarray, angular, distance, distance_per_length, angular_elevation=None) -> np.ndarray:
+    """Cartesian covariance (..., 3, 3) of a tracker point (the paper's Eq. 23, exact), internal units.
 
-    angular: rad (both angles), distance: mm, distance_per_length: mm/mm.
+    angular: rad, the standard uncertainty of the azimuth (and of the
+    elevation unless ``angular_elevation`` is given); distance: mm;
+    distance_per_length: mm/mm (u_r = distance + distance_per_length * r).
     """
     r = np.linalg.norm(P_LT, axis=-1)
     ur = np.asarray(distance) + np.asarray(distance_per_length) * r
     ua = np.broadcast_to(np.asarray(angular, float), r.shape)
+    ue = ua if angular_elevation is None else np.broadcast_to(np.asarray(angular_elevation, float), r.shape)
     J = spherical_jacobian(P_LT)
-    S = np.stack([ur**2, ua**2, ua**2], axis=-1)
+    S = np.stack([ur**2, ua**2, ue**2], axis=-1)
     return np.einsum("...ij,...j,...kj->...ik", J, S, J)
+
+
+def point_uncertainty(P_LT: np.ndarray, angular, distance, distance_per_length, angular_elevation=None) -> np.ndarray:
+    """u_p of the paper's Eq. 24: the square root of the trace of :func:`covariance`, without forming it.
+
+    The trace of J S J^T is u_r^2 + (r cos(el) u_az)^2 + (r u_el)^2, since the
+    columns of the spherical Jacobian have lengths 1, r cos(el) and r.
+    """
+    r = np.linalg.norm(P_LT, axis=-1)
+    rho = np.hypot(P_LT[..., 0], P_LT[..., 1])  # r cos(el)
+    ur = np.asarray(distance) + np.asarray(distance_per_length) * r
+    ue = angular if angular_elevation is None else angular_elevation
+    return np.sqrt(ur**2 + (rho * angular) ** 2 + (r * ue) ** 2)
 
 
 def eq23_variances(P_LT: np.ndarray, u_r, u_angle) -> np.ndarray:

@@ -148,6 +148,8 @@ def internal(value, display_unit: str, internal_unit: str):
 def internal_unit_of(unit: str) -> str:
     """The internal unit of the dimension of ``unit`` (mm for um, rad for urad, 1/K for um/(m*K) ...)."""
     d = str(ureg.Unit(unit).dimensionality).replace("dimensionless", "")
+    if d == "":  # an angle (radian at its root) or a ratio such as um/m
+        return "rad" if Q_(1.0, unit).to_root_units().units == ureg.radian else ""
     if d in INTERNAL:
         return INTERNAL[d]
     raise KeyError(f"no internal unit for {unit!r} ({d})")

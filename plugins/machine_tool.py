@@ -29,6 +29,8 @@ class TemperatureSensorCalibration(Source):
     distribution = "normal (Type B, Eq. 3)"
     targets = ("axis_scale.x", "axis_scale.y", "axis_scale.z")
     parameters = {"u_calibration": Q_(0.1, "K"), "k": Q_(2.0), "cte": Q_(11.5, "um/(m*K)")}
+    links = {"cte": "machine_tool.cte"}
+    nonnegative = ("u_calibration", "k")
 
     def standard_uncertainty(self):
         return (self.parameters["u_calibration"] / self.parameters["k"]).to("K")
@@ -56,6 +58,8 @@ class CTEUncertainty(Source):
     distribution = "rectangular (Eq. 10)"
     targets = ("axis_scale.x", "axis_scale.y", "axis_scale.z")
     parameters = {"cte": Q_(11.5, "um/(m*K)"), "fraction": Q_(0.10), "floor": Q_(0.002, "um/(mm*K)")}
+    links = {"cte": "machine_tool.cte"}
+    nonnegative = ("fraction", "floor")
 
     def width(self) -> float:
         return max(float(self.parameters["fraction"].magnitude) * self.value("cte", "1/K"), self.value("floor", "1/K"))
@@ -83,6 +87,7 @@ class EnvironmentalVariation(Source):
     distribution = "rectangular (Eq. 14)"
     targets = ("point_offset",)
     parameters = {"E_VE": Q_(2.0, "um")}
+    nonnegative = ("E_VE",)
 
     def standard_uncertainty(self):
         return (self.parameters["E_VE"] / (2 * math.sqrt(3))).to("um")
@@ -108,6 +113,8 @@ class TemperatureDrift(Source):
     distribution = "normal rate"
     targets = ("axis_scale.x", "axis_scale.y", "axis_scale.z")
     parameters = {"rate": Q_(0.2, "K/h"), "cte": Q_(11.5, "um/(m*K)")}
+    links = {"cte": "machine_tool.cte"}
+    nonnegative = ("rate",)
 
     def standard_uncertainty(self):
         return self.parameters["rate"]
@@ -126,6 +133,7 @@ class Backlash(Source):
     distribution = "rectangular [0, B_max]"
     targets = ("axis_offset.x", "axis_offset.y", "axis_offset.z")
     parameters = {"B_max": Q_(3.0, "um")}
+    nonnegative = ("B_max",)
 
     def standard_uncertainty(self):
         return (self.parameters["B_max"] / math.sqrt(12)).to("um")
@@ -156,6 +164,8 @@ class Repeatability(_PerPointNormal):
     group = Group.MACHINE_TOOL
     key = "R"
     parameters = {"R": Q_(1.5, "um")}
+    links = {"R": "machine_tool.repeatability"}
+    nonnegative = ("R",)
 
 
 class ControlError(_PerPointNormal):
@@ -165,6 +175,7 @@ class ControlError(_PerPointNormal):
     group = Group.MACHINE_TOOL
     key = "C"
     parameters = {"C": Q_(0.5, "um")}
+    nonnegative = ("C",)
 
 
 class GeometricErrorUncertainty(Source):
@@ -179,6 +190,12 @@ class GeometricErrorUncertainty(Source):
     distribution = "normal or beta (Eq. 18-20)"
     targets = ("geometry.translational", "geometry.angular")
     parameters = {"translational": Q_(0.5, "um"), "angular": Q_(0.5, "urad"), "shape": "normal", "beta_a": Q_(2.0)}
+    nonnegative = ("translational", "angular", "beta_a")
+
+    def check(self):
+        if self.parameters["shape"] not in ("normal", "beta"):
+            return f"parameter 'shape' must be 'normal' or 'beta', got {self.parameters['shape']!r}"
+        return super().check()
 
     def standard_uncertainty(self):
         return self.parameters["translational"].to("um")
@@ -202,8 +219,88 @@ class GeometricErrorUncertainty(Source):
                 "geometry.angular": Q_(z * rad * self.value("angular", "rad"), "rad")}
 
 
+# ----------------------------------------------------------------------------- simulated physics (opt-in)
+# Effects a verification does not know about, for simulating recordings that show them (mtbudget simulate,
+# the diagnosis calibration).  Each is fixed (the same in every trial), off unless the configuration enables
+# it ([effects] or [sources] add), and written independently of the diagnosis candidates that look for it.
+
+
+class ThermalExpansionEffect(Source):
+    """Simulated thermal expansion: each axis scale moves to p (1 + CTE (T_axis - T_ref)) about the axis zero."""
+
+    name = "thermal_expansion"
+    group = Group.MACHINE_TOOL
+    distribution = "fixed (simulated physics)"
+    targets = ("axis_scale.x", "axis_scale.y", "axis_scale.z")
+    parameters = {f"cte_{a}": Q_(0.0, "um/(m*K)") for a in AXES}
+    opt_in = True
+
+    def sample(self, n, rng, ctx):
+        out = {}
+        for a in AXES:
+            cte = self.value(f"cte_{a}", "1/K")
+            if cte:
+                dT = ctx.plan.axis_temperature(a, ctx.reference_temperature) - ctx.reference_temperature
+                out[f"axis_scale.{a}"] = Q_(np.tile(cte * dT, (n, 1)), "")
+        return out
+
+
+class ReversalEffect(Source):
+    """Simulated reversal (lost motion) B of each axis: approaching from either side it stops B/2 short."""
+
+    name = "reversal"
+    group = Group.MACHINE_TOOL
+    distribution = "fixed (simulated physics)"
+    targets = ("axis_offset.x", "axis_offset.y", "axis_offset.z")
+    parameters = {f"B_{a}": Q_(0.0, "um") for a in AXES}
+    opt_in = True
+
+    def sample(self, n, rng, ctx):
+        out = {}
+        for i, a in enumerate(AXES):
+            B = self.value(f"B_{a}", "mm")
+            if B:
+                out[f"axis_offset.{a}"] = Q_(np.tile(-0.5 * B * ctx.plan.direction[:, i], (n, 1)), "mm")
+        return out
+
+
+class AxisCouplingEffect(Source):
+    """Simulated error along the third axis that grows with the product of two axis positions.
+
+    ``xy`` is the amplitude (at the corners of the measured range) of a z
+    error proportional to u_x u_y, with u the axis position normalised to
+    [-1, 1] over the measured range; likewise ``xz`` (along y) and ``yz`` (along x).
+    """
+
+    name = "axis_coupling"
+    group = Group.MACHINE_TOOL
+    distribution = "fixed (simulated physics)"
+    targets = ("point_offset",)
+    parameters = {"xy": Q_(0.0, "um"), "xz": Q_(0.0, "um"), "yz": Q_(0.0, "um")}
+    opt_in = True
+
+    def sample(self, n, rng, ctx):
+        nominal = ctx.plan.nominal
+        disp = np.zeros((len(nominal), 3))
+        for pair in ("xy", "xz", "yz"):
+            amp = self.value(pair, "mm")
+            if not amp:
+                continue
+            u = []
+            for a in pair:
+                i = AXES.index(a)
+                lo, hi = nominal[:, i].min(), nominal[:, i].max()
+                u.append((nominal[:, i] - 0.5 * (lo + hi)) / (0.5 * (hi - lo)) if hi > lo else np.zeros(len(nominal)))
+            third = ({"x", "y", "z"} - set(pair)).pop()
+            disp[:, AXES.index(third)] += amp * u[0] * u[1]
+        return {"point_offset": Q_(np.tile(disp, (n, 1, 1)), "mm")}
+
+
+EFFECTS = (ThermalExpansionEffect, ReversalEffect, AxisCouplingEffect)
+
+
 SOURCES = (TemperatureSensorCalibration, CTEUncertainty, EnvironmentalVariation, TemperatureDrift, Backlash,
-           Repeatability, ControlError, GeometricErrorUncertainty)
+           Repeatability, ControlError, GeometricErrorUncertainty) + EFFECTS
 
 
 @hookimpl

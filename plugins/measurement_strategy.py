@@ -24,6 +24,7 @@ class Registration(Source):
     distribution = "normal"
     targets = ("pose.position", "pose.orientation")
     parameters = {"u_position": Q_(0.5, "mm"), "u_orientation": Q_(100.0, "urad")}
+    nonnegative = ("u_position", "u_orientation")
 
     def standard_uncertainty(self):
         return self.parameters["u_position"]
@@ -53,6 +54,16 @@ class Multilateration(Source):
     targets = ("point_offset",)
     parameters = {"stations": Q_(4), "radius": Q_(2.0, "m"), "height": Q_(0.8, "m"), "distance": Q_(4.0, "um"),
                   "distance_per_length": Q_(0.8, "um/m"), "u_station": Q_(2.0, "um")}
+    #: it replaces one station's tracker noise: off unless enabled, and never together with tracker_noise
+    opt_in = True
+    excludes = ("tracker_noise",)
+    nonnegative = ("distance", "distance_per_length", "u_station", "radius")
+
+    def check(self):
+        k = self.parameters["stations"].magnitude
+        if k != int(k) or k < 3:
+            return f"parameter 'stations' must be a whole number of at least 3, got {k}"
+        return super().check()
 
     def standard_uncertainty(self):
         return self.parameters["distance"]

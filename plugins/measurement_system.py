@@ -25,6 +25,9 @@ class TrackerNoise(Source):
     targets = ("spherical_noise.range", "spherical_noise.angles")
     parameters = {"angular_mean": Q_(20.0, "urad"), "angular_sd": Q_(3.0, "urad"), "distance": Q_(4.0, "um"),
                   "distance_per_length": Q_(0.8, "um/m")}
+    links = {"angular_mean": "tracker.angular", "distance": "tracker.distance",
+             "distance_per_length": "tracker.distance_per_length"}
+    nonnegative = ("angular_mean", "angular_sd", "distance", "distance_per_length")
 
     def standard_uncertainty(self):
         return self.parameters["angular_mean"]
@@ -45,6 +48,7 @@ class SMRCentring(Source):
     distribution = "normal, perpendicular to the beam"
     targets = ("tracker_offset",)
     parameters = {"u_SMR": Q_(2.0, "um")}
+    nonnegative = ("u_SMR",)
 
     def standard_uncertainty(self):
         return self.parameters["u_SMR"]
@@ -63,6 +67,7 @@ class SoftwarePointUncertainty(Source):
     distribution = "normal"
     targets = ("tracker_offset",)
     parameters = {"u_MS": Q_(1.0, "um")}
+    nonnegative = ("u_MS",)
 
     def standard_uncertainty(self):
         return self.parameters["u_MS"]
@@ -71,7 +76,62 @@ class SoftwarePointUncertainty(Source):
         return {"tracker_offset": Q_(rng.normal(0.0, self.value("u_MS", "mm"), (n, ctx.n_points, 3)), "mm")}
 
 
+# ----------------------------------------------------------------------------- simulated physics (opt-in)
+class TrackerDriftEffect(Source):
+    """Simulated drift of the tracker: the measured points move at a constant velocity (machine frame) from the start."""
+
+    name = "tracker_drift"
+    group = Group.MEASUREMENT_SYSTEM
+    distribution = "fixed (simulated physics)"
+    targets = ("point_offset",)
+    parameters = {f"v_{a}": Q_(0.0, "um/h") for a in "xyz"}
+    opt_in = True
+
+    def sample(self, n, rng, ctx):
+        v = np.array([self.value(f"v_{a}", "mm/s") for a in "xyz"])
+        return {"point_offset": Q_(np.tile(ctx.plan.time[:, None] * v[None, :], (n, 1, 1)), "mm")}
+
+
+class TrackerRangeOffsetEffect(Source):
+    """Simulated zero error of the tracker's distance meter: every range reads ``offset`` long."""
+
+    name = "tracker_range_offset"
+    group = Group.MEASUREMENT_SYSTEM
+    distribution = "fixed (simulated physics)"
+    targets = ("spherical_noise.range",)
+    parameters = {"offset": Q_(0.0, "um")}
+    opt_in = True
+
+    def sample(self, n, rng, ctx):
+        return {"spherical_noise.range": Q_(np.full((n, ctx.n_points), self.value("offset", "mm")), "mm")}
+
+
+class AirTemperatureDriftEffect(Source):
+    """Simulated apparent vertical shift that follows the air temperature (refraction, a warming stand).
+
+    The measured points move along the machine's z by ``sensitivity`` times
+    the change of the mean air temperature since the first point.
+    """
+
+    name = "air_temperature_drift"
+    group = Group.MEASUREMENT_SYSTEM
+    distribution = "fixed (simulated physics)"
+    targets = ("point_offset",)
+    parameters = {"sensitivity": Q_(0.0, "um/K")}
+    opt_in = True
+
+    def sample(self, n, rng, ctx):
+        cols = [s.column for s in ctx.plan.sensors if s.attached_to.strip().lower() == "air"
+                and s.column in ctx.plan.temperature]
+        disp = np.zeros((ctx.n_points, 3))
+        if cols:
+            T = np.mean([ctx.plan.temperature[c] for c in cols], axis=0)
+            disp[:, 2] = self.value("sensitivity", "mm/K") * (T - T[0])
+        return {"point_offset": Q_(np.tile(disp, (n, 1, 1)), "mm")}
+
+
 @hookimpl
 def mtbudget_register_sources(register):
-    for cls in (TrackerNoise, SMRCentring, SoftwarePointUncertainty):
+    for cls in (TrackerNoise, SMRCentring, SoftwarePointUncertainty, TrackerDriftEffect, TrackerRangeOffsetEffect,
+                AirTemperatureDriftEffect):
         register(cls())

@@ -24,6 +24,8 @@ class ApproximationDegree(_Choice):
     """Legendre degree of the error functions: ``low`` or ``high`` (capped by the mesh)."""
 
     name = "approximation_degree"
+    #: a lower degree than the machine needs is a bias, not an uncertainty: off unless enabled
+    opt_in = True
     parameters = {"low": Q_(2), "high": Q_(3)}
 
     def options(self, ctx):

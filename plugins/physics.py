@@ -1,10 +1,12 @@
 """Built-in diagnosis candidates: physics a rigid-body verification model leaves out.
 
-Each candidate gives the displacement of every measured point per unit of
-its parameters (internal units), in the machine or the tracker frame.  The
-effect names are fixed: thermal_expansion, reversal, tracker_drift,
-tracker_range_offset, tracker_range_scale, air_temperature_drift,
-approximation_degree, axis_coupling.
+Each candidate is a :class:`mtbudget.contracts.Candidate` subclass: it gives
+the displacement of every measured point per internal unit of its
+parameters, in the machine or the tracker frame, and says which measurement
+would tell it from the effects it is easily confused with.  The effect names
+are fixed: thermal_expansion, reversal, tracker_drift, tracker_range_offset,
+tracker_range_scale, air_temperature_drift, approximation_degree,
+axis_coupling.
 """
 
 from __future__ import annotations
@@ -15,9 +17,9 @@ from mtbudget.contracts import Candidate
 from mtbudget.hookspecs import hookimpl
 from mtbudget.machine import AXES, AXIS_INDEX, ChainInputs, ErrorModel, chain
 from mtbudget.model import drift_offset, reversal_offset, thermal_scale
-from mtbudget.units import Q_
+from mtbudget.units import factor, internal_unit_of
 
-MIN_TEMPERATURE_RANGE = 0.01  # K: below this an axis temperature carries no information
+MIN_TEMPERATURE_RANGE = 0.01  # K: below this a temperature carries no information
 
 
 def _e(axis):
@@ -26,151 +28,179 @@ def _e(axis):
     return v
 
 
-def thermal(axis):
-    def requires(ctx):
-        T = ctx.axis_temperature_column(axis)
+def _varies(T, what):
+    """None when the temperature T varies enough to test with, else why not."""
+    if np.ptp(T) < MIN_TEMPERATURE_RANGE:
+        return f"{what} varies by only {np.ptp(T):.3f} K"
+    return None
+
+
+class ThermalExpansion(Candidate):
+    effect = "thermal_expansion"
+    parameters = {"cte": "um/(m*K)"}
+    hints = {
+        "tracker_drift": "Measure while the temperature goes up and then down (not steadily one way).",
+        "air_temperature_drift": "Add a sensor on the structure away from the air stream, or repeat at another temperature.",
+    }
+
+    def __init__(self, axis):
+        super().__init__(axis)
+        self.description = (f"the {axis} axis scale follows its temperature: it moves to p (1 + CTE (T - T_ref)) "
+                            "about the axis zero")
+
+    def requires(self, ctx):
+        T = ctx.axis_temperature_column(self.axis)
         if T is None:
-            return f"no temperature sensor is attached to the {axis} axis"
-        if np.ptp(T) < MIN_TEMPERATURE_RANGE:
-            return f"the {axis}-axis temperature varies by only {np.ptp(T):.3f} K"
-        return None
+            return f"no temperature sensor is attached to the {self.axis} axis"
+        return _varies(T, f"the {self.axis}-axis temperature")
 
-    def columns(ctx):
-        T = ctx.axis_temperature_column(axis) - ctx.recording.reference_temperature
-        p = ctx.plan.nominal[:, AXIS_INDEX[axis]]
-        return (p * T)[:, None, None] * _e(axis)[None, :, None]
+    def columns(self, ctx):
+        T = ctx.axis_temperature_column(self.axis) - ctx.recording.reference_temperature
+        p = ctx.plan.nominal[:, AXIS_INDEX[self.axis]]
+        return (p * T)[:, None, None] * _e(self.axis)[None, :, None]
 
-    return Candidate(
-        "thermal_expansion", axis,
-        f"the {axis} axis scale follows its temperature: it moves to p (1 + CTE (T - T_ref)) about the axis zero",
-        [("cte", "um/(m*K)", "1/K")], columns, "machine",
-        perturbation=lambda ctx, b: thermal_scale(ctx.plan, {axis: float(b[0])}, ctx.recording.reference_temperature),
-        requires=requires)
+    def perturbation(self, ctx, beta):
+        return thermal_scale(ctx.plan, {self.axis: float(beta[0])}, ctx.recording.reference_temperature)
 
 
-def reversal(axis):
-    i = AXIS_INDEX[axis]
+class Reversal(Candidate):
+    effect = "reversal"
+    parameters = {"B": "um"}
 
-    def requires(ctx):
-        d = ctx.plan.direction[:, i]
-        return None if (d > 0).any() and (d < 0).any() else f"the {axis} axis is approached from one side only"
+    def __init__(self, axis):
+        super().__init__(axis)
+        self.description = f"lost motion of the {axis} axis: approaching from either side it stops B/2 short of the target"
 
-    def columns(ctx):
-        return (-ctx.plan.direction[:, i] / 2.0)[:, None, None] * _e(axis)[None, :, None]
+    def requires(self, ctx):
+        d = ctx.plan.direction[:, AXIS_INDEX[self.axis]]
+        return None if (d > 0).any() and (d < 0).any() else f"the {self.axis} axis is approached from one side only"
 
-    return Candidate(
-        "reversal", axis, f"lost motion of the {axis} axis: approaching from either side it stops B/2 short of the target",
-        [("B", "um", "mm")], columns, "machine",
-        perturbation=lambda ctx, b: reversal_offset(ctx.plan, {axis: float(b[0])}), requires=requires)
+    def columns(self, ctx):
+        return (-ctx.plan.direction[:, AXIS_INDEX[self.axis]] / 2.0)[:, None, None] * _e(self.axis)[None, :, None]
 
-
-def _vector_summary(display, internal):
-    def summary(beta, cov):
-        f = Q_(1.0, internal).to(display).magnitude
-        return [float(x * f) for x in beta], [float(s * f) for s in np.sqrt(np.maximum(np.diag(cov), 0))], display
-
-    return summary
+    def perturbation(self, ctx, beta):
+        return reversal_offset(ctx.plan, {self.axis: float(beta[0])})
 
 
-def tracker_drift():
-    def columns(ctx):
-        t = ctx.plan.time
-        return t[:, None, None] * np.eye(3)[None]
+class TrackerDrift(Candidate):
+    effect = "tracker_drift"
+    description = "the tracker creeps relative to the machine during the test (apparent velocity of the points)"
+    parameters = {"velocity": "um/h"}  # a vector: one column per machine axis
+    hints = {"air_temperature_drift": "Repeat the test with the air temperature held, or measure a fixed reference "
+                                      "point every few minutes."}
 
-    return Candidate(
-        "tracker_drift", None, "the tracker creeps relative to the machine during the test (apparent velocity of the points)",
-        [("velocity", "um/h", "mm/s")], columns, "machine",
-        perturbation=lambda ctx, b: drift_offset(ctx.plan, np.asarray(b, float)),
-        requires=lambda ctx: None if np.ptp(ctx.plan.time) > 0 else "all points have the same time",
-        summary=_vector_summary("um/h", "mm/s"))
+    def requires(self, ctx):
+        return None if np.ptp(ctx.plan.time) > 0 else "all points have the same time"
+
+    def columns(self, ctx):
+        return ctx.plan.time[:, None, None] * np.eye(3)[None]
+
+    def perturbation(self, ctx, beta):
+        return drift_offset(ctx.plan, np.asarray(beta, float))
 
 
-def range_offset():
-    def columns(ctx):
+class TrackerRangeOffset(Candidate):
+    effect = "tracker_range_offset"
+    description = "a constant error of every tracker distance (ADM zero, reflector of another type or size)"
+    parameters = {"offset": "um"}
+    frame = "tracker"
+    hints = {"tracker_range_scale": "Measure a calibrated length, or the same points from a second tracker station."}
+
+    def columns(self, ctx):
         u = ctx.P_LT / np.linalg.norm(ctx.P_LT, axis=1, keepdims=True)
         return u[:, :, None]
 
-    return Candidate("tracker_range_offset", None,
-                     "a constant error of every tracker distance (ADM zero, reflector of another type or size)",
-                     [("offset", "um", "mm")], columns, "tracker")
+
+class TrackerRangeScale(Candidate):
+    effect = "tracker_range_scale"
+    description = "tracker distances scaled (wrong air refractive index or weather-station reading)"
+    parameters = {"scale": "um/m"}
+    frame = "tracker"
+
+    def columns(self, ctx):
+        return ctx.P_LT[:, :, None]
 
 
-def range_scale():
-    return Candidate("tracker_range_scale", None,
-                     "tracker distances scaled (wrong air refractive index or weather-station reading)",
-                     [("scale", "um/m", "")], lambda ctx: ctx.P_LT[:, :, None], "tracker")
+class AirTemperatureDrift(Candidate):
+    effect = "air_temperature_drift"
+    description = "the points move with the air temperature (tracker stand, bed or beam path warming), not with time"
+    parameters = {"sensitivity": "um/K"}  # a vector: one column per machine axis
 
-
-def air_drift():
-    def requires(ctx):
+    def requires(self, ctx):
         T = ctx.air_temperature()
         if T is None:
             return "no air temperature sensor"
-        if np.ptp(T) < MIN_TEMPERATURE_RANGE:
-            return f"the air temperature varies by only {np.ptp(T):.3f} K"
-        return None
+        return _varies(T, "the air temperature")
 
-    def columns(ctx):
+    def columns(self, ctx):
         T = ctx.air_temperature()
         return (T - T[0])[:, None, None] * np.eye(3)[None]
 
-    return Candidate("air_temperature_drift", None,
-                     "the points move with the air temperature (tracker stand, bed or beam path warming), not with time",
-                     [("sensitivity", "um/K", "mm/K")], columns, "machine", requires=requires,
-                     summary=_vector_summary("um/K", "mm/K"))
 
+class ApproximationDegree(Candidate):
+    """The next Legendre term of each of the six error functions of one axis."""
 
-def degree(axis):
-    def next_degree(ctx):
+    effect = "approximation_degree"
+    #: one column per error function of the axis: translational in um, angular in urad
+    #: (on a 1 m lever an urad moves a point by 1 um, so the summary's RMS is in um either way)
+    parameters = {"dx": "um", "dy": "um", "dz": "um", "ex": "urad", "ey": "urad", "ez": "urad"}
+
+    def __init__(self, axis):
+        super().__init__(axis)
+        self.description = f"the error functions of the {axis} axis need a higher degree than the model gives them"
+
+    def _next_degree(self, ctx):
         """One more than the highest degree the baseline gives this axis' errors."""
-        return max(int(v) for k, v in ctx.model.errors.degrees.items() if k[3] == axis) + 1
+        return max(int(v) for k, v in ctx.model.errors.degrees.items() if k[3] == self.axis) + 1
 
-    def extra_model(ctx):
-        top = next_degree(ctx)
-        return ErrorModel(ranges=ctx.model.errors.ranges, degrees={f"{k}{c}({axis})": top for k in "de" for c in AXES},
-                          squareness=False, straightness_convention="free"), top
+    def requires(self, ctx):
+        npos = len(np.unique(np.round(ctx.plan.nominal[:, AXIS_INDEX[self.axis]], 6)))
+        top = self._next_degree(ctx)
+        return None if npos > top else f"the {self.axis} axis has {npos} positions: degree {top} cannot be told from the lower ones"
 
-    def requires(ctx):
-        npos = len(np.unique(np.round(ctx.plan.nominal[:, AXIS_INDEX[axis]], 6)))
-        top = next_degree(ctx)
-        return None if npos > top else f"the {axis} axis has {npos} positions: degree {top} cannot be told from the lower ones"
-
-    def columns(ctx):
-        em, top = extra_model(ctx)
-        keep = [j for j, p in enumerate(em.params) if p.order == top]
+    def columns(self, ctx):
+        top = self._next_degree(ctx)
+        errors = [f"{e}({self.axis})" for e in self.parameters]
+        em = ErrorModel(ranges=ctx.model.errors.ranges, degrees={e: top for e in errors},
+                        squareness=False, straightness_convention="free")
+        column = {p.error: j for j, p in enumerate(em.params) if p.order == top}
         _, J = chain(ctx.model.config, em, np.zeros(len(em.params)), ChainInputs(ctx.plan.nominal, ctx.plan.tool), jacobian=True)
-        Jk = J[0][:, :, keep]
-        # scale: translational per um, angular per urad on 1 m, so the RMS summary is in um either way
-        return Jk
+        return J[0][:, :, [column[e] for e in errors]]
 
-    def summary(beta, cov):
-        return [float(np.sqrt(np.mean(beta**2)) * 1e3)], [float(np.sqrt(np.trace(cov) / max(len(beta), 1)) * 1e3)], "um"
-
-    return Candidate("approximation_degree", axis,
-                     f"the error functions of the {axis} axis need a higher degree than the model gives them",
-                     [("coefficients", "um", "mm")], columns, "machine", requires=requires, summary=summary)
+    def summary(self, beta, cov):
+        """RMS of the six coefficients (um and urad) and the RMS of their standard uncertainties."""
+        f = np.array([factor(internal_unit_of(u), u) for u in self.parameters.values()])
+        b, c = np.asarray(beta) * f, np.asarray(cov) * np.outer(f, f)
+        return [float(np.sqrt(np.mean(b**2)))], [float(np.sqrt(np.trace(c) / max(len(b), 1)))], "um"
 
 
-def coupling(pair):
-    a, b = pair
+class AxisCoupling(Candidate):
+    effect = "axis_coupling"
+    parameters = {"amplitude": "um"}  # a vector: one column per machine axis
 
-    def columns(ctx):
+    def __init__(self, pair):
+        super().__init__(pair)
+        a, b = pair
+        self.description = (f"a non-rigid coupling: the error depends on the {a} and {b} positions together "
+                            "(sag, twist of the structure)")
+
+    def requires(self, ctx):
+        if all(np.ptp(ctx.plan.nominal[:, AXIS_INDEX[x]]) > 0 for x in self.axis):
+            return None
+        return f"the {self.axis} positions do not vary"
+
+    def columns(self, ctx):
+        a, b = self.axis
         em = ctx.model.errors
         ua = em.normalised(a, ctx.plan.nominal[:, AXIS_INDEX[a]])
         ub = em.normalised(b, ctx.plan.nominal[:, AXIS_INDEX[b]])
         return (ua * ub)[:, None, None] * np.eye(3)[None]
 
-    return Candidate("axis_coupling", pair,
-                     f"a non-rigid coupling: the error depends on the {a} and {b} positions together (sag, twist of the structure)",
-                     [("amplitude", "um", "mm")], columns, "machine",
-                     requires=lambda ctx: None if all(np.ptp(ctx.plan.nominal[:, AXIS_INDEX[x]]) > 0 for x in pair)
-                     else f"the {pair} positions do not vary", summary=_vector_summary("um", "mm"))
-
 
 def all_candidates():
-    out = [thermal(a) for a in AXES] + [reversal(a) for a in AXES]
-    out += [tracker_drift(), range_offset(), range_scale(), air_drift()]
-    out += [degree(a) for a in AXES] + [coupling(p) for p in ("xy", "xz", "yz")]
+    out = [ThermalExpansion(a) for a in AXES] + [Reversal(a) for a in AXES]
+    out += [TrackerDrift(), TrackerRangeOffset(), TrackerRangeScale(), AirTemperatureDrift()]
+    out += [ApproximationDegree(a) for a in AXES] + [AxisCoupling(p) for p in ("xy", "xz", "yz")]
     return out
 
 

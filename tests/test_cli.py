@@ -71,3 +71,43 @@ def test_plugins_lists_sources_by_group_with_units_and_origin():
     assert {c["effect"] for c in data["candidates"]} >= {"thermal_expansion", "reversal", "tracker_drift"}
     text = CliRunner().invoke(main, ["plugins"]).output
     assert "uncertainty sources:" in text and "[optimisation strategy]" in text
+
+
+def _leaf_commands(group=main, prefix=()):
+    for name, cmd in group.commands.items():
+        if hasattr(cmd, "commands"):
+            yield from _leaf_commands(cmd, prefix + (name,))
+        else:
+            yield prefix + (name,), cmd
+
+
+BAD_NUMBERS = ["-3", "abc", "1e400", "2.5", ""]
+
+
+def _option_cases():
+    import click
+
+    for path, cmd in _leaf_commands():
+        for p in cmd.params:
+            if not isinstance(p, click.Option) or p.is_flag:
+                continue
+            if isinstance(p.type, (click.types.IntParamType, click.types.FloatParamType, click.IntRange, click.FloatRange)):
+                for bad in BAD_NUMBERS:
+                    yield path, p.opts[0], bad
+
+
+@pytest.mark.parametrize("path, option, bad", list(_option_cases()),
+                         ids=lambda x: " ".join(x) if isinstance(x, tuple) else str(x))
+def test_every_numeric_option_refuses_bad_values_in_one_line(path, option, bad, tmp_path, monkeypatch):
+    """A bad value gives a one-line usage error naming the option, or is a valid value; never a traceback."""
+    monkeypatch.chdir(tmp_path)
+    args = list(path) + [option, bad]
+    if path[-1] in ("identify", "diagnose"):
+        args += ["--example", "null"]
+    if path[-1] in ("replay", "report"):
+        args = list(path) + [str(tmp_path / "missing.mcap"), option, bad]
+    res = CliRunner().invoke(main, args)
+    assert res.exception is None or isinstance(res.exception, SystemExit), (args, res.exception)
+    if res.exit_code != 0:
+        assert "Traceback" not in res.output
+        assert option in res.output or "Invalid value" in res.output or "error:" in res.output, (args, res.output)

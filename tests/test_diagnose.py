@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from mtbudget.calibration import case_config, named, named_or_confounded, run_case, simulate_case
+from mtbudget.testing import case_config, named, named_or_confounded, run_case, simulate_case
 from mtbudget.cli import main
 from mtbudget.config import example_recording
 from mtbudget.contracts import Candidate
@@ -16,8 +16,10 @@ from mtbudget.diagnose import diagnose
 from mtbudget.errors import DiagnosisError
 from mtbudget.errors import PluginError
 from mtbudget.hookspecs import hookimpl
+from mtbudget.machine import AXIS_INDEX
 from mtbudget.plugins import PluginHost, default_host
 from mtbudget.recording import read_recording
+from mtbudget.report_diagnosis import diagnosis_text
 
 from test_recording import convert_to_imperial
 
@@ -134,6 +136,10 @@ def test_confounded_candidates_are_said_to_be(tmp_path, candidates):
     f = d.findings[0]
     pair = {f.candidate.effect} | {c["effect"] for c in f.confounded_with}
     assert {"tracker_drift", "air_temperature_drift"} <= pair
+    # the measurement that would separate them comes from the candidates' own hints
+    hint = "Repeat the test with the air temperature held, or measure a fixed reference point every few minutes."
+    assert hint in f.hints
+    assert hint in diagnosis_text(d)
 
 
 # --------------------------------------------------------------------------- bad input and plugins
@@ -162,14 +168,124 @@ def test_missing_columns_skip_candidates_and_say_so(tmp_path, candidates):
     assert ("air_temperature_drift", None) in reasons
 
 
-def test_candidate_plugin_through_the_hook_and_its_errors():
-    def cols(ctx):
-        return np.zeros((len(ctx.plan), 2))  # wrong shape
-
+def _through_hook(*candidates):
+    """Register ``candidates`` through the hook of a plugin module named broken_candidates."""
     mod = types.ModuleType("broken_candidates")
-    mod.mtbudget_register_candidates = hookimpl(lambda register: register(Candidate("wobble", None, "bad", [("a", "um", "mm")], cols)))
-    host = PluginHost(entry_points=False, plugins=(mod,))
-    cands = host.candidates()
+
+    def register_all(register):
+        for c in candidates:
+            register(c)
+
+    mod.mtbudget_register_candidates = hookimpl(register_all)
+    return PluginHost(entry_points=False, plugins=(mod,)).candidates()
+
+
+class LostMotion(Candidate):
+    """A third-party reversal written from scratch: lost motion B of one axis, B/2 short from either side."""
+
+    effect = "lost_motion"
+    description = "lost motion"
+    parameters = {"B": "um"}
+
+    def columns(self, ctx):
+        C = np.zeros((len(ctx.plan), 3, 1))
+        i = AXIS_INDEX[self.axis]
+        C[:, i, 0] = -ctx.plan.direction[:, i] / 2.0
+        return C
+
+
+def test_candidate_plugin_through_the_hook_and_its_errors():
+    class Wobble(Candidate):
+        effect = "wobble"
+        parameters = {"a": "um"}
+
+        def columns(self, ctx):
+            return np.zeros((len(ctx.plan), 2))  # wrong shape
+
+    cands = _through_hook(Wobble())
     assert [c.effect for c in cands] == ["wobble"] and cands[0].plugin == "broken_candidates"
-    with pytest.raises(PluginError, match="plugin 'broken_candidates'.*wobble.*shape"):
+    with pytest.raises(PluginError, match=r"plugin 'broken_candidates'.*wobble.*method columns\(\).*shape") as exc:
         diagnose(read_recording(example_recording("null")), cands)
+    assert (exc.value.plugin, exc.value.source, exc.value.method) == ("broken_candidates", "wobble", "columns")
+    assert exc.value.hook == "mtbudget_register_candidates"
+
+
+@pytest.mark.parametrize("method", ["requires", "columns", "perturbation", "summary"])
+def test_an_exception_inside_a_candidate_names_plugin_and_method(method):
+    """Every call into candidate code goes through the plugin host: the error says whose code failed, and where."""
+
+    def broken(self, *args):
+        raise ZeroDivisionError("boom")
+
+    Broken = type("Broken", (LostMotion,), {method: broken})
+    cands = _through_hook(Broken("y"))
+    with pytest.raises(PluginError) as exc:
+        diagnose(read_recording(example_recording("reversal_y")), cands)
+    e = exc.value
+    assert (e.plugin, e.source, e.method) == ("broken_candidates", "lost_motion[y]", method)
+    assert f"method {method}()" in str(e) and "ZeroDivisionError: boom" in str(e)
+
+
+def test_a_candidate_with_only_columns_uses_the_defaults():
+    """Default summary (the one parameter's display unit) and perturbation (columns times the estimate)."""
+    rec = read_recording(example_recording("reversal_y"))
+    d = diagnose(rec, _through_hook(LostMotion("y")))
+    assert named(d) == {("lost_motion", "y")}
+    f = d.findings[0]
+    assert f.unit == "um" and f.to_dict()["estimate"]["unit"] == "um"
+    B = truth("reversal_y")["reversal"]["y"]  # um
+    assert abs(f.estimate[0] - B) < 3.5 * f.uncertainty[0]
+    assert d.final["chi2_per_dof"] < d.baseline["chi2_per_dof"]
+
+
+@pytest.mark.parametrize("attrs,message", [
+    ({"parameters": {}}, "parameters must be a non-empty dict"),
+    ({"parameters": {"a": "furlongs per fortnight squared"}}, "parameter 'a'"),
+    ({"frame": "world"}, "frame must be 'machine' or 'tracker'"),
+])
+def test_bad_declarations_name_the_plugin(attrs, message):
+    Bad = type("Bad", (LostMotion,), attrs)
+    with pytest.raises(PluginError, match=f"plugin 'broken_candidates'; source 'lost_motion\\[y\\]'.*{message}"):
+        diagnose(read_recording(example_recording("null")), _through_hook(Bad("y")))
+
+
+def test_builtin_candidates_declare_their_units_and_hints(candidates):
+    from mtbudget.units import internal_unit_of
+
+    by_label = {c.label: c for c in candidates}
+    assert by_label["thermal_expansion[x]"].units() == [("cte", "um/(m*K)", "1/K")]
+    assert by_label["tracker_drift"].units() == [("velocity", "um/h", "mm/s")]
+    for c in candidates:
+        assert c.frame in ("machine", "tracker") and c.description
+        for unit in c.parameters.values():
+            internal_unit_of(unit)
+        for other, text in c.hints.items():
+            assert other in {x.effect for x in candidates} and text.endswith(".")
+
+
+def test_approximation_degree_summary_puts_lengths_in_um_and_angles_in_urad(candidates):
+    """RMS over dx, dy, dz (mm) and ex, ey, ez (rad): 1 urad counts like 1 um (a 1 m lever)."""
+    c = next(x for x in candidates if x.label == "approximation_degree[x]")
+    beta = np.array([0.003, -0.004, 0.0, 12e-6, 0.0, 0.0])  # in mm and rad: 3, -4, 0 um; 12, 0, 0 urad
+    cov = np.diag([0.001**2] * 3 + [2e-6**2] * 3)  # u = 1 um (in mm) and 2 urad (in rad)
+    est, unc, unit = c.summary(beta, cov)
+    assert unit == "um"
+    assert est[0] == pytest.approx(np.sqrt((9 + 16 + 144) / 6))
+    assert unc[0] == pytest.approx(np.sqrt((3 * 1 + 3 * 4) / 6))
+
+
+def test_approximation_degree_columns_follow_its_parameters(candidates):
+    """Column j is the next-degree term of the error named by parameter j: dx(x) moves points along x only."""
+    rec = read_recording(example_recording("null"))
+    from mtbudget.contracts import DiagnosisContext
+    from mtbudget.model import MeasurementModel
+
+    model = MeasurementModel.for_plan(rec.machine, rec.plan)
+    P = model.machine_points(np.zeros(model.n_params))[0]
+    ctx = DiagnosisContext(rec, model, np.zeros(6), np.zeros(model.n_params), P, P)
+    c = next(x for x in candidates if x.label == "approximation_degree[x]")
+    C = c.columns(ctx)
+    assert C.shape == (len(rec), 3, 6)
+    for j in range(3):  # translational errors: a displacement along their own direction only
+        others = [k for k in range(3) if k != j]
+        assert np.abs(C[:, others, j]).max() == 0 and np.abs(C[:, j, j]).max() > 0.5

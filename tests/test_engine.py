@@ -6,7 +6,10 @@ import numpy as np
 import pytest
 
 from mtbudget.config import load_config
-from mtbudget.engine import SCALARS, Engine, run
+from mtbudget.outputs import SCALARS
+from mtbudget.scenario import build_scenario
+from mtbudget.simulate import sample_source, stream
+from mtbudget.runner import run
 from mtbudget.identify import analyse
 
 SMALL = Path(__file__).parent / "data" / "small.toml"
@@ -53,12 +56,11 @@ def test_different_seeds_differ(small):
 
 
 def test_common_random_numbers_a_source_does_not_change_the_others(small):
-    eng_all = Engine(small, block=16)
-    eng_one = Engine(small, block=16, sources=["tracker_noise"])
-    src_a = [s for s in eng_all.sources if s.name == "tracker_noise"][0]
-    src_b = eng_one.sources[0]
-    x = eng_all._sample(src_a, 16, eng_all.stream(3, src_a))
-    y = eng_one._sample(src_b, 16, eng_one.stream(3, src_b))
+    sc_all, sc_one = build_scenario(small), build_scenario(small, sources=["tracker_noise"])
+    src_a = [s for s in sc_all.sources if s.name == "tracker_noise"][0]
+    src_b = sc_one.sources[0]
+    x = sample_source(sc_all, src_a, 16, stream(7, 3, src_a))
+    y = sample_source(sc_one, src_b, 16, stream(7, 3, src_b))
     assert all(np.array_equal(x[k], y[k]) for k in x)
 
 
@@ -68,8 +70,8 @@ def test_chi_square_matches_its_expectation_when_weights_are_right(small):
     cfg.repeatability = 1e-9  # weights: tracker only
     res = run(cfg, trials=256, block=32, sources=["tracker_noise"], attribution_trials=0)
     s = res.summary("chi2_per_dof")
-    eng = Engine(cfg, sources=["tracker_noise"])
-    dof = 3 * len(eng.plan) - 6 - analyse(eng.id_model).identifiable
+    sc = build_scenario(cfg, sources=["tracker_noise"])
+    dof = 3 * len(sc.plan) - 6 - analyse(sc.id_model).identifiable
     # chi2/dof has standard deviation sqrt(2/dof); its mean over N trials sqrt(2/dof/N)
     assert abs(s["mean"] - 1.0) < 4 * np.sqrt(2 / dof / 256)
     assert s["std"] == pytest.approx(np.sqrt(2 / dof), rel=0.2)
@@ -97,10 +99,14 @@ def test_bad_run_arguments(small):
 
     with pytest.raises(ConfigError, match="unknown source 'nope'"):
         run(small, trials=10, sources=["nope"])
-    with pytest.raises(ConfigError, match="trials must be >= 2"):
+    with pytest.raises(ConfigError, match="--trials: must be a whole number >= 2"):
         run(small, trials=1)
-    with pytest.raises(ConfigError, match="coverage"):
+    with pytest.raises(ConfigError, match="--coverage: must lie strictly between 0 and 1"):
         run(small, trials=10, coverage=1.5)
+    with pytest.raises(ConfigError, match="--attribution-trials: must be 0"):
+        run(small, trials=10, attribution_trials=-1)
+    with pytest.raises(ConfigError, match="--executor: must be one of inline, process, dask"):
+        run(small, trials=10, executor="threads")
 
 
 def test_long_runs_do_not_keep_every_sample(small):

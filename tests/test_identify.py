@@ -9,13 +9,16 @@ from scipy import optimize, stats
 from mtbudget import tracker as lt
 from mtbudget.config import example_recording
 from mtbudget.errors import IdentificationError
-from mtbudget.identify import Noise, Strategy, analyse, identify, scale_vector, _range_basis
+from mtbudget.identify import Noise, Strategy, analyse, identify, range_basis, scale_vector
 from mtbudget.model import MeasurementModel
 from mtbudget.plan import build_plan, mesh
-from mtbudget.simulate import noise_perturbations, parameters_from_truth, truth_error_model
+from mtbudget.simulate import parameters_from_truth, truth_error_model
 
 NOISE = Noise(angular=5e-6, distance=4e-3, distance_per_length=0.8e-6, repeatability=1.5e-3)
 POSE = np.array([-700.0, 250.0, 650.0, 0.002, -0.001, 0.3])
+# unit factors written out by hand on purpose: the tests check mtbudget's conversions, they do not reuse them
+UM_PER_MM, URAD_PER_RAD = 1e3, 1e6
+POSE_SCALE_BY_HAND = np.array([UM_PER_MM] * 3 + [URAD_PER_RAD] * 3)
 
 
 def paper_plan(tools=((0, 0, -150), (0, 0, -300)), runs=2):
@@ -28,7 +31,7 @@ def identifiable_truth(model, rng):
     ident = analyse(model)
     sv = scale_vector(model)
     theta_s = np.array([rng.normal(0, 8.0) for _ in model.errors.params])  # ~8 um / 8 urad
-    Q = _range_basis(np.ones(model.n_params, bool), ident.null_space)
+    Q = range_basis(np.ones(model.n_params, bool), ident.null_space)
     return (Q @ (Q.T @ theta_s)) / sv
 
 
@@ -134,7 +137,12 @@ def test_batched_solver_agrees_with_scipy_trial_by_trial(rng):
     clean = model.predict(theta, POSE)
     N = 3
     clean = np.broadcast_to(clean, (N,) + clean.shape[1:])
-    noise = noise_perturbations(model, clean, rng, NOISE.angular, NOISE.distance, NOISE.distance_per_length, 0.0)
+    # one draw of the tracker's spherical noise (range, azimuth, elevation), no machine repeatability
+    r = np.linalg.norm(clean, axis=-1)
+    sph = np.empty(clean.shape)
+    sph[..., 0] = rng.standard_normal(r.shape) * (NOISE.distance + NOISE.distance_per_length * r)
+    sph[..., 1:] = rng.standard_normal(r.shape + (2,)) * NOISE.angular
+    noise = {"spherical_noise": sph}
     meas = model.predict(np.broadcast_to(theta, (N, model.n_params)), POSE, noise)
     res = identify(model, meas, NOISE)
     ident = res.identifiability
@@ -236,3 +244,60 @@ def test_iso230_convention_spans_the_free_model_space(rng):
     meas = free.predict(theta, POSE)[0]
     res = identify(iso, meas, NOISE)
     assert np.abs(res.residual).max() < 1e-6  # 1 nm: what remains are second-order differences of the chains
+
+
+# --------------------------------------------------------------------------- what the result exposes
+def test_result_exposes_whitener_design_and_basis_at_the_solution(null_recording):
+    """The public fields against their definitions, recomputed independently (finite differences of the model)."""
+    rec = null_recording
+    model = MeasurementModel.for_plan(rec.machine, rec.plan)
+    res = identify(model, rec.lt, Noise.of(rec))
+    M, p = model.n_points, model.n_params
+    # whitener: L^-1 of each point's covariance, so that Wh C Wh^T = I
+    C = lt.covariance(rec.lt, rec.angular, rec.distance, rec.distance_per_length) + rec.repeatability**2 * np.eye(3)
+    Wh = res.whitener[0]
+    assert Wh.shape == (M, 3, 3)
+    assert np.abs(Wh @ C @ np.swapaxes(Wh, 1, 2) - np.eye(3)).max() < 1e-9
+    assert np.abs(np.einsum("mij,mj->mi", Wh, res.residual[0]) - res.whitened[0]).max() < 1e-12
+    # basis: orthonormal, and orthogonal to the non-identifiable directions; scale: um per mm, urad per rad
+    Q = res.basis
+    r = Q.shape[1]
+    assert Q.shape == (p, r) and r == res.identifiability.identifiable
+    assert np.abs(Q.T @ Q - np.eye(r)).max() < 1e-10
+    assert np.abs(Q.T @ res.identifiability.null_space).max() < 1e-10
+    assert np.array_equal(res.scale, np.where(np.array(model.errors.units) == "mm", UM_PER_MM, URAD_PER_RAD))
+    # design: d(whitened residual)/dz = -design, z = (pose in um / urad, Q^T theta in um / urad)
+    A = res.design[0]
+    assert A.shape == (3 * M, 6 + r)
+
+    def whitened(z):
+        pose = res.pose[0] + z[:6] / POSE_SCALE_BY_HAND
+        theta = res.theta[0] + (Q @ z[6:]) / res.scale
+        return np.einsum("mij,mj->mi", Wh, rec.lt - model.predict(theta, pose)[0]).ravel()
+
+    h = 0.1  # um / urad: round-off (~1e-11 of coordinates in the thousands) stays far below the test; central
+    #          differences leave third-order terms only
+    for k in range(6 + r):
+        e = np.zeros(6 + r)
+        e[k] = h
+        fd = -(whitened(e) - whitened(-e)) / (2 * h)
+        assert np.abs(fd - A[:, k]).max() < 1e-6 * np.abs(A[:, k]).max(), k
+    # the covariances are the inverse normal matrix mapped back to mm and rad
+    T = np.zeros((6 + p, 6 + r))
+    T[:6, :6] = np.diag(1 / POSE_SCALE_BY_HAND)
+    T[6:, 6:] = Q / res.scale[:, None]
+    cov = T @ np.linalg.inv(A.T @ A) @ T.T
+    assert np.allclose(res.cov_theta[0], cov[6:, 6:], rtol=1e-8, atol=1e-30)
+    assert np.allclose(res.cov_pose[0], cov[:6, :6], rtol=1e-8, atol=1e-30)
+
+
+def test_trials_that_did_not_converge_are_counted(rng):
+    model = MeasurementModel.for_plan("XFYZ", paper_plan(runs=1))
+    theta = identifiable_truth(model, rng)
+    meas = model.predict(theta, POSE)[0]
+    far = np.stack([meas, model.predict(theta, np.array([3000.0, -2500.0, 1800.0, 0.4, -0.6, 2.9]))[0]])
+    done = identify(model, far, NOISE)
+    assert done.n_trials == 2 and done.n_not_converged == 0
+    # one Gauss-Newton step from the registration is not enough to call a trial converged
+    one = identify(model, far, NOISE, Strategy(max_iter=1))
+    assert one.n_not_converged == int((~one.converged).sum()) >= 1

@@ -1,22 +1,31 @@
-"""The plugin contract: discovery, errors that name the culprit, switches, docs, an external package."""
+"""The plugin contract: discovery, errors that name the culprit, switches, tracing, docs, an external package."""
 
+import ast
+import dataclasses
 import inspect
+import logging
+import os
 import re
+import shutil
+import site
 import subprocess
 import sys
 import types
+from importlib import metadata
 from pathlib import Path
 
 import numpy as np
 import pytest
 
+import mtbudget
 from mtbudget import hookspecs
 from mtbudget.config import load_config
+from mtbudget.contracts import Candidate, Context, Group, Source
 from mtbudget.engine import Engine
 from mtbudget.errors import PluginError
 from mtbudget.hookspecs import hookimpl
-from mtbudget.plugins import PluginHost
-from mtbudget.contracts import Group, Source
+from mtbudget.plugins import PluginHost, call, checkout_builtins
+from mtbudget.scenario import build_scenario
 from mtbudget.units import Q_
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -24,9 +33,9 @@ SMALL = ROOT / "tests" / "data" / "small.toml"
 BUILTIN = {"machine_tool", "measurement_system", "measurement_strategy", "optimisation_strategy", "physics"}
 
 
-def plugin(name, register_fn):
+def plugin(name, register_fn, hook="mtbudget_register_sources"):
     mod = types.ModuleType(name)
-    mod.mtbudget_register_sources = hookimpl(register_fn)
+    setattr(mod, hook, hookimpl(register_fn))
     return mod
 
 
@@ -41,34 +50,168 @@ class Good(Source):
         return {"tracker_offset": Q_(rng.normal(0, self.value("u", "mm"), (n, ctx.n_points, 3)), "mm")}
 
 
+class Wobble(Candidate):
+    effect = "wobble"
+    description = "a test candidate"
+    parameters = {"a": "um"}
+
+
+def builtin_entry_points():
+    eps = [ep for ep in metadata.entry_points(group="mtbudget") if ep.dist is not None
+           and ep.dist.metadata["Name"] == "mtbudget"]
+    assert {ep.name for ep in eps} == BUILTIN, "mtbudget is not installed (pip install -e .)"
+    return eps
+
+
+def module_entry_point(monkeypatch, name, module_name, **hooks):
+    """An entry point (of no distribution, so third-party) to an in-memory module with these hooks."""
+    mod = types.ModuleType(module_name)
+    for hook, fn in hooks.items():
+        setattr(mod, hook, hookimpl(fn))
+    monkeypatch.setitem(sys.modules, module_name, mod)
+    return metadata.EntryPoint(name=name, value=module_name, group="mtbudget")
+
+
+# ----------------------------------------------------------------- discovery
 def test_builtins_arrive_through_entry_points():
     host = PluginHost()
-    assert BUILTIN <= set(host.info)
+    assert BUILTIN <= set(host.info) and BUILTIN <= host.builtin
     assert all(host.info[n].distribution == "mtbudget" for n in BUILTIN)
     names = {s.name for s in host.sources()}
     assert {"tracker_noise", "repeatability", "registration", "phase_sequence"} <= names
     assert all(s.dist_name == "mtbudget" and s.dist_version for s in host.sources())
 
 
-def test_environment_switches(monkeypatch):
+def test_environment_switches(monkeypatch, caplog):
     monkeypatch.setenv("MTBUDGET_DISABLE_PLUGINS", "measurement_system")
     assert "tracker_noise" not in {s.name for s in PluginHost().sources()}
     monkeypatch.delenv("MTBUDGET_DISABLE_PLUGINS")
     monkeypatch.setenv("MTBUDGET_PLUGINS", "measurement_strategy")
     assert {s.name for s in PluginHost().sources()} == {"registration", "multilateration"}
+    assert not caplog.records
+    # a misspelled name is not silently ignored
+    monkeypatch.setenv("MTBUDGET_PLUGINS", "measurment_strategy")
+    with caplog.at_level(logging.WARNING, logger="mtbudget.plugins"):
+        assert PluginHost().sources() == []
+    assert any("MTBUDGET_PLUGINS names 'measurment_strategy'" in r.getMessage()
+               and "did you mean 'measurement_strategy'" in r.getMessage() for r in caplog.records)
 
 
+def test_builtins_fall_back_to_the_checkout_when_no_entry_point_is_present():
+    """The fallback itself, in process: an empty entry-point list still gives the five built-ins."""
+    assert set(checkout_builtins()) == BUILTIN
+    assert checkout_builtins(ROOT / "tests") == {}  # not a checkout: nothing
+    host = PluginHost(entry_points=[])
+    assert set(host.info) == BUILTIN == host.builtin
+    assert all(host.info[n].distribution == "mtbudget" and host.info[n].version == mtbudget.__version__ for n in BUILTIN)
+    assert {"tracker_noise", "repeatability"} <= {s.name for s in host.sources()}
+    assert PluginHost(entry_points=False).info == {}  # discovery off: not even the built-ins
+
+
+def _filtered_site_packages(dest: Path) -> Path:
+    """A view of site-packages without mtbudget's installation (its dist-info, editable finder and .pth files)."""
+    dest.mkdir()
+    dirs = [Path(p) for p in site.getsitepackages() + [site.getusersitepackages()] if Path(p).is_dir()]
+    for d in dirs:
+        for entry in d.iterdir():
+            low = entry.name.lower()
+            if low.startswith(("mtbudget", "__editable__", "__editable___")) or low.endswith(".pth"):
+                continue
+            if not (dest / entry.name).exists():
+                (dest / entry.name).symlink_to(entry)
+    return dest
+
+
+def test_builtins_registered_from_a_source_checkout_that_is_not_installed(tmp_path):
+    """A copy of the checkout on PYTHONPATH, in an interpreter where mtbudget is not installed.
+
+    ``python -S`` skips site-packages (and so the editable install's finder); PYTHONPATH gives the
+    checkout and a view of site-packages without mtbudget's dist-info, so no ``mtbudget`` entry
+    point of mtbudget exists and ``mtbudget_plugins`` is not importable until the host loads it.
+    """
+    checkout = tmp_path / "checkout"
+    ignore = shutil.ignore_patterns("__pycache__", "*.pyc", "recordings")
+    for part in ("mtbudget", "plugins"):
+        shutil.copytree(ROOT / part, checkout / part, ignore=ignore)
+    shutil.copy(ROOT / "pyproject.toml", checkout)
+    view = _filtered_site_packages(tmp_path / "site")
+    code = """
+import importlib.util, json, sys
+from importlib import metadata
+before = importlib.util.find_spec("mtbudget_plugins")
+eps = [(e.name, e.dist.metadata["Name"] if e.dist else None) for e in metadata.entry_points(group="mtbudget")]
+import mtbudget
+from mtbudget.plugins import PluginHost
+host = PluginHost()
+print(json.dumps({"installed": before is not None, "eps": eps, "mtbudget": mtbudget.__file__,
+                  "info": {n: [i.module, i.distribution, i.version] for n, i in host.info.items()},
+                  "files": {n: sys.modules[i.module].__file__ for n, i in host.info.items()},
+                  "sources": sorted(s.name for s in host.sources()), "candidates": len(host.candidates())}))
+"""
+    env = {k: v for k, v in os.environ.items() if not k.startswith(("PYTHON", "MTBUDGET_"))}
+    env["PYTHONPATH"] = os.pathsep.join([str(checkout), str(view)])
+    out = subprocess.run([sys.executable, "-S", "-c", code], capture_output=True, text=True, env=env, cwd=tmp_path)
+    assert out.returncode == 0, out.stderr
+    import json
+
+    res = json.loads(out.stdout)
+    # the isolation is real: nothing of mtbudget is installed in that interpreter
+    assert not res["installed"] and all(dist != "mtbudget" for _, dist in res["eps"]), res["eps"]
+    assert Path(res["mtbudget"]).is_relative_to(checkout)
+    assert BUILTIN <= set(res["info"])
+    for name in BUILTIN:
+        module, dist, version = res["info"][name]
+        assert module == f"mtbudget_plugins.{name}" and dist == "mtbudget" and version == mtbudget.__version__
+        assert Path(res["files"][name]) == checkout / "plugins" / f"{name}.py"
+    assert {"tracker_noise", "repeatability", "registration", "phase_sequence"} <= set(res["sources"])
+    assert res["candidates"] > 0
+
+
+# ----------------------------------------------------------------- the hooks
 def engine_with(*mods):
     cfg = load_config(SMALL)
     cfg.source = {k: v for k, v in cfg.source.items() if k != "sources"}
-    return Engine(cfg, PluginHost(entry_points=False, plugins=mods), block=8)
+    return Engine(build_scenario(cfg, PluginHost(entry_points=False, plugins=mods)), block=8)
 
 
-def test_a_third_party_source_runs_and_is_stamped():
+def test_hook_mtbudget_register_sources():
+    # built-ins and a third-party plugin, each source stamped with the plugin that registered it
+    host = PluginHost()
+    by_name = {s.name: s for s in host.sources()}
+    assert by_name["repeatability"].plugin == "machine_tool" and by_name["tracker_noise"].plugin == "measurement_system"
     eng = engine_with(plugin("mine", lambda register: register(Good())))
     assert [s.name for s in eng.sources] == ["good"] and eng.sources[0].plugin == "mine"
+    assert eng.sources[0].dist_name == "(registered in code)"
     b = eng.run_block(0)
     assert np.all(np.isfinite(b.scalars["compensation_rms"]))
+    # register() checks what it is given, naming the plugin and the hook
+    with pytest.raises(PluginError, match="plugin 'wrong'.*hook mtbudget_register_sources.*needs a mtbudget.contracts.Source"):
+        PluginHost(entry_points=False, plugins=(plugin("wrong", lambda register: register(object())),)).sources()
+    # an exception inside the hook names plugin, hook and exception
+    def explode(register):
+        raise ValueError("cannot start")
+
+    with pytest.raises(PluginError, match="plugin 'exploder'.*mtbudget_register_sources.*ValueError: cannot start"):
+        PluginHost(entry_points=False, plugins=(plugin("exploder", explode),)).sources()
+
+
+def test_hook_mtbudget_register_candidates():
+    cands = PluginHost().candidates()
+    assert cands and all(c.plugin == "physics" and c.dist_name == "mtbudget" for c in cands)
+    assert "thermal_expansion[x]" in {c.label for c in cands}
+    host = PluginHost(entry_points=False,
+                      plugins=(plugin("wobbly", lambda register: register(Wobble("x")), "mtbudget_register_candidates"),))
+    (c,) = host.candidates()
+    assert c.label == "wobble[x]" and c.plugin == "wobbly"
+    with pytest.raises(PluginError, match="plugin 'src'.*hook mtbudget_register_candidates.*needs a mtbudget.contracts.Candidate"):
+        PluginHost(entry_points=False, plugins=(plugin("src", lambda register: register(Good()),
+                                                       "mtbudget_register_candidates"),)).candidates()
+
+    def explode(register):
+        raise KeyError("column")
+
+    with pytest.raises(PluginError, match="plugin 'exploder'; hook mtbudget_register_candidates: raised KeyError"):
+        PluginHost(entry_points=False, plugins=(plugin("exploder", explode, "mtbudget_register_candidates"),)).candidates()
 
 
 class Bad(Good):
@@ -83,7 +226,7 @@ class Bad(Good):
 
 
 CASES = {
-    "raises": (dict(raises=True), "sample\\(\\) raised RuntimeError: boom"),
+    "raises": (dict(raises=True), "method sample\\(\\): raised RuntimeError: boom"),
     "wrong shape": (dict(result=lambda n, c: {"tracker_offset": Q_(np.zeros((n, 3)), "mm")}), "has shape"),
     "wrong dimension": (dict(result=lambda n, c: {"tracker_offset": Q_(np.zeros((n, c.n_points, 3)), "s")}), "dimension"),
     "NaN": (dict(result=lambda n, c: {"tracker_offset": Q_(np.full((n, c.n_points, 3), np.nan), "mm")}), "NaN"),
@@ -101,16 +244,17 @@ def test_misbehaving_source_is_named(case):
     assert "plugin 'culprit'" in msg and "source 'bad'" in msg and re.search(pattern, msg), msg
 
 
-def test_hook_that_raises_and_duplicates_are_named():
-    def explode(register):
-        raise ValueError("cannot start")
+def test_call_names_plugin_source_hook_and_method():
+    src = Bad(raises=True)
+    src.plugin = "culprit"
+    with pytest.raises(PluginError) as info:
+        call(src, "sample", 2, np.random.default_rng(0), None)
+    e = info.value
+    assert (e.plugin, e.source, e.hook, e.method) == ("culprit", "bad", "mtbudget_register_sources", "sample")
+    assert call(Good(), "value", "u", "um") == pytest.approx(1.0)
 
-    with pytest.raises(PluginError, match="plugin 'exploder'.*mtbudget_register_sources.*ValueError: cannot start"):
-        PluginHost(entry_points=False, plugins=(plugin("exploder", explode),)).sources()
-    host = PluginHost(entry_points=False, plugins=(plugin("first", lambda register: register(Good())),
-                                                   plugin("second", lambda register: register(Good()))))
-    with pytest.raises(PluginError, match="duplicate name 'good': already registered by plugin 'first'"):
-        host.sources()
+
+def test_invalid_registrations_are_named():
     with pytest.raises(PluginError, match="group"):
         bad = Good()
         bad.group = "kitchen"
@@ -118,6 +262,148 @@ def test_hook_that_raises_and_duplicates_are_named():
     # a hook implementation with the wrong arguments is refused at registration, naming the plugin
     with pytest.raises(PluginError, match="plugin 'typo'.*register"):
         PluginHost(entry_points=False, plugins=(plugin("typo", lambda reg: None),))
+
+
+def test_misspelled_hook_is_refused_with_the_closest_hook():
+    hookimpl_typo = plugin("typo", lambda register: None, hook="mtbudget_register_source")
+    with pytest.raises(PluginError) as info:
+        PluginHost(entry_points=False, plugins=(hookimpl_typo,))
+    e = info.value
+    assert e.plugin == "typo" and e.hook == "mtbudget_register_source"
+    assert "did you mean 'mtbudget_register_sources'?" in str(e)
+    # without the marker pluggy ignores a function; a near-miss is still caught
+    unmarked = types.ModuleType("unmarked")
+    unmarked.mtbudget_register_candidate = lambda register: None
+    with pytest.raises(PluginError, match="plugin 'unmarked'.*did you mean 'mtbudget_register_candidates'"):
+        PluginHost(entry_points=False, plugins=(unmarked,))
+    # the exact name without @hookimpl would never be called either
+    forgot = types.ModuleType("forgot")
+    forgot.mtbudget_register_sources = lambda register: None
+    with pytest.raises(PluginError, match="plugin 'forgot'; hook mtbudget_register_sources: .*not marked with @hookimpl"):
+        PluginHost(entry_points=False, plugins=(forgot,))
+    # optional hooks and unrelated helpers are fine
+    ok = types.ModuleType("ok")
+    ok.mtbudget_future_hook = hookimpl(optionalhook=True)(lambda x: None)
+    ok.mtbudget_cache_folder = lambda: "/tmp"
+    ok.mtbudget_register_sources = hookimpl(lambda register: register(Good()))
+    assert [s.name for s in PluginHost(entry_points=False, plugins=(ok,)).sources()] == ["good"]
+
+
+def test_duplicate_source_names_blame_the_later_or_third_party_plugin(monkeypatch):
+    # two third-party plugins: both named, the later blamed
+    host = PluginHost(entry_points=False, plugins=(plugin("first", lambda register: register(Good())),
+                                                   plugin("second", lambda register: register(Good()))))
+    with pytest.raises(PluginError) as info:
+        host.sources()
+    assert info.value.plugin == "second" and info.value.source == "good"
+    assert "already registered by plugin 'first'" in str(info.value) and "registered again by plugin 'second'" in str(info.value)
+
+    # a third-party plugin that sorts (and registers) before the built-ins and takes a built-in's name
+    class Clash(Good):
+        name = "repeatability"
+
+    early = module_entry_point(monkeypatch, "aaa", "mtbudget_test_aaa", mtbudget_register_sources=lambda register: register(Clash()))
+    host = PluginHost(entry_points=[early, *builtin_entry_points()])
+    assert [i.plugin_name for i in host.pm.hook.mtbudget_register_sources.get_hookimpls()][0] == "aaa"
+    with pytest.raises(PluginError) as info:
+        host.sources()
+    msg = str(info.value)
+    assert info.value.plugin == "aaa" and "'aaa'" in msg and "'machine_tool' (mtbudget " in msg, msg
+    assert "MTBUDGET_DISABLE_PLUGINS=aaa" in msg
+
+    # a plugin registered after the built-ins is blamed too (candidates: effect and axis)
+    class Thermal(Wobble):
+        effect = "thermal_expansion"
+
+    late = plugin("late", lambda register: register(Thermal("x")), "mtbudget_register_candidates")
+    host = PluginHost(entry_points=builtin_entry_points(), plugins=(late,))
+    with pytest.raises(PluginError, match="duplicate candidate name 'thermal_expansion\\[x\\]'.*plugin 'physics'") as info:
+        host.candidates()
+    assert info.value.plugin == "late"
+
+
+def test_duplicate_plugin_name_blames_the_third_party_package(monkeypatch):
+    impostor = module_entry_point(monkeypatch, "physics", "mtbudget_test_impostor")
+    eps = [impostor, *builtin_entry_points()]  # listed first: the built-in still wins its name
+    with pytest.raises(PluginError, match="two plugins are named 'physics'.*the one from mtbudget_test_impostor") as info:
+        PluginHost(entry_points=eps)
+    assert info.value.plugin == "physics"
+
+
+def write_broken_distribution(folder: Path) -> Path:
+    """An installed (dist-info on sys.path) third-party plugin whose import fails."""
+    folder.mkdir(exist_ok=True)
+    (folder / "mtbudget_test_broken.py").write_text("import mtbudget_test_missing_dependency\n")
+    info = folder / "mtbudget_broken-0.3.1.dist-info"
+    info.mkdir()
+    (info / "METADATA").write_text("Metadata-Version: 2.1\nName: mtbudget-broken\nVersion: 0.3.1\n")
+    (info / "entry_points.txt").write_text("[mtbudget]\nbroken = mtbudget_test_broken\n")
+    return folder
+
+
+def test_plugin_that_fails_to_import_is_skipped_with_a_warning(tmp_path, monkeypatch, caplog):
+    monkeypatch.syspath_prepend(str(write_broken_distribution(tmp_path / "site")))
+    with caplog.at_level(logging.WARNING, logger="mtbudget.plugins"):
+        host = PluginHost()
+    assert "broken" not in host.info and BUILTIN <= set(host.info)
+    assert {"tracker_noise", "repeatability"} <= {s.name for s in host.sources()}
+    (record,) = [r for r in caplog.records if r.name == "mtbudget.plugins"]
+    msg = record.getMessage()
+    assert record.levelno == logging.WARNING and "\n" not in msg and host.skipped == [msg]
+    for part in ("'broken'", "mtbudget-broken 0.3.1", "ModuleNotFoundError", "mtbudget_test_missing_dependency",
+                 "MTBUDGET_DISABLE_PLUGINS=broken"):
+        assert part in msg, (part, msg)
+    caplog.clear()
+    monkeypatch.setenv("MTBUDGET_DISABLE_PLUGINS", "broken")
+    assert PluginHost().skipped == [] and not caplog.records
+
+
+def test_a_broken_builtin_is_an_error(monkeypatch):
+    """mtbudget's own plugins are not skipped: a run without one of them would be wrong, not smaller."""
+    import mtbudget.plugins as host_module
+
+    declared = dict(checkout_builtins(), physics="mtbudget_plugins.no_such_module")
+    monkeypatch.setattr(host_module, "checkout_builtins", lambda root=None: declared)
+    with pytest.raises(PluginError, match="plugin 'physics'; hook load: built-in plugin .*no_such_module.*"
+                                          "MTBUDGET_DISABLE_PLUGINS=physics"):
+        PluginHost(entry_points=[])
+
+
+def test_trace_switch_prints_every_hook_call_and_method_call(monkeypatch, capsys):
+    mine = plugin("mine", lambda register: register(Good()))
+    PluginHost(entry_points=False, plugins=(mine,)).sources()
+    assert capsys.readouterr().err == ""  # off by default
+    monkeypatch.setenv("MTBUDGET_TRACE_PLUGINS", "1")
+    host = PluginHost(entry_points=False, plugins=(mine,))
+    (src,) = host.sources()
+    call(src, "value", "u", unit="um")
+    with pytest.raises(PluginError):
+        PluginHost(entry_points=False, plugins=(plugin("exploder", lambda register: 1 / 0),)).sources()
+    lines = capsys.readouterr().err.splitlines()
+    assert len(lines) == 3, lines
+    hook, method, failed = lines
+    assert re.fullmatch(r"mtbudget trace: hook mtbudget_register_sources\(register=<register\(\)>\), plugin mine "
+                        r"\(registered in code\): ok, registered 1: good, \d+\.\d+ ms", hook), hook
+    assert re.fullmatch(r"mtbudget trace: method good\.value\('u', unit='um'\), plugin mine \(registered in code\), "
+                        r"hook mtbudget_register_sources: ok, \d+\.\d+ ms", method), method
+    assert "plugin exploder" in failed and "raised ZeroDivisionError" in failed
+
+
+def test_cli_shows_the_import_warning_and_the_trace_on_stderr(tmp_path):
+    site_dir = write_broken_distribution(tmp_path / "site")
+    env = dict(os.environ, MTBUDGET_TRACE_PLUGINS="1",
+               PYTHONPATH=os.pathsep.join([str(site_dir)] + [p for p in [os.environ.get("PYTHONPATH")] if p]))
+    env.pop("MTBUDGET_DISABLE_PLUGINS", None)
+    env.pop("MTBUDGET_PLUGINS", None)
+    out = subprocess.run([sys.executable, "-m", "mtbudget", "plugins"], capture_output=True, text=True, env=env,
+                         cwd=tmp_path)
+    assert out.returncode == 0, out.stderr
+    assert "machine_tool" in out.stdout and "tracker_noise" in out.stdout
+    err = out.stderr.splitlines()
+    warnings = [line for line in err if "skipping plugin 'broken'" in line]
+    assert len(warnings) == 1 and "MTBUDGET_DISABLE_PLUGINS=broken" in warnings[0], out.stderr
+    traced = {re.search(r"plugin (\w+)", line).group(1) for line in err if line.startswith("mtbudget trace: hook ")}
+    assert BUILTIN <= traced, out.stderr
 
 
 def test_parameter_override_checks_dimension():
@@ -128,23 +414,53 @@ def test_parameter_override_checks_dimension():
 
 # ----------------------------------------------------------------- meta-tests
 def hook_names():
-    return [n for n, f in inspect.getmembers(hookspecs, inspect.isfunction) if n.startswith("mtbudget_")]
+    names = [n for n, f in inspect.getmembers(hookspecs, inspect.isfunction) if n.startswith("mtbudget_")]
+    assert names, "no hookspecs found"
+    return names
+
+
+def test_hookspecs_are_typed_and_documented():
+    for name in hook_names():
+        fn = getattr(hookspecs, name)
+        sig = inspect.signature(fn)
+        assert all(p.annotation is not inspect.Parameter.empty for p in sig.parameters.values()), name
+        assert sig.return_annotation is not inspect.Signature.empty, name
+        doc = inspect.getdoc(fn) or ""
+        for p in sig.parameters:
+            assert f":param {p}:" in doc, f"{name}: document what {p} is"
+        assert ":return:" in doc, f"{name}: document what is expected back"
 
 
 def test_every_hook_has_a_docs_heading_with_its_exact_signature():
     doc = (ROOT / "docs" / "plugins.md").read_text()
     for name in hook_names():
-        sig = f"{name}{inspect.signature(getattr(hookspecs, name))}"
-        assert f"### {sig}" in doc, f"docs/plugins.md needs a heading '### {sig}'"
+        params = ", ".join(inspect.signature(getattr(hookspecs, name)).parameters)
+        assert f"### {name}({params})\n" in doc, f"docs/plugins.md needs a heading '### {name}({params})'"
 
 
-def test_every_hook_has_a_test():
-    """Each hook is exercised by name in some test outside this meta-test section."""
-    here = Path(__file__).parent
-    text = "".join(p.read_text() for p in here.glob("test_*.py") if p.name != "test_plugins.py")
-    text += Path(__file__).read_text().split("# ----------------------------------------------------------------- meta-tests")[0]
-    for name in hook_names():
-        assert name in text, f"no test exercises {name}"
+def test_every_hook_has_a_test_named_after_it():
+    """For each hook a test function named exactly test_hook_<hook> somewhere in tests/ (found by AST)."""
+    defined = set()
+    for path in Path(__file__).parent.glob("test_*.py"):
+        for node in ast.walk(ast.parse(path.read_text(), str(path))):
+            if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
+                defined.add(node.name)
+    missing = [f"test_hook_{name}" for name in hook_names() if f"test_hook_{name}" not in defined]
+    assert not missing, f"no test named {', '.join(missing)} in tests/"
+
+
+def test_docs_describe_the_context_the_switches_and_the_source_attributes():
+    doc = (ROOT / "docs" / "plugins.md").read_text()
+    rows = set(re.findall(r"^\| `([\w.]+)", doc, re.MULTILINE))
+    fields = {f.name for f in dataclasses.fields(Context)}
+    fields |= {n for n, v in vars(Context).items() if isinstance(v, property) or
+               (inspect.isfunction(v) and not n.startswith("_"))}
+    missing = {f for f in fields if not any(r == f or r.startswith((f + ".", f + "(")) for r in rows)}
+    assert not missing, f"docs/plugins.md: the Context table lacks {sorted(missing)}"
+    for word in ("MTBUDGET_DISABLE_PLUGINS", "MTBUDGET_PLUGINS", "MTBUDGET_TRACE_PLUGINS", "from mtbudget import hookimpl",
+                 "`opt_in`", "`links`", '{"R": "machine_tool.repeatability"}'):
+        assert word in doc, word
+    assert mtbudget.hookimpl is hookimpl
 
 
 def test_docs_show_the_example_package_verbatim():
@@ -154,14 +470,16 @@ def test_docs_show_the_example_package_verbatim():
 
 
 def test_example_package_installs_and_appears_in_the_budget(tmp_path):
-    target = tmp_path / "site"
+    target, source = tmp_path / "site", tmp_path / "example-plugin"
+    # built from a copy, so the build leaves nothing behind in docs/example-plugin
+    shutil.copytree(ROOT / "docs" / "example-plugin", source, ignore=shutil.ignore_patterns("build", "*.egg-info", "__pycache__"))
     res = subprocess.run([sys.executable, "-m", "pip", "install", "--no-deps", "--quiet",
-                          "--target", str(target), str(ROOT / "docs" / "example-plugin")], capture_output=True, text=True)
+                          "--target", str(target), str(source)], capture_output=True, text=True)
     assert res.returncode == 0, res.stderr
     code = f"""
 import sys; sys.path.insert(0, {str(target)!r})
 from mtbudget.config import load_config
-from mtbudget.engine import run
+from mtbudget.runner import run
 cfg = load_config({str(SMALL)!r})
 cfg.source["sources"]["enable"] = ["tracker_noise", "spindle_growth"]
 res = run(cfg, trials=32, block=16, attribution_trials=32)

@@ -9,7 +9,8 @@ import pytest
 from mtbudget.config import example_recording
 from mtbudget.errors import RecordingError
 from mtbudget.recording import read_recording, write_recording
-from mtbudget.simulate import simulate
+from mtbudget.scenario import build_scenario
+from mtbudget.simulate import simulate_recording
 
 from conftest import EXAMPLES
 
@@ -57,7 +58,7 @@ def test_examples_in_mm_and_in_inch_give_identical_points(name, tmp_path):
 
 
 def test_simulation_round_trip_is_lossless_to_written_precision(default_config, tmp_path):
-    rec, truth = simulate(default_config)
+    rec, truth = simulate_recording(build_scenario(default_config))
     write_recording(rec, tmp_path / "sim", truth=truth)
     back = read_recording(tmp_path / "sim")
     assert np.abs(back.lt - rec.lt).max() <= 0.5e-6 + 1e-12  # 6 decimals of mm

@@ -9,7 +9,7 @@ import pytest
 from click.testing import CliRunner
 
 from mtbudget.cli import main
-from mtbudget.runlog import execute
+from mtbudget.runner import execute
 
 SMALL = Path(__file__).parent / "data" / "small.toml"
 

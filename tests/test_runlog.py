@@ -14,8 +14,11 @@ from click.testing import CliRunner
 
 from mtbudget.cli import main
 from mtbudget.config import load_config
-from mtbudget.engine import SCALARS, run
-from mtbudget.runlog import RunLogError, execute, read_runlog, replay, verify
+from mtbudget.outputs import SCALARS
+from mtbudget.runner import run
+from mtbudget.errors import RunLogError
+from mtbudget.runlog import read_runlog
+from mtbudget.runner import execute, replay, verify
 
 SMALL = Path(__file__).parent / "data" / "small.toml"
 

@@ -1,5 +1,6 @@
 """Every built-in source draws the distribution it states, in the units it declares."""
 
+import copy
 import math
 from pathlib import Path
 
@@ -7,8 +8,10 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from mtbudget.config import load_config
-from mtbudget.engine import Engine
+from mtbudget.config import load_config, parse_config
+from mtbudget.plugins import default_host
+from mtbudget.scenario import build_scenario
+from mtbudget.simulate import sample_source
 from mtbudget.contracts import TARGETS, Group
 from mtbudget.units import ureg
 
@@ -16,11 +19,26 @@ N = 20000
 SMALL = Path(__file__).parent / "data" / "small.toml"
 
 
+class AllSources:
+    """Every registered source, each configured alone on the small study with the paper's tracker noise."""
+
+    def __init__(self):
+        raw = copy.deepcopy(load_config(SMALL).source)
+        del raw["sources"]
+        raw["tracker"]["angular"] = "20 urad"
+        self.cfg = parse_config(raw, SMALL)
+        self.scenario = build_scenario(self.cfg)
+        self.plan, self.context = self.scenario.plan, self.scenario.context
+        names = [s.name for s in default_host().sources()]
+        self.sources = [build_scenario(self.cfg, sources=[n]).sources[0] for n in names]
+
+    def _sample(self, s, n, rng):
+        return sample_source(self.scenario, s, n, rng)
+
+
 @pytest.fixture(scope="module")
 def eng():
-    cfg = load_config(SMALL)
-    cfg.source = {k: v for k, v in cfg.source.items() if k != "sources"}  # every registered source
-    return Engine(cfg)
+    return AllSources()
 
 
 def src(eng, name):
@@ -169,7 +187,7 @@ def test_multilateration_matches_the_trilateration_covariance(eng):
 
 
 def test_multilateration_beats_one_station_in_the_budget():
-    from mtbudget.engine import run
+    from mtbudget.runner import run
 
     cfg = load_config(SMALL)
     one = run(cfg, trials=64, block=32, sources=["tracker_noise"], attribution_trials=0)

@@ -2,9 +2,8 @@
 
 import numpy as np
 
-from mtbudget.hookspecs import hookimpl
+from mtbudget import Q_, hookimpl
 from mtbudget.contracts import Group, Source
-from mtbudget.units import Q_
 
 
 class SpindleGrowth(Source):
@@ -15,6 +14,7 @@ class SpindleGrowth(Source):
     distribution = "normal rate"
     targets = ("point_offset",)
     parameters = {"rate": Q_(2.0, "um/h")}
+    nonnegative = ("rate",)  # a standard deviation: a negative value in a configuration is an error
 
     def standard_uncertainty(self):
         return self.parameters["rate"]

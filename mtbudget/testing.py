@@ -1,11 +1,24 @@
-"""Simulated recordings with concealed effects, for calibrating and proving the diagnosis.
+"""Calibrate a diagnosis candidate: simulated recordings with concealed effects, drawn by the one simulator.
 
-Every case is drawn from a seed: a machine with random geometric errors
-(larger than the effect), a tracker at a random pose, drifting temperatures,
-the tracker and machine noise of the example recordings, and optionally one
-or two effects at a chosen multiple of the noise.  The recordings go through
-the same writer and reader as real ones (optionally in inch, minutes and
-degF), so the diagnosis sees exactly what a shop would send.
+For plugin authors (and mtbudget's own tests and benchmarks): every case is
+drawn from a seed — a machine with random geometric errors, a tracker at a
+random pose, drifting temperatures with an air-conditioning cycle, the
+tracker and machine noise of the example recordings — and, optionally, one
+or two effects at a chosen multiple of the point noise.  The effects are the
+opt-in *sources* of the simulated physics (``thermal_expansion``,
+``reversal``, ``tracker_drift``, ``tracker_range_offset``, ``axis_coupling``,
+``air_temperature_drift``), so a case is simulated by exactly the code that
+simulates every other verification, and independently of the candidates'
+own refit.  The recordings go through the same writer and reader as real
+ones (optionally in inch, minutes and degF), so the diagnosis sees exactly
+what a shop would send::
+
+    from mtbudget.testing import run_case, named
+    hits = sum(("my_effect", "x") in named(run_case(seed, (("my_effect", "x"),))[0]) for seed in range(100))
+
+A candidate for an effect that has no simulating source yet needs one: write
+it as an opt-in source in the same plugin and pass its settings with
+``extra_sources``.
 """
 
 from __future__ import annotations
@@ -18,10 +31,11 @@ from pathlib import Path
 import numpy as np
 
 from .config import SimulationConfig, parse_config
-from .diagnose import diagnose
 from .machine import AXIS_INDEX
 from .recording import read_recording, write_recording
-from .simulate import simulate, truth_model
+from .scenario import build_scenario
+from .simulate import simulate_recording
+from .units import Q_, display
 
 BASE = {
     "format": "mtbudget-config/1", "name": "calibration", "machine": "XFYZ", "seed": 1,
@@ -33,6 +47,8 @@ BASE = {
     "machine_tool": {"repeatability": "1.5 um", "max_degree": 3},
     "geometric_errors": {"seed": 1, "translational": ["8 um", "3 um", "1.5 um"], "angular": ["12 urad", "5 urad", "2.5 urad"],
                          "squareness": "30 urad"},
+    # the noise a recording states is the noise it has: tracker noise at its stated angular value, and repeatability
+    "sources": {"enable": ["tracker_noise", "repeatability"], "tracker_noise": {"angular_sd": "0 urad"}},
 }
 EFFECTS = ("thermal_expansion", "reversal", "tracker_drift", "tracker_range_offset", "axis_coupling", "air_temperature_drift")
 
@@ -62,35 +78,55 @@ def case_config(seed: int, effects: tuple = (), multiple: float = 2.5) -> tuple[
                                "cycle_period": f"{rng.uniform(15, 40):.1f} min", "cycle_phase": f"{rng.uniform(0, 6.28):.3f} rad"})
     cfg = parse_config(raw)
     sigma = point_noise(cfg)
-    truth: dict = {}
     plan = cfg.plan(np.random.default_rng(np.random.SeedSequence(cfg.seed)))
-    cfg_effects = {"thermal": {}, "reversal": {}, "drift": None}
-    extra = []
+    truth: dict = {}
+    settings: dict = {}
+
+    def put(source, param, quantity):
+        settings.setdefault(source, {})[param] = quantity
+
     for name, axis in effects:
         amp = multiple * sigma
+        sign = None
         if name == "thermal_expansion":
             i = AXIS_INDEX[axis]
             dT = plan.axis_temperature(axis, cfg.reference_temperature) - cfg.reference_temperature
             cte = amp / np.ptp(plan.nominal[:, i] * dT)  # the effect spans amp over the test
-            cfg_effects["thermal"][axis] = cte
-            truth[(name, axis)] = cte * 1e6
+            put(name, f"cte_{axis}", _q(display(cte, '1/K', 'um/(m*K)'), "um/(m*K)"))
+            truth[(name, axis)] = display(cte, "1/K", "um/(m*K)")
         elif name == "reversal":
-            cfg_effects["reversal"][axis] = amp
-            truth[(name, axis)] = amp * 1e3
+            put(name, f"B_{axis}", _q(display(amp, 'mm', 'um'), "um"))
+            truth[(name, axis)] = display(amp, "mm", "um")
         elif name == "tracker_drift":
             v = rng.normal(0, 1, 3)
             v = v / np.linalg.norm(v) * amp / plan.time[-1]
-            cfg_effects["drift"] = v
-            truth[(name, None)] = (v * 1e3 * 3600).tolist()
-        elif name in ("tracker_range_offset", "axis_coupling", "air_temperature_drift"):
-            value = amp * rng.choice([-1, 1])
-            extra.append((name, axis, value))
-            truth[(name, axis)] = value * 1e3
+            for a, va in zip("xyz", v):
+                put(name, f"v_{a}", _q(display(va, 'mm/s', 'um/h'), "um/h"))
+            truth[(name, None)] = display(v, "mm/s", "um/h").tolist()
+        elif name == "tracker_range_offset":
+            sign = rng.choice([-1, 1])
+            put(name, "offset", _q(display(amp * sign, 'mm', 'um'), "um"))
+        elif name == "axis_coupling":
+            sign = rng.choice([-1, 1])
+            put(name, axis, _q(display(amp * sign, 'mm', 'um'), "um"))
+        elif name == "air_temperature_drift":
+            sign = rng.choice([-1, 1])
+            T = np.mean([plan.temperature[s.sensor.column] for s in cfg.sensors if s.sensor.attached_to == "air"], axis=0)
+            put(name, "sensitivity", _q(display(amp * sign / np.ptp(T), 'mm/K', 'um/K'), "um/K"))
         else:
-            raise ValueError(f"unknown effect {name!r}")
-    cfg.effects = cfg_effects
-    cfg._extra_effects = extra
+            raise ValueError(f"unknown effect {name!r}; known: {', '.join(EFFECTS)}")
+        if sign is not None:
+            truth[(name, axis)] = display(amp * sign, "mm", "um")
+    if settings:
+        raw["sources"]["enable"] = BASE["sources"]["enable"] + list(settings)
+        raw["sources"].update(settings)
+        cfg = parse_config(raw)
     return cfg, truth
+
+
+def _q(value, unit: str) -> str:
+    """A quantity string for a configuration, with every digit of ``value``."""
+    return f"{float(value)!r} {unit}"
 
 
 def point_noise(cfg: SimulationConfig) -> float:
@@ -101,36 +137,9 @@ def point_noise(cfg: SimulationConfig) -> float:
 
 
 def simulate_case(cfg: SimulationConfig, folder: Path, imperial: bool = False):
-    """Simulate (with the non-standard effects added), write and read back a recording."""
-    from . import tracker as lt
-
-    rec, truth = simulate(cfg)
-    extra = getattr(cfg, "_extra_effects", [])
-    if extra:
-        plan = rec.plan
-        model = truth_model(cfg, plan)
-        # add the non-standard effects on top of the simulated measurement
-        P_LT = model.predict(np.zeros(model.n_params), cfg.pose)[0]
-        for name, axis, value in extra:
-            if name == "tracker_range_offset":
-                rec.lt = rec.lt + value * P_LT / np.linalg.norm(P_LT, axis=1, keepdims=True)
-            elif name == "axis_coupling":
-                a, b = axis
-                em = model.errors
-                ua = em.normalised(a, plan.nominal[:, AXIS_INDEX[a]])
-                ub = em.normalised(b, plan.nominal[:, AXIS_INDEX[b]])
-                disp = np.zeros((len(plan), 3))
-                third = ({"x", "y", "z"} - set(axis)).pop()
-                disp[:, AXIS_INDEX[third]] = value * ua * ub
-                R = lt.rotation(*cfg.pose[3:])
-                rec.lt = rec.lt + disp @ R
-            elif name == "air_temperature_drift":
-                T = plan.temperature["T_air"]
-                disp = np.zeros((len(plan), 3))
-                disp[:, 2] = value * (T - T[0]) / np.ptp(T)
-                R = lt.rotation(*cfg.pose[3:])
-                rec.lt = rec.lt + disp @ R
-    write_recording(rec, folder)
+    """Simulate the case (one engine trial of its scenario), write it as a recording and read it back."""
+    rec, truth = simulate_recording(build_scenario(cfg))
+    write_recording(rec, folder, truth=truth)
     if imperial:
         _to_imperial(folder)
     return read_recording(folder)
@@ -143,11 +152,11 @@ def _to_imperial(folder: Path):
     conv = []
     for h in head:
         if h.endswith("[mm]"):
-            conv.append((h.replace("[mm]", "[in]"), lambda v: f"{float(v) / 25.4:.9f}"))
+            conv.append((h.replace("[mm]", "[in]"), lambda v: f"{display(float(v), 'mm', 'inch'):.9f}"))
         elif h.endswith("[s]"):
-            conv.append((h.replace("[s]", "[min]"), lambda v: f"{float(v) / 60:.8f}"))
+            conv.append((h.replace("[s]", "[min]"), lambda v: f"{display(float(v), 's', 'min'):.8f}"))
         elif h.endswith("[degC]"):
-            conv.append((h.replace("[degC]", "[degF]"), lambda v: f"{float(v) * 1.8 + 32:.6f}"))
+            conv.append((h.replace("[degC]", "[degF]"), lambda v: f"{Q_(float(v), 'degC').to('degF').magnitude:.6f}"))
         else:
             conv.append((h, lambda v: v))
     out = [",".join(c[0] for c in conv)]
@@ -158,6 +167,8 @@ def _to_imperial(folder: Path):
 
 def run_case(seed: int, effects: tuple = (), multiple: float = 2.5, imperial: bool = False, candidates=None):
     """Simulate one case and diagnose it: (diagnosis, truth)."""
+    from .diagnose import diagnose
+
     cfg, truth = case_config(seed, effects, multiple)
     with tempfile.TemporaryDirectory() as tmp:
         rec = simulate_case(cfg, Path(tmp) / "rec", imperial)

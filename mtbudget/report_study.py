@@ -1,0 +1,130 @@
+"""The paper's studies for people: placement and verification figures, the placement report."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+from .units import factor
+
+
+def placement_figures(res: dict, folder: Path) -> dict:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from scipy import stats
+
+    folder.mkdir(parents=True, exist_ok=True)
+    figs = {}
+    for name, d in res["directions"].items():
+        loc, err = d["best_location"], d["max_error_um"]
+        show = np.random.default_rng(0).choice(len(err), min(len(err), 20000), replace=False)
+        fig = plt.figure(figsize=(7, 5.5))
+        ax = fig.add_subplot(projection="3d")
+        sc = ax.scatter(loc[show, 0], loc[show, 1], loc[show, 2], c=err[show], s=2, cmap="viridis")
+        fig.colorbar(sc, ax=ax, shrink=0.7, label="maximum u_p over the mesh [um]")
+        ax.set_xlabel("x [mm]")
+        ax.set_ylabel("y [mm]")
+        ax.set_zlabel("z [mm]")
+        ax.set_title(f"best tracker station of each test: {name}-axis direction (paper Fig. {9 if name == 'Y' else 10})")
+        p = folder / f"placement_{name}.png"
+        fig.savefig(p, dpi=100)
+        plt.close(fig)
+        figs[f"placement_{name}"] = p
+    fig, ax = plt.subplots(figsize=(8, 4.5))
+    for name, d in res["directions"].items():
+        err = d["max_error_um"]
+        ax.hist(err, bins=80, density=True, alpha=0.5, label=f"{name} direction (mean {err.mean():.1f} um)")
+        best = res["fits"][name][0]
+        xs = np.linspace(err.min(), err.max(), 300)
+        ax.plot(xs, getattr(stats, best["distribution"])(*best["parameters"]).pdf(xs), lw=1.5,
+                label=f"{name}: best fit {best['distribution']} (KS {best['ks_distance']:.3f})")
+    ax.set_xlabel("maximum error introduced by the tracker [um]")
+    ax.set_title("paper Fig. 11: maximum error at the best station of each test")
+    ax.legend(fontsize=7)
+    fig.tight_layout()
+    p = folder / "placement_histogram.png"
+    fig.savefig(p, dpi=100)
+    plt.close(fig)
+    figs["placement_histogram"] = p
+    return figs
+
+
+def placement_report(res: dict, j: dict, folder: Path) -> Path:
+    """placement.md and placement.json in ``folder``: the study ``res`` and its summary ``j`` (study.placement_json)."""
+    figs = placement_figures(res, folder)
+    red = j["reduction"]
+    lines = ["# Tracker placement study (paper Figs. 9-11)", "",
+             f"{j['settings']['tests']} Monte Carlo tests per direction, {j['settings']['candidates']} candidate stations per "
+             f"test; u_theta, u_phi ~ N({j['settings']['angular_mean_urad']:g}, {j['settings']['angular_sd_urad']:g}) urad, "
+             f"u_d = {j['settings']['distance_um']:g} um + {j['settings']['distance_per_length_um_per_m']:g} um/m.", "",
+             "| direction | tests | mean max error [um] | std | 5 % | 95 % | best fit |", "| --- | --- | --- | --- | --- | --- | --- |"]
+    for k, d in j["directions"].items():
+        e = d["max_error_um"]
+        lines.append(f"| {k} | {d['tests']} | {e['mean']:.1f} | {e['std']:.1f} | {e['p05']:.1f} | {e['p95']:.1f} | "
+                     f"{j['fits'][k][0]['distribution']} (KS {j['fits'][k][0]['ks_distance']:.3f}) |")
+    lines += ["", f"The {red['better']} direction reduces the mean maximum error by {red['reduction']:.0%} against the "
+              f"{red['worse']} direction ({red['mean_better_um']:.1f} vs {red['mean_worse_um']:.1f} um); the paper reports "
+              "about 30 %.", ""]
+    lines += [f"![{k}]({p.name})" for k, p in figs.items()]
+    (folder / "placement.md").write_text("\n".join(lines) + "\n")
+    (folder / "placement.json").write_text(json.dumps(j, indent=1))
+    return folder / "placement.md"
+
+
+def verification_figures(res, init: np.ndarray, final: np.ndarray, mesh_pts: np.ndarray, folder: Path) -> dict:
+    """Figs. 12-15: initial and final error clouds per point (um, from study.verification_clouds) and the final
+    mean volumetric error distribution."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from scipy import stats
+
+    folder.mkdir(parents=True, exist_ok=True)
+    figs = {}
+    for name, data, fig_no in (("initial", init, 12), ("final", final, 14)):
+        fig, axes = plt.subplots(1, 4, figsize=(15, 3.6))
+        for i, a in enumerate("xyz"):
+            axes[i].hist(data[..., i].ravel(), bins=80, density=True, color="#7aa6c2")
+            axes[i].set_xlabel(f"{a} error [um]")
+        axes[3].hist(np.linalg.norm(data, axis=2).ravel(), bins=80, density=True, color="#c2a67a")
+        axes[3].set_xlabel("distance error [um]")
+        fig.suptitle(f"{name} error of the verification points, {len(data)} simulated verifications (paper Fig. {fig_no})")
+        fig.tight_layout()
+        p = folder / f"{name}_errors.png"
+        fig.savefig(p, dpi=100)
+        plt.close(fig)
+        figs[f"{name}_errors"] = p
+    fig = plt.figure(figsize=(13, 5.5))
+    for j, (data, title) in enumerate(((init, "initial (paper Fig. 13)"), (final, "final (paper Fig. 15)"))):
+        ax = fig.add_subplot(1, 2, j + 1, projection="3d")
+        scale = 40.0 / max(np.abs(data).max(), 1e-9)  # mm of plot per um of error: clouds 40 mm across at most
+        cloud = mesh_pts[None] + data * scale
+        norm = np.linalg.norm(data, axis=2)
+        sc = ax.scatter(cloud[..., 0].ravel(), cloud[..., 1].ravel(), cloud[..., 2].ravel(), c=norm.ravel(), s=1, cmap="viridis")
+        fig.colorbar(sc, ax=ax, shrink=0.6, label="error [um]")
+        ax.set_title(f"{title}: error clouds, exaggerated x{scale * factor('mm', 'um'):.0f}", fontsize=9)
+    fig.tight_layout()
+    p = folder / "error_clouds.png"
+    fig.savefig(p, dpi=100)
+    plt.close(fig)
+    figs["error_clouds"] = p
+    # final mean volumetric error (Eq. 27) distribution with a fitted normal
+    y = res.acc.scalar_samples("mean_error_after")
+    fig, ax = plt.subplots(figsize=(7, 4))
+    ax.hist(y, bins=50, density=True, color="#7aa6c2", label="MCM")
+    mu, sd = y.mean(), y.std(ddof=1)
+    xs = np.linspace(y.min(), y.max(), 200)
+    ax.plot(xs, stats.norm.pdf(xs, mu, sd), "r", label=f"normal fit: mean {mu:.2f} um, sigma {sd:.2f} um")
+    ax.set_xlabel("final mean volumetric error, Eq. 27 [um]")
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    p = folder / "final_mean_error.png"
+    fig.savefig(p, dpi=100)
+    plt.close(fig)
+    figs["final_mean_error"] = p
+    return figs

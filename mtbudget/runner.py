@@ -1,0 +1,300 @@
+"""Running a verification Monte Carlo: settings, the run loop, the run log, replay and verify.
+
+:func:`run` draws blocks of trials (inline, in a process pool or on Dask),
+merges their statistics in block order and, after the trials, computes the
+budget.  :func:`execute` is the ``mtbudget run`` command: the same run,
+logged to MCAP as it goes (resumable).  :func:`replay` rebuilds a run's
+results from its log; :func:`verify` recomputes the logged trials and
+compares them bit for bit.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+import numpy as np
+
+from . import __version__
+from .budget import attribution
+from .config import SimulationConfig, load_config, parse_config
+from .engine import Engine
+from .errors import ConfigError, RunLogError
+from .executors import EXECUTORS, Executor
+from .outputs import MAIN_OUTPUT, SCALARS, RunResult, accumulate_block
+from .plugins import PluginHost
+from .progress import progress_bar
+from .scenario import Scenario, build_scenario
+from .stats import Accumulator, AdaptiveStop, batch_row
+
+DEFAULT_LOG = "mtbudget-run.mcap"
+
+
+@dataclass
+class RunSettings:
+    """How to run the Monte Carlo of a verification (every option of ``mtbudget run`` in one place).
+
+    trials: an int runs that many (rounded up to whole blocks and truncated);
+    None runs the adaptive procedure of JCGM 101 7.9 on ``adaptive_outputs``
+    in batches of ``adaptive_batch`` trials (default max(100 / (1 - p), 10^4)),
+    stopping at ``max_trials`` at most.  keep_samples: keep every trial's
+    scalar outputs for exact intervals (default: for runs of up to 200 000
+    trials and adaptive runs); otherwise memory stays bounded and intervals
+    come from fine histograms.
+    """
+
+    trials: int | None = 1000
+    seed: int | None = None
+    coverage: float = 0.95
+    block: int = 64
+    chunk_blocks: int = 4
+    sources: list | None = None
+    executor: str = "inline"
+    workers: int | None = None
+    address: str | None = None
+    progress: bool = False
+    attribution_trials: int = 512
+    keep_samples: bool | None = None
+    ndig: int = 2
+    adaptive_batch: int | None = None
+    adaptive_outputs: tuple = (MAIN_OUTPUT,)
+    max_trials: int = 1_000_000
+
+    def validate(self) -> "RunSettings":
+        """Every number checked at the boundary; the error names the option."""
+        def need(ok, option, text):
+            if not ok:
+                raise ConfigError(text, key=option)
+
+        if self.trials is not None:
+            need(isinstance(self.trials, (int, np.integer)) and self.trials >= 2, "--trials",
+                 f"must be a whole number >= 2 (or 0 for an adaptive run), got {self.trials}")
+        need(isinstance(self.coverage, float | int) and 0 < self.coverage < 1, "--coverage",
+             f"must lie strictly between 0 and 1, got {self.coverage}")
+        need(self.block >= 1, "block", f"must be >= 1, got {self.block}")
+        need(self.chunk_blocks >= 1, "chunk_blocks", f"must be >= 1, got {self.chunk_blocks}")
+        need(self.attribution_trials is not None and self.attribution_trials >= 0, "--attribution-trials",
+             f"must be 0 (no budget) or a positive number of trials, got {self.attribution_trials}")
+        need(self.attribution_trials == 0 or self.attribution_trials >= 2, "--attribution-trials",
+             f"needs at least 2 trials to estimate a variance, got {self.attribution_trials}")
+        need(self.executor in EXECUTORS, "--executor", f"must be one of {', '.join(EXECUTORS)}, got {self.executor!r}")
+        need(self.workers is None or self.workers >= 1, "--workers", f"must be >= 1, got {self.workers}")
+        need(self.adaptive_batch is None or self.adaptive_batch >= 2, "--adaptive-batch",
+             f"must be >= 2, got {self.adaptive_batch}")
+        need(self.max_trials >= 2, "max_trials", f"must be >= 2, got {self.max_trials}")
+        need(1 <= self.ndig <= 4, "ndig", f"must be 1 to 4 significant digits, got {self.ndig}")
+        return self
+
+
+def make_spec(scenario: Scenario, engine: Engine, settings: RunSettings) -> dict:
+    """The JSON-able description a worker (or replay --verify) rebuilds the engine from."""
+    cfg = scenario.config
+    return {"config": cfg.source, "config_path": str(cfg.path) if cfg.path else None, "seed": int(engine.seed),
+            "block": int(engine.block), "sources": [s.name for s in engine.sources], "coverage": float(settings.coverage)}
+
+
+def run(config: SimulationConfig | Scenario | str | None = None, settings: RunSettings | None = None, *,
+        on_chunk=None, resume_blocks: list | None = None, engine: Engine | None = None,
+        host: PluginHost | None = None, **overrides) -> RunResult:
+    """Run the Monte Carlo of a verification (see :class:`RunSettings`; keyword overrides are settings fields).
+
+    on_chunk(blocks, result) is called after each chunk of blocks is merged
+    (the run log hooks in here).  resume_blocks: block results already
+    computed (from a log); they are merged first and not recomputed.
+    """
+    settings = replace(settings or RunSettings(), **overrides).validate()
+    if engine is None:
+        scenario = config if isinstance(config, Scenario) else build_scenario(
+            config if isinstance(config, SimulationConfig) else load_config(config), host, settings.sources)
+        engine = Engine(scenario, block=settings.block, seed=settings.seed)
+    scenario = engine.scenario
+    spec = make_spec(scenario, engine, settings)
+    trials = settings.trials
+    keep = settings.keep_samples if settings.keep_samples is not None else (trials is None or int(trials) <= 200_000)
+    acc = Accumulator(keep)
+    result = RunResult(spec, 0, settings.coverage, acc, engine.parameter_names, engine.parameter_units,
+                       weights=scenario.weights_report(), mesh=scenario.mesh_points)
+    done = {b.block: b for b in (resume_blocks or [])}
+    ex = Executor(engine, spec, settings.executor, settings.workers, settings.address)
+    bar = progress_bar(trials, "Monte Carlo", "trial", settings.progress)
+    chunk_blocks = settings.chunk_blocks
+    try:
+        def merge(b, target_n):
+            left = target_n - acc.n
+            accumulate_block(acc, b if left >= b.n else b.truncated(left))
+            return b
+
+        def consume(block_ids, target_n):
+            todo = [b for b in block_ids if b not in done]
+            chunks = [todo[i:i + chunk_blocks] for i in range(0, len(todo), chunk_blocks)]
+            gen = ex.map(chunks)
+            cache = dict(done)
+            pending = list(block_ids)
+            for _ in chunks:
+                for r in next(gen):
+                    cache[r.block] = r
+                merged = []  # every block now available, in block order
+                while pending and pending[0] in cache:
+                    merged.append(merge(cache[pending.pop(0)], target_n))
+                if merged:
+                    _record(result)
+                    bar.update(sum(b.n for b in merged))
+                    if on_chunk:
+                        on_chunk(merged, result)
+            if pending:  # blocks that were all resumed from a log
+                merged = [merge(cache[b], target_n) for b in pending]
+                pending.clear()
+                _record(result)
+                if on_chunk:
+                    on_chunk(merged, result)
+
+        if trials is not None:
+            consume(list(range(math.ceil(int(trials) / engine.block))), int(trials))
+        else:
+            h = settings.adaptive_batch or max(int(100 / (1 - settings.coverage)), 10_000)
+            per = math.ceil(h / engine.block)
+            stop = AdaptiveStop(settings.ndig)
+            k = 0
+            while True:
+                before = acc.n
+                consume(list(range(k * per, (k + 1) * per)), before + per * engine.block)
+                k += 1
+                stop.add([batch_row(acc.scalar_samples(o)[before:], settings.coverage) for o in settings.adaptive_outputs])
+                if stop.done([acc.summary(o, settings.coverage)["std"] for o in settings.adaptive_outputs]):
+                    break
+                if acc.n >= settings.max_trials and len(stop.batches) >= 2:
+                    result.stopped_at_limit = True
+                    break
+        result.trials = acc.n
+    finally:
+        bar.close()
+        ex.close()
+    if settings.attribution_trials:
+        result.budget = attribution(engine, result, min(settings.attribution_trials, result.trials),
+                                    ex_kind=settings.executor, workers=settings.workers, address=settings.address,
+                                    chunk_blocks=chunk_blocks, progress=settings.progress)
+    return result
+
+
+def _record(result: RunResult):
+    result.convergence.append(result.convergence_row())
+    result.trials = result.acc.n
+
+
+# ------------------------------------------------------------------ the run command, logged
+def execute(config=None, settings: RunSettings | None = None, *, log_path=None, resume_path=None, force: bool = False,
+            **overrides) -> RunResult:
+    """Run (or resume) a Monte Carlo study and log it to MCAP; what ``mtbudget run`` does."""
+    from .report import result_json
+    from .runlog import RunLogWriter, read_runlog
+
+    settings = replace(settings or RunSettings(), **overrides)
+    resume_blocks = None
+    if resume_path is not None:
+        old = read_runlog(resume_path)
+        if old.complete:
+            raise RunLogError(f"{resume_path}: the run is complete; nothing to resume (use mtbudget replay)")
+        spec = old.header["spec"]
+        cfg = parse_config(spec["config"], spec.get("config_path"))
+        settings = replace(settings, trials=old.header["trials"], seed=spec["seed"],
+                           coverage=spec.get("coverage", settings.coverage), block=spec["block"],
+                           sources=spec.get("sources"))
+        config_text = old.config_text or ""
+        resume_blocks = old.block_results()
+        log_path = Path(log_path or resume_path)
+        if log_path.resolve() == Path(resume_path).resolve():
+            partial = Path(str(resume_path) + ".partial")
+            os.replace(resume_path, partial)
+            force = True
+    else:
+        cfg = config if isinstance(config, SimulationConfig) else load_config(config)
+        config_text = cfg.path.read_text() if cfg.path else json.dumps(cfg.source)
+        log_path = Path(log_path or DEFAULT_LOG)
+    settings.validate()
+    scenario = build_scenario(cfg, sources=settings.sources)
+    eng = Engine(scenario, block=settings.block, seed=settings.seed)
+    spec = make_spec(scenario, eng, settings)
+    plugins = [{"name": s.plugin, "source": s.name, "package": s.dist_name, "version": s.dist_version}
+               for s in eng.sources]
+    header = {"spec": spec, "trials": settings.trials, "plugins": plugins, "sources": [s.name for s in eng.sources],
+              "outputs": {k: v[0] for k, v in SCALARS.items()}, "parameter_names": eng.parameter_names,
+              "parameter_units": eng.parameter_units, "mesh": scenario.mesh_points.tolist(),
+              "mesh_unit": "mm", "weights": scenario.weights_report()}
+    writer = RunLogWriter(log_path, header, config_text, force=force)
+    if resume_blocks:
+        writer.log(2, f"resumed from {resume_path}: {sum(b.n for b in resume_blocks)} trials in "
+                      f"{len(resume_blocks)} blocks taken from the log")
+    result = None
+    try:
+        result = run(engine=eng, settings=settings, on_chunk=lambda blocks, res: writer.blocks(blocks, res.convergence[-1]),
+                     resume_blocks=resume_blocks)
+        pm = result.acc.moments.get("point_error")
+        if pm is not None:
+            writer.points(scenario.mesh_points, np.asarray(pm.mean))
+        writer.finish(result_json(result), True, result.trials)
+        if resume_path is not None and Path(str(resume_path) + ".partial").exists():
+            os.remove(str(resume_path) + ".partial")
+    except BaseException as exc:
+        try:
+            writer.log(4, f"run stopped: {type(exc).__name__}: {exc}")
+            writer.finish(None, False, result.trials if result else 0)
+        except Exception:
+            pass
+        raise
+    result.log_path = log_path
+    return result
+
+
+def replay(path) -> RunResult:
+    """The results of a logged run, rebuilt from the log without recomputing any trial."""
+    from .runlog import read_runlog
+
+    log = read_runlog(path)
+    h = log.header
+    acc = Accumulator(True)
+    for b in sorted(log.block_results(), key=lambda b: b.block):
+        accumulate_block(acc, b)
+    res = RunResult(h["spec"], acc.n, h["spec"].get("coverage", 0.95), acc, h.get("parameter_names", []),
+                    h.get("parameter_units", []), convergence=list(log.convergence),
+                    budget=(log.result or {}).get("budget", {}), complete=log.complete, weights=h.get("weights"),
+                    mesh=np.asarray(h["mesh"]) if h.get("mesh") else None)
+    res.log = log
+    return res
+
+
+def verify(path, progress: bool = False) -> dict:
+    """Re-run a logged run from its config and seed and compare, bit for bit."""
+    from .executors import engine_from_spec
+    from .runlog import read_runlog
+
+    log = read_runlog(path)
+    h = log.header
+    notes = []
+    installed = {s.name: (s.dist_name, s.dist_version) for s in PluginHost().sources()}
+    for p in h.get("plugins", []):
+        now = installed.get(p["source"])
+        if now is None:
+            notes.append(f"source {p['source']!r} (plugin {p['name']}, {p['package']} {p['version']}) is not installed now")
+        elif now[1] != p["version"]:
+            notes.append(f"source {p['source']!r}: logged with {p['package']} {p['version']}, installed now {now[0]} {now[1]}")
+    eng = engine_from_spec(h["spec"])
+    logged = sorted(log.block_results(), key=lambda b: b.block)
+    mismatches = []
+    bar = progress_bar(len(logged), "verify", "block", progress)
+    for lb in logged:
+        b = eng.run_block(lb.block)
+        for k, v in lb.scalars.items():
+            if not np.array_equal(b.scalars[k][: lb.n], v):
+                mismatches.append(f"block {lb.block}, output {k}: differs (largest difference "
+                                  f"{np.abs(b.scalars[k][:lb.n] - v).max():.3g})")
+        bar.update(1)
+    bar.close()
+    if not log.complete:
+        mismatches.append(f"the log is incomplete ({log.problem}): only the {sum(b.n for b in logged)} trials it holds "
+                          "were recomputed; finish it with mtbudget run --resume")
+    return {"notes": notes, "blocks": len(logged), "trials": sum(b.n for b in logged), "identical": not mismatches,
+            "mismatches": mismatches, "complete": log.complete, "mtbudget_version": __version__}
+

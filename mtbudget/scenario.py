@@ -1,0 +1,270 @@
+"""One scenario, built once from a configuration: what is verified, how, and what may vary.
+
+A :class:`Scenario` holds everything a simulated verification needs and that
+does not change from trial to trial: the plan (mesh, passes, timing, sensor
+readings), the truth model and the simulated machine's geometric parameters,
+the tracker pose, the mesh rows where the compensated machine is evaluated,
+the identification weights the verification states, and the configured
+uncertainty sources.  The engine, both studies, ``mtbudget simulate``,
+``replay --verify`` and the diagnosis calibration all take a scenario.
+
+**One key per physical input.**  A physical input (the tracker's angular and
+range noise, the machine's repeatability, the scales' expansion coefficient)
+is stated once in the configuration (:data:`mtbudget.config.PHYSICAL_INPUTS`).
+Sources draw it through their ``links``; the identification weights follow
+it.  A source table may state a linked parameter instead of the
+configuration key; stating both with different values is an error.  To see
+what misstated weights cost, a ``[weights]`` table states the weights
+explicitly, and every output shows both.
+"""
+
+from __future__ import annotations
+
+import difflib
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .config import PHYSICAL_INPUTS, WEIGHT_KEYS, SimulationConfig
+from .contracts import Context, TARGETS
+from .errors import ConfigError, PluginError
+from .identify import Noise
+from .model import MeasurementModel
+from .plan import Plan
+from .plugins import PluginHost, call, default_host
+from .units import Q_, to_internal
+
+#: keys of the [sources] table that are not source names
+SOURCE_TABLE_KEYS = ("enable", "disable", "add")
+
+#: the [effects] shorthand: effect table -> (source, parameter of each axis)
+EFFECT_SOURCES = {"thermal": ("thermal_expansion", "cte_{}", "1/K"), "reversal": ("reversal", "B_{}", "mm"),
+                  "drift": ("tracker_drift", "v_{}", "mm/s")}
+
+
+@dataclass
+class Scenario:
+    config: SimulationConfig
+    plan: Plan
+    truth: MeasurementModel  # the model that simulates (free straightness convention)
+    theta: np.ndarray  # (p,) the simulated machine's geometric parameters
+    pose: np.ndarray  # (6,) tracker pose D, L, H (mm), a, b, d (rad)
+    noise: Noise  # the identification weights the verification states
+    drawn: dict  # physical input key -> internal value the run draws
+    sources: list  # the configured, enabled sources
+    context: Context
+    mesh_rows: np.ndarray  # plan rows of the mesh (first run, first tool)
+    mesh_points: np.ndarray  # (M0, 3) nominal tool points of those rows, machine frame (mm)
+    rigid_free: np.ndarray  # (3 M0, 3 M0) projector that removes what the tracker pose absorbs
+    _id_models: dict = field(default_factory=dict, repr=False)
+
+    @property
+    def max_degree(self) -> int:
+        return self.config.max_degree
+
+    def identification_model(self, max_degree: int | None = None) -> MeasurementModel:
+        """The model the verification identifies with (ISO 230-1 convention), cached per degree."""
+        d = self.config.max_degree if max_degree is None else int(max_degree)
+        if d not in self._id_models:
+            self._id_models[d] = MeasurementModel.for_plan(self.config.machine, self.plan, max_degree=d)
+        return self._id_models[d]
+
+    @property
+    def id_model(self) -> MeasurementModel:
+        return self.identification_model()
+
+    @property
+    def weights_differ(self) -> bool:
+        return self.config.weights is not None
+
+    def weights_report(self) -> dict | None:
+        """Stated weights beside what the run draws, when the configuration sets them apart ([weights])."""
+        if not self.weights_differ:
+            return None
+        out = {}
+        for name, key in WEIGHT_KEYS.items():
+            unit = PHYSICAL_INPUTS[key][0]
+            out[name] = {"stated": getattr(self.noise, name), "drawn": self.drawn[key], "unit": unit}
+        return out
+
+
+def truth_model(config: SimulationConfig, plan: Plan) -> MeasurementModel:
+    """Error model used to *simulate*: free straightness convention (P1 terms allowed)."""
+    return MeasurementModel.for_plan(config.machine, plan, max_degree=config.max_degree, straightness_convention="free")
+
+
+def machine_parameters(config: SimulationConfig, model: MeasurementModel) -> np.ndarray:
+    """The simulated machine's geometric parameters: explicit, or drawn from the generation functions."""
+    g = config.geometric
+    if "coefficients" in g:
+        return model.errors.from_coefficients(g["coefficients"], g.get("squareness", {}))
+    rng = np.random.default_rng(g.get("seed", 1))
+    theta = np.zeros(model.n_params)
+    for j, p in enumerate(model.errors.params):
+        if p.is_squareness:
+            theta[j] = rng.normal(0.0, g["squareness"])
+        else:
+            stds = g["translational"] if p.unit == "mm" else g["angular"]
+            theta[j] = rng.normal(0.0, stds[min(p.order, len(stds)) - 1])
+    return theta
+
+
+def _rigid_projector(P: np.ndarray) -> np.ndarray:
+    """I - projector onto rigid motions of points P (M, 3): removes what the tracker pose absorbs."""
+    M = len(P)
+    A = np.zeros((M, 3, 6))
+    A[:, :, :3] = np.eye(3)
+    c = P - P.mean(0)
+    for k in range(3):
+        e = np.zeros(3)
+        e[k] = 1
+        A[:, :, 3 + k] = np.cross(e, c)
+    A = A.reshape(3 * M, 6)
+    return np.eye(3 * M) - A @ np.linalg.pinv(A)
+
+
+def _effects_as_sources(config: SimulationConfig) -> dict:
+    """The [effects] shorthand as source settings: {source name: {parameter: Quantity}}."""
+    out: dict = {}
+    for kind, (source, pattern, unit) in EFFECT_SOURCES.items():
+        value = config.effects.get(kind)
+        if value is None or (isinstance(value, dict) and not value):
+            continue
+        if isinstance(value, dict):
+            out[source] = {pattern.format(a): Q_(v, unit) for a, v in value.items()}
+        else:
+            out[source] = {pattern.format(a): Q_(float(v), unit) for a, v in zip("xyz", value)}
+    return out
+
+
+def select_sources(config: SimulationConfig, host: PluginHost, names: list | None = None) -> list:
+    """The enabled sources, configured from the [sources] table, [effects] and the physical inputs."""
+    settings = config.source.get("sources", {}) if isinstance(config.source, dict) else {}
+    if not isinstance(settings, dict):
+        raise ConfigError(f"{config.where('sources')}: must be a table")
+    available = {s.name: s for s in host.sources()}
+
+    def check_name(n, where):
+        if n not in available:
+            close = difflib.get_close_matches(n, list(available), n=1)
+            hint = f"; did you mean {close[0]!r}?" if close else f"; available: {', '.join(sorted(available))}"
+            raise ConfigError(f"{config.where(where)}: unknown source {n!r}{hint}")
+
+    for key, value in settings.items():
+        if key in SOURCE_TABLE_KEYS:
+            if not (isinstance(value, list) and all(isinstance(v, str) for v in value)):
+                raise ConfigError(f"{config.where('sources.' + key)}: expected a list of source names")
+            for n in value:
+                check_name(n, f"sources.{key}")
+        elif isinstance(value, dict):
+            check_name(key, f"sources.{key}")
+        else:
+            raise ConfigError(f"{config.where('sources.' + key)}: unknown key; [sources] takes enable, disable, add "
+                              "and one table per source")
+    effects = _effects_as_sources(config)
+    for n, params in effects.items():
+        if n in settings:
+            raise ConfigError(f"{config.where('effects')}: the effect of source {n!r} is stated twice, in [effects] and "
+                              f"in [sources.{n}]; keep one")
+        check_name(n, "effects")
+    enable = names if names is not None else settings.get("enable")
+    disable = set(settings.get("disable", []))
+    if names is not None:
+        for n in names:
+            check_name(n, "sources")
+    if enable is None:
+        chosen = [n for n, s in available.items() if not s.opt_in]
+        chosen += [n for n in list(settings.get("add", [])) + list(effects) if n not in chosen]
+    else:
+        chosen = list(enable) + [n for n in effects if n not in enable]
+    chosen = [n for n in chosen if n not in disable]
+    for n, value in settings.items():
+        if isinstance(value, dict) and n not in chosen and available[n].opt_in and n not in disable:
+            raise ConfigError(f"{config.where('sources.' + n)}: source {n!r} is configured but not enabled (it is "
+                              f"opt-in): add it to [sources] add = [\"{n}\"]")
+    for n in chosen:
+        for other in available[n].excludes:
+            if other in chosen:
+                raise ConfigError(f"{config.where('sources')}: sources {n!r} and {other!r} model the same thing in two "
+                                  f"ways and cannot both be enabled; disable one")
+    srcs = [available[n] for n in chosen]
+    tables = {s.name: dict(effects.get(s.name) or settings.get(s.name, {})) for s in srcs}
+    drawn = _resolve_links(config, srcs, tables)
+    for s in srcs:
+        try:
+            s.configure(tables[s.name])
+        except PluginError as exc:
+            raise ConfigError(f"{config.where('sources.' + s.name)}: {exc.reason}") from None
+        problem = call(s, "check")
+        if problem:
+            raise ConfigError(f"{config.where('sources.' + s.name)}: {problem}")
+    return srcs, drawn
+
+
+def _resolve_links(config: SimulationConfig, sources: list, tables: dict) -> dict:
+    """One value per physical input: from the configuration key or from one source table, never two that differ.
+
+    Fills the linked parameters of every source table and returns the value drawn for each physical input.
+    """
+    drawn = {key: getattr(config, attr) for key, (_, attr, _) in PHYSICAL_INPUTS.items()}
+    stated_by: dict = {key: config.where(key) for key in PHYSICAL_INPUTS if config.stated(key)}
+    for s in sources:
+        for param, key in s.links.items():
+            if key not in PHYSICAL_INPUTS:
+                raise PluginError(f"links parameter {param!r} to {key!r}, which is not a physical input "
+                                  f"({', '.join(PHYSICAL_INPUTS)})", s.plugin or None, s.name)
+            if param not in tables[s.name]:
+                continue
+            unit = PHYSICAL_INPUTS[key][0]
+            where = config.where(f"sources.{s.name}.{param}")
+            value = to_internal(tables[s.name][param], unit, where=where, error=ConfigError)
+            if key in stated_by and not np.isclose(value, drawn[key], rtol=1e-12, atol=0.0):
+                raise ConfigError(f"{where}: states the physical input {key} a second time with another value "
+                                  f"(already {Q_(drawn[key], unit).to(_unit_of(s, param)):~P} at {stated_by[key]}); "
+                                  "state it once, or put "
+                                  "the identification weights apart in a [weights] table")
+            drawn[key], stated_by[key] = value, where
+    for s in sources:
+        for param, key in s.links.items():
+            tables[s.name].setdefault(param, Q_(drawn[key], PHYSICAL_INPUTS[key][0]))
+    return drawn
+
+
+def _unit_of(src, param):
+    v = type(src).parameters.get(param)
+    return v.units if hasattr(v, "units") else ""
+
+
+def build_scenario(config: SimulationConfig, host: PluginHost | None = None, sources: list | None = None) -> Scenario:
+    """Build the scenario of ``config`` (plan, truth, pose, weights, configured sources)."""
+    host = host or default_host()
+    srcs, drawn = select_sources(config, host, sources)
+    rng = np.random.default_rng(np.random.SeedSequence(config.seed))  # the plan and sensor readings of the study
+    plan = config.plan(rng)
+    truth = truth_model(config, plan)
+    theta = machine_parameters(config, truth)
+    pose = np.asarray(config.pose, float)
+    stated = {name: drawn[key] for name, key in WEIGHT_KEYS.items()}
+    if config.weights is not None:
+        stated.update(config.weights)
+    noise = Noise(**stated)
+    nominal = truth.predict(np.zeros(truth.n_params), pose)[0]
+    context = Context(plan, truth, _read_only(nominal), _read_only(theta), config.reference_temperature, config)
+    first = (plan.run == plan.run.min()) & np.all(plan.tool == plan.tool[0], axis=1)
+    mesh_rows = np.flatnonzero(first)
+    mesh_points = truth.machine_points(np.zeros(truth.n_params))[0][mesh_rows]
+    return Scenario(config, plan, truth, theta, pose, noise, drawn, srcs, context, mesh_rows, mesh_points,
+                    _rigid_projector(mesh_points))
+
+
+def _read_only(a: np.ndarray) -> np.ndarray:
+    a = np.array(a, dtype=float)
+    a.setflags(write=False)
+    return a
+
+
+def target_shapes(scenario: Scenario) -> dict:
+    """Shape after the trial axis of every source target in this scenario."""
+    M, p = len(scenario.plan), scenario.truth.n_params
+    return {k: tuple(M if s == "M" else p if s == "p" else s for s in shape) for k, (_, shape) in TARGETS.items()}
+
