@@ -349,25 +349,34 @@ def diagnose_cmd(recording, example, as_json, report_dir, alpha, max_degree):
 @click.option("--out", "out", type=click.Path(file_okay=False, path_type=Path), default=Path("mtbudget-report"),
               show_default=True, help="Folder for report.md, report.html (self-contained) and the figures.")
 @click.option("--tolerance", default=None,
-              help='Tolerance on the positioning error after compensation, e.g. "20 um": adds the ISO 14253-1 conformance statement.')
-def report(runlog, out, tolerance):
-    """Write an uncertainty budget report (Markdown and HTML) from a run log.
+              help='Tolerance on the compensated machine\'s error, e.g. "20 um": adds the ISO 14253-1 decision.')
+@click.option("--characteristic", type=click.Choice(["component", "max"]), default="component", show_default=True,
+              help="What the tolerance applies to: each error component at each point (component), or the largest "
+                   "3-D error over the mesh (max).")
+def report(runlog, out, tolerance, characteristic):
+    """Write an uncertainty statement (Markdown and HTML) from a run log.
 
-    The report has the budget by source and by group (u_i, c_i, contribution,
-    share), GUF vs MCM with the JCGM 101 clause 8 verdict, symmetric and
-    shortest coverage intervals, the output distributions with the GUF normal
-    overlaid, the contributions chart, the convergence of the Monte Carlo
-    estimate, the per-point error map of the mesh, and a conformance
-    statement when a tolerance is given. The HTML opens in a browser with no
-    network.
+    The report reads like a calibration certificate: the measurand (the
+    error of the compensated machine at each mesh point, per axis), the
+    conditions (configuration, machine, mesh, tracker, sources, seed,
+    versions), the result (u per axis over the mesh, the worst point, the
+    coverage intervals of every point), the budget by source and by group,
+    GUF vs MCM per point (JCGM 101 clause 8), the decision when a tolerance
+    is given (the rule stated), the paper's volume summaries, and figures
+    (u per point and axis over the mesh, distributions, contributions,
+    convergence). The HTML opens in a browser with no network.
     """
     from .config import to_unit
+    from .progress import note
     from .report import run_report
     from .runner import replay as do_replay
 
-    res = do_replay(runlog)
     tol = None if tolerance is None else to_unit(tolerance, "um", "--tolerance")
-    paths = run_report(res, out, tol)
+    if tol is not None and not tol > 0:
+        raise click.BadParameter("must be a positive length, e.g. \"20 um\"", param_hint="--tolerance")
+    res = do_replay(runlog)
+    note(f"writing the report and its figures into {out}/ ...")
+    paths = run_report(res, out, tol, characteristic)
     click.echo(f"wrote {paths['markdown']} and {paths['html']}" + ("" if res.complete else " (INCOMPLETE run)"))
 
 

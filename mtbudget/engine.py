@@ -57,6 +57,7 @@ class Engine:
         base = sc.id_model
         out_scalars = {k: np.empty(n) for k in SCALARS}
         point_err = np.empty((n, len(sc.mesh_rows)))
+        components = np.empty((n, len(sc.mesh_rows), 3))
         params = np.zeros((n, base.n_params))
         not_converged = 0
         um = self._um
@@ -72,6 +73,8 @@ class Engine:
             not_converged += int((~res.converged).sum())
             F_id = model.machine_points(res.theta)[:, sc.mesh_rows]
             D = (F_true[idx] - F_id).reshape(len(idx), -1) @ sc.rigid_free.T
+            comp = D.reshape(len(idx), -1, 3) * um
+            components[idx] = comp
             e = np.linalg.norm(D.reshape(len(idx), -1, 3), axis=2) * um
             point_err[idx] = e
             out_scalars["compensation_rms"][idx] = np.sqrt((e**2).mean(axis=1))
@@ -89,7 +92,7 @@ class Engine:
                 for j, nm in enumerate(model.errors.names):
                     if nm in names:
                         params[idx, names.index(nm)] = res.theta[:, j] * scale[j]
-        return BlockResult(block, n, out_scalars, point_err, params, not_converged)
+        return BlockResult(block, n, out_scalars, point_err, params, not_converged, components=components)
 
     def _identification_setup(self, settings: dict):
         model = self.scenario.identification_model(int(settings.get("max_degree", self.scenario.max_degree)))

@@ -11,7 +11,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .stats import Accumulator, Moments
+from .stats import Accumulator, CoMoments, Moments, clause8
 
 #: scalar outputs per trial: name -> (unit, description)
 SCALARS = {
@@ -35,8 +35,9 @@ class BlockResult:
     """The results of one block of trials.
 
     scalars: output name -> (n,) values; point_error: (n, M0) error left after
-    compensation at each mesh point (um); parameters: (n, p) identified
-    geometric parameters (um / urad); not_converged: trials of the block whose
+    compensation at each mesh point (um); components: (n, M0, 3) the same
+    error per machine axis (um), the per-point measurand of docs/measurand.md;
+    parameters: (n, p) identified geometric parameters (um / urad); not_converged: trials of the block whose
     identification did not converge (counted, never hidden).  A block read
     back from a run log knows its vector outputs only by their moments
     (``point_moments``, ``parameter_moments``).
@@ -50,6 +51,8 @@ class BlockResult:
     not_converged: int = 0
     point_moments: Moments | None = None
     parameter_moments: Moments | None = None
+    components: np.ndarray | None = None  # (n, M0, 3) um: the compensated machine's error per point and axis
+    component_moments: CoMoments | None = None
 
     def truncated(self, n: int) -> "BlockResult":
         """The first ``n`` trials of the block."""
@@ -58,16 +61,25 @@ class BlockResult:
 
             raise ConfigError("a resumed block cannot be shortened; resume with the logged trial count")
         return BlockResult(self.block, n, {k: v[:n] for k, v in self.scalars.items()}, self.point_error[:n],
-                           self.parameters[:n], self.not_converged)
+                           self.parameters[:n], self.not_converged,
+                           components=None if self.components is None else self.components[:n])
 
     def vector_moments(self) -> dict:
-        return {"point_error": self.point_moments if self.point_moments is not None else Moments.of(self.point_error),
-                "parameters": self.parameter_moments if self.parameter_moments is not None else Moments.of(self.parameters)}
+        out = {"point_error": self.point_moments if self.point_moments is not None else Moments.of(self.point_error),
+               "parameters": self.parameter_moments if self.parameter_moments is not None else Moments.of(self.parameters)}
+        cm = self.component_moments
+        if cm is None and self.components is not None:
+            cm = CoMoments.of(self.components)
+        if cm is not None:
+            out["components"] = cm
+        return out
 
 
 def accumulate_block(acc: Accumulator, b: BlockResult):
-    """Merge one block into the run's statistics (scalars exactly, vector outputs by their moments)."""
-    acc.add(b.block, b.n, b.scalars, b.vector_moments(), b.not_converged)
+    """Merge one block into the run's statistics (scalars exactly, vector outputs by their moments,
+    the per-point components also by their samples or a histogram for their intervals)."""
+    vectors = None if b.components is None else {"components": b.components.reshape(b.n, -1)}
+    acc.add(b.block, b.n, b.scalars, b.vector_moments(), b.not_converged, vectors)
 
 
 @dataclass
@@ -85,7 +97,10 @@ class RunResult:
     weights: dict | None = None  # stated identification weights when they differ from what the run draws
     log_path: object = None
     log: object = None
-    mesh: np.ndarray | None = None
+    mesh: np.ndarray | None = None  # (M0, 3) nominal tool points of the mesh, machine frame (mm)
+    commanded: np.ndarray | None = None  # (M0, 3) commanded axis positions of the mesh points (mm)
+    guf: dict | None = None  # law of propagation per point: {"estimate": (M0, 3) um, "cov": (M0, 3, 3) um^2}
+    logged_points: list | None = None  # per-point results of a complete log (replay of a run too long to log trials)
 
     @property
     def not_converged(self) -> int:
@@ -97,6 +112,47 @@ class RunResult:
     def outputs(self) -> dict:
         """Every scalar output: mean, std, intervals, with units."""
         return {k: {**self.summary(k), "unit": SCALARS[k][0], "description": SCALARS[k][1]} for k in SCALARS}
+
+    def points(self) -> list | None:
+        """The per-point, per-axis statement (docs/measurand.md): one entry per mesh point, in plan order."""
+        cm = self.acc.moments.get("components")
+        if cm is None or self.commanded is None:
+            return self.logged_points
+        M0 = cm.mean.shape[0]
+        iv = self.acc.vector_intervals("components", self.coverage)
+        if iv is None and self.logged_points is not None:
+            return self.logged_points
+        u = cm.std
+        out = []
+        from .distributions import t_factor
+
+        k = t_factor(self.coverage, float("inf"))
+        for i in range(M0):
+            e = {"point": i, "nominal": {"value": self.commanded[i].tolist(), "unit": "mm"},
+                 "mean": {"value": cm.mean[i].tolist(), "unit": POINT_UNIT},
+                 "u": {"value": u[i].tolist(), "unit": POINT_UNIT},
+                 "covariance": {"value": cm.cov[i].tolist(), "unit": f"{POINT_UNIT}^2"}}
+            if iv is not None:
+                sl = slice(3 * i, 3 * i + 3)
+                e["interval"] = {"low": iv["low"][sl].tolist(), "high": iv["high"][sl].tolist(), "unit": POINT_UNIT,
+                                 "coverage": self.coverage, "kind": "probabilistically symmetric", "method": iv["method"]}
+                if iv["shortest_low"] is not None:
+                    e["shortest_interval"] = {"low": iv["shortest_low"][sl].tolist(),
+                                              "high": iv["shortest_high"][sl].tolist(), "unit": POINT_UNIT}
+            if self.guf is not None:
+                g_u = np.sqrt(np.maximum(np.diagonal(self.guf["cov"][i]), 0.0))
+                g_y = self.guf["estimate"][i]
+                e["guf_u"] = {"value": g_u.tolist(), "unit": POINT_UNIT}
+                e["guf_estimate"] = {"value": g_y.tolist(), "unit": POINT_UNIT}
+                if iv is not None:
+                    verdicts = []
+                    for a in range(3):
+                        d_lo, d_hi, delta, ok = clause8((g_y[a] - k * g_u[a], g_y[a] + k * g_u[a]),
+                                                        (iv["low"][3 * i + a], iv["high"][3 * i + a]), g_u[a], 2)
+                        verdicts.append({"d_low": d_lo, "d_high": d_hi, "delta": delta, "passed": ok})
+                    e["clause8"] = verdicts
+            out.append(e)
+        return out
 
     def convergence_row(self) -> dict:
         s = self.summary(MAIN_OUTPUT)

@@ -7,9 +7,11 @@ from pathlib import Path
 
 import numpy as np
 
+from .distributions import t_factor
+from .stats import decimals_for
 from .units import display, pretty
 
-from .budget import conformance, guf_validation
+from .budget import conformance
 from .outputs import MAIN_OUTPUT, SCALARS, RunResult
 
 
@@ -28,7 +30,41 @@ def result_json(res: RunResult) -> dict:
     if par is not None:
         out["parameters"] = {"names": res.parameter_names, "units": res.parameter_units,
                              "mean": np.asarray(par.mean).tolist(), "std": np.asarray(par.std).tolist()}
-    out["validation"] = guf_validation(res)
+    pts = res.points()
+    out["validation"] = None
+    if pts is not None:
+        out["measurand"] = MEASURAND
+        out["points"] = pts
+        out["points_summary"] = points_summary(pts)
+        out["validation"] = out["points_summary"].get("clause8")
+    if res.guf is not None:
+        out["guf_points"] = {"estimate": np.asarray(res.guf["estimate"]).tolist(), "cov": np.asarray(res.guf["cov"]).tolist(),
+                             "unit": "um", "cov_unit": "um^2"}
+    return out
+
+
+#: the per-point measurand in one sentence (docs/measurand.md has the definition)
+MEASURAND = ("error of the compensated machine at each mesh point, per machine axis (x, y, z), at the verification's "
+             "tool offset, given this verification: true minus identified error field, rigid-body part removed "
+             "(docs/measurand.md)")
+
+
+def points_summary(pts: list) -> dict:
+    """Volume summaries of the per-point statement: per axis, the RMS over the mesh of u, the largest u and where."""
+    u = np.array([p["u"]["value"] for p in pts])  # (M0, 3)
+    mean = np.array([p["mean"]["value"] for p in pts])
+    worst = int(np.argmax(np.linalg.norm(u, axis=1)))
+    out = {"unit": pts[0]["u"]["unit"],
+           "u_rms_over_mesh": np.sqrt((u**2).mean(axis=0)).tolist(),
+           "u_max": u.max(axis=0).tolist(), "u_min": u.min(axis=0).tolist(),
+           "worst_point": {"point": worst, "nominal": pts[worst]["nominal"], "u": pts[worst]["u"]["value"],
+                           "mean": pts[worst]["mean"]["value"]},
+           "bias_rms_over_mesh": np.sqrt((mean**2).mean(axis=0)).tolist()}
+    c8 = [v["passed"] for p in pts for v in p.get("clause8", [])]
+    if c8:
+        out["clause8"] = {"passed": int(sum(c8)), "of": len(c8),
+                          "note": "GUF: the identification covariance (stated tracker noise and repeatability) "
+                                  "propagated to each point; sources without a stated weight are in the MCM only"}
     return out
 
 
@@ -40,10 +76,45 @@ def _fmt(x, nd=3):
     return "-" if x is None else f"{x:.{nd}g}"
 
 
+def _vec(v, nd=1) -> str:
+    return "(" + ", ".join(f"{x:.{nd}f}" for x in v) + ")"
+
+
+def point_lines(res: RunResult) -> list:
+    """The per-point statement as text: what it is, u per axis over the mesh, the worst point, the interval, GUF."""
+    pts = res.points()
+    if not pts:
+        return []
+    sm = points_summary(pts)
+    u = pretty(sm["unit"])
+    k = t_factor(res.coverage, float("inf"))
+    half = np.array([[(h - lo) / 2 for lo, h in zip(p["interval"]["low"], p["interval"]["high"])] for p in pts]) \
+        if "interval" in pts[0] else None
+    nd = decimals_for(min(sm["u_min"]))
+    lines = [f"Measurand: {MEASURAND}.",
+             f"  {len(pts)} points; standard uncertainty u per axis (k = 1), {u}:      x        y        z"]
+    lines.append("    RMS of u over the mesh                          " + "".join(f"{x:9.{nd}f}" for x in sm["u_rms_over_mesh"]))
+    lines.append("    smallest u                                      " + "".join(f"{x:9.{nd}f}" for x in sm["u_min"]))
+    lines.append("    largest u                                       " + "".join(f"{x:9.{nd}f}" for x in sm["u_max"]))
+    if half is not None:
+        label = f"largest half-width of the {res.coverage:.0%} interval"
+        lines.append(f"    {label:<48}" + "".join(f"{x:9.{nd}f}" for x in half.max(axis=0))
+                     + f"   (coverage {res.coverage:.0%}; a normal would give k = {k:.2f})")
+    w = sm["worst_point"]
+    lines.append(f"  worst point #{w['point']} at x, y, z = {_vec(w['nominal']['value'], 0)} mm: u = {_vec(w['u'], nd)} {u}, "
+                 f"mean (bias) {_vec(w['mean'], nd)} {u}")
+    if "clause8" in sm:
+        c = sm["clause8"]
+        lines.append(f"  GUF vs MCM per point and axis (JCGM 101 clause 8, 2 significant digits): {c['passed']} of {c['of']} "
+                     f"validated; {c['note']}; with few trials the MCM intervals themselves are not stable to that tolerance")
+    lines.append("  every point and axis: mtbudget run --json (\"points\"), or the report's table")
+    return lines
+
+
 def budget_text(res: RunResult) -> str:
     lines = []
     status = "" if res.complete else "  (INCOMPLETE: partial results)"
-    lines.append(f"Monte Carlo: {res.trials} trials, coverage {res.coverage:.0%}, seed {res.spec.get('seed')}{status}")
+    lines.append(f"Monte Carlo: {res.trials} trials, coverage probability {res.coverage:.0%}, seed {res.spec.get('seed')}{status}")
     if getattr(res, "stopped_at_limit", False):
         lines.append("  note: the adaptive run stopped at its trial limit before reaching its numerical tolerance")
     if res.not_converged:
@@ -56,89 +127,114 @@ def budget_text(res: RunResult) -> str:
                          f"{pretty(_show_unit(w['unit']))}, drawn {display(w['drawn'], w['unit'], _show_unit(w['unit'])):.4g} "
                          f"{pretty(_show_unit(w['unit']))}")
     lines.append("")
-    lines.append(f"{'output':<20} {'unit':<5} {'mean':>9} {'u (std)':>9}   {'symmetric interval':>22}   {'shortest interval':>22}")
-    for k, v in res.outputs().items():
+    lines += point_lines(res)
+    pb = res.budget.get("points")
+    if pb:
+        lines.append("")
+        lines.append(f"Budget of the per-point measurand, each source alone on the same trials ({pretty(pb['unit'])}, k = 1):")
+        lines.append(f"  {'source':<32} {'group':<22} {'u_i, RMS over the mesh (x, y, z)':>34} {'share':>7}")
+        for r in sorted(pb["rows"], key=lambda r: -r["share"]):
+            lines.append(f"  {r['source']:<32} {r['group']:<22} {_vec(r['u_rms_over_mesh'], 2):>34} {r['share']:7.1%}")
+        lines.append(f"  {'interaction (not additive)':<32} {'':<22} {'':>34} {pb['interaction_share']:7.1%}")
+        lines.append(f"  {'total':<32} {'':<22} {_vec(pb['total']['u_rms_over_mesh'], 2):>34} {1:7.1%}")
+        lines.append("  by group: " + ", ".join(f"{g['group']} {g['share']:.1%}" for g in pb["groups"]))
+    lines.append("")
+    lines.append("Volume summaries and the paper's figures, per verification (the spread is over simulated verifications;")
+    lines.append("it is not the uncertainty of a point):")
+    lines.append(f"{'output':<20} {'unit':<5} {'mean':>9} {'std dev':>9}   {'symmetric interval':>22}   {'shortest interval':>22}")
+    for key, v in res.outputs().items():
         sym = f"[{v['symmetric'][0]:.3f}, {v['symmetric'][1]:.3f}]"
         sh = "-" if v["shortest"] is None else f"[{v['shortest'][0]:.3f}, {v['shortest'][1]:.3f}]"
-        lines.append(f"{k:<20} {v['unit']:<5} {v['mean']:9.3f} {v['std']:9.3f}   {sym:>22}   {sh:>22}")
+        lines.append(f"{key:<20} {pretty(v['unit']):<5} {v['mean']:9.3f} {v['std']:9.3f}   {sym:>22}   {sh:>22}")
     b = res.budget.get(MAIN_OUTPUT)
     if b:
         lines.append("")
-        lines.append(f"Budget of {MAIN_OUTPUT} ({b['unit']}), one source at a time on {b['trials']} trials, "
-                     f"by {b['basis'].replace('_', ' ')}:")
-        lines.append(f"  {'source':<32} {'group':<22} {'u(x_i)':>14} {'c_i':>22} {'u_i(y)':>8} {'share':>7}")
+        lines.append(f"Budget of {MAIN_OUTPUT} ({pretty(b['unit'])}), one source at a time on {b['trials']} trials, "
+                     f"by {b['basis'].replace('_', ' ')} (an RMS contribution per source, not a standard uncertainty):")
+        lines.append(f"  {'source':<32} {'group':<22} {'u(x_i)':>14} {'RMS_i':>8} {'share':>7}")
         for r in sorted(b["rows"], key=lambda r: -r["contribution"]):
-            ux = "-" if r["u_x"] is None else f"{r['u_x']['value']:.3g} {r['u_x']['unit']}"
-            ci = "-" if "sensitivity" not in r else f"{r['sensitivity']['value']:.3g} {r['sensitivity']['unit']}"
-            lines.append(f"  {r['source']:<32} {r['group']:<22} {ux:>14} {ci:>22} {r['u_y']:8.3f} {r['share']:7.1%}")
-        lines.append(f"  {'interaction (not additive)':<32} {'':<22} {'':>14} {'':>22} "
+            ux = "-" if r["u_x"] is None else f"{r['u_x']['value']:.3g} {pretty(r['u_x']['unit'])}"
+            lines.append(f"  {r['source']:<32} {r['group']:<22} {ux:>14} {r['u_y']:8.3f} {r['share']:7.1%}")
+        lines.append(f"  {'interaction (not additive)':<32} {'':<22} {'':>14} "
                      f"{math.copysign(math.sqrt(abs(b['interaction'])), b['interaction']):8.3f} "
                      f"{(b['interaction'] / b['total'] if b['total'] else 0):7.1%}")
-        lines.append(f"  {'total':<32} {'':<22} {'':>14} {'':>22} {b['u_total']:8.3f} {1:7.1%}")
+        lines.append(f"  {'total':<32} {'':<22} {'':>14} {b['u_total']:8.3f} {1:7.1%}")
         lines.append("  by group: " + ", ".join(f"{g['group']} {g['share']:.1%}" for g in b["groups"]))
-        v = guf_validation(res)
-        if v:
-            verdict = "validated" if v["passed"] else "NOT validated (the model is non-linear: use the MCM interval)"
-            lines.append(f"  GUF vs MCM (JCGM 101 clause 8): GUF {v['guf_estimate']:.3f} +- {v['k']:.2f} x {v['guf_u']:.3f}; "
-                         f"d_low {v['d_low']:.3g}, d_high {v['d_high']:.3g}, delta {v['delta']:.3g}: {verdict}")
     if getattr(res, "log_path", None):
         lines.append("")
         lines.append(f"run log: {res.log_path}  (mtbudget replay / mtbudget report)")
     return "\n".join(lines)
 
 
-# ----------------------------------------------------------------------------- run reports
 def _figures(res: RunResult, folder):
-    """PNG figures of a run; returns {name: path}."""
-
+    """PNG figures of a run; returns {name: path}. Every axis is labelled with its unit (one spelling: µm)."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-    from scipy import stats as st
 
     folder = Path(folder)
     figs = {}
-    # output distributions with the GUF normal overlaid
+    um = pretty("um")
+    pts = res.points()
+    # the per-point statement: u of each axis over the mesh (the map a metrologist looks at first)
+    if pts and res.mesh is not None:
+        u = np.array([q["u"]["value"] for q in pts])
+        cmd = np.array([q["nominal"]["value"] for q in pts])
+        fig = plt.figure(figsize=(15, 4.8))
+        vmax = float(u.max())
+        for j, a in enumerate("xyz"):
+            ax = fig.add_subplot(1, 3, j + 1, projection="3d")
+            sc = ax.scatter(cmd[:, 0], cmd[:, 1], cmd[:, 2], c=u[:, j], cmap="viridis", vmin=0, vmax=vmax, s=45)
+            ax.set_title(f"u of the {a} error after compensation (k = 1)", fontsize=9)
+            ax.set_xlabel("x [mm]", labelpad=6)
+            ax.set_ylabel("y [mm]", labelpad=6)
+            ax.set_zlabel("z [mm]", labelpad=6)
+            fig.colorbar(sc, ax=ax, shrink=0.6, pad=0.12, label=f"u [{um}]")
+        fig.suptitle("standard uncertainty per point and axis of the compensated machine (commanded positions)")
+        fig.tight_layout()
+        figs["uncertainty_map"] = folder / "uncertainty_map.png"
+        fig.savefig(figs["uncertainty_map"], dpi=100)
+        plt.close(fig)
+    # distributions of the volume summaries
     names = [k for k in SCALARS if res.acc.scalar_samples(k) is not None]
-    fig, axes = plt.subplots(2, 4, figsize=(14, 6.5))
-    for ax, k in zip(axes.ravel(), names):
-        y = res.acc.scalar_samples(k)
-        ax.hist(y, bins=60, density=True, color="#7aa6c2", label="MCM")
-        s = res.summary(k)
-        lo, hi = s["symmetric"]
-        ax.axvline(lo, color="k", ls="--", lw=1)
-        ax.axvline(hi, color="k", ls="--", lw=1, label=f"{res.coverage:.0%} interval")
-        b = res.budget.get(k)
-        if b and b.get("u_combined"):
-            xs = np.linspace(y.min(), y.max(), 200)
-            ax.plot(xs, st.norm.pdf(xs, b["nominal_value"], b["u_combined"]), color="#c0392b", label="GUF normal")
-        ax.set_title(k, fontsize=9)
-        ax.set_xlabel(SCALARS[k][0] or "1")
-        ax.legend(fontsize=6)
-    for ax in axes.ravel()[len(names):]:
-        ax.axis("off")
-    fig.tight_layout()
-    figs["distributions"] = folder / "distributions.png"
-    fig.savefig(figs["distributions"], dpi=100)
-    plt.close(fig)
-    # contributions
-    b = res.budget.get(MAIN_OUTPUT)
-    if b:
-        rows = sorted(b["rows"], key=lambda r: r["contribution"])
+    if names:
+        fig, axes = plt.subplots(2, 4, figsize=(14, 6.5))
+        for ax, k in zip(axes.ravel(), names):
+            y = res.acc.scalar_samples(k)
+            ax.hist(y, bins=60, density=True, color="#7aa6c2", label="MCM")
+            lo, hi = res.summary(k)["symmetric"]
+            ax.axvline(lo, color="k", ls="--", lw=1)
+            ax.axvline(hi, color="k", ls="--", lw=1, label=f"{res.coverage:.0%} interval")
+            ax.set_title(k, fontsize=9)
+            unit = pretty(SCALARS[k][0])
+            ax.set_xlabel(f"{k} [{unit}]" if unit else k)
+            ax.set_ylabel(f"probability density [1/{unit}]" if unit else "probability density")
+            ax.legend(fontsize=6)
+        for ax in axes.ravel()[len(names):]:
+            ax.axis("off")
+        fig.tight_layout()
+        figs["distributions"] = folder / "distributions.png"
+        fig.savefig(figs["distributions"], dpi=100)
+        plt.close(fig)
+    # contributions to the per-point measurand, by source, coloured by group
+    pb = res.budget.get("points")
+    if pb:
+        from matplotlib.patches import Patch
+
+        rows = sorted(pb["rows"], key=lambda r: r["share"])
         fig, ax = plt.subplots(figsize=(8, 0.32 * len(rows) + 1.5))
         colours = {"machine tool": "#1f77b4", "measurement system": "#ff7f0e", "measurement strategy": "#2ca02c",
                    "optimisation strategy": "#9467bd"}
-        ax.barh([r["source"] for r in rows], [r["share"] * 100 for r in rows], color=[colours.get(r["group"], "grey") for r in rows])
-        ax.set_xlabel(f"share of the {b['basis'].replace('_', ' ')} of {MAIN_OUTPUT} [%]")
-        for g, c in colours.items():
-            ax.barh([], [], color=c, label=g)
-        ax.legend(fontsize=7, loc="lower right")
+        ax.barh([r["source"] for r in rows], [r["share"] * 100 for r in rows],
+                color=[colours.get(r["group"], "grey") for r in rows])
+        ax.set_xlabel("share of the variance of the per-point errors, summed over points and axes [%]")
+        ax.legend(handles=[Patch(color=c, label=g) for g, c in colours.items()], fontsize=7, loc="lower right")
         fig.tight_layout()
         figs["contributions"] = folder / "contributions.png"
         fig.savefig(figs["contributions"], dpi=100)
         plt.close(fig)
-    # convergence
+    # convergence of the main volume summary
     if res.convergence:
         c = res.convergence
         n = [x["trials"] for x in c]
@@ -146,38 +242,49 @@ def _figures(res: RunResult, folder):
         ax[0].plot(n, [x["mean"] for x in c], label="mean")
         ax[0].plot(n, [x["low"] for x in c], "--", label="interval low")
         ax[0].plot(n, [x["high"] for x in c], "--", label="interval high")
-        ax[1].plot(n, [x["std"] for x in c], color="k", label="standard uncertainty")
+        ax[1].plot(n, [x["std"] for x in c], color="k", label="standard deviation over trials")
         for a in ax:
             a.set_xlabel("trials")
             a.legend(fontsize=7)
-        ax[0].set_ylabel(f"{MAIN_OUTPUT} [um]")
+        ax[0].set_ylabel(f"{MAIN_OUTPUT} [{um}]")
+        ax[1].set_ylabel(f"standard deviation of {MAIN_OUTPUT} [{um}]")
         fig.suptitle("convergence of the Monte Carlo estimate")
         fig.tight_layout()
         figs["convergence"] = folder / "convergence.png"
         fig.savefig(figs["convergence"], dpi=100)
         plt.close(fig)
-    # per-point error map (paper Figs. 13 and 15): mean and spread of the error left after compensation
-    pm = res.acc.moments.get("point_error")
-    mesh = res.mesh
-    if pm is not None and mesh is not None:
-        fig = plt.figure(figsize=(12, 5))
-        for j, (vals, title) in enumerate(((np.asarray(pm.mean), "mean error after compensation [um]"),
-                                           (np.asarray(pm.std), "its standard deviation over trials [um]"))):
-            ax = fig.add_subplot(1, 2, j + 1, projection="3d")
-            sc = ax.scatter(mesh[:, 0], mesh[:, 1], mesh[:, 2], c=vals, cmap="viridis", s=40)
-            fig.colorbar(sc, ax=ax, shrink=0.7)
-            ax.set_title(title, fontsize=9)
-            ax.set_xlabel("x [mm]")
-            ax.set_ylabel("y [mm]")
-            ax.set_zlabel("z [mm]")
-        fig.tight_layout()
-        figs["error_map"] = folder / "error_map.png"
-        fig.savefig(figs["error_map"], dpi=100)
-        plt.close(fig)
     return figs
 
 
-def run_report(res: RunResult, folder, tolerance_um: float | None = None) -> dict:
+def provenance_lines(res: RunResult) -> list:
+    """Where the numbers come from: configuration, machine, mesh, tracker, sources, seed, versions, date."""
+    import hashlib
+    import json as _json
+    import time
+
+    from . import __version__
+
+    cfg = res.spec.get("config") or {}
+    digest = hashlib.sha256(_json.dumps(cfg, sort_keys=True, default=str).encode()).hexdigest()[:16]
+    tr = cfg.get("tracker", {})
+    mesh = cfg.get("mesh", {})
+    lines = ["## Conditions", "", "| item | value |", "| --- | --- |",
+             f"| configuration | {res.spec.get('config_path') or '(built in code)'} ({cfg.get('name', '-')}; sha256 {digest}) |",
+             f"| machine | {cfg.get('machine', 'XFYZ')} |",
+             f"| mesh | x {mesh.get('x')}, y {mesh.get('y')}, z {mesh.get('z')}, step {mesh.get('step', '-')} |",
+             f"| tool offset of the statement | {(cfg.get('plan', {}).get('tools') or [['0 mm'] * 3])[0]} |",
+             f"| tracker pose | D {tr.get('D')}, L {tr.get('L')}, H {tr.get('H')}, a {tr.get('a')}, b {tr.get('b')}, d {tr.get('d')} |",
+             f"| sources drawn | {', '.join(res.spec.get('sources') or []) or 'none'} |",
+             f"| trials, seed, coverage | {res.trials}, {res.spec.get('seed')}, {res.coverage:.0%} |",
+             f"| mtbudget | {__version__} |", f"| report written | {time.strftime('%Y-%m-%d %H:%M %Z')} |"]
+    if res.weights:
+        lines.append("| identification weights | stated apart from the drawn noise: " + "; ".join(
+            f"{k} {display(w['stated'], w['unit'], _show_unit(w['unit'])):.3g} vs {display(w['drawn'], w['unit'], _show_unit(w['unit'])):.3g} "
+            f"{pretty(_show_unit(w['unit']))}" for k, w in res.weights.items()) + " |")
+    return lines
+
+
+def run_report(res: RunResult, folder, tolerance_um: float | None = None, characteristic: str = "component") -> dict:
     """Write report.md and a self-contained report.html (figures inlined) into ``folder``."""
     import base64
     import html
@@ -186,39 +293,81 @@ def run_report(res: RunResult, folder, tolerance_um: float | None = None) -> dic
     folder.mkdir(parents=True, exist_ok=True)
     figs = _figures(res, folder)
     data = result_json(res)
-    md = ["# mtbudget uncertainty budget", ""]
-    md.append(f"{res.trials} Monte Carlo trials, coverage probability {res.coverage:.0%}, seed {res.spec.get('seed')}"
-              + ("" if res.complete else " — **INCOMPLETE run: partial results**"))
-    md += ["", "## Coverage intervals", "", "| output | unit | estimate | u | symmetric interval | shortest interval |",
-           "| --- | --- | --- | --- | --- | --- |"]
-    for k, v in data["outputs"].items():
-        sh = "-" if v["shortest"] is None else f"[{v['shortest'][0]:.3f}, {v['shortest'][1]:.3f}]"
-        md.append(f"| {k} | {v['unit']} | {v['mean']:.3f} | {v['std']:.3f} | [{v['symmetric'][0]:.3f}, {v['symmetric'][1]:.3f}] | {sh} |")
-    b = res.budget.get(MAIN_OUTPUT)
-    if b:
-        md += ["", f"## Budget of {MAIN_OUTPUT} (by source)", "",
-               f"Each source alone on the same {b['trials']} trials; contributions by {b['basis'].replace('_', ' ')}, which add "
-               "up for independent sources; what they do not explain is the interaction.", "",
-               "| source | group | u(x_i) | c_i | u_i(y) [um] | share |", "| --- | --- | --- | --- | --- | --- |"]
-        for r in sorted(b["rows"], key=lambda r: -r["contribution"]):
-            ux = "-" if r["u_x"] is None else f"{r['u_x']['value']:.3g} {r['u_x']['unit']}"
-            ci = "-" if "sensitivity" not in r else f"{r['sensitivity']['value']:.3g} {r['sensitivity']['unit']}"
-            md.append(f"| {r['source']} | {r['group']} | {ux} | {ci} | {r['u_y']:.3f} | {r['share']:.1%} |")
-        md.append(f"| interaction | | | | | {b['interaction'] / b['total'] if b['total'] else 0:.1%} |")
-        md.append(f"| **total** | | | | {b['u_total']:.3f} | 100 % |")
-        md += ["", "## Budget by group", "", "| group | share |", "| --- | --- |"]
-        md += [f"| {g['group']} | {g['share']:.1%} |" for g in b["groups"]]
+    md = ["# mtbudget uncertainty statement", ""]
+    if not res.complete:
+        md += ["**INCOMPLETE run: partial results.**", ""]
+    md += ["## Measurand", "", MEASURAND[0].upper() + MEASURAND[1:] + ".", ""]
+    md += provenance_lines(res)
+    pts = data.get("points")
+    if pts:
+        sm = data["points_summary"]
+        nd = decimals_for(min(sm["u_min"]))
+        half = np.array([[(h - lo) / 2 for lo, h in zip(q["interval"]["low"], q["interval"]["high"])] for q in pts])
+        md += ["", "## Result", "",
+               f"Standard uncertainty u (k = 1) and the {res.coverage:.0%} coverage interval of each error component, "
+               f"from {res.trials} Monte Carlo trials (JCGM 101); values in {pretty(sm['unit'])}, shown to the digits the "
+               "run supports.", "",
+               "| summary over the mesh | x | y | z |", "| --- | --- | --- | --- |",
+               "| RMS of u | " + " | ".join(f"{x:.{nd}f}" for x in sm["u_rms_over_mesh"]) + " |",
+               "| smallest u | " + " | ".join(f"{x:.{nd}f}" for x in sm["u_min"]) + " |",
+               "| largest u | " + " | ".join(f"{x:.{nd}f}" for x in sm["u_max"]) + " |",
+               f"| largest half-width of the {res.coverage:.0%} interval | " + " | ".join(f"{x:.{nd}f}" for x in half.max(axis=0)) + " |",
+               "| RMS of the mean (bias) | " + " | ".join(f"{x:.{nd}f}" for x in sm["bias_rms_over_mesh"]) + " |", ""]
+        w = sm["worst_point"]
+        md.append(f"Worst point: #{w['point']} at x, y, z = {_vec(w['nominal']['value'], 0)} mm, u = {_vec(w['u'], nd)} "
+                  f"{pretty(sm['unit'])}.")
+        md += ["", "## Every point", "",
+               f"| point | x, y, z commanded [mm] | mean x, y, z [{pretty(sm['unit'])}] | u x, y, z [{pretty(sm['unit'])}] | "
+               f"{res.coverage:.0%} interval x | y | z |", "| --- | --- | --- | --- | --- | --- | --- |"]
+        for q in pts:
+            iv = q["interval"]
+            md.append(f"| {q['point']} | {_vec(q['nominal']['value'], 0)} | {_vec(q['mean']['value'], nd)} | "
+                      f"{_vec(q['u']['value'], nd)} | " + " | ".join(
+                          f"[{lo:.{nd}f}, {hi:.{nd}f}]" for lo, hi in zip(iv["low"], iv["high"])) + " |")
+        md += ["", f"Intervals: {pts[0]['interval']['kind']}, {pts[0]['interval']['method']}."]
+    pb = res.budget.get("points")
+    if pb:
+        md += ["", "## Budget of the per-point measurand", "",
+               f"Each source alone on the same {res.budget[MAIN_OUTPUT]['trials'] if MAIN_OUTPUT in res.budget else ''} "
+               "trials: u_i is the standard deviation of each component with only that source active (k = 1); the share is "
+               "of the variance summed over points and axes. No sensitivity coefficient is given: a source perturbs many "
+               "inputs at once, so none is defined.", "",
+               f"| source | group | u_i RMS over the mesh x, y, z [{pretty(pb['unit'])}] | u_i at the worst point | share |",
+               "| --- | --- | --- | --- | --- |"]
+        for r in sorted(pb["rows"], key=lambda r: -r["share"]):
+            md.append(f"| {r['source']} | {r['group']} | {_vec(r['u_rms_over_mesh'], 2)} | {_vec(r['u_at_worst_point'], 2)} | "
+                      f"{r['share']:.1%} |")
+        md.append(f"| interaction | | | | {pb['interaction_share']:.1%} |")
+        md.append(f"| **total** | | {_vec(pb['total']['u_rms_over_mesh'], 2)} | {_vec(pb['total']['u_at_worst_point'], 2)} | 100 % |")
+        md += ["", "| group | share |", "| --- | --- |"] + [f"| {g['group']} | {g['share']:.1%} |" for g in pb["groups"]]
     v = data.get("validation")
     if v:
-        md += ["", "## GUF vs MCM (JCGM 101 clause 8)", "",
-               f"GUF: {v['guf_estimate']:.3f} um with u_c = {v['guf_u']:.3f} um (law of propagation over the source "
-               f"contributions), interval [{v['guf_interval'][0]:.3f}, {v['guf_interval'][1]:.3f}] um; MCM interval "
-               f"[{v['mcm_interval'][0]:.3f}, {v['mcm_interval'][1]:.3f}] um. d_low = {v['d_low']:.3g}, d_high = "
-               f"{v['d_high']:.3g}, delta = {v['delta']:.3g}: **{'validated' if v['passed'] else 'not validated'}**."]
+        md += ["", "## GUF vs MCM (JCGM 101 clause 8), per point and axis", "",
+               f"{v['passed']} of {v['of']} point-axes validated at two significant digits. {v['note']}."]
     if tolerance_um is not None:
-        conf = conformance(res, tolerance_um)
-        md += ["", "## Conformance (ISO 14253-1)", "", conf["statement"]]
+        conf = conformance(res, tolerance_um, characteristic)
+        md += ["", "## Decision (ISO 14253-1)", "", f"Characteristic: {conf['characteristic']}.", "",
+               f"Rule: {conf['rule']}.", "", f"**{conf['statement']}**"]
         data["conformance"] = conf
+    md += ["", "## Volume summaries and the paper's figures", "",
+           "Per simulated verification; the spread is over verifications, not the uncertainty of a point.", "",
+           "| output | unit | mean | std dev over trials | symmetric interval | shortest interval |",
+           "| --- | --- | --- | --- | --- | --- |"]
+    for k, val in data["outputs"].items():
+        sh = "-" if val["shortest"] is None else f"[{val['shortest'][0]:.3f}, {val['shortest'][1]:.3f}]"
+        md.append(f"| {k} | {pretty(val['unit'])} | {val['mean']:.3f} | {val['std']:.3f} | "
+                  f"[{val['symmetric'][0]:.3f}, {val['symmetric'][1]:.3f}] | {sh} |")
+    b = res.budget.get(MAIN_OUTPUT)
+    if b:
+        md += ["", f"### Budget of {MAIN_OUTPUT}", "",
+               f"Each source alone on the same {b['trials']} trials; contributions by {b['basis'].replace('_', ' ')}, which add "
+               "up for independent sources; RMS_i is a root-mean-square contribution, not a standard uncertainty.", "",
+               f"| source | group | u(x_i) | RMS_i [{pretty(b['unit'])}] | share |", "| --- | --- | --- | --- | --- |"]
+        for r in sorted(b["rows"], key=lambda r: -r["contribution"]):
+            ux = "-" if r["u_x"] is None else f"{r['u_x']['value']:.3g} {pretty(r['u_x']['unit'])}"
+            md.append(f"| {r['source']} | {r['group']} | {ux} | {r['u_y']:.3f} | {r['share']:.1%} |")
+        md.append(f"| interaction | | | | {b['interaction'] / b['total'] if b['total'] else 0:.1%} |")
+        md.append(f"| **total** | | | {b['u_total']:.3f} | 100 % |")
     md += ["", "## Figures", ""] + [f"![{k}]({p.name})" for k, p in figs.items()]
     (folder / "report.md").write_text("\n".join(md) + "\n")
     # HTML: the same content, tables as tables, figures inlined (opens with no network)

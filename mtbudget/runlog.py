@@ -39,7 +39,7 @@ import numpy as np
 from . import __version__
 from .errors import RunLogError
 from .outputs import BlockResult
-from .stats import Moments
+from .stats import CoMoments, Moments
 from .units import factor
 
 FORMAT = "mtbudget-runlog/1"
@@ -106,6 +106,14 @@ def _moments_enc(m: Moments) -> dict:
             "min": _enc(np.asarray(m.minimum)), "max": _enc(np.asarray(m.maximum))}
 
 
+def _comoments_enc(m: CoMoments) -> dict:
+    return {"n": m.n, "mean": _enc(m.mean), "C": _enc(m.C)}
+
+
+def _comoments_dec(d) -> CoMoments:
+    return CoMoments(int(d["n"]), _dec(d["mean"]), _dec(d["C"]))
+
+
 def _moments_dec(d) -> Moments:
     return Moments(int(d["n"]), _dec(d["mean"]), _dec(d["m2"]), _dec(d["min"]), _dec(d["max"]))
 
@@ -114,7 +122,7 @@ def _moments_dec(d) -> Moments:
 class RunLogWriter:
     """Writes a run log as the run goes: header first, then blocks (flushed and fsynced per chunk), then the end."""
 
-    def __init__(self, path, header: dict, config_text: str, force: bool = False):
+    def __init__(self, path, header: dict, config_text: str, force: bool = False, log_components: bool = True):
         from mcap.writer import Writer
 
         self.path = Path(path)
@@ -125,6 +133,7 @@ class RunLogWriter:
             self.fh = open(self.path, "wb")
         except OSError as exc:
             raise RunLogError(f"{self.path}: cannot write the run log ({exc.strerror})") from None
+        self.log_components = log_components
         self.w = Writer(self.fh, use_chunking=False, use_statistics=True)
         self.w.start(profile="", library=f"mtbudget {__version__}")
         self.ch = {}
@@ -158,7 +167,10 @@ class RunLogWriter:
             self.write("/mtbudget/blocks", {
                 "block": b.block, "n": b.n, "scalars": {k: _enc(v) for k, v in b.scalars.items()},
                 "point_error_moments": _moments_enc(vm["point_error"]),
-                "parameter_moments": _moments_enc(vm["parameters"]), "not_converged": int(b.not_converged)})
+                "parameter_moments": _moments_enc(vm["parameters"]), "not_converged": int(b.not_converged),
+                **({"component_moments": _comoments_enc(vm["components"])} if "components" in vm else {}),
+                **({"components": _enc(b.components.reshape(b.n, -1))}
+                   if self.log_components and b.components is not None else {})})
         self.write("/mtbudget/convergence", convergence)
         self.flush()
 
@@ -167,16 +179,18 @@ class RunLogWriter:
         self.write("/mtbudget/log", {"timestamp": {"sec": t // 10**9, "nsec": t % 10**9}, "level": level,
                                      "message": message, "name": "mtbudget", "file": "", "line": 0})
 
-    def points(self, mesh_mm: np.ndarray, mean_error: np.ndarray):
-        """The mesh as a foxglove.PointCloud (metres, as Foxglove reads them) coloured by the mean error (um)."""
-        pts = np.column_stack([mesh_mm * factor("mm", "m"), mean_error]).astype("<f4")
+    def points(self, mesh_mm: np.ndarray, mean_error: np.ndarray, u: np.ndarray | None = None):
+        """The mesh as a foxglove.PointCloud (metres, as Foxglove reads them): fields error_um (mean error left
+        after compensation) and, when given, u_x_um, u_y_um, u_z_um (standard uncertainty per axis) to colour by."""
+        cols = [mesh_mm * factor("mm", "m"), mean_error[:, None]] + ([u] if u is not None else [])
+        pts = np.column_stack(cols).astype("<f4")
         t = time.time_ns()
         self.write("/mtbudget/points", {
             "timestamp": {"sec": t // 10**9, "nsec": t % 10**9}, "frame_id": "machine",
             "pose": {"position": {"x": 0, "y": 0, "z": 0}, "orientation": {"x": 0, "y": 0, "z": 0, "w": 1}},
-            "point_stride": 16,
-            "fields": [{"name": "x", "offset": 0, "type": 7}, {"name": "y", "offset": 4, "type": 7},
-                       {"name": "z", "offset": 8, "type": 7}, {"name": "error_um", "offset": 12, "type": 7}],
+            "point_stride": 4 * pts.shape[1],
+            "fields": [{"name": name, "offset": 4 * i, "type": 7} for i, name in
+                       enumerate(["x", "y", "z", "error_um"] + (["u_x_um", "u_y_um", "u_z_um"] if u is not None else []))],
             "data": base64.b64encode(pts.tobytes()).decode()})
 
     def finish(self, result_obj: dict | None, complete: bool, trials: int):
@@ -211,9 +225,14 @@ class RunLog:
 
         They merge into a run's statistics (replay, resume) exactly as the blocks they were written from.
         """
-        return [BlockResult(b["block"], b["n"], {k: _dec(v) for k, v in b["scalars"].items()}, None, None,
-                            int(b.get("not_converged", 0)), _moments_dec(b["point_error_moments"]),
-                            _moments_dec(b["parameter_moments"])) for b in self.blocks]
+        out = []
+        for b in self.blocks:
+            comp = _dec(b["components"]).reshape(b["n"], -1, 3) if "components" in b else None
+            cm = _comoments_dec(b["component_moments"]) if "component_moments" in b else None
+            out.append(BlockResult(b["block"], b["n"], {k: _dec(v) for k, v in b["scalars"].items()}, None, None,
+                                   int(b.get("not_converged", 0)), _moments_dec(b["point_error_moments"]),
+                                   _moments_dec(b["parameter_moments"]), components=comp, component_moments=cm))
+        return out
 
 
 def read_runlog(path) -> RunLog:

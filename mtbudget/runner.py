@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from . import __version__
-from .budget import attribution
+from .budget import attribution, point_lpu
 from .config import SimulationConfig, load_config, parse_config
 from .engine import Engine
 from .errors import ConfigError, RunLogError
@@ -89,6 +89,18 @@ class RunSettings:
         return self
 
 
+#: per-point components kept as every trial's values (exact intervals) up to this many numbers, else histograms
+VECTOR_SAMPLE_LIMIT = 25_000_000
+
+
+def keep_vector_samples(settings: RunSettings, n_points: int) -> bool:
+    """Whether a run keeps every trial's per-point components (about 200 MB at the limit) or histograms them."""
+    if settings.keep_samples is False:
+        return False
+    total = settings.max_trials if settings.trials is None else int(settings.trials)
+    return total * n_points * 3 <= VECTOR_SAMPLE_LIMIT
+
+
 def make_spec(scenario: Scenario, engine: Engine, settings: RunSettings) -> dict:
     """The JSON-able description a worker (or replay --verify) rebuilds the engine from."""
     cfg = scenario.config
@@ -114,9 +126,10 @@ def run(config: SimulationConfig | Scenario | str | None = None, settings: RunSe
     spec = make_spec(scenario, engine, settings)
     trials = settings.trials
     keep = settings.keep_samples if settings.keep_samples is not None else (trials is None or int(trials) <= 200_000)
-    acc = Accumulator(keep)
+    acc = Accumulator(keep, keep_vector_samples(settings, len(scenario.mesh_rows)))
     result = RunResult(spec, 0, settings.coverage, acc, engine.parameter_names, engine.parameter_units,
-                       weights=scenario.weights_report(), mesh=scenario.mesh_points)
+                       weights=scenario.weights_report(), mesh=scenario.mesh_points, commanded=scenario.commanded,
+                       guf=point_lpu(scenario))
     done = {b.block: b for b in (resume_blocks or [])}
     ex = Executor(engine, spec, settings.executor, settings.workers, settings.address)
     bar = progress_bar(trials, "Monte Carlo", "trial", settings.progress)
@@ -222,8 +235,9 @@ def execute(config=None, settings: RunSettings | None = None, *, log_path=None, 
     header = {"spec": spec, "trials": settings.trials, "plugins": plugins, "sources": [s.name for s in eng.sources],
               "outputs": {k: v[0] for k, v in SCALARS.items()}, "parameter_names": eng.parameter_names,
               "parameter_units": eng.parameter_units, "mesh": scenario.mesh_points.tolist(),
-              "mesh_unit": "mm", "weights": scenario.weights_report()}
-    writer = RunLogWriter(log_path, header, config_text, force=force)
+              "mesh_unit": "mm", "commanded": scenario.commanded.tolist(), "weights": scenario.weights_report()}
+    writer = RunLogWriter(log_path, header, config_text, force=force,
+                          log_components=keep_vector_samples(settings, len(scenario.mesh_rows)))
     if resume_blocks:
         writer.log(2, f"resumed from {resume_path}: {sum(b.n for b in resume_blocks)} trials in "
                       f"{len(resume_blocks)} blocks taken from the log")
@@ -231,9 +245,9 @@ def execute(config=None, settings: RunSettings | None = None, *, log_path=None, 
     try:
         result = run(engine=eng, settings=settings, on_chunk=lambda blocks, res: writer.blocks(blocks, res.convergence[-1]),
                      resume_blocks=resume_blocks)
-        pm = result.acc.moments.get("point_error")
+        pm, cm = result.acc.moments.get("point_error"), result.acc.moments.get("components")
         if pm is not None:
-            writer.points(scenario.mesh_points, np.asarray(pm.mean))
+            writer.points(scenario.mesh_points, np.asarray(pm.mean), None if cm is None else cm.std)
         writer.finish(result_json(result), True, result.trials)
         if resume_path is not None and Path(str(resume_path) + ".partial").exists():
             os.remove(str(resume_path) + ".partial")
@@ -254,13 +268,19 @@ def replay(path) -> RunResult:
 
     log = read_runlog(path)
     h = log.header
-    acc = Accumulator(True)
-    for b in sorted(log.block_results(), key=lambda b: b.block):
+    blocks = sorted(log.block_results(), key=lambda b: b.block)
+    logged = log.result or {}
+    acc = Accumulator(True, all(b.components is not None for b in blocks))
+    for b in blocks:
         accumulate_block(acc, b)
+    guf = logged.get("guf_points")
     res = RunResult(h["spec"], acc.n, h["spec"].get("coverage", 0.95), acc, h.get("parameter_names", []),
                     h.get("parameter_units", []), convergence=list(log.convergence),
-                    budget=(log.result or {}).get("budget", {}), complete=log.complete, weights=h.get("weights"),
-                    mesh=np.asarray(h["mesh"]) if h.get("mesh") else None)
+                    budget=logged.get("budget", {}), complete=log.complete, weights=h.get("weights"),
+                    mesh=np.asarray(h["mesh"]) if h.get("mesh") else None,
+                    commanded=np.asarray(h["commanded"]) if h.get("commanded") else None,
+                    guf=None if guf is None else {"estimate": np.asarray(guf["estimate"]), "cov": np.asarray(guf["cov"])},
+                    logged_points=logged.get("points"))
     res.log = log
     return res
 

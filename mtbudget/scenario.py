@@ -70,6 +70,16 @@ class Scenario:
         return self._id_models[d]
 
     @property
+    def commanded(self) -> np.ndarray:
+        """(M0, 3) commanded axis positions x, y, z of the mesh points (mm)."""
+        return self.plan.nominal[self.mesh_rows]
+
+    @property
+    def tool(self) -> np.ndarray:
+        """(3,) the tool offset at which the compensated machine is evaluated (the verification's first tool, mm)."""
+        return self.plan.tool[self.mesh_rows[0]]
+
+    @property
     def id_model(self) -> MeasurementModel:
         return self.identification_model()
 

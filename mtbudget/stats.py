@@ -12,11 +12,17 @@ import numpy as np
 
 
 def interval_indices(M: int, p: float) -> tuple[int, int]:
-    """(r, q): JCGM 101 7.7: q = pM rounded (+1/2 rule), the interval is [y_(r), y_(r+q)] (0-based)."""
+    """(r, q) of JCGM 101 7.7.1, with r 0-based: the interval is [y[r], y[r + q]] of the sorted values.
+
+    q = pM if pM is an integer, otherwise the integer part of pM + 1/2; the
+    probabilistically symmetric interval takes the 1-based r = (M - q)/2 when
+    that is an integer, otherwise the integer part of (M - q + 1)/2: both are
+    (M - q + 1) // 2.  For M = 1000, p = 0.95: [y(25), y(975)] (1-based).
+    """
     q = int(p * M + 0.5)
     q = min(max(q, 1), M - 1)
-    r = int(round((M - q) / 2))
-    return r, q
+    r = (M - q + 1) // 2 - 1
+    return max(r, 0), q
 
 
 def symmetric_interval(sorted_y: np.ndarray, p: float) -> tuple[float, float]:
@@ -42,6 +48,13 @@ def numerical_tolerance(u: float, ndig: int = 2) -> float:
         return 0.0
     l = math.floor(math.log10(abs(u))) - (ndig - 1)
     return 0.5 * 10.0**l
+
+
+def decimals_for(u: float, ndig: int = 2) -> int:
+    """Decimals that show ``u`` to ``ndig`` significant digits (JCGM 101 7.9.2): what the run supports, no more."""
+    if not u > 0 or not math.isfinite(u):
+        return 3
+    return max(0, (ndig - 1) - math.floor(math.log10(abs(u))))
 
 
 def clause8(guf_interval, mcm_interval, u: float, ndig: int = 2):
@@ -132,6 +145,45 @@ class VectorHistogram:
         return out
 
 
+@dataclass
+class CoMoments:
+    """Mergeable count / mean / co-moment matrix of K small vectors (d components each), for per-point covariances.
+
+    mean: (K, d); C: (K, d, d) sums of outer products of deviations (Chan et al.'s update, per vector).
+    """
+
+    n: int
+    mean: np.ndarray
+    C: np.ndarray
+
+    @classmethod
+    def of(cls, x: np.ndarray) -> "CoMoments":
+        """From samples x: (n, K, d)."""
+        x = np.asarray(x, float)
+        mean = x.mean(axis=0)
+        d = x - mean
+        return cls(x.shape[0], mean, np.einsum("nki,nkj->kij", d, d))
+
+    def merge(self, other: "CoMoments") -> "CoMoments":
+        if self.n == 0:
+            return other
+        if other.n == 0:
+            return self
+        n = self.n + other.n
+        delta = other.mean - self.mean
+        mean = self.mean + delta * (other.n / n)
+        C = self.C + other.C + np.einsum("ki,kj->kij", delta, delta) * (self.n * other.n / n)
+        return CoMoments(n, mean, C)
+
+    @property
+    def cov(self) -> np.ndarray:
+        return self.C / (self.n - 1) if self.n > 1 else np.full_like(self.C, np.nan)
+
+    @property
+    def std(self) -> np.ndarray:
+        return np.sqrt(np.maximum(np.diagonal(self.cov, axis1=1, axis2=2), 0.0))
+
+
 class Accumulator:
     """Streaming statistics of a run, merged in block order (deterministic for any chunking or executor).
 
@@ -140,8 +192,11 @@ class Accumulator:
     outputs: their moments only.
     """
 
-    def __init__(self, keep_samples: bool = True):
+    def __init__(self, keep_samples: bool = True, keep_vector_samples: bool = True):
         self.keep = keep_samples
+        self.keep_vectors = keep_vector_samples
+        self.vector_samples: dict = {}
+        self.vector_hist: dict = {}
         self.n = 0
         self.not_converged = 0
         self.moments: dict = {}
@@ -149,8 +204,17 @@ class Accumulator:
         self.samples: dict = {}
         self.blocks: list = []
 
-    def add(self, block: int, n: int, scalars: dict, vector_moments: dict, not_converged: int = 0):
-        """Merge one block: ``scalars`` name -> (n,) values; ``vector_moments`` name -> Moments."""
+    def add(self, block: int, n: int, scalars: dict, vector_moments: dict, not_converged: int = 0,
+            vectors: dict | None = None):
+        """Merge one block: ``scalars`` name -> (n,) values; ``vector_moments`` name -> Moments (or CoMoments);
+        ``vectors`` name -> (n, K) values whose per-component coverage intervals are wanted."""
+        for k, v in (vectors or {}).items():
+            if self.keep_vectors:
+                self.vector_samples.setdefault(k, []).append(v)
+            else:
+                if k not in self.vector_hist:
+                    self.vector_hist[k] = VectorHistogram(v)
+                self.vector_hist[k].add(v)
         self.blocks.append(block)
         for k, v in scalars.items():
             col = v[:, None]
@@ -165,6 +229,25 @@ class Accumulator:
             self.moments[key] = m if key not in self.moments else self.moments[key].merge(m)
         self.n += n
         self.not_converged += int(not_converged)
+
+    def vector_intervals(self, name: str, coverage: float) -> dict | None:
+        """Per-component probabilistically symmetric (and, from samples, shortest) intervals of a vector output."""
+        if self.vector_samples.get(name):
+            y = np.sort(np.concatenate(self.vector_samples[name]), axis=0)
+            M = y.shape[0]
+            r, q = interval_indices(M, coverage)
+            r = min(r, M - q - 1)
+            widths = y[q:] - y[: M - q]
+            k = np.argmin(widths, axis=0)
+            cols = np.arange(y.shape[1])
+            return {"low": y[r], "high": y[r + q], "shortest_low": y[k, cols], "shortest_high": y[k + q, cols],
+                    "method": "order statistics of every trial (JCGM 101 7.7)"}
+        h = self.vector_hist.get(name)
+        if h is None:
+            return None
+        q = h.quantiles(np.array([(1 - coverage) / 2, (1 + coverage) / 2]))
+        return {"low": q[:, 0], "high": q[:, 1], "shortest_low": None, "shortest_high": None,
+                "method": f"quantiles of a {h.bins}-bin histogram per component (bounded memory; ranges fixed from the first block)"}
 
     def scalar_samples(self, name: str) -> np.ndarray | None:
         if not self.keep or not self.samples.get(name):
