@@ -25,18 +25,27 @@ def engine_from_spec(spec: dict):
     return Engine(build_scenario(cfg, sources=spec.get("sources")), block=spec["block"], seed=spec["seed"])
 
 
+def one_blas_thread():
+    """A context in which BLAS uses one thread: the engine's matrices are small (a few hundred rows), and on a
+    shared or busy machine a second BLAS thread makes them 10-100x slower, never faster (docs/performance.md)."""
+    from threadpoolctl import threadpool_limits
+
+    return threadpool_limits(limits=1, user_api="blas")
+
+
 _WORKER_CACHE: dict = {}
 
 
 def run_blocks_from_spec(spec_json: str, blocks: list, active: list | None = None) -> list:
     """Worker entry point: run ``blocks`` of the engine described by ``spec_json``."""
-    eng = _WORKER_CACHE.get(spec_json)
-    if eng is None:
-        eng = engine_from_spec(json.loads(spec_json))
-        _WORKER_CACHE.clear()
-        _WORKER_CACHE[spec_json] = eng
-    act = None if active is None else [s for s in eng.sources if s.name in active]
-    return [eng.run_block(b, act) for b in blocks]
+    with one_blas_thread():  # the engine built and run with one BLAS thread, as in process: bit-identical
+        eng = _WORKER_CACHE.get(spec_json)
+        if eng is None:
+            eng = engine_from_spec(json.loads(spec_json))
+            _WORKER_CACHE.clear()
+            _WORKER_CACHE[spec_json] = eng
+        act = None if active is None else [s for s in eng.sources if s.name in active]
+        return [eng.run_block(b, act) for b in blocks]
 
 
 class Executor:
@@ -69,7 +78,9 @@ class Executor:
         if self.kind == "inline":
             act = None if active_names is None else [s for s in self.engine.sources if s.name in active_names]
             for ch in chunks:
-                yield [self.engine.run_block(b, act) for b in ch]
+                with one_blas_thread():
+                    results = [self.engine.run_block(b, act) for b in ch]
+                yield results
         elif self.kind == "process":
             futs = [self.pool.submit(run_blocks_from_spec, self.spec_json, ch, active_names) for ch in chunks]
             for f in futs:

@@ -21,17 +21,47 @@ the geometric parameters.  Directions in it cannot be told from the data;
 they are reported by name and fixed by the minimum-norm convention (in the
 scaled parameters, from the initial parameters).  The remaining problem has
 full rank, so every trial is solved by a Cholesky factorisation.
+
+Solvers (``Strategy.solver``):
+
+* ``"gauss-newton"`` -- the reference: Gauss-Newton with a fresh Jacobian of
+  the chain, a fresh design matrix and a Cholesky factorisation per trial and
+  iteration (step halving where the cost rises).
+* ``"chord"`` (default) -- the fast path.  The unknowns are moved in the
+  machine frame: the pose by a small rigid motion (translation, rotation
+  about the centroid of the plan), the geometric parameters along the
+  identifiable directions.  The whitened residuals are exact at every
+  iterate (the exact chain, each trial's own whitener), and so is the rigid
+  part of the gradient; the iteration matrix is one normal matrix per chunk
+  of trials, factorised once, built from the plan's Jacobian at the nominal
+  (cached per model and phase) and the chunk's mean information matrix
+  (machine frame).  Stage 1 iterates with the nominal Jacobian; because the
+  fixed point of such chord iterations sits where the *nominal* Jacobian is
+  orthogonal to the weighted residual (about 1e-5 mm from the least-squares
+  minimum on the paper's configuration: too far for the 1e-6 mm the
+  identification promises), stage 2 evaluates each trial's exact Jacobian
+  once, where stage 1 stopped, and iterates with it to the tolerance.  What
+  is left is of the order (stage-2 move)^2 / (distance from the nominal):
+  estimated per trial, and a trial whose estimate exceeds
+  ``Strategy.chord_bias``, or whose chord iterations contract by less than a
+  factor 2 per iteration or do not reach the tolerance in
+  ``Strategy.chord_iter`` iterations, is solved again with Gauss-Newton from
+  its start (``Identification.fallback``, counted in ``n_fallback``).
+  Covariances and the design at the solution are computed exactly, from the
+  chain's Jacobian at the solution, when first asked for.
 """
 
 from __future__ import annotations
 
+import hashlib
+import weakref
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from . import tracker as lt
 from .errors import IdentificationError
-from .machine import AXES, AXIS_INDEX, skew_basis
+from .machine import AXES, AXIS_INDEX, skew, skew_basis
 from .model import MeasurementModel
 from .units import factor
 
@@ -46,6 +76,12 @@ class Strategy:
     ``pose``, ``translational``, ``angular``, ``squareness``; parameters of a
     later phase start from the values of the earlier phase.  ``[GROUPS]`` is
     the paper's one-phase identification.
+
+    solver: ``"chord"`` (the fast path, see the module docstring) or
+    ``"gauss-newton"`` (the reference).  ``max_iter``, ``xtol`` and ``ftol``
+    are Gauss-Newton's; the chord iterates to ``min(xtol, chord_tol)`` within
+    ``chord_iter`` iterations per stage, and hands a trial it cannot finish
+    to Gauss-Newton with those settings.
     """
 
     phases: list = field(default_factory=lambda: [list(GROUPS)])
@@ -55,6 +91,14 @@ class Strategy:
     ftol: float = 1e-12  # ... or a relative decrease of the weighted cost below this
     rank_tol: float = 1e-7  # singular values below rank_tol * largest are treated as null
     weighted: bool = True
+    solver: str = "chord"  # "chord": shared factorisation, the fast path; "gauss-newton": the reference
+    chord_iter: int = 8  # chord iterations per stage before a trial falls back to Gauss-Newton
+    chord_tol: float = 1e-4  # the chord's step tolerance (um, urad): min(xtol, chord_tol); chord iterations
+    #                          converge linearly, so a loose xtol would leave more than Gauss-Newton does
+    chord_bias: float = 1e-3  # largest estimated distance (um, urad) of the chord's fixed point from the
+    #                           least-squares minimum (1e-6 mm on a 1 m lever); beyond it the trial falls back
+    #                           to Gauss-Newton.  The estimate exceeds the distance measured against
+    #                           Gauss-Newton by 10x or more where it matters (tests/test_identify_fast.py)
 
     @classmethod
     def one_phase(cls, **kw):
@@ -128,22 +172,51 @@ class Identification:
     residual_machine: np.ndarray  # (N, M, 3) the same in the machine frame
     chi2: np.ndarray  # (N,)
     dof: int
-    cov_theta: np.ndarray  # (N, p, p)
-    cov_pose: np.ndarray  # (N, 6, 6)
     initial_error: np.ndarray  # (N, M, 3) machine-frame deviation after pose-only registration
     converged: np.ndarray  # (N,) bool
     iterations: int
     identifiability: Identifiability
     whitened: np.ndarray | None = None  # (N, M, 3) whitened residuals
-    # at the solution (the last Gauss-Newton evaluation), for callers that continue from it (diagnosis):
+    # at the solution, for callers that continue from it (diagnosis):
     whitener: np.ndarray | None = None  # (N, M, 3, 3) L^-1 of each point's covariance C = L L^T (tracker frame)
-    design: np.ndarray | None = None  # (N, 3M, 6 + r) whitened design in the scaled unknowns z, see below
     basis: np.ndarray | None = None  # (p, r) orthonormal basis Q of the free, identifiable directions (scaled)
     scale: np.ndarray | None = None  # (p,) scale_vector(model): um per mm, urad per rad
+    solver: str = "gauss-newton"
+    fallback: np.ndarray | None = None  # (N,) bool: trials the chord solver handed to Gauss-Newton
+    # design (N, 3M, 6 + r), cov_theta (N, p, p), cov_pose (N, 6, 6): properties below, at the solution
+    _at_solution: dict = field(default_factory=dict, repr=False, compare=False)
+    _solution_inputs: dict | None = field(default=None, repr=False, compare=False)
 
     # The unknowns of the design are z = (pose * POSE_SCALE, Q^T (theta * scale)): a step z moves the
     # pose by z[:6] / POSE_SCALE and theta by (Q z[6:]) / scale, and changes the whitened residual by
     # -design @ z.  cov_theta and cov_pose are (design^T design)^-1 mapped back to mm and rad.
+    # Gauss-Newton keeps them from its last evaluation; the chord solver computes them from the exact
+    # Jacobian at the solution the first time one of them is asked for (the engine never asks).
+
+    @property
+    def design(self) -> np.ndarray:
+        """Whitened design in the scaled unknowns z at the solution: (N, 3M, 6 + r)."""
+        return self._solution("design")
+
+    @property
+    def cov_theta(self) -> np.ndarray:
+        """Covariance of the geometric parameters (N, p, p), mm and rad."""
+        return self._solution("cov_theta")
+
+    @property
+    def cov_pose(self) -> np.ndarray:
+        """Covariance of the pose (N, 6, 6), mm and rad."""
+        return self._solution("cov_pose")
+
+    def _solution(self, key):
+        if key not in self._at_solution:
+            self._at_solution.update(_solution_quantities(self, **self._solution_inputs))
+        return self._at_solution[key]
+
+    @property
+    def n_fallback(self) -> int:
+        """How many trials the chord solver could not finish and Gauss-Newton solved instead (0 for Gauss-Newton)."""
+        return 0 if self.fallback is None else int(np.count_nonzero(self.fallback))
 
     @property
     def n_trials(self) -> int:
@@ -218,7 +291,8 @@ def analyse(model: MeasurementModel, active: np.ndarray | None = None, rank_tol:
     # equilibrate columns for the rank decision (scaling does not change the null space)
     norms = np.linalg.norm(A, axis=0)
     norms[norms == 0] = 1.0
-    U, s, Vt = np.linalg.svd(A / norms, full_matrices=True)
+    # the full V is needed only when there are fewer rows than unknowns (LAPACK's full U costs 10x more)
+    _, s, Vt = np.linalg.svd(A / norms, full_matrices=A.shape[0] < A.shape[1])
     tol = rank_tol * (s[0] if s.size else 1.0)
     rank = int((s > tol).sum())
     V = (Vt.T / norms[:, None])  # back to scaled (unequilibrated) coordinates
@@ -239,12 +313,105 @@ def analyse(model: MeasurementModel, active: np.ndarray | None = None, rank_tol:
 
 
 def whitener(C: np.ndarray) -> np.ndarray:
-    """L^-1 with C = L L^T, batched (…, 3, 3): ``whitener(C) @ r`` has unit covariance."""
-    L = np.linalg.cholesky(C)
-    return np.linalg.inv(L)
+    """L^-1 with C = L L^T, batched (…, 3, 3): ``whitener(C) @ r`` has unit covariance.
+
+    3 x 3 blocks are factorised and inverted in closed form, elementwise over the batch (the same
+    numbers as ``inv(cholesky(C))`` to round-off, several times faster than LAPACK's batched calls on
+    blocks this small); anything else, or a block that is not positive definite, goes through numpy.
+    """
+    C = np.asarray(C, float)
+    if C.shape[-2:] != (3, 3):
+        return np.linalg.inv(np.linalg.cholesky(C))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        l00 = np.sqrt(C[..., 0, 0])
+        l10, l20 = C[..., 1, 0] / l00, C[..., 2, 0] / l00
+        l11 = np.sqrt(C[..., 1, 1] - l10 * l10)
+        l21 = (C[..., 2, 1] - l20 * l10) / l11
+        l22 = np.sqrt(C[..., 2, 2] - l20 * l20 - l21 * l21)
+        out = np.zeros(C.shape)
+        out[..., 0, 0] = i00 = 1.0 / l00
+        out[..., 1, 1] = i11 = 1.0 / l11
+        out[..., 2, 2] = i22 = 1.0 / l22
+        out[..., 1, 0] = -l10 * i00 * i11
+        out[..., 2, 1] = -l21 * i11 * i22
+        out[..., 2, 0] = (l10 * l21 - l20 * l11) * i00 * i11 * i22
+    if not np.isfinite(out).all():  # not positive definite (or not finite): numpy says so
+        return np.linalg.inv(np.linalg.cholesky(C))
+    return out
 
 
-def _check_inputs(model: MeasurementModel, meas: np.ndarray):
+SOLVERS = ("chord", "gauss-newton")
+
+
+# ----------------------------------------------------------------------------- what depends on the plan only
+_PLAN_CACHE: dict = {}
+
+
+def _fingerprint(model: MeasurementModel) -> bytes:
+    """Everything the cached plan quantities depend on: configuration, parameters, ranges, plan points, tools."""
+    h = hashlib.blake2b(digest_size=16)
+    h.update(model.config.code.encode())
+    h.update("\0".join(model.errors.names).encode())
+    h.update(repr(sorted((a, tuple(map(float, r))) for a, r in model.errors.ranges.items())).encode())
+    for a in (model.plan.nominal, model.plan.tool, model.B):
+        a = np.ascontiguousarray(a, float)
+        h.update(repr(a.shape).encode())
+        h.update(a.tobytes())
+    return h.digest()
+
+
+def _plan_cache(model: MeasurementModel) -> dict:
+    """The cache of what identification computes from the plan and error model alone, for this model object.
+
+    Keyed by the object's id, guarded by a weak reference (an id the interpreter reuses after the
+    model is gone does not match, and the entry goes with the model) and by a fingerprint of what
+    the entries depend on (a model changed in place gets a fresh entry).
+    """
+    key = id(model)
+    fp = _fingerprint(model)
+    entry = _PLAN_CACHE.get(key)
+    if entry is not None and entry[0]() is model and entry[1] == fp:
+        return entry[2]
+
+    def drop(ref, key=key):
+        e = _PLAN_CACHE.get(key)
+        if e is not None and e[0] is ref:
+            del _PLAN_CACHE[key]
+
+    data: dict = {}
+    _PLAN_CACHE[key] = (weakref.ref(model, drop), fp, data)
+    return data
+
+
+def _read_only(*arrays):
+    for a in arrays:
+        if isinstance(a, np.ndarray):
+            a.flags.writeable = False
+    return arrays
+
+
+def _phase(model, cache, active, rank_tol):
+    """(identifiability, basis Q) of the active parameters: the SVDs, once per model, mask and rank tolerance."""
+    key = ("phase", active.tobytes(), float(rank_tol))
+    if key not in cache:
+        ident = analyse(model, active, rank_tol)
+        Q = range_basis(active, ident.null_space)
+        _read_only(ident.null_space, ident.singular_values, Q)
+        cache[key] = (ident, Q)
+    return cache[key]
+
+
+def _nominal(model, cache, Q):
+    """Machine points at theta = 0 (M, 3) and their Jacobian along the scaled directions Q / scale (M, 3, r)."""
+    key = ("nominal", Q.tobytes(), Q.shape)
+    if key not in cache:
+        P0, J0 = model.machine_points(np.zeros((1, model.n_params)), jacobian=True,
+                                      project=Q / scale_vector(model)[:, None])
+        cache[key] = _read_only(P0[0], J0[0])
+    return cache[key]
+
+
+def _check_inputs(model: MeasurementModel, meas: np.ndarray, cache: dict | None = None):
     if meas.shape[-2:] != (model.n_points, 3):
         raise IdentificationError(f"measured points have shape {meas.shape[-2:]}, the plan has {model.n_points} points x 3")
     bad = ~np.isfinite(meas).all(axis=-1)
@@ -253,6 +420,8 @@ def _check_inputs(model: MeasurementModel, meas: np.ndarray):
         raise IdentificationError(
             f"measured coordinates are NaN or infinite at plan rows {rows.tolist()} "
             "(0-based); remove or repair those points before identifying")
+    if cache is not None and cache.get("plan_checked"):
+        return
     nominal = model.plan.nominal
     for a in AXES:
         npos = len(np.unique(np.round(nominal[:, AXIS_INDEX[a]], 6)))
@@ -265,6 +434,13 @@ def _check_inputs(model: MeasurementModel, meas: np.ndarray):
     sv = np.linalg.svd(pts - pts.mean(0), compute_uv=False)
     if sv[1] <= 1e-9 * max(sv[0], 1e-12):
         raise IdentificationError("all measured points lie on one line: the tracker rotation about it cannot be identified")
+    if cache is not None:
+        cache["plan_checked"] = True
+
+
+def _rows(fixed: dict, idx, N: int) -> dict:
+    """The fixed perturbations of the trials ``idx`` (those given per trial are indexed, the others broadcast)."""
+    return {k: (v[idx] if np.ndim(v) and np.shape(v)[0] == N and N > 1 else v) for k, v in fixed.items()}
 
 
 def identify(
@@ -286,13 +462,20 @@ def identify(
     fixed: perturbations known a priori (``MODEL_INPUTS`` keys, broadcastable
     over trials), e.g. a thermal scale that a diagnosis candidate asserts.
     chunk: trials solved together (default: about 8 MB of Jacobian per chunk, which
-    keeps the working set in cache; larger chunks are slower, not faster).
+    keeps the working set in cache; larger chunks are slower, not faster).  The chord
+    solver shares one factorisation per chunk.
+
+    The result says which solver ran (``solver``) and, for the chord solver, which
+    trials it handed to Gauss-Newton (``fallback``, ``n_fallback``).
     """
     strategy = strategy or Strategy()
+    if strategy.solver not in SOLVERS:
+        raise IdentificationError(f"unknown solver {strategy.solver!r}; expected one of {', '.join(SOLVERS)}")
     meas = np.asarray(measured, float)
     if meas.ndim == 2:
         meas = meas[None]
-    _check_inputs(model, meas)
+    cache = _plan_cache(model)
+    _check_inputs(model, meas, cache)
     fixed = dict(fixed or {})
     if "spherical_noise" in fixed:
         raise IdentificationError("spherical_noise cannot be a fixed perturbation in identification")
@@ -301,7 +484,7 @@ def identify(
     N, M = meas.shape[:2]
     p = model.n_params
 
-    # identifiability of each phase (depends on the plan only, computed once)
+    # identifiability of each phase (depends on the plan only: computed once per model, see _plan_cache)
     phases = []
     for phase in strategy.phases:
         unknown = set(phase) - set(GROUPS)
@@ -310,7 +493,7 @@ def identify(
         if "pose" not in phase:
             raise IdentificationError("every phase must include the pose (the tracker pose is always unknown)")
         active = np.array([group_of(par) in phase for par in model.errors.params])
-        ident = analyse(model, active, strategy.rank_tol)
+        ident, Q = _phase(model, cache, active, strategy.rank_tol)
         if not ident.pose_identifiable:
             raise IdentificationError("the plan's points do not fix the tracker pose (all points on a line)")
         n_unknown = 6 + ident.identifiable
@@ -318,39 +501,77 @@ def identify(
             raise IdentificationError(
                 f"too few points: {M} points give {3 * M} coordinates for {n_unknown} identifiable unknowns "
                 f"(no redundancy left); measure more points or lower the degrees of the error functions")
-        phases.append((active, ident, range_basis(active, ident.null_space)))
+        phases.append((active, ident, Q))
 
     theta0 = np.zeros((N, p)) if theta0 is None else np.broadcast_to(np.asarray(theta0, float), (N, p))
     pose0 = None if pose0 is None else np.broadcast_to(np.asarray(pose0, float), (N, 6))
     if chunk is None:
         chunk = max(16, int(8e6 // (M * 3 * max(p, 1) * 8)))
+    chord = strategy.solver == "chord"
     parts = []
     for lo in range(0, N, chunk):
         sl = slice(lo, min(N, lo + chunk))
-        fx = {k: (v[sl] if np.ndim(v) and np.shape(v)[0] == N and N > 1 else v) for k, v in fixed.items()}
-        parts.append(_identify_chunk(model, meas[sl], noise, strategy, theta0[sl].copy(),
-                                     None if pose0 is None else pose0[sl].copy(), fx, phases))
+        args = (model, meas[sl], noise, strategy, theta0[sl].copy(), None if pose0 is None else pose0[sl].copy(),
+                _rows(fixed, sl, N), phases)
+        parts.append(_identify_chunk_chord(*args, cache) if chord else _identify_chunk(*args))
     cat = lambda key: np.concatenate([q[key] for q in parts], axis=0)  # noqa: E731
-    return Identification(
+    res = Identification(
         model=model, theta=cat("theta"), pose=cat("pose"), residual=cat("residual"),
         residual_machine=cat("residual_machine"), chi2=cat("chi2"), dof=parts[0]["dof"],
-        cov_theta=cat("cov_theta"), cov_pose=cat("cov_pose"), initial_error=cat("initial_error"),
-        converged=cat("converged"), iterations=max(q["iterations"] for q in parts),
-        identifiability=phases[-1][1], whitened=cat("whitened"), whitener=cat("whitener"), design=cat("design"),
-        basis=phases[-1][2], scale=scale_vector(model),
-    )
+        initial_error=cat("initial_error"), converged=cat("converged"),
+        iterations=max(q["iterations"] for q in parts), identifiability=phases[-1][1], whitened=cat("whitened"),
+        whitener=cat("whitener"), basis=phases[-1][2], scale=scale_vector(model), solver=strategy.solver,
+        fallback=cat("fallback") if chord else None)
+    if chord:  # design and covariances at the solution: exact, computed when first asked for
+        res._solution_inputs = {"measured": meas, "fixed": fixed, "chunk": chunk}
+    else:
+        res._at_solution.update(design=cat("design"), cov_theta=cat("cov_theta"), cov_pose=cat("cov_pose"))
+    return res
 
 
-def _identify_chunk(model, meas, noise, strategy, theta, pose, fixed, phases):
+def _weights(model, meas, noise, strategy):
+    """Each point's whitener (N, M, 3, 3) from the stated uncertainties, evaluated at the measured points."""
     N, M = meas.shape[:2]
-    p = model.n_params
-    sv = scale_vector(model)
-    # weights from the stated uncertainties, evaluated at the measured points
     if strategy.weighted:
         C = model.covariance(meas, noise.angular, noise.distance, noise.distance_per_length, noise.repeatability)
     else:
         C = np.broadcast_to(np.eye(3) * (noise.distance**2 + noise.repeatability**2), (N, M, 3, 3))
-    Wh = whitener(C)
+    return whitener(C)
+
+
+def _covariances(A, Q, sv):
+    """cov_theta (N, p, p) and cov_pose (N, 6, 6) from the whitened design A (N, 3M, 6 + r) in the scaled unknowns."""
+    p, n_unknown = Q.shape[0], A.shape[2]
+    AtA = np.swapaxes(A, 1, 2) @ A
+    cov_z = np.linalg.inv(AtA)
+    T = np.zeros((6 + p, n_unknown))
+    T[:6, :6] = np.diag(1.0 / POSE_SCALE)
+    T[6:, 6:] = Q / sv[:, None]
+    cov_full = T @ cov_z @ T.T
+    return cov_full[:, 6:, 6:], cov_full[:, :6, :6]
+
+
+def _solution_quantities(res: Identification, measured, fixed, chunk) -> dict:
+    """Design and covariances at the solution, from the chain's exact Jacobian there (chord solver)."""
+    model, Q, sv = res.model, res.basis, res.scale
+    N = len(res.theta)
+    designs, cth, cpo = [], [], []
+    for lo in range(0, N, chunk):
+        sl = slice(lo, min(N, lo + chunk))
+        P_W, J = model.machine_points(res.theta[sl], _rows(fixed, sl, N), jacobian=True, project=Q / sv[:, None])
+        A = design_matrix(P_W, J, res.pose[sl], res.whitener[sl], Q, sv)
+        ct, cp = _covariances(A, Q, sv)
+        designs.append(A)
+        cth.append(ct)
+        cpo.append(cp)
+    return {"design": np.concatenate(designs), "cov_theta": np.concatenate(cth), "cov_pose": np.concatenate(cpo)}
+
+
+def _identify_chunk(model, meas, noise, strategy, theta, pose, fixed, phases, with_covariance=True):
+    N, M = meas.shape[:2]
+    p = model.n_params
+    sv = scale_vector(model)
+    Wh = _weights(model, meas, noise, strategy)
 
     # registration: Kabsch start, then the weighted pose-only fit of the nominal points.
     # Its deviations are the "before compensation" errors of Eq. 27.
@@ -370,23 +591,224 @@ def _identify_chunk(model, meas, noise, strategy, theta, pose, fixed, phases):
     # final quantities and covariance at the solution (the last Gauss-Newton evaluation)
     Q = phases[-1][2]
     res = meas - lt.to_tracker(P_W, pose)
-    A = design_matrix(P_W, J, pose, Wh, Q, sv)
-    wres = w.reshape(N, M, 3)
-    chi2 = (w**2).sum(axis=1)
-    n_unknown = 6 + Q.shape[1]
-    AtA = np.swapaxes(A, 1, 2) @ A
-    cov_z = np.linalg.inv(AtA)
-    T = np.zeros((6 + p, n_unknown))
-    T[:6, :6] = np.diag(1.0 / POSE_SCALE)
-    T[6:, 6:] = Q / sv[:, None]
-    cov_full = T @ cov_z @ T.T
     Rm = lt.rotation(pose[:, 3], pose[:, 4], pose[:, 5])
-    return {
+    out = {
         "theta": theta, "pose": pose, "residual": res, "residual_machine": np.einsum("nij,nmj->nmi", Rm, res),
-        "chi2": chi2, "dof": 3 * M - n_unknown, "cov_theta": cov_full[:, 6:, 6:], "cov_pose": cov_full[:, :6, :6],
-        "initial_error": initial_error, "converged": converged, "iterations": iters, "whitened": wres,
-        "whitener": Wh, "design": A,
+        "chi2": (w**2).sum(axis=1), "dof": 3 * M - (6 + Q.shape[1]), "initial_error": initial_error,
+        "converged": converged, "iterations": iters, "whitened": w.reshape(N, M, 3), "whitener": Wh,
     }
+    if with_covariance:
+        A = design_matrix(P_W, J, pose, Wh, Q, sv)
+        out["design"] = A
+        out["cov_theta"], out["cov_pose"] = _covariances(A, Q, sv)
+    return out
+
+
+# ----------------------------------------------------------------------------- the chord solver
+#: the chord's Jacobian refresh happens once the steps are below this (um, urad): near enough to the
+#: minimum that the exact Jacobian there leaves a negligible bias (see the module docstring)
+_REFRESH_STEP = 0.1
+#: a chord iteration must shrink the step at least this much, or the trial goes to Gauss-Newton
+_MAX_RATE = 0.5
+
+
+def _spd_inverse(H: np.ndarray) -> np.ndarray:
+    """Inverse of a symmetric positive definite matrix, equilibrated by its diagonal."""
+    d = 1.0 / np.sqrt(np.diag(H))
+    Li = np.linalg.inv(np.linalg.cholesky(H * d[:, None] * d[None, :]))
+    return (Li.T @ Li) * d[:, None] * d[None, :]
+
+
+def _rotation(om: np.ndarray) -> np.ndarray:
+    """The exact rotation expm([om]x) (n, 3, 3) for rotation vectors om (n, 3): Rodrigues, with
+    [om]x^2 = om om^T - |om|^2 I (the same as :func:`mtbudget.machine.rotation_exact`, in fewer operations)."""
+    t2 = (om * om).sum(axis=1)
+    small = t2 < 1e-12  # series: exact to double precision below |om| = 1e-6 rad
+    t = np.sqrt(np.where(small, 1.0, t2))
+    a = np.where(small, 1.0 - t2 / 6.0, np.sin(t) / t)
+    b = np.where(small, 0.5 - t2 / 24.0, (1.0 - np.cos(t)) / np.where(small, 1.0, t2))
+    R = skew(om) * a[:, None, None] + (om[:, :, None] * om[:, None, :]) * b[:, None, None]
+    R[:, [0, 1, 2], [0, 1, 2]] += (1.0 - b * t2)[:, None]
+    return R
+
+
+def _rigid_columns(P: np.ndarray, c0: np.ndarray) -> np.ndarray:
+    """d(machine-frame point)/d(small rigid motion): translation, then rotation about c0; scaled by POSE_SCALE."""
+    G = np.zeros(P.shape[:-1] + (3, 6))
+    G[..., :3] = np.eye(3)
+    G[..., 3:] = -skew(P - c0)
+    return G / POSE_SCALE
+
+
+def _identify_chunk_chord(model, meas, noise, strategy, theta, pose0, fixed, phases, cache):
+    """The chord solver on one chunk of trials (see the module docstring); falls back to Gauss-Newton per trial."""
+    N, M = meas.shape[:2]
+    p = model.n_params
+    sv = scale_vector(model)
+    Wh = _weights(model, meas, noise, strategy)
+    WL = np.swapaxes(Wh, -1, -2) @ Wh  # information matrix of each point, tracker frame: C^-1
+    tol = min(strategy.xtol, strategy.chord_tol)
+    refresh = max(tol, _REFRESH_STEP)
+    theta_start = theta.copy()
+
+    # the iteration matrices: the plan's nominal Jacobians with the chunk's mean information (machine frame)
+    Q_last = phases[-1][2]
+    P0, _ = _nominal(model, cache, Q_last)
+    c0 = P0.mean(axis=0)
+    P_nom = np.broadcast_to(model.machine_points(np.zeros((1, p)), fixed) if fixed else P0, (N, M, 3))
+    pose_k = lt.register(P_nom, meas)
+    Rk = lt.rotation(pose_k[:, 3], pose_k[:, 4], pose_k[:, 5])
+    # mean over the chunk of R C^-1 R^T (two batched products rather than N M small ones)
+    X = (WL.reshape(N, 3 * M, 3) @ np.swapaxes(Rk, 1, 2)).reshape(N, M, 3, 3)  # C^-1 R^T
+    X = (Rk @ X.transpose(0, 2, 1, 3).reshape(N, 3, 3 * M)).reshape(N, 3, M, 3)  # R C^-1 R^T, axes (n, i, m, l)
+    W_bar = X.mean(axis=0).transpose(1, 0, 2)
+    G0 = _rigid_columns(P0, c0)
+
+    def matrix(J):
+        K = G0 if J is None else np.concatenate([G0, -J], axis=2)
+        KW = np.einsum("mij,mjb->mib", W_bar, K)
+        return _spd_inverse(K.reshape(3 * M, -1).T @ KW.reshape(3 * M, -1))
+
+    state = {"R": Rk.copy(), "T": pose_k[:, :3].copy(), "theta": theta}
+    bad = np.zeros(N, bool)
+    iters = 0
+
+    # the weighted pose-only fit of the nominal points (Eq. 27 "before"); its gradient is exact, so is its minimum
+    nom = {"R": Rk.copy(), "T": pose_k[:, :3].copy(), "theta": np.zeros((N, p))}
+    ok, it = _chord(nom, np.arange(N), lambda th, rows: P_nom[rows], meas, WL, matrix(None), None, None, c0, tol,
+                    strategy)
+    bad |= ~ok
+    iters += it
+    initial_error = np.einsum("nij,nmj->nmi", nom["R"], meas) + nom["T"][:, None] - P_nom
+
+    # the start of the identification: the given pose, else the pose-only fit (theta0 = 0) or a Kabsch registration
+    if pose0 is not None:
+        state["R"] = lt.rotation(pose0[:, 3], pose0[:, 4], pose0[:, 5])
+        state["T"] = pose0[:, :3].copy()
+        angles0 = pose0[:, 3:]
+    else:
+        at_zero = ~theta.any(axis=1)
+        state["R"], state["T"] = nom["R"].copy(), nom["T"].copy()
+        if not at_zero.all():
+            idx = np.flatnonzero(~at_zero)
+            pk = lt.register(model.machine_points(theta[idx], _rows(fixed, idx, N)), meas[idx])
+            state["R"][idx] = lt.rotation(pk[:, 3], pk[:, 4], pk[:, 5])
+            state["T"][idx] = pk[:, :3]
+        angles0 = lt.euler_from_rotation(state["R"])
+
+    def evaluate(th, rows):
+        return model.machine_points(th, _rows(fixed, rows, N))
+
+    for k, (active, ident, Q) in enumerate(phases):
+        Qs = Q / sv[:, None]
+        _, J0 = _nominal(model, cache, Q)
+        Hinv = matrix(J0)
+        todo = np.flatnonzero(~bad)
+        # stage 1: the nominal Jacobian (earlier phases only give the next one its start)
+        ok, it = _chord(state, todo, evaluate, meas, WL, Hinv, J0, Qs, c0, refresh, strategy, predict=True)
+        bad[todo[~ok]] = True
+        iters += it
+        if k < len(phases) - 1:
+            continue
+        # stage 2: each trial's exact Jacobian where stage 1 stopped, then chord iterations to the tolerance
+        todo = np.flatnonzero(~bad)
+        if todo.size:
+            theta_c = state["theta"][todo].copy()
+            P_c, J_c = model.machine_points(theta_c, _rows(fixed, todo, N), jacobian=True, project=Qs)
+            ok, it = _chord(state, todo, evaluate, meas, WL, Hinv, J_c, Qs, c0, tol, strategy, first=P_c)
+            iters += it
+            # what stage 1's nominal Jacobian left (b1) against the distance it was used over: stage 2's own bias
+            # is about b1 * (b1 / distance) (it used a Jacobian b1 away from the minimum)
+            b1 = np.abs((state["theta"][todo] - theta_c) * sv).max(axis=1)
+            dist = np.maximum(np.abs(theta_c * sv).max(axis=1), 1.0)
+            ok &= b1 * b1 / dist <= strategy.chord_bias
+            bad[todo[~ok]] = True
+
+    # the solution: exact residuals at the final parameters (trials left to Gauss-Newton: at their start, for now)
+    theta, R, T = state["theta"], state["R"], state["T"]
+    theta[bad], R[bad], T[bad] = theta_start[bad], Rk[bad], pose_k[bad, :3]
+    angles = lt.euler_from_rotation(R)
+    angles = angles0 + (angles - angles0 + np.pi) % (2 * np.pi) - np.pi  # the branch nearest the start
+    pose = np.concatenate([T, angles], axis=1)
+    P_W = evaluate(theta, slice(None))
+    res = meas - lt.to_tracker(P_W, pose)
+    w = np.einsum("nmij,nmj->nmi", Wh, res)
+    Rm = lt.rotation(pose[:, 3], pose[:, 4], pose[:, 5])
+    out = {
+        "theta": theta, "pose": pose, "residual": res, "residual_machine": np.einsum("nij,nmj->nmi", Rm, res),
+        "chi2": (w**2).sum(axis=(1, 2)), "dof": 3 * M - (6 + Q_last.shape[1]), "initial_error": initial_error,
+        "converged": ~bad, "iterations": iters, "whitened": w, "whitener": Wh, "fallback": bad.copy(),
+    }
+    if bad.any():  # the reference path, from the same start, for the trials the chord could not finish
+        idx = np.flatnonzero(bad)
+        gn = _identify_chunk(model, meas[idx], noise, strategy, theta_start[idx], None if pose0 is None else pose0[idx],
+                             _rows(fixed, idx, N), phases, with_covariance=False)
+        for key in ("theta", "pose", "residual", "residual_machine", "chi2", "initial_error", "converged", "whitened"):
+            out[key][idx] = gn[key]
+        out["iterations"] += gn["iterations"]
+    return out
+
+
+def _chord(state, rows, evaluate, meas, WL, Hinv, J, Qs, c0, tol, strategy, first=None, predict=False):
+    """Chord iterations for the trials ``rows`` (updated in place in ``state``: R, T, theta).
+
+    evaluate(theta, rows) -> machine points (n, M, 3); WL (N, M, 3, 3) each point's information matrix
+    (tracker frame); Hinv the shared inverse normal matrix; J the geometric Jacobian along the scaled
+    directions Qs, shared (M, 3, r) or per trial (n, M, 3, r) (None: the pose alone); first: the
+    machine points at the start, when already known; predict: also stop when the next step, predicted
+    from the contraction of the last two, is below ``tol``.  Returns (converged per row, iterations).
+    """
+    n = len(rows)
+    ok = np.zeros(n, bool)
+    live = np.arange(n)  # positions in rows still iterating
+    prev = np.full(n, np.inf)
+    it = 0
+    per_trial = J is not None and J.ndim == 4
+    for it in range(1, strategy.chord_iter + 1):
+        r = rows[live]
+        R, T = state["R"][r], state["T"][r]
+        P_W = first[live] if (first is not None and it == 1) else evaluate(state["theta"][r], r)
+        r_lt = meas[r] - (P_W - T[:, None]) @ R  # R^T (P_W - T), tracker frame
+        W = WL[r]
+        u = W[..., 0] * r_lt[..., 0, None] + W[..., 1] * r_lt[..., 1, None] + W[..., 2] * r_lt[..., 2, None]
+        v = u @ np.swapaxes(R, 1, 2)  # the weighted residual in the machine frame: R C^-1 R^T (x_W - P_W)
+        a = P_W - c0
+        torque = np.stack([(a[..., 1] * v[..., 2] - a[..., 2] * v[..., 1]).sum(axis=1),
+                           (a[..., 2] * v[..., 0] - a[..., 0] * v[..., 2]).sum(axis=1),
+                           (a[..., 0] * v[..., 1] - a[..., 1] * v[..., 0]).sum(axis=1)], axis=1)
+        g = [v.sum(axis=1) / POSE_SCALE[:3], torque / POSE_SCALE[3:]]
+        if J is not None:
+            Jr = J[live] if per_trial and live.size < n else J
+            m3 = 3 * P_W.shape[1]
+            if per_trial:
+                g.append(-(v.reshape(len(r), 1, m3) @ Jr.reshape(len(r), m3, Jr.shape[-1]))[:, 0])
+            else:
+                g.append(-(v.reshape(len(r), m3) @ Jr.reshape(m3, Jr.shape[-1])))
+        g = np.concatenate(g, axis=1)
+        z = -(g @ Hinv)
+        step = np.abs(z).max(axis=1)
+        cost = (r_lt * u).sum(axis=(1, 2))
+        # the step, applied
+        Rot = _rotation(z[:, 3:6] / POSE_SCALE[3:])
+        state["R"][r] = Rot @ R
+        state["T"][r] = np.einsum("nij,nj->ni", Rot, T - c0) + c0 + z[:, :3] / POSE_SCALE[:3]
+        if J is not None:
+            state["theta"][r] += z[:, 6:] @ Qs.T
+        # the contraction is judged in the energy norm of the step, |z|_H = sqrt(z^T H z) = sqrt(-g.z) (the
+        # decrease of the cost the step predicts): there the chord contracts monotonically, while the largest
+        # component may first grow along poorly determined combinations (pose rotation against the geometry)
+        energy = np.sqrt(np.maximum(-(g * z).sum(axis=1), 0.0))
+        rate = np.where(np.isfinite(prev[live]), energy / prev[live], np.inf)  # no rate before the second step
+        done = (step < tol) | (energy**2 <= strategy.ftol * cost)
+        if predict:  # the next step, predicted from the contraction, is below the tolerance
+            done |= step * rate < tol
+        slow = ~done & np.isfinite(rate) & (rate > _MAX_RATE)
+        ok[live[done]] = True
+        prev[live] = energy
+        live = live[~done & ~slow]
+        if not live.size:
+            break
+    return ok, it
 
 
 def range_basis(active: np.ndarray, null: np.ndarray | None) -> np.ndarray:

@@ -23,7 +23,7 @@ from .budget import attribution, point_lpu
 from .config import SimulationConfig, load_config, parse_config
 from .engine import Engine
 from .errors import ConfigError, RunLogError
-from .executors import EXECUTORS, Executor
+from .executors import EXECUTORS, Executor, one_blas_thread
 from .outputs import MAIN_OUTPUT, SCALARS, RunResult, accumulate_block
 from .plugins import PluginHost
 from .progress import progress_bar
@@ -115,8 +115,16 @@ def run(config: SimulationConfig | Scenario | str | None = None, settings: RunSe
 
     on_chunk(blocks, result) is called after each chunk of blocks is merged
     (the run log hooks in here).  resume_blocks: block results already
-    computed (from a log); they are merged first and not recomputed.
+    computed (from a log); they are merged first and not recomputed.  The
+    whole run uses one BLAS thread (executors.one_blas_thread): the results
+    are bit-identical whatever the machine's BLAS threading and executor.
     """
+    with one_blas_thread():
+        return _run(config, settings, on_chunk=on_chunk, resume_blocks=resume_blocks, engine=engine, host=host,
+                    **overrides)
+
+
+def _run(config, settings, *, on_chunk, resume_blocks, engine, host, **overrides) -> RunResult:
     settings = replace(settings or RunSettings(), **overrides).validate()
     if engine is None:
         scenario = config if isinstance(config, Scenario) else build_scenario(
@@ -201,6 +209,11 @@ def _record(result: RunResult):
 def execute(config=None, settings: RunSettings | None = None, *, log_path=None, resume_path=None, force: bool = False,
             **overrides) -> RunResult:
     """Run (or resume) a Monte Carlo study and log it to MCAP; what ``mtbudget run`` does."""
+    with one_blas_thread():
+        return _execute(config, settings, log_path=log_path, resume_path=resume_path, force=force, **overrides)
+
+
+def _execute(config, settings, *, log_path, resume_path, force, **overrides) -> RunResult:
     from .report import result_json
     from .runlog import RunLogWriter, read_runlog
 
@@ -300,6 +313,13 @@ def verify(path, progress: bool = False) -> dict:
             notes.append(f"source {p['source']!r} (plugin {p['name']}, {p['package']} {p['version']}) is not installed now")
         elif now[1] != p["version"]:
             notes.append(f"source {p['source']!r}: logged with {p['package']} {p['version']}, installed now {now[0]} {now[1]}")
+    with one_blas_thread():
+        return _verify(log, h, notes, progress)
+
+
+def _verify(log, h, notes, progress) -> dict:
+    from .executors import engine_from_spec
+
     eng = engine_from_spec(h["spec"])
     logged = sorted(log.block_results(), key=lambda b: b.block)
     mismatches = []

@@ -113,11 +113,45 @@ def placement_settings(scenario: Scenario, tests: int | None = None) -> Placemen
 
 def _visible(station: np.ndarray, pts: np.ndarray, s: PlacementSettings) -> np.ndarray:
     """(K,) stations that see every point within range and elevation limits and stand outside the envelope."""
-    d = pts[None, :, :] - station[:, None, :]  # (K, M, 3), tracker level (no tilt)
-    r = np.linalg.norm(d, axis=2)
-    el = np.arcsin(np.clip(d[..., 2] / r, -1, 1))
-    inside = np.all((station >= s.envelope_low) & (station <= s.envelope_high), axis=1)
-    return (r.min(1) >= s.range_min) & (r.max(1) <= s.range_max) & (np.abs(el).max(1) <= s.elevation_max) & ~inside
+    dx, dy, dz = _differences(station, pts)
+    return _visible_from(_range(dx, dy, dz), dz, station, s)
+
+
+def _differences(station: np.ndarray, pts: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
+    """The points seen from each station (tracker level, no tilt), component-major: (3, ..., M).
+
+    station (..., 3), pts (M, 3).  The values are those of ``pts - station`` element for element; one
+    contiguous array per component keeps every later operation on contiguous memory.
+    """
+    out = np.empty((3,) + station.shape[:-1] + (len(pts),)) if out is None else out
+    for c in range(3):
+        np.subtract(pts[:, c], station[..., c, None], out=out[c])
+    return out
+
+
+def _range(dx, dy, dz) -> np.ndarray:
+    """``sqrt((dx^2 + dy^2) + dz^2)``: what ``np.linalg.norm`` computes over (x, y, z), bit for bit."""
+    return np.sqrt((dx * dx + dy * dy) + dz * dz)
+
+
+def _visible_from(r, dz, station, s: PlacementSettings) -> np.ndarray:
+    """:func:`_visible` from the ranges and heights (..., M) of the points: the same decisions, bit for bit.
+
+    arcsin is odd and increasing, so the largest |elevation| is the arcsin of the largest |dz| / r: one
+    arcsin per station instead of one per point.
+    """
+    el = np.arcsin(np.clip(np.abs(dz / r).max(axis=-1), -1, 1))
+    inside = np.all((station >= s.envelope_low) & (station <= s.envelope_high), axis=-1)
+    return (r.min(-1) >= s.range_min) & (r.max(-1) <= s.range_max) & (el <= s.elevation_max) & ~inside
+
+
+#: tests whose candidate stations are evaluated together: about 2 MB of differences (a mesh that is not a
+#: grid: every point of every station), which stays in cache; on a grid, a few points per station
+_PLACEMENT_SUBCHUNK = 32
+_PLACEMENT_SUBCHUNK_GRID = 250
+#: relative margin of the bounds that rule a station out before its u_p is computed at every point
+#: (far above the round-off of the bounds, ~1e-15; far below any real difference between stations)
+_BOUND_MARGIN = 1e-9
 
 
 def placement(scenario: Scenario, tests: int | None = None, seed: int | None = None, progress: bool = False,
@@ -134,25 +168,23 @@ def placement(scenario: Scenario, tests: int | None = None, seed: int | None = N
            "directions": {}}
     bar = progress_bar(s.tests * len(s.spaces), "placement", "test", progress)
     um = factor("mm", "um")
+    grid = _grid_axes(pts)  # the mesh is a grid: its extremes decide visibility and the ranking bounds
+    sub = _PLACEMENT_SUBCHUNK_GRID if grid is not None else _PLACEMENT_SUBCHUNK
+    buf = None if grid is not None else np.empty((3, sub, s.candidates, len(pts)))  # reused from call to call
     t0 = time.perf_counter()
     for sp, child in zip(s.spaces, ss.spawn(len(s.spaces))):
         best_loc = np.empty((s.tests, 3))
         best_err = np.empty(s.tests)
         rng = np.random.default_rng(child)
         for lo in range(0, s.tests, chunk):
+            # the random draws: chunk by chunk, in this order (the numbers depend on it)
             n = min(chunk, s.tests - lo)
             ua = np.abs(rng.normal(s.angular_mean, s.angular_sd, (n, 2)))  # u_theta, u_phi per test
             st = rng.uniform(sp.low, sp.high, (n, s.candidates, 3))
-            ok = _visible(st.reshape(-1, 3), pts, s).reshape(n, s.candidates)
-            d = pts[None, None] - st[:, :, None, :]  # (n, K, M, 3): the point seen from the station (frame aligned)
-            # Eq. 24: u_p = sqrt(trace) of the tracker covariance of Eq. 23
-            up = lt.point_uncertainty(d, ua[:, None, None, 0], s.distance, s.distance_per_length, ua[:, None, None, 1])
-            worst = up.max(axis=2)
-            worst[~ok] = np.inf
-            k = worst.argmin(axis=1)
-            rows = np.arange(n)
-            best_err[lo:lo + n] = worst[rows, k] * um
-            best_loc[lo:lo + n] = st[rows, k]
+            # the arithmetic: a few tests at a time, so that the differences stay in cache
+            for a in range(0, n, sub):
+                b = min(n, a + sub)
+                best_err[lo + a:lo + b], best_loc[lo + a:lo + b] = _best_stations(st[a:b], ua[a:b], pts, s, um, buf, grid)
             bar.update(n)
         good = np.isfinite(best_err)
         out["directions"][sp.name] = {"space": {"low": sp.low.tolist(), "high": sp.high.tolist()},
@@ -166,6 +198,92 @@ def placement(scenario: Scenario, tests: int | None = None, seed: int | None = N
                         "reduction": 1 - better[1] / worse[1]}
     out["fits"] = {k: fit_candidates(v["max_error_um"]) for k, v in out["directions"].items()}
     return out
+
+
+def _grid_axes(pts: np.ndarray):
+    """The axis values (x, y, z) when the points are exactly every combination of them, else None."""
+    axes = [np.unique(pts[:, c]) for c in range(3)]
+    if len(pts) != np.prod([len(v) for v in axes]):
+        return None
+    idx = [np.searchsorted(v, pts[:, c]) for c, v in enumerate(axes)]
+    flat = (idx[0] * len(axes[1]) + idx[1]) * len(axes[2]) + idx[2]
+    return axes if len(np.unique(flat)) == len(pts) else None
+
+
+def _grid_extremes(st: np.ndarray, grid: list, s: PlacementSettings):
+    """Visibility, farthest point and range to it for stations st (n, K, 3) and a grid of points, exactly.
+
+    Every rounded operation is monotone, so the range computed as ``sqrt((dx^2 + dy^2) + dz^2)`` is
+    largest at the grid point farthest on every axis (an end of each axis) and smallest at the nearest
+    on every axis (one of the two values around the station), and among the points of one z level
+    |dz| / r is largest at the nearest (x, y): the minimum and maximum range and the largest |elevation|
+    over the grid, computed at those few points, are what the point-by-point computation finds, bit for
+    bit.  Returns (visible (n, K), the farthest point seen from the station (n, K, 3), its range (n, K)).
+    """
+    far, near = [], []
+    for c, v in enumerate(grid):  # v: the axis values, sorted
+        x = st[..., c]
+        lo, hi = v[0] - x, v[-1] - x
+        far.append(np.where(np.abs(hi) >= np.abs(lo), hi, lo))
+        i = np.clip(np.searchsorted(v, x), 1, len(v) - 1) if len(v) > 1 else np.zeros(x.shape, int)
+        below, above = v[i - 1] - x, v[i] - x
+        near.append(np.where(np.abs(above) < np.abs(below), above, below))
+    r_max = _range(*far)
+    r_min = _range(*near)
+    dz = grid[2] - st[..., 2, None]  # every z level, at the nearest (x, y)
+    el = np.arcsin(np.clip(np.abs(dz / _range(near[0][..., None], near[1][..., None], dz)).max(axis=-1), -1, 1))
+    lo, hi = s.envelope_low, s.envelope_high
+    inside = ((st[..., 0] >= lo[0]) & (st[..., 0] <= hi[0]) & (st[..., 1] >= lo[1]) & (st[..., 1] <= hi[1])
+              & (st[..., 2] >= lo[2]) & (st[..., 2] <= hi[2]))
+    ok = (r_min >= s.range_min) & (r_max <= s.range_max) & (el <= s.elevation_max) & ~inside
+    return ok, np.stack(far, axis=-1), r_max
+
+
+def _best_stations(st: np.ndarray, ua: np.ndarray, pts: np.ndarray, s: PlacementSettings, um: float,
+                   buf: np.ndarray | None = None, grid: list | None = None):
+    """For tests (n,) with candidate stations st (n, K, 3) and angular uncertainties ua (n, 2): the best
+    station's maximum u_p (um; inf when no station sees the mesh) and the station (n, 3).
+
+    The same numbers as ranking every visible station by its maximum u_p over the mesh, computed for
+    fewer stations: u_p at a station's farthest point is a lower bound of its maximum, and
+    sqrt((a + b r_max)^2 + (u_az^2 + u_el^2) r_max^2) an upper bound (the distance to every point is at
+    most r_max, its horizontal part at most the distance).  A station whose lower bound exceeds the
+    smallest upper bound of the test (by a relative margin far above round-off) cannot be the best and
+    is not evaluated further; every u_p that decides comes from :func:`mtbudget.tracker.point_uncertainty`.
+    buf: room for the differences (3, >= n, K, M), reused from one call to the next; grid: the points'
+    axis values when they are every combination of them (:func:`_grid_axes`, :func:`_grid_extremes`).
+    """
+    n, K = st.shape[:2]
+    a, b = s.distance, s.distance_per_length
+    if grid is not None:  # the points are a grid: its extremes decide, a few points per station
+        D = None
+        ok, P_far, r_max = _grid_extremes(st, grid, s)
+    else:
+        D = _differences(st, pts, None if buf is None else buf[:, :n])  # (3, n, K, M): frame aligned
+        r = _range(D[0], D[1], D[2])
+        ok = _visible_from(r, D[2], st, s)
+        i, j = np.indices((n, K))
+        far = r.argmax(axis=-1)
+        r_max = r[i, j, far]
+        P_far = np.moveaxis(D[:, i, j, far], 0, -1)
+    candidates = ok
+    if a >= 0 and b >= 0:  # (a + b r)^2 grows with r: the bounds hold
+        lower = lt.point_uncertainty(P_far, ua[:, None, 0], a, b, ua[:, None, 1])
+        upper = np.sqrt((a + b * r_max) ** 2 + ((ua[:, 0] ** 2 + ua[:, 1] ** 2)[:, None]) * r_max**2)
+        bound = np.where(ok, upper, np.inf).min(axis=1)
+        candidates = ok & (lower <= bound[:, None] * (1 + _BOUND_MARGIN))
+    t, k = np.nonzero(candidates)
+    worst = np.full((n, K), np.inf)
+    if t.size:
+        # Eq. 24: u_p = sqrt(trace) of the tracker covariance of Eq. 23, at every point of the stations left;
+        # the points (nv, M, 3) as a view whose component axis is outermost in memory (the same numbers as a
+        # copy, faster to reduce)
+        Dv = _differences(st[t, k], pts) if D is None else D[:, t, k]
+        up = lt.point_uncertainty(np.moveaxis(Dv, 0, -1), ua[t, 0][:, None], a, b, ua[t, 1][:, None])
+        worst[t, k] = up.max(axis=1)
+    best = worst.argmin(axis=1)
+    rows = np.arange(n)
+    return worst[rows, best] * um, st[rows, best]
 
 
 def fit_candidates(x: np.ndarray) -> list:

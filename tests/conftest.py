@@ -20,3 +20,12 @@ def default_config():
 @pytest.fixture
 def rng():
     return np.random.default_rng(12345)
+
+
+@pytest.fixture(scope="session", autouse=True)
+def one_blas_thread():
+    """The suite's matrices are small: one BLAS thread is faster, and much faster on a shared 2-core machine."""
+    from threadpoolctl import threadpool_limits
+
+    with threadpool_limits(limits=1, user_api="blas"):
+        yield

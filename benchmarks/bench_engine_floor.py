@@ -1,0 +1,244 @@
+"""The verification Monte Carlo against a plain numpy floor of the same size (issue 12, first bullet).
+
+Run:  python benchmarks/bench_engine_floor.py [--trials 640] [--before REV]
+
+1. Accuracy, before any time: simulated verifications of the built-in default configuration
+   (the engine's own trials) identified with the chord solver and with Gauss-Newton; the largest
+   difference in the tracker points and in the compensated field, and how many trials fell back;
+   beside it, how far a whitener shared by all trials would move the result.  Then identify()
+   alone, chord against Gauss-Newton.
+2. The floor, in plain numpy, of the same size (75 points, 48 geometric + 6 pose parameters):
+   simulate (the model linearised at the nominal, plus the tracker's correlated noise), identify
+   with one shared pseudo-inverse and two chord iterations, evaluate the compensated field at the
+   mesh (rigid motions removed, as the engine does).
+3. The engine: ``mtbudget.runner.run`` on the built-in default configuration, attribution_trials=0,
+   with the chord solver, with Gauss-Newton and (``--before REV``) with ``mtbudget/identify.py`` as
+   it was at git revision REV, all in this run.  Per-trial time is the slope between two run lengths
+   (best of 3 each), so the run's one-off work (scenario, GUF, first identifiability analysis) does
+   not count; the all-in time of the longer run is printed beside it.
+
+Times are ratios to what is measured in the same run; the machines are shared.
+"""
+
+from __future__ import annotations
+
+import argparse
+import subprocess
+import sys
+import time
+import types
+from pathlib import Path
+
+import numpy as np
+
+import mtbudget.engine as engine_module
+from mtbudget import tracker as lt
+from mtbudget.config import load_config
+from mtbudget.engine import Engine
+from mtbudget.identify import Strategy, identify, whitener
+from mtbudget.runner import run
+from mtbudget.scenario import build_scenario
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+# ----------------------------------------------------------------------------- 1. accuracy
+def accuracy(scenario, blocks=4):
+    eng = Engine(scenario)
+    model = scenario.id_model
+    worst_p = worst_f = 0.0
+    fallbacks = trials = 0
+    for b in range(blocks):
+        meas, _, _ = eng.simulate(b)
+        for phases in (Strategy.one_phase, Strategy.multi_phase):
+            ref = identify(model, meas, scenario.noise, phases(solver="gauss-newton"))
+            fast = identify(model, meas, scenario.noise, phases())
+            worst_p = max(worst_p, np.abs(model.predict(ref.theta, ref.pose) - model.predict(fast.theta, fast.pose)).max())
+            F = lambda th: model.machine_points(th)[:, scenario.mesh_rows]  # noqa: E731
+            worst_f = max(worst_f, np.abs(F(ref.theta) - F(fast.theta)).max())
+            fallbacks += fast.n_fallback
+            trials += len(meas)
+    return worst_p, worst_f, fallbacks, trials
+
+
+def shared_whitener_effect(scenario, blocks=4):
+    """How far one whitener for all trials (at the nominal points) moves Gauss-Newton's result (mm)."""
+    import mtbudget.identify as identify_module
+
+    eng = Engine(scenario)
+    model, n = scenario.id_model, scenario.noise
+    nominal = model.predict(np.zeros(model.n_params), scenario.pose)
+    Wh0 = whitener(model.covariance(nominal, n.angular, n.distance, n.distance_per_length, n.repeatability))
+    real = identify_module._weights
+    worst_p = worst_f = 0.0
+    for b in range(blocks):
+        meas, _, _ = eng.simulate(b)
+        ref = identify(model, meas, n, Strategy(solver="gauss-newton"))
+        identify_module._weights = lambda model, meas, noise, strategy: np.repeat(Wh0, len(meas), axis=0)
+        try:
+            shared = identify(model, meas, n, Strategy(solver="gauss-newton"))
+        finally:
+            identify_module._weights = real
+        worst_p = max(worst_p, np.abs(model.predict(ref.theta, ref.pose) - model.predict(shared.theta, shared.pose)).max())
+        F = lambda th: model.machine_points(th)[:, scenario.mesh_rows]  # noqa: E731
+        worst_f = max(worst_f, np.abs(F(ref.theta) - F(shared.theta)).max())
+    return worst_p, worst_f
+
+
+def identification_per_trial(scenario, blocks=4, group=16):
+    """ms per trial of identify() alone on the engine's trials, in groups as the engine forms them."""
+    eng = Engine(scenario)
+    meas = [eng.simulate(b)[0] for b in range(blocks)]
+    out = {}
+    for solver in ("chord", "gauss-newton"):
+        for phases in (Strategy.one_phase, Strategy.multi_phase):
+            identify(scenario.id_model, meas[0][:group], scenario.noise, phases(solver=solver))  # the plan's cache
+            best = np.inf
+            for _ in range(3):
+                t = time.perf_counter()
+                for m in meas:
+                    for lo in range(0, len(m), group):
+                        identify(scenario.id_model, m[lo:lo + group], scenario.noise, phases(solver=solver))
+                best = min(best, (time.perf_counter() - t) / (blocks * len(meas[0])))
+            out[solver, phases.__name__] = best
+    return out
+
+
+# ----------------------------------------------------------------------------- 2. the floor
+class Floor:
+    """Plain numpy, linearised at the nominal: the least work a trial of this size can take."""
+
+    def __init__(self, scenario, seed=1):
+        model = scenario.id_model
+        p = model.n_params
+        P0, Jg = model.machine_points(np.zeros((1, p)), jacobian=True)
+        P0, Jg = P0[0], Jg[0]  # (M, 3), (M, 3, p) machine frame
+        pose = np.asarray(scenario.pose, float)[None]
+        R = lt.rotation(pose[:, 3], pose[:, 4], pose[:, 5])[0]
+        self.y0 = lt.to_tracker(P0[None], pose)[0].reshape(-1)  # (3M,)
+        Jt = np.concatenate([np.einsum("ji,mjk->mik", R, Jg), lt.pose_jacobian(P0[None], pose)[0]], axis=2)
+        self.J = Jt.reshape(-1, p + 6)  # (3M, 54): tracker frame, geometric then pose
+        n = scenario.noise
+        C = model.covariance(self.y0.reshape(1, -1, 3), n.angular, n.distance, n.distance_per_length, n.repeatability)[0]
+        self.L = np.linalg.cholesky(C)  # (M, 3, 3): the simulated noise
+        W = np.zeros((self.J.shape[0],) * 2)  # block-diagonal whitener, shared
+        for m, w in enumerate(whitener(C)):
+            W[3 * m:3 * m + 3, 3 * m:3 * m + 3] = w
+        self.G = np.linalg.pinv(W @ self.J) @ W  # (54, 3M): the one shared pseudo-inverse
+        rows = np.asarray(scenario.mesh_rows)
+        self.Jf = Jg[rows].reshape(-1, p)  # (3 mesh, p): the compensated field, machine frame
+        self.H = scenario.rigid_free  # removes what the tracker pose absorbs
+        self.sd = np.concatenate([np.where(np.array(model.errors.units) == "mm", 8e-3, 10e-6), [0.2] * 3, [2e-5] * 3])
+        self.rng = np.random.default_rng(seed)
+        self.p = p
+
+    def block(self, N):
+        rng = self.rng
+        x = rng.standard_normal((N, self.p + 6)) * self.sd  # geometric errors and pose
+        e = np.einsum("mij,nmj->nmi", self.L, rng.standard_normal((N, len(self.L), 3))).reshape(N, -1)
+        y = self.y0 + x @ self.J.T + e  # simulate
+        xh = np.zeros_like(x)
+        for _ in range(2):  # two chord iterations on the (here linear) residuals with the shared pseudo-inverse
+            xh += (y - self.y0 - xh @ self.J.T) @ self.G.T
+        D = ((x - xh)[:, :self.p] @ self.Jf.T) @ self.H.T  # compensated field, rigid motions removed
+        return np.linalg.norm(D.reshape(N, -1, 3), axis=2)
+
+    def per_trial(self, N=20000, block=10000):
+        self.block(block)
+        best = np.inf
+        for _ in range(3):
+            t = time.perf_counter()
+            for _ in range(N // block):
+                self.block(block)
+            best = min(best, (time.perf_counter() - t) / N)
+        return best
+
+
+# ----------------------------------------------------------------------------- 3. the engine
+def identify_at(rev: str):
+    """``mtbudget/identify.py`` at git revision ``rev`` as a module of the installed package."""
+    code = subprocess.run(["git", "-C", str(ROOT), "show", f"{rev}:mtbudget/identify.py"], check=True,
+                          capture_output=True, text=True).stdout
+    mod = types.ModuleType("mtbudget._identify_before")
+    mod.__package__ = "mtbudget"
+    sys.modules[mod.__name__] = mod
+    exec(compile(code, f"{rev}:mtbudget/identify.py", "exec"), mod.__dict__)
+    return mod
+
+
+def engine_per_trial(arm, short, long, before=None):
+    """Slope of run() time between two run lengths: ms per trial, the run's one-off work excluded."""
+    real_setup, real_identify = Engine._identification_setup, engine_module.identify
+
+    def setup(self, settings):
+        model, strategy = real_setup(self, settings)
+        strategy.solver = "gauss-newton" if arm == "gauss-newton" else "chord"
+        return model, strategy
+
+    Engine._identification_setup = setup
+    if before is not None:
+        engine_module.identify = before.identify
+    try:
+        cfg = load_config()
+        times = {}
+        for n in (short, long):
+            best = np.inf
+            for _ in range(3):
+                t = time.perf_counter()
+                run(cfg, trials=n, block=64, attribution_trials=0)
+                best = min(best, time.perf_counter() - t)
+            times[n] = best
+    finally:
+        Engine._identification_setup, engine_module.identify = real_setup, real_identify
+    return (times[long] - times[short]) / (long - short), times
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--trials", type=int, default=640, help="the longer run (the shorter is a fifth of it)")
+    ap.add_argument("--before", metavar="REV", help="also run the engine with mtbudget/identify.py of git revision REV")
+    args = ap.parse_args()
+    scenario = build_scenario(load_config())
+    model = scenario.id_model
+
+    dp, df, fb, n = accuracy(scenario)
+    print(f"accuracy, chord vs Gauss-Newton, {n} identifications of the default configuration's trials "
+          f"(one-phase and multi-phase):")
+    print(f"  largest difference: tracker points {dp:.1e} mm, compensated field {df:.1e} mm; "
+          f"fallbacks to Gauss-Newton: {fb} of {n}")
+    assert dp < 1e-6 and df < 1e-6, "the chord solver does not reproduce Gauss-Newton to 1e-6 mm"
+    sp, sf = shared_whitener_effect(scenario)
+    print(f"  (for comparison, one whitener for all trials, at the nominal points, would move Gauss-Newton's "
+          f"result by {sp:.1e} mm in the tracker points and {sf:.1e} mm in the field: the chord keeps each "
+          f"trial's own)")
+
+    ident = identification_per_trial(scenario)
+    print("\nidentification alone, the engine's trials in groups of 16 (as its strategy sources split a 64-trial block):")
+    for phases in ("one_phase", "multi_phase"):
+        c, g = ident["chord", phases], ident["gauss-newton", phases]
+        print(f"  {phases:11s}: chord {c * 1e3:.3f} ms/trial, Gauss-Newton {g * 1e3:.3f} ms/trial, {g / c:.1f}x")
+
+    floor = Floor(scenario)
+    t_floor = floor.per_trial()
+    print(f"\nfloor (plain numpy, {model.n_points} points, {model.n_params} + 6 parameters, linearised, shared "
+          f"pseudo-inverse, 2 chord iterations): {t_floor * 1e6:.1f} us/trial, {1 / t_floor:,.0f} trials/s")
+
+    short, long = max(64, args.trials // 5 // 64 * 64), args.trials
+    arms = [("chord", None), ("gauss-newton", None)]
+    if args.before:
+        arms.append((f"before ({args.before})", identify_at(args.before)))
+    print(f"\nengine, mtbudget.runner.run(default config, block=64, attribution_trials=0), slope {short} -> {long} trials:")
+    res = {}
+    for name, mod in arms:
+        per, times = engine_per_trial(name, short, long, mod)
+        res[name] = per
+        print(f"  {name:22s} {per * 1e3:7.3f} ms/trial  {1 / per:7.0f} trials/s  {per / t_floor:6.0f}x the floor"
+              f"   (best of 3 runs: {short} trials {times[short]:.2f} s, {long} trials {times[long]:.2f} s, "
+              f"{times[long] / long * 1e3:.2f} ms/trial all in)")
+    for name in res:
+        if name != "chord":
+            print(f"  chord vs {name}: {res[name] / res['chord']:.1f}x faster")
+
+
+if __name__ == "__main__":
+    main()
