@@ -300,7 +300,6 @@ def replay(path) -> RunResult:
 
 def verify(path, progress: bool = False) -> dict:
     """Re-run a logged run from its config and seed and compare, bit for bit."""
-    from .executors import engine_from_spec
     from .runlog import read_runlog
 
     log = read_runlog(path)
