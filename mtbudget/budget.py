@@ -19,12 +19,11 @@ import math
 import numpy as np
 
 from .contracts import Group
-from .distributions import t_factor
 from .executors import Executor
-from .outputs import MAIN_OUTPUT, MEAN_SQUARE_OUTPUTS, SCALARS, RunResult, accumulate_block
+from .outputs import MEAN_SQUARE_OUTPUTS, SCALARS, RunResult, accumulate_block
 from .plugins import call
 from .progress import progress_bar
-from .stats import Accumulator, clause8
+from .stats import Accumulator
 
 
 def attribution(engine, result: RunResult, n: int, *, ex_kind="inline", workers=None, address=None,

@@ -15,7 +15,7 @@ from .errors import MtbudgetError
 class _Group(click.Group):
     """Turn mtbudget's own errors into one-line messages and exit code 2."""
 
-    ORDER = ("study", "run", "report", "replay", "simulate", "identify", "diagnose", "plugins")
+    ORDER = ("study", "run", "report", "replay", "simulate", "identify", "compensate", "diagnose", "plugins")
 
     def list_commands(self, ctx):
         names = super().list_commands(ctx)
@@ -156,51 +156,126 @@ def identify(recording, example, as_json, max_degree, strategy):
     _print_identification(folder, as_json, max_degree, strategy)
 
 
+@main.command("compensate")
+@click.argument("recording", required=False, type=click.Path(file_okay=False, path_type=Path))
+@click.option("--example", type=click.Choice(["null", "thermal_x", "reversal_y", "tracker_drift"]),
+              help="Use a bundled example recording instead of a folder.")
+@click.option("--format", "fmt", required=True,
+              help="Exporter: neutral-csv, neutral-json, linuxcnc, beckhoff-lsec, or one a plugin registers.")
+@click.option("--out", "out", required=True, type=click.Path(dir_okay=False, path_type=Path),
+              help="File to write; a per-axis format writes FILE_x, FILE_y, FILE_z with the same suffix.")
+@click.option("--step", default="50 mm", show_default=True, help="Grid step of the tables along every axis.")
+@click.option("--check", is_flag=True,
+              help="Read the written tables back and apply them to the simulated machine of the recording's truth.json.")
+@click.option("--max-degree", type=click.IntRange(min=1, max=9), default=3, show_default=True,
+              help="Legendre degree of each error function.")
+@click.option("--json", "as_json", is_flag=True, help="Print one JSON object (the table, ISO 230-2 figures, the check).")
+def compensate(recording, example, fmt, out, step, check, max_degree, as_json):
+    """Identify a recording and write its compensation tables for a controller.
+
+    RECORDING is a folder with recording.toml and points.csv. The geometric
+    errors are identified as by `mtbudget identify`, sampled every --step
+    over the measured range under their ISO 230-1 names with the standard
+    uncertainty of each entry, and written with the exporter --format. Also
+    printed: ISO 230-2 figures (A, E, M, R, B) per axis from the recording's
+    bidirectional approaches and from the identified model. With --check
+    (a recording from `mtbudget simulate`), the written files are read back
+    and applied to the simulated machine: the positioning error left after
+    compensation against the uncertainty the table states. Conventions and
+    sources of each format: docs/compensation.md.
+    """
+    from .compensate import (build_table, check_export, check_json, export, find_exporter, parse_step,
+                             table_text)
+    from .config import example_recording
+    from .recording import read_recording
+
+    if recording is None and example is None:
+        raise click.UsageError("give a RECORDING folder or --example NAME")
+    step_mm = parse_step(step)
+    exporter = find_exporter(fmt)
+    rec = read_recording(example_recording(example) if example else recording)
+    table = build_table(rec, step_mm, max_degree=max_degree)
+    written = export(table, exporter, out)
+    result = check_export(table, rec, exporter, written) if check else None
+    if as_json:
+        body = {**table.to_dict(), "written": [str(p) for p in written], "format_name": exporter.name}
+        if result is not None:
+            body["check"] = check_json(result)
+        click.echo(json.dumps(body, indent=1))
+        return
+    click.echo(table_text(table, written, exporter, result))
+
+
 @main.command("plugins")
+@click.argument("config", required=False, type=click.Path(dir_okay=False, path_type=Path))
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object instead of the table.")
-def plugins_cmd(as_json):
-    """List every plugin, uncertainty source and diagnosis candidate.
+def plugins_cmd(config, as_json):
+    """List every plugin, uncertainty source, diagnosis candidate and exporter.
 
     For each source: its group (the paper's four), distribution, parameters
-    with units, and the plugin, distribution and version it came from.
-    MTBUDGET_DISABLE_PLUGINS=a,b and MTBUDGET_PLUGINS=a,b (allow-list) select
-    which plugins load.
+    with units, whether it is opt-in (off unless a configuration enables
+    it), and the plugin, distribution and version it came from. With CONFIG,
+    each source is marked "on" or "off" for that configuration, with the
+    parameter values the run will draw. MTBUDGET_DISABLE_PLUGINS=a,b and
+    MTBUDGET_PLUGINS=a,b (allow-list) select which plugins load;
+    MTBUDGET_TRACE_PLUGINS=1 traces every hook call on stderr.
     """
     from .plugins import PluginHost
 
     host = PluginHost()
     sources = host.sources()
+    enabled = None
+    if config is not None:
+        from .config import load_config
+        from .scenario import build_scenario
+
+        enabled = {s.name: s for s in build_scenario(load_config(config), host).sources}
+
+    def params(src):
+        from .units import pretty
+
+        return {k: ({"value": float(v.magnitude), "unit": pretty(str(v.units))} if hasattr(v, "units") else str(v))
+                for k, v in src.parameters.items()}
+
     data = {
         "plugins": [vars(p) for p in host.plugins()],
         "sources": [{"name": s.name, "group": str(s.group.value if hasattr(s.group, "value") else s.group),
                      "distribution": s.distribution, "plugin": s.plugin, "package": s.dist_name, "version": s.dist_version,
-                     "targets": list(s.targets),
-                     "parameters": {k: ({"value": float(v.magnitude), "unit": str(v.units)} if hasattr(v, "units") else str(v))
-                                    for k, v in s.parameters.items()},
+                     "opt_in": bool(s.opt_in), "targets": list(s.targets),
+                     "parameters": params(enabled[s.name] if enabled and s.name in enabled else s),
+                     **({} if enabled is None else {"enabled": s.name in enabled}),
                      "description": (type(s).__doc__ or "").strip().splitlines()[0] if type(s).__doc__ else ""}
                     for s in sources],
+        "candidates": [{"effect": c.effect, "axis": c.axis, "plugin": c.plugin, "package": c.dist_name}
+                       for c in host.candidates()],
+        "exporters": [{"name": e.name, "description": e.description, "suffix": e.suffix, "plugin": e.plugin,
+                       "package": e.dist_name} for e in host.exporters()],
+        "skipped": [str(x) for x in getattr(host, "skipped", [])],
     }
-    try:
-        data["candidates"] = [{"effect": c.effect, "axis": c.axis, "plugin": c.plugin, "package": c.dist_name}
-                              for c in host.candidates()]
-    except ImportError:
-        data["candidates"] = []
     if as_json:
         click.echo(json.dumps(data, indent=1))
         return
     click.echo("plugins:")
     for p in data["plugins"]:
         click.echo(f"  {p['name']:<24} {p['module']:<40} {p['distribution']} {p['version']}")
-    click.echo("\nuncertainty sources:")
+    for p in data["skipped"]:
+        click.echo(f"  skipped: {p}")
+    click.echo("\nuncertainty sources" + (f" (on / off for {config})" if config is not None else "") + ":")
     for s in data["sources"]:
-        params = ", ".join(f"{k}={v['value']:g} {v['unit']}".rstrip() if isinstance(v, dict) else f"{k}={v}"
-                           for k, v in s["parameters"].items()) or "-"
-        click.echo(f"  {s['name']:<32} [{s['group']}] {s['distribution']}")
-        click.echo(f"      {params}   (plugin {s['plugin']}, {s['package']} {s['version']})")
+        ps = ", ".join(f"{k}={v['value']:g} {v['unit']}".rstrip() if isinstance(v, dict) else f"{k}={v}"
+                       for k, v in s["parameters"].items()) or "-"
+        state = "" if enabled is None else ("on   " if s["enabled"] else "off  ")
+        opt = " (opt-in)" if s["opt_in"] else ""
+        click.echo(f"  {state}{s['name']:<32} [{s['group']}] {s['distribution']}{opt}")
+        click.echo(f"      {ps}   (plugin {s['plugin']}, {s['package']} {s['version']})")
     if data["candidates"]:
         click.echo("\ndiagnosis candidates:")
         for c in data["candidates"]:
             click.echo(f"  {c['effect']:<24} axis {c['axis'] or '-':<4} (plugin {c['plugin']})")
+    if data["exporters"]:
+        click.echo("\ncompensation exporters (mtbudget compensate --format NAME):")
+        for e in data["exporters"]:
+            click.echo(f"  {e['name']:<16} {e['description']} (plugin {e['plugin']})")
 
 
 @main.command("run")
@@ -270,12 +345,31 @@ def replay(runlog, verify, as_json):
     complete block and marked INCOMPLETE (finish it with `mtbudget run
     --resume`). With --verify the trials are recomputed from the logged
     configuration and seed and compared bit for bit; plugin versions that
-    differ from the logged ones are named first.
+    differ from the logged ones are named first; an incomplete log fails the
+    verification. A placement study log (study placement) prints its summary.
     """
     from .report import budget_text, result_json
+    from .runlog import log_kind, read_placement_log
     from .runner import replay as do_replay
     from .runner import verify as do_verify
 
+    if log_kind(runlog) == "placement":
+        if verify:
+            raise click.UsageError("--verify recomputes Monte Carlo runs; a placement study log has none")
+        body = read_placement_log(runlog)
+        body.pop("arrays", None)
+        if as_json:
+            click.echo(json.dumps(body, indent=1))
+            return
+        red = body["reduction"]
+        click.echo(f"placement study: {body['settings']['tests']} tests per direction, {body['settings']['candidates']} "
+                   "candidate stations per test")
+        for k, d in body["directions"].items():
+            e = d["max_error_um"]
+            click.echo(f"  {k} direction: maximum u_p over the mesh at the best station, mean {e['mean']:.1f} um, "
+                       f"std {e['std']:.1f} um, 5-95 % [{e['p05']:.1f}, {e['p95']:.1f}] um")
+        click.echo(f"  {red['better']} is better by {red['reduction']:.0%}")
+        return
     if verify:
         v = do_verify(runlog, progress=True)
         for n in v["notes"]:
@@ -409,14 +503,14 @@ def _placement(config, tests, out, quiet):
     click.echo(f"placement: {res['settings']['tests']} tests per direction in {res['seconds']:.0f} s; mean maximum error "
                f"{red['mean_better_um']:.1f} um ({red['better']} direction) vs {red['mean_worse_um']:.1f} um "
                f"({red['worse']}): {red['reduction']:.0%} lower (paper: about 30 %)")
-    click.echo(f"  report: {md}, log: {out / 'placement.mcap'}")
+    click.echo(f"  report: {md} and {md.with_suffix('.html')}, log: {out / 'placement.mcap'}")
 
 
 def _verification(config, trials, out, quiet, attribution_trials):
     from .config import load_config
     from .progress import note
     from .report import budget_text, run_report
-    from .report_study import verification_figures
+    from .report_study import STUDY_CAPTIONS, verification_figures
     from .runner import RunSettings, execute, replay
     from .scenario import build_scenario
     from .study import verification_clouds, verification_summary
@@ -427,9 +521,9 @@ def _verification(config, trials, out, quiet, attribution_trials):
             log_path=out / "verification.mcap", force=True)
     res = replay(out / "verification.mcap")
     note("writing the report and the figures of paper Figs. 12-15 ...", not quiet)
-    run_report(res, out / "report")
     init, final = verification_clouds(res, build_scenario(cfg, sources=res.spec["sources"]))
     figs = verification_figures(res, init, final, res.mesh, out / "report")
+    run_report(res, out / "report", extra_figures={k: (p, STUDY_CAPTIONS.get(k, k)) for k, p in figs.items()})
     summ = verification_summary(res)
     (out / "verification.json").write_text(json.dumps(summ, indent=1, default=float))
     fm = summ["final_mean_error_um"]

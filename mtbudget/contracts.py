@@ -233,6 +233,12 @@ class Candidate:
     parameters: dict = {}
     frame: str = "machine"
     hints: dict = {}
+    #: parameter -> (low, high) in its display unit: the physically plausible range (for a vector
+    #: parameter, of each component).  An estimate outside it is reported as implausible, never as a
+    #: finding.  A parameter without an entry is not checked.
+    plausible: dict = {}
+    #: parameter -> how a sentence names it ("a CTE"): "would need a CTE of -27 um/(m*K)"
+    quantity_names: dict = {}
 
     # stamped by the plugin host
     plugin: str = ""
@@ -264,6 +270,32 @@ class Candidate:
     def perturbation(self, ctx: DiagnosisContext, beta: np.ndarray) -> dict | None:
         """Model perturbations (``MODEL_INPUTS`` keys) that put the effect into the full model at ``beta``
         (internal units), for the refit; None: the columns times ``beta`` as a displacement in ``frame``."""
+        return None
+
+    def implausible(self, beta: np.ndarray, cov: np.ndarray) -> str | None:
+        """None when the fitted parameters are physically plausible, else what they would need (one sentence).
+
+        The default checks every column against :attr:`plausible` (display units), allowing two
+        standard uncertainties of slack: an estimate whose interval est +- 2u misses the range.
+        """
+        from .units import factor
+
+        if not self.plausible:
+            return None
+        units = self.units()
+        beta = np.atleast_1d(np.asarray(beta, float))
+        u = np.sqrt(np.maximum(np.diag(np.atleast_2d(cov)), 0.0))
+        for j in range(len(beta)):
+            name, disp, internal = units[j] if len(units) == len(beta) else units[0]
+            if name not in self.plausible:
+                continue
+            lo, hi = self.plausible[name]
+            f = factor(internal, disp)
+            est, unc = beta[j] * f, u[j] * abs(f)
+            if est + 2 * unc < lo or est - 2 * unc > hi:
+                what = self.quantity_names.get(name, f"a {name}")
+                comp = f" (component {j + 1})" if len(units) != len(beta) else ""
+                return (f"would need {what}{comp} of {est:.3g} {disp}; plausible is {lo:g} to {hi:g} {disp}")
         return None
 
     def summary(self, beta: np.ndarray, cov: np.ndarray) -> tuple[list, list, str] | None:
@@ -310,3 +342,47 @@ class DiagnosisContext:
         if not cols:
             return None
         return np.mean([self.plan.temperature[c] for c in cols], axis=0)
+
+
+# ----------------------------------------------------------------------------- compensation exporters
+class Exporter:
+    """Base class of a compensation-table exporter (hook ``mtbudget_register_exporters``).
+
+    An exporter writes a :class:`mtbudget.compensate.CompensationTable` (the identified error
+    functions, the per-axis positioning tables with their standard uncertainties) in one file
+    format.  Subclasses set the class attributes below and implement :meth:`write`.
+
+    name: unique across all plugins; what ``mtbudget compensate --format`` takes.
+    description: one sentence for ``mtbudget plugins``.
+    suffix: the file suffix the format uses (".csv", ".comp", ".lis").
+    convention: where the format's conventions are documented (a citation: document, section,
+        version): its grid, units, sign (what a positive entry does), behaviour beyond the
+        table and backlash.  ``docs/compensation.md`` repeats it for the built-ins.
+    per_axis: True when the format holds one axis per file: ``write`` then writes one file per
+        axis, named by :meth:`axis_path`.
+    max_entries: the most table entries per axis the controller accepts (None: no limit); the
+        command refuses a grid step that would need more, before anything is written.
+    """
+
+    name: str = ""
+    description: str = ""
+    suffix: str = ""
+    convention: str = ""
+    per_axis: bool = False
+    max_entries: int | None = None
+
+    # stamped by the plugin host
+    plugin: str = ""
+    dist_name: str = ""
+    dist_version: str = ""
+
+    def axis_path(self, path, axis: str):
+        """The file of one axis for a per-axis format: ``comp.txt`` -> ``comp_x.txt``."""
+        from pathlib import Path
+
+        path = Path(path)
+        return path.with_name(f"{path.stem}_{axis}{path.suffix or self.suffix}")
+
+    def write(self, table, path) -> list:
+        """Write ``table`` (a :class:`mtbudget.compensate.CompensationTable`) to ``path``; return the paths written."""
+        raise NotImplementedError

@@ -27,8 +27,29 @@ Method (docs/diagnose.md has the reasoning and the calibration):
    masquerade as a third; every member of the chosen set must remain
    significant given the others.  A candidate that fits (nearly) as well as a
    chosen one in its place is reported as *confounded* with it.
+   A set in which any estimate is physically implausible (outside the
+   candidate's declared ``plausible`` range), or whose members are large and
+   cancel each other, is never chosen.
 5. **After.** The chosen effects are put into the model at their estimates
    and the recording is identified again: chi-square and RMS before and after.
+
+Noise and the fit gate (docs/diagnose.md, "Noise and the fit gate"):
+
+* **Noise is estimated.**  The three variance components (tracker range,
+  tracker transverse, machine repeatability) are estimated by REML from the
+  error contrasts left after a saturated static model (one free position per
+  point and tool: what repeated measurements of the same point disagree by)
+  plus every testable candidate.  A static unmodelled error cannot inflate
+  them.  When a component differs from the stated one (beyond 3 standard
+  errors and by more than 25 %), selection and the gate use the estimate.
+* **Global goodness-of-fit gate.**  After selection, the misfit of the final
+  model beyond that pure error is tested (lack-of-fit F-test; a chi-square
+  test against the stated noise when no point is repeated).  When it fails,
+  ``unexplained`` says how large the misfit is, where it lives, which
+  candidates would have explained it with implausible values, and the best
+  data-driven description: a sparse regression over terms built from the
+  recording's own columns, selected on one half of the points and confirmed
+  on the other.
 """
 
 from __future__ import annotations
@@ -44,7 +65,7 @@ from . import tracker as lt
 from .contracts import Candidate, DiagnosisContext
 from .errors import DiagnosisError, MtbudgetError, PluginError
 from .identify import Noise, identify
-from .machine import AXES
+from .machine import AXES, AXIS_INDEX
 from .model import MODEL_INPUTS, MeasurementModel, merge
 from .recording import Recording
 from .units import display, internal_unit_of, ureg
@@ -164,6 +185,16 @@ def locate(ctx: DiagnosisContext, residual_machine: np.ndarray, whitened: np.nda
         runs[int(k)] = {"points": int(m.sum()), "rms": float(np.sqrt((r[m] ** 2).sum(1).mean())),
                         "mean": r[m].mean(0).round(3).tolist(), "chi2_per_point": float(chi_pt[m].mean() / 3)}
     out["by_run"] = runs
+    # by tool (reflector holder)
+    tools = {}
+    t_rows = np.round(plan.tool, 6)
+    uniq, first = np.unique(t_rows, axis=0, return_index=True)
+    for k, j in enumerate(sorted(first), start=1):
+        m = np.all(t_rows == t_rows[j], axis=1)
+        tools[k] = {"tool": display(plan.tool[j], "mm", "mm").round(3).tolist(), "points": int(m.sum()),
+                    "rms": float(np.sqrt((r[m] ** 2).sum(1).mean())), "mean": r[m].mean(0).round(3).tolist(),
+                    "chi2_per_point": float(chi_pt[m].mean() / 3)}
+    out["by_tool"] = tools
     # by time: slope of each component (um/h) with its standard error
     t = display(plan.time, "s", "h")
     trend = {}
@@ -245,12 +276,14 @@ class Diagnosis:
     settings: dict
     residuals_before: np.ndarray | None = None
     residuals_after: np.ndarray | None = None
+    noise: dict = field(default_factory=dict)
+    unexplained: dict | None = None
 
     def to_dict(self) -> dict:
         return {"recording": self.recording, "baseline": self.baseline, "mismatch": self.mismatch,
                 "findings": [f.to_dict() for f in self.findings], "final": self.final,
                 "skipped": self.skipped, "not_testable": self.untestable, "considered": self.considered,
-                "settings": self.settings}
+                "settings": self.settings, "noise": self.noise, "unexplained": self.unexplained}
 
 
 def _quality(res) -> dict:
@@ -260,7 +293,8 @@ def _quality(res) -> dict:
 
 
 def diagnose(rec: Recording, candidates: list | None = None, *, alpha: float = 0.01, max_set: int = 3,
-             confound_margin: float = 6.0, max_degree: int = 3, host=None) -> Diagnosis:
+             confound_margin: float = 6.0, max_degree: int = 3, host=None, gate_alpha: float = 0.01,
+             data_driven: bool = True) -> Diagnosis:
     """Diagnose a recording (see the module docstring)."""
     from .plugins import default_host
 
@@ -279,8 +313,7 @@ def diagnose(rec: Recording, candidates: list | None = None, *, alpha: float = 0
     ctx = DiagnosisContext(rec, model, base.pose[0], base.theta[0], P_W, lt.to_tracker(P_W[None], base.pose)[0])
     Wh = base.whitener[0]
     # the baseline's whitened design at its solution (pose + identifiable directions) and whitened residuals
-    lin = _Linear(base.design[0], base.whitened[0].reshape(-1))
-    n_obs = lin.n
+    lin0 = _Linear(base.design[0], base.whitened[0].reshape(-1))
 
     mismatch = locate(ctx, base.residual_machine[0], base.whitened[0])
     skipped, untestable, usable = [], [], []
@@ -294,13 +327,35 @@ def diagnose(rec: Recording, candidates: list | None = None, *, alpha: float = 0
             continue
         raw = _columns(c, ctx)
         col = _whitened(raw, c.frame, ctx, Wh)
-        left = np.linalg.norm(lin.project(col), axis=0) / np.maximum(np.linalg.norm(col, axis=0), 1e-300)
+        left = np.linalg.norm(lin0.project(col), axis=0) / np.maximum(np.linalg.norm(col, axis=0), 1e-300)
         if left.max() < ABSORBED:
             untestable.append({"effect": c.effect, "axis": c.axis,
                                "reason": "the baseline geometric errors absorb it completely with this plan "
                                          f"(what is left of it: {left.max():.1e})"})
             continue
+        # a column the baseline absorbs (almost) completely carries no information: it is left out of the fit
+        # (its parameter stays 0), or a noise-driven, physically absurd value would enter the refit
+        raw = raw.copy()
+        raw[:, :, left < ABSORBED] = 0.0
+        col = col.copy()
+        col[:, left < ABSORBED] = 0.0
         usable.append((c, col, raw))
+
+    # the noise: estimated from the data, used for selection and the gate when the stated one does not match
+    est = _estimate_noise(rec, ctx, Wh, base.design[0], lin0.w, [u[1] for u in usable])
+    Wn = est.pop("whitener")  # (M, 3, 3) the whitener selection and the gate use
+    groups_design = est.pop("groups")
+    if est["used"] == "estimated":
+        T = np.einsum("mij,mjk->mik", Wn, np.linalg.inv(Wh))
+
+        def tr(v):
+            return np.einsum("mij,mjk->mik", T, v.reshape(len(T), 3, -1)).reshape(3 * len(T), -1)
+
+        lin = _Linear(tr(base.design[0]), tr(lin0.w)[:, 0])
+        usable = [(c, _whitened(raw, c.frame, ctx, Wn), raw) for c, _, raw in usable]
+    else:
+        lin = lin0
+    n_obs = lin.n
     K = max(len(usable), 1)
     level = alpha / K  # Bonferroni over the candidates tested
 
@@ -319,18 +374,50 @@ def diagnose(rec: Recording, candidates: list | None = None, *, alpha: float = 0
     def bic(idx, f):
         return f.chi2 + kcols(idx) * math.log(n_obs)
 
+    def members(idx, f):
+        """(beta, cov) of each member of the set ``idx`` in the joint fit ``f`` (cov inflated by chi2/dof > 1)."""
+        dof = lin.dof0 - kcols(idx)
+        scale = max(f.chi2 / dof, 1.0) if dof > 0 else 1.0
+        out, o = [], 0
+        for i in idx:
+            k = usable[i][1].shape[1]
+            out.append((f.beta[o:o + k], f.cov[o:o + k, o:o + k] * scale))
+            o += k
+        return out
+
+    def implausible(i, beta, cov):
+        why = _call(usable[i][0], "implausible", beta, cov)
+        if why is not None and not isinstance(why, str):
+            _fail(usable[i][0], f"must return None or a sentence (str), got {type(why).__name__}", "implausible")
+        return why
+
+    def cancelling(idx, f):
+        """Members that are large and cancel each other: the sum of their sizes far beyond the size of their sum."""
+        if len(idx) < 2:
+            return False
+        parts, o = [], 0
+        for i in idx:
+            k = usable[i][1].shape[1]
+            parts.append(lin.project(usable[i][1]) @ f.beta[o:o + k])
+            o += k
+        return sum(np.linalg.norm(x) for x in parts) > CANCEL * max(np.linalg.norm(sum(parts)), 1e-300)
+
     considered = []
     single_sig = []
+    implausible_alone = {}
     for i, (c, col, _) in enumerate(usable):
         f = fit([i])
         k = col.shape[1]
         F, p = ftest(lin.chi2_0, f.chi2, k, lin.dof0 - k)
+        why = implausible(i, *members([i], f)[0]) if p < level else None
         considered.append({"effect": c.effect, "axis": c.axis, "delta_chi2": lin.chi2_0 - f.chi2, "F": F, "p_value": p,
-                           "significant": p < level})
+                           "significant": p < level, "implausible": why})
         if p < level:
             single_sig.append(i)
+            if why:
+                implausible_alone[i] = why
     # candidate sets: all subsets up to max_set of the individually significant ones, chosen by BIC,
-    # each member significant given the others
+    # each member significant given the others and plausible, the members not cancelling each other
     best, best_bic = (), bic((), fit(()))
     for size in range(1, min(max_set, len(single_sig)) + 1):
         for idx in itertools.combinations(single_sig, size):
@@ -339,18 +426,69 @@ def diagnose(rec: Recording, candidates: list | None = None, *, alpha: float = 0
             if b >= best_bic:
                 continue
             ok = True
-            for j in idx:
+            for j, (beta, cov) in zip(idx, members(idx, f)):
                 rest = [i for i in idx if i != j]
                 f_rest = fit(rest)
                 dof = lin.dof0 - kcols(idx)
                 _, p = ftest(f_rest.chi2, f.chi2, usable[j][1].shape[1], dof)
-                if p >= level:
+                if p >= level or implausible(j, beta, cov):
                     ok = False
                     break
-            if ok:
+            if ok and not cancelling(idx, f):
                 best, best_bic = idx, b
-    # findings, each with its evidence, estimate and confounding alternatives
     chosen = list(best)
+    findings, f_all = _findings(chosen, usable, lin, fit, ftest, bic, kcols, K, alpha, confound_margin, ctx)
+    # refit the full model with the effects in it at their estimates: "after" each finding (cumulative)
+    offsets = np.cumsum([0] + [usable[i][1].shape[1] for i in chosen])
+    pert_parts, after, res = [], [], base
+    for pos, i in enumerate(chosen):
+        c, _, raw = usable[i]
+        beta_int = f_all.beta[offsets[pos]:offsets[pos + 1]]
+        pert_parts.append(_perturbation(c, ctx, beta_int, raw))
+        res = identify(model, rec.lt, noise, fixed=merge(*pert_parts))
+        findings[pos].after = _quality(res)
+        after.append(findings[pos].after)
+    notes = []
+    if findings and res.chi2[0] > base.chi2[0]:
+        # the effects at their estimates fit worse than no effect: the linear selection was misled; claim nothing
+        notes.append("the effects the selection chose fit worse than the baseline once put into the full model "
+                     f"(chi-square per dof {float(res.chi2_per_dof[0]):.3f} vs {float(base.chi2_per_dof[0]):.3f}); "
+                     "none is reported")
+        chosen, findings, after, pert_parts, res = [], [], [], [], base
+        f_all = fit([])
+    final = after[-1] if after else _quality(base)
+    res_after = res.residual_machine[0] if pert_parts else None
+
+    # the global goodness-of-fit gate, and what is left when it fails
+    gate = _gate(lin, f_all, kcols(chosen), est, groups_design, Wn, usable, gate_alpha)
+    unexplained = None
+    if not gate["explained"]:
+        where = locate(ctx, res.residual_machine[0], res.whitened[0])
+        unexplained = {
+            "chi2_per_dof": gate["chi2_per_dof"], "dof": gate["dof"], "p_value": gate["p_value"], "test": gate["test"],
+            "noise_used": est["used"], "lack_of_fit": gate.get("lack_of_fit"),
+            "where": {k: where[k] for k in ("by_run", "by_tool", "by_time", "by_direction", "by_position",
+                                            "by_temperature", "worst_points")},
+            "implausible": [{"effect": usable[i][0].effect, "axis": usable[i][0].axis, "reason": why}
+                            for i, why in implausible_alone.items() if i not in chosen],
+            "notes": notes, "data_driven": None,
+        }
+        if data_driven and gate["p_value"] is not None:
+            X_final = np.concatenate([lin.Q0] + [usable[i][1] for i in chosen], axis=1)
+            unexplained["data_driven"] = _data_driven(ctx, lin, X_final, Wn, alpha)
+    return Diagnosis(rec.name, _quality(base), mismatch, findings, final, skipped, untestable, considered,
+                     {"alpha": alpha, "bonferroni_level": level, "max_set": max_set, "confound_margin_bic": confound_margin,
+                      "gate_alpha": gate_alpha, "candidates": [c.label for c in candidates]},
+                     residuals_before=base.residual_machine[0], residuals_after=res_after,
+                     noise=est, unexplained=unexplained)
+
+
+#: members of a set whose individual sizes add up to more than this many times the size of their sum cancel
+CANCEL = 2.5
+
+
+def _findings(chosen, usable, lin, fit, ftest, bic, kcols, K, alpha, confound_margin, ctx):
+    """The chosen effects as findings, each with its evidence, estimate and confounding alternatives."""
     f_all = fit(chosen)
     findings = []
     offsets = np.cumsum([0] + [usable[i][1].shape[1] for i in chosen])
@@ -380,21 +518,340 @@ def diagnose(rec: Recording, candidates: list | None = None, *, alpha: float = 0
         findings.append(Finding(c, est, unc, unit, {
             "F": F, "p_value": p, "p_value_bonferroni": min(1.0, p * K), "delta_chi2": f_rest.chi2 - f_all.chi2,
             "delta_bic": d_bic, "candidates_tested": len(usable), "alpha": alpha, "by_run": stab}, {}, conf, hints))
-    # refit the full model with the effects in it at their estimates: "after" each finding (cumulative)
-    pert_parts, after = [], []
-    for pos, i in enumerate(chosen):
-        c, _, raw = usable[i]
-        beta_int = f_all.beta[offsets[pos]:offsets[pos + 1]]
-        pert_parts.append(_perturbation(c, ctx, beta_int, raw))
-        res = identify(model, rec.lt, noise, fixed=merge(*pert_parts))
-        findings[pos].after = _quality(res)
-        after.append(findings[pos].after)
-    final = after[-1] if after else _quality(base)
-    res_after = res.residual_machine[0] if pert_parts else None
-    return Diagnosis(rec.name, _quality(base), mismatch, findings, final, skipped, untestable, considered,
-                     {"alpha": alpha, "bonferroni_level": level, "max_set": max_set, "confound_margin_bic": confound_margin,
-                      "candidates": [c.label for c in candidates]},
-                     residuals_before=base.residual_machine[0], residuals_after=res_after)
+    return findings, f_all
+
+
+# --------------------------------------------------------------------- noise
+#: a component is misstated when its estimate differs from the stated one by more than 3 standard errors
+#: and by more than this factor (either way) in standard deviation (10 %)
+MISSTATED_FACTOR = 1.1
+#: fewer error contrasts than this from repeated points: the noise is estimated from the baseline instead
+MIN_PURE_ERROR_DOF = 30
+
+
+def _point_groups(plan) -> np.ndarray:
+    """Group index of each point: the same nominal position with the same tool (its repeats in other runs)."""
+    key = np.column_stack([np.round(plan.nominal, 6), np.round(plan.tool, 6)])
+    _, inv = np.unique(key, axis=0, return_inverse=True)
+    return np.asarray(inv).reshape(-1)
+
+
+def _group_design(groups: np.ndarray, Wn: np.ndarray) -> np.ndarray:
+    """Whitened design of one free tracker-frame position per group: (3M, 3G)."""
+    M, G = len(groups), int(groups.max()) + 1
+    Z = np.zeros((M, 3, 3 * G))
+    for c in range(3):
+        Z[np.arange(M), :, 3 * groups + c] = Wn[:, :, c]
+    return Z.reshape(3 * M, 3 * G)
+
+
+def _complement(X: np.ndarray, tol: float = 1e-9) -> np.ndarray:
+    """Orthonormal basis of the orthogonal complement of the columns of X."""
+    if X.shape[1] == 0:
+        return np.eye(X.shape[0])
+    s_norm = np.linalg.norm(X, axis=0)
+    Xs = X[:, s_norm > 0] / s_norm[s_norm > 0]
+    U, s, _ = np.linalg.svd(Xs, full_matrices=True)
+    rank = int((s > tol * s[0]).sum()) if s.size else 0
+    return U[:, rank:]
+
+
+def _components(rec, P):
+    """Unwhitened covariance components (M, 3, 3) at the tracker points P: tracker range, tracker transverse,
+    repeatability along the beam and across it, each at its stated value (or at a reference value when it is
+    stated as zero), and the stated multipliers."""
+    ref_d = rec.distance if (rec.distance > 0 or rec.distance_per_length > 0) else 1e-3
+    ref_dpl = rec.distance_per_length if (rec.distance > 0 or rec.distance_per_length > 0) else 0.0
+    ref_a = rec.angular if rec.angular > 0 else 1e-6
+    ref_R = rec.repeatability if rec.repeatability > 0 else 1e-3
+    u = P / np.linalg.norm(P, axis=1, keepdims=True)
+    uu = u[:, :, None] * u[:, None, :]
+    V = [lt.covariance(P, 0.0, ref_d, ref_dpl), lt.covariance(P, ref_a, 0.0, 0.0), ref_R**2 * uu,
+         ref_R**2 * (np.eye(3)[None] - uu)]
+    stated = np.array([float(rec.distance > 0 or rec.distance_per_length > 0), float(rec.angular > 0),
+                       float(rec.repeatability > 0), float(rec.repeatability > 0)])
+    return V, stated, (ref_d, ref_dpl, ref_a, ref_R)
+
+
+def _reml(y, Gs, s0, iters: int = 15):
+    """REML of the multipliers s of the covariance sum_k s_k G_k of the error contrasts y (Fisher scoring).
+
+    Returns (s, covariance of s)."""
+    s = np.where(s0 > 0, s0, 0.05).astype(float)
+    for _ in range(iters):
+        S = sum(sk * G for sk, G in zip(s, Gs))
+        Si = np.linalg.inv(S)
+        a = Si @ y
+        B = [Si @ G for G in Gs]
+        q = np.array([a @ G @ a for G in Gs])
+        F = np.array([[np.sum(Bj * Bk.T) for Bk in B] for Bj in B])
+        new = np.maximum(np.linalg.lstsq(F, q, rcond=1e-12)[0], 1e-4)
+        done = np.max(np.abs(new - s) / np.maximum(s, 1e-4)) < 1e-4
+        s = new
+        if done:
+            break
+    S = sum(sk * G for sk, G in zip(s, Gs))
+    Si = np.linalg.inv(S)
+    B = [Si @ G for G in Gs]
+    F = np.array([[np.sum(Bj * Bk.T) for Bk in B] for Bj in B])
+    return s, 2.0 * np.linalg.pinv(F)
+
+
+def _estimate_noise(rec, ctx, Wh, A0, w, cand_cols) -> dict:
+    """The variance components estimated from the data beside the stated ones (see the module docstring).
+
+    Two well-determined components carry the decision: the variance along the beam (tracker range plus the
+    repeatability's share) and across it (tracker angles plus the rest of the repeatability), each as a multiple
+    of the stated one.  The three physical components are also fitted; the repeatability is reported only when
+    the plan separates it from the tracker noise.
+    """
+    P = rec.lt
+    V, stated, (ref_d, ref_dpl, ref_a, ref_R) = _components(rec, P)
+    M = len(P)
+    G = [np.einsum("mij,mjk,mlk->mil", Wh, v, Wh) for v in V]  # whitened components (M, 3, 3)
+    groups = _point_groups(rec.plan)
+    Clib = np.concatenate(cand_cols, axis=1) if cand_cols else np.zeros((3 * M, 0))
+    Z = _group_design(groups, Wh)
+    N = _complement(np.concatenate([Z, Clib], axis=1))
+    replicates = N.shape[1] >= MIN_PURE_ERROR_DOF
+    if not replicates:
+        N = _complement(np.concatenate([A0, Clib], axis=1))
+    y = N.T @ w
+    Nr = N.reshape(M, 3, -1)
+    Gs = [N.T @ np.einsum("mij,mjr->mir", g, Nr).reshape(3 * M, -1) for g in G]
+    # along / across the beam (always determined), then the three physical components
+    s2, cov2 = _reml(y, [Gs[0] + Gs[2], Gs[1] + Gs[3]], np.ones(2))
+    se2 = np.sqrt(np.maximum(np.diag(cov2), 0.0))
+    s3, cov3 = _reml(y, [Gs[0], Gs[1], Gs[2] + Gs[3]], stated[:3])
+    se3 = np.sqrt(np.maximum(np.diag(cov3), 0.0))
+    mis = [abs(s2[k] - 1.0) > 3 * se2[k] and not (1 / MISSTATED_FACTOR <= math.sqrt(s2[k]) <= MISSTATED_FACTOR)
+           for k in range(2)]
+    used = "estimated" if any(mis) else "stated"
+    if used == "estimated":
+        C = s2[0] * (V[0] + V[2]) + s2[1] * (V[1] + V[3])
+        Wn = np.linalg.inv(np.linalg.cholesky(C))
+    else:
+        Wn = Wh
+    r_mean = float(np.linalg.norm(P, axis=1).mean())
+
+    def q(v, internal, unit):
+        return {"value": float(display(v, internal, unit)), "unit": unit}
+
+    ur = rec.distance + rec.distance_per_length * r_mean
+    ut = rec.angular * r_mean
+    R = rec.repeatability
+    along = math.sqrt(ur**2 + R**2)
+    across = math.sqrt(ut**2 + R**2)
+
+    def ratio(k):
+        f = math.sqrt(s2[k])
+        return f, se2[k] / (2 * f)
+
+    fa, ua = ratio(0)
+    fc, uc = ratio(1)
+    # the tracker's share when the repeatability is as stated
+    ur_est = math.sqrt(max(s2[0] * along**2 - R**2, 0.0))
+    ut_est = math.sqrt(max(s2[1] * across**2 - R**2, 0.0))
+    sep = se3[2] < 0.5 * max(s3[2], 1.0)
+    out = {
+        "method": ("REML on the error contrasts of repeated points (one free position per point and tool) after "
+                   "every testable candidate" if replicates else
+                   "REML on the baseline residuals after every testable candidate (no repeated points: unmodelled "
+                   "structure cannot be told from noise)"),
+        "dof": int(N.shape[1]), "replicates": bool(replicates), "used": used,
+        "mean_range": q(r_mean, "mm", "m"),
+        "along_beam": {"stated": q(along, "mm", "um"), "estimated": q(fa * along, "mm", "um"), "ratio": fa,
+                       "ratio_uncertainty": ua, "misstated": bool(mis[0])},
+        "across_beam": {"stated": q(across, "mm", "um"), "estimated": q(fc * across, "mm", "um"), "ratio": fc,
+                        "ratio_uncertainty": uc, "misstated": bool(mis[1])},
+        "tracker_range": {"stated": {"distance": q(rec.distance, "mm", "um"),
+                                     "distance_per_length": q(rec.distance_per_length, "", "um/m"),
+                                     "at_mean_range": q(ur, "mm", "um")},
+                          "estimated": {"at_mean_range": q(ur_est, "mm", "um")},
+                          "ratio": ur_est / ur if ur > 0 else None, "misstated": bool(mis[0])},
+        "tracker_transverse": {"stated": {"angular": q(rec.angular, "rad", "urad"), "at_mean_range": q(ut, "mm", "um")},
+                               "estimated": {"angular": q(ut_est / r_mean, "rad", "urad"),
+                                             "at_mean_range": q(ut_est, "mm", "um")},
+                               "ratio": ut_est / ut if ut > 0 else None, "misstated": bool(mis[1])},
+        "machine_repeatability": {"stated": q(R, "mm", "um"),
+                                  "estimated": q(math.sqrt(s3[2]) * ref_R, "mm", "um") if sep else None,
+                                  "separable": bool(sep),
+                                  "note": None if sep else "not separable from the tracker noise with this plan "
+                                                           "(it is counted in the along- and across-beam noise)"},
+    }
+    bad = []
+    if mis[0]:
+        bad.append(f"the noise along the beam (tracker range) is {fa:.2g} +- {ua:.1g} times the stated value")
+    if mis[1]:
+        bad.append(f"the noise across the beam (tracker angles) is {fc:.2g} +- {uc:.1g} times the stated value")
+    out["sentence"] = (("the stated uncertainties do not match the data: " + "; ".join(bad) +
+                        ". Selection and the fit test use the estimated noise; no finding is claimed for the "
+                        "mismatch itself") if bad else None)
+    out["whitener"] = Wn
+    out["groups"] = groups if replicates else None
+    return out
+
+
+# --------------------------------------------------------------------- the gate
+def _gate(lin, f_all, k_chosen, est, groups, Wn, usable, gate_alpha) -> dict:
+    """Does the final model explain the recording within the noise?  Lack of fit against pure error when points
+    are repeated, else a chi-square test against the stated noise (impossible when that noise was rejected)."""
+    dof = lin.dof0 - k_chosen
+    chi2 = f_all.chi2
+    out = {"chi2_per_dof": chi2 / dof if dof > 0 else math.nan, "dof": int(dof)}
+    if groups is not None:
+        Clib = [u[1] for u in usable]
+        X = np.concatenate([_group_design(groups, Wn)] + Clib, axis=1)
+        N = _complement(X)
+        chi2_pe, df_pe = float(np.sum((N.T @ lin.w) ** 2)), N.shape[1]
+        df_lof = dof - df_pe
+        if df_lof > 0 and df_pe > 0:
+            F = max(chi2 - chi2_pe, 0.0) / df_lof / (chi2_pe / df_pe)
+            p = float(stats.f.sf(F, df_lof, df_pe))
+            out.update(test="lack of fit against the scatter of repeated points (F)", p_value=p,
+                       lack_of_fit={"F": F, "dof": [int(df_lof), int(df_pe)],
+                                    "chi2_per_dof": max(chi2 - chi2_pe, 0.0) / df_lof,
+                                    "pure_error_chi2_per_dof": chi2_pe / df_pe})
+            out["explained"] = p >= gate_alpha
+            return out
+    if est["used"] == "stated":
+        p = float(stats.chi2.sf(chi2, dof))
+        out.update(test="chi-square against the stated noise", p_value=p, explained=p >= gate_alpha)
+    else:
+        out.update(test="none possible: no repeated points and the stated noise does not match the data",
+                   p_value=None, explained=False)
+    return out
+
+
+# --------------------------------------------------------------------- structure beyond the library
+#: directions a data-driven term may act along
+_DIRS = ("x", "y", "z", "range")
+
+
+def _features(ctx) -> dict:
+    """Scalar columns of the recording (name -> (M,)), centred and scaled to about [-1, 1], and their products."""
+    plan = ctx.plan
+    base = {}
+    t = plan.time - plan.time.mean()
+    if np.ptp(t) > 0:
+        base["t"] = t / (np.ptp(t) / 2)
+    for col, T in plan.temperature.items():
+        if np.ptp(T) > 1e-3:
+            base[col] = (T - T.mean()) / (np.ptp(T) / 2)
+    for i, a in enumerate(AXES):
+        p = plan.nominal[:, i]
+        if np.ptp(p) > 0:
+            base[a] = (p - p.min()) / (np.ptp(p) / 2) - 1.0
+        d = plan.direction[:, i]
+        if (d > 0).any() and (d < 0).any():
+            base[f"dir_{a}"] = d.astype(float)
+    trows = np.round(plan.tool, 6)
+    uniq, first = np.unique(trows, axis=0, return_index=True)
+    for k, j in enumerate(sorted(first)[1:], start=2):
+        base[f"tool{k}"] = np.all(trows == trows[j], axis=1).astype(float)
+    for k in np.unique(plan.run)[1:]:
+        base[f"run{int(k)}"] = (plan.run == k).astype(float)
+    feats = dict(base)
+    names = list(base)
+    for a, b in itertools.combinations_with_replacement(names, 2):
+        v = base[a] * base[b]
+        if np.ptp(v) > 0 and not (a == b and set(np.unique(base[a])) <= {-1.0, 0.0, 1.0}):
+            feats[f"{a}*{b}"] = v
+    return feats
+
+
+def _data_driven(ctx, lin, X_final, Wn, alpha, splits: int = 20) -> dict | None:
+    """The best sparse description of what the final model leaves, from the recording's own columns.
+
+    Forward selection (up to three terms, each significant at a Bonferroni level over the library on the
+    selection half) on one random half of the points; the selected terms are tested on the other half (F-test
+    of the terms given the final model refitted there).  Stability: how often each term is selected first on
+    ``splits`` random halves.  Data-driven, not a named physical effect.
+    """
+    feats = _features(ctx)
+    M = len(ctx.plan)
+    u = ctx.P_LT / np.linalg.norm(ctx.P_LT, axis=1, keepdims=True)
+    names, cols = [], []
+    for fname, f in feats.items():
+        for d in _DIRS:
+            raw = (f[:, None] * u) if d == "range" else f[:, None] * np.eye(3)[AXIS_INDEX[d]][None]
+            cols.append(_whitened(raw[:, :, None], "tracker" if d == "range" else "machine", ctx, Wn))
+            names.append((fname, d))
+    C = np.concatenate(cols, axis=1)
+    L = C.shape[1]
+    rng = np.random.default_rng(20261122)
+
+    def residualise(rows, X, Y):
+        Q, _ = np.linalg.qr(X[rows])
+        return Y[rows] - Q @ (Q.T @ Y[rows])
+
+    def forward(rows, max_terms=3):
+        w = residualise(rows, X_final, lin.w[:, None])[:, 0]
+        Cp = residualise(rows, X_final, C)
+        norms = np.linalg.norm(Cp, axis=0)
+        ok = norms > 1e-6 * max(norms.max(), 1e-300)
+        chosen = []
+        r, B = w.copy(), Cp.copy()
+        dof = len(r) - X_final.shape[1]
+        for _ in range(max_terms):
+            nb = np.linalg.norm(B, axis=0)
+            score = np.where(ok & (nb > 1e-9), (B.T @ r) ** 2 / np.maximum(nb**2, 1e-300), -1.0)
+            j = int(np.argmax(score))
+            if score[j] <= 0:
+                break
+            dof -= 1
+            chi_new = r @ r - score[j]
+            F = score[j] / (chi_new / max(dof, 1))
+            if stats.f.sf(F, 1, max(dof, 1)) * L >= alpha:
+                break
+            chosen.append(j)
+            q = B[:, j] / nb[j]
+            r = r - q * (q @ r)
+            B = B - np.outer(q, q @ B)
+            ok[j] = False
+        return chosen
+
+    point_rows = lambda pts: np.repeat(pts, 3) * 3 + np.tile(np.arange(3), len(pts))  # noqa: E731
+    first = {}
+    selected, p_held, held = None, None, None
+    for k in range(splits):
+        perm = rng.permutation(M)
+        A, Bh = np.sort(perm[: M // 2]), np.sort(perm[M // 2:])
+        sel = forward(point_rows(A))
+        if sel:
+            first[sel[0]] = first.get(sel[0], 0) + 1
+        if k == 0:
+            selected = sel
+            if sel:  # confirm on the held-out half
+                rows = point_rows(Bh)
+                w = residualise(rows, X_final, lin.w[:, None])[:, 0]
+                Cp = residualise(rows, X_final, C[:, sel])
+                beta, *_ = np.linalg.lstsq(Cp, w, rcond=1e-10)
+                chi_small, chi_big = float(w @ w), float(np.sum((w - Cp @ beta) ** 2))
+                dof = len(rows) - X_final.shape[1] - len(sel)
+                F = (chi_small - chi_big) / len(sel) / (chi_big / dof)
+                p_held = float(stats.f.sf(F, len(sel), dof))
+                held = {"chi2_per_dof_before": chi_small / (dof + len(sel)), "chi2_per_dof_after": chi_big / dof,
+                        "delta_chi2": chi_small - chi_big, "F": F, "p_value": p_held, "points": int(len(Bh))}
+    if not selected or p_held is None or p_held >= alpha:
+        return None
+    # the terms fitted on all points, in um
+    Xp = lin.project(C[:, selected]) if X_final.shape[1] == lin.p0 else None
+    Q, _ = np.linalg.qr(X_final)
+    Cp = C[:, selected] - Q @ (Q.T @ C[:, selected])
+    beta, *_ = np.linalg.lstsq(Cp, lin.w - Q @ (Q.T @ lin.w), rcond=1e-10)
+    del Xp
+    terms = []
+    for j, b in zip(selected, beta):
+        fname, d = names[j]
+        disp = feats[fname] * b  # mm along d
+        terms.append({"term": f"{fname} along {d}", "coefficient": {"value": float(display(b, "mm", "um")), "unit": "um"},
+                      "rms": {"value": float(display(np.sqrt(np.mean(disp**2)), "mm", "um")), "unit": "um"},
+                      "selected_first_in": f"{first.get(j, 0)} of {splits} random halves"})
+    return {"kind": "data-driven, not a named physical effect", "terms": terms, "held_out": held,
+            "library": {"features": len(feats), "terms_searched": L},
+            "method": "forward selection on one half of the points (Bonferroni over the terms searched), "
+                      "F-test of the selected terms on the other half"}
 
 
 def _perturbation(c: Candidate, ctx: DiagnosisContext, beta: np.ndarray, columns: np.ndarray) -> dict:

@@ -74,3 +74,22 @@ def mtbudget_register_candidates(register: Callable[[Candidate], None]) -> None:
         inside the hook becomes a :class:`~mtbudget.errors.PluginError`
         naming the plugin, this hook and the package version.
     """
+
+
+@hookspec
+def mtbudget_register_exporters(register: Callable[[Exporter], None]) -> None:  # noqa: F821 (mtbudget.contracts)
+    """Register compensation-table exporters for ``mtbudget compensate --format NAME``.
+
+    Called once per plugin each time the host collects exporters (``PluginHost.exporters()``);
+    register fresh instances every time.
+
+    :param register: a callback; call ``register(exporter)`` once per exporter, with an
+        instance of a subclass of :class:`mtbudget.contracts.Exporter`: its name, description,
+        file suffix, the documented convention it follows (a citation) and ``write(table, path)``.
+        mtbudget stamps it with the plugin, distribution and version that registered it and
+        checks that its name is unique across all plugins and that it states a suffix and a
+        convention.  ``register`` raises :class:`mtbudget.errors.PluginError` on the first violation.
+    :return: nothing; the return value is ignored.  An exception raised
+        inside the hook becomes a :class:`~mtbudget.errors.PluginError`
+        naming the plugin, this hook and the package version.
+    """

@@ -46,7 +46,7 @@ from pathlib import Path
 import pluggy
 
 from . import hookspecs
-from .contracts import TARGETS, Candidate, Group, Source
+from .contracts import TARGETS, Candidate, Exporter, Group, Source
 from .errors import PluginError
 
 try:  # Python >= 3.11
@@ -404,7 +404,7 @@ class PluginHost:
     def _duplicate(self, hook_name: str, key, first: str, second: str, obj) -> PluginError:
         """Two plugins registered the same name: name both, blame the later one, never a built-in."""
         blamed = first if second in self.builtin and first not in self.builtin else second
-        what = "source" if isinstance(obj, Source) else "candidate"
+        what = "source" if isinstance(obj, Source) else "exporter" if isinstance(obj, Exporter) else "candidate"
         shown = key if isinstance(key, str) else _label(obj)
         return PluginError(f"duplicate {what} name {shown!r}: already registered by plugin {first!r} ({self._origin(first)}), "
                            f"registered again by plugin {second!r} ({self._origin(second)}); plugin {blamed!r} must rename "
@@ -445,6 +445,22 @@ class PluginHost:
 
         return self._collect("mtbudget_register_candidates", Candidate, check)
 
+    def exporters(self) -> list[Exporter]:
+        """Every registered compensation-table exporter, validated (mtbudget compensate --format)."""
+        def check(e: Exporter):
+            where = dict(plugin=e.plugin, hook="mtbudget_register_exporters")
+            if not e.name or not isinstance(e.name, str):
+                raise PluginError("an exporter needs a non-empty string name", **where)
+            if not isinstance(e.suffix, str) or not e.suffix.startswith("."):
+                raise PluginError(f"exporter {e.name!r}: suffix must be a file suffix such as '.csv', got {e.suffix!r}",
+                                  **where)
+            if not isinstance(e.convention, str) or not e.convention.strip():
+                raise PluginError(f"exporter {e.name!r} must cite the convention it follows (attribute 'convention')",
+                                  **where)
+            return e.name
+
+        return self._collect("mtbudget_register_exporters", Exporter, check)
+
     def plugins(self) -> list[PluginInfo]:
         return [self.info[n] for n in sorted(self.info)]
 
@@ -454,6 +470,8 @@ def _hook_of(obj) -> str | None:
         return "mtbudget_register_sources"
     if isinstance(obj, Candidate):
         return "mtbudget_register_candidates"
+    if isinstance(obj, Exporter):
+        return "mtbudget_register_exporters"
     return None
 
 

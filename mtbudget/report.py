@@ -269,7 +269,8 @@ def provenance_lines(res: RunResult) -> list:
     tr = cfg.get("tracker", {})
     mesh = cfg.get("mesh", {})
     lines = ["## Conditions", "", "| item | value |", "| --- | --- |",
-             f"| configuration | {res.spec.get('config_path') or '(built in code)'} ({cfg.get('name', '-')}; sha256 {digest}) |",
+             f"| configuration | {md_escape(res.spec.get('config_path') or '(built in code)')} "
+             f"({md_escape(cfg.get('name', '-'))}; sha256 {digest}) |",
              f"| machine | {cfg.get('machine', 'XFYZ')} |",
              f"| mesh | x {mesh.get('x')}, y {mesh.get('y')}, z {mesh.get('z')}, step {mesh.get('step', '-')} |",
              f"| tool offset of the statement | {(cfg.get('plan', {}).get('tools') or [['0 mm'] * 3])[0]} |",
@@ -284,11 +285,86 @@ def provenance_lines(res: RunResult) -> list:
     return lines
 
 
-def run_report(res: RunResult, folder, tolerance_um: float | None = None, characteristic: str = "component") -> dict:
-    """Write report.md and a self-contained report.html (figures inlined) into ``folder``."""
+#: a caption for every figure mtbudget writes (the alt text and the caption in the HTML)
+CAPTIONS = {
+    "uncertainty_map": "Standard uncertainty (k = 1) of the compensated machine's error at each mesh point, per axis, "
+                       "at the commanded positions",
+    "distributions": "Distributions over the simulated verifications of the volume summaries, with their coverage intervals",
+    "contributions": "Share of each source in the variance of the per-point errors, coloured by the paper's four groups",
+    "convergence": "Convergence of compensation_rms and of its standard deviation with the number of trials",
+}
+
+
+def md_escape(text: str) -> str:
+    """A user string (a recording or configuration name) safe inside Markdown: no markup, no HTML."""
+    import html
+
+    out = html.escape(str(text), quote=True)
+    for ch in "\\`*_[]{}()#+!|$":
+        out = out.replace(ch, "\\" + ch)
+    return out
+
+
+def write_html(md: list, folder: Path, path: Path, title: str):
+    """The Markdown lines as a self-contained HTML page: tables as tables, figures inlined with their captions."""
     import base64
     import html
 
+    body = []
+    for line in md:
+        if line.startswith("# "):
+            body.append(f"<h1>{html.escape(line[2:])}</h1>")
+        elif line.startswith("### "):
+            body.append(f"<h3>{html.escape(line[4:])}</h3>")
+        elif line.startswith("## "):
+            body.append(f"<h2>{html.escape(line[3:])}</h2>")
+        elif line.startswith("| ---"):
+            continue
+        elif line.startswith("|"):
+            cells = [c.strip() for c in line.strip("|").split("|")]
+            tag = "td"
+            if not body or not (body[-1].startswith("<tr") or body[-1].startswith("<table")):
+                body.append('<table class="budget">')
+                tag = "th"
+            body.append("<tr>" + "".join(f"<{tag}>{html.escape(_unescape_md(c.replace('**', '')))}</{tag}>" for c in cells) + "</tr>")
+        elif line.startswith("!["):
+            caption = _unescape_md(line[2:line.index("](")])
+            name = line[line.index("](") + 2:-1]
+            b64 = base64.b64encode((folder / name).read_bytes()).decode()
+            body.append(f'<figure><img alt="{html.escape(caption)}" src="data:image/png;base64,{b64}">'
+                        f"<figcaption>{html.escape(caption)}</figcaption></figure>")
+        else:
+            if body and body[-1].startswith("<tr"):
+                body.append("</table>")
+            if line.strip():
+                body.append(f"<p>{html.escape(_unescape_md(line.replace('**', '')))}</p>")
+    if body and body[-1].startswith("<tr"):
+        body.append("</table>")
+    page = ("<!DOCTYPE html><html><head><meta charset='utf-8'><title>" + html.escape(title) + "</title><style>"
+            "body{font-family:sans-serif;max-width:1100px;margin:2em auto;color:#222}"
+            "table{border-collapse:collapse;margin:1em 0}td,th{border:1px solid #bbb;padding:3px 8px;font-size:13px}"
+            "th{background:#eef}img{max-width:100%}figcaption{font-size:13px;color:#444}</style>"
+            "<script>window.addEventListener('load',function(){var im=document.images,ok=0;"
+            "for(var i=0;i<im.length;i++){if(im[i].complete&&im[i].naturalWidth>0)ok++;}"
+            "document.body.setAttribute('data-images',ok+'/'+im.length);"
+            "document.body.setAttribute('data-tables',document.querySelectorAll('table.budget').length);});</script>"
+            "</head><body>" + "\n".join(body) + "</body></html>")
+    path.write_text(page)
+
+
+def _unescape_md(text: str) -> str:
+    import html
+    import re
+
+    return html.unescape(re.sub(r"\\(.)", r"\1", text))
+
+
+def run_report(res: RunResult, folder, tolerance_um: float | None = None, characteristic: str = "component",
+               extra_figures: dict | None = None) -> dict:
+    """Write report.md and a self-contained report.html (figures inlined) into ``folder``.
+
+    extra_figures: name -> (PNG path in ``folder``, caption), e.g. the paper study's figures.
+    """
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
     figs = _figures(res, folder)
@@ -368,44 +444,10 @@ def run_report(res: RunResult, folder, tolerance_um: float | None = None, charac
             md.append(f"| {r['source']} | {r['group']} | {ux} | {r['u_y']:.3f} | {r['share']:.1%} |")
         md.append(f"| interaction | | | | {b['interaction'] / b['total'] if b['total'] else 0:.1%} |")
         md.append(f"| **total** | | | {b['u_total']:.3f} | 100 % |")
-    md += ["", "## Figures", ""] + [f"![{k}]({p.name})" for k, p in figs.items()]
+    figs.update({k: v[0] for k, v in (extra_figures or {}).items()})
+    captions = {**CAPTIONS, **{k: v[1] for k, v in (extra_figures or {}).items()}}
+    md += ["", "## Figures", ""] + [f"![{md_escape(captions.get(k, k))}]({p.name})" for k, p in figs.items()]
     (folder / "report.md").write_text("\n".join(md) + "\n")
-    # HTML: the same content, tables as tables, figures inlined (opens with no network)
-    body = []
-    for line in md:
-        if line.startswith("# "):
-            body.append(f"<h1>{html.escape(line[2:])}</h1>")
-        elif line.startswith("## "):
-            body.append(f"<h2>{html.escape(line[3:])}</h2>")
-        elif line.startswith("| ---"):
-            continue
-        elif line.startswith("|"):
-            cells = [c.strip() for c in line.strip("|").split("|")]
-            tag = "th" if body and not body[-1].startswith("<tr") and not body[-1].startswith("<table") else "td"
-            if not body or not (body[-1].startswith("<tr") or body[-1].startswith("<table")):
-                body.append('<table class="budget">')
-                tag = "th"
-            body.append("<tr>" + "".join(f"<{tag}>{html.escape(c.replace('**', ''))}</{tag}>" for c in cells) + "</tr>")
-        elif line.startswith("!["):
-            name = line[line.index("(") + 1:-1]
-            b64 = base64.b64encode((folder / name).read_bytes()).decode()
-            body.append(f'<figure><img alt="{html.escape(name)}" src="data:image/png;base64,{b64}"></figure>')
-        else:
-            if body and body[-1].startswith("<tr"):
-                body.append("</table>")
-            if line.strip():
-                body.append(f"<p>{html.escape(line.replace('**', ''))}</p>")
-    if body and body[-1].startswith("<tr"):
-        body.append("</table>")
-    page = ("<!DOCTYPE html><html><head><meta charset='utf-8'><title>mtbudget report</title><style>"
-            "body{font-family:sans-serif;max-width:1100px;margin:2em auto;color:#222}"
-            "table{border-collapse:collapse;margin:1em 0}td,th{border:1px solid #bbb;padding:3px 8px;font-size:13px}"
-            "th{background:#eef}img{max-width:100%}</style>"
-            "<script>window.addEventListener('load',function(){var im=document.images,ok=0;"
-            "for(var i=0;i<im.length;i++){if(im[i].complete&&im[i].naturalWidth>0)ok++;}"
-            "document.body.setAttribute('data-images',ok+'/'+im.length);"
-            "document.body.setAttribute('data-tables',document.querySelectorAll('table.budget').length);});</script>"
-            "</head><body>" + "\n".join(body) + "</body></html>")
-    (folder / "report.html").write_text(page)
+    write_html(md, folder, folder / "report.html", "mtbudget uncertainty statement")
     (folder / "results.json").write_text(__import__("json").dumps(data, indent=1))
     return {"markdown": folder / "report.md", "html": folder / "report.html", "figures": figs}

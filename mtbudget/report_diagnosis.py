@@ -36,8 +36,17 @@ def diagnosis_text(d) -> str:
     if hints:
         out.append("  where the mismatch is:")
         out += [f"    - {h}" for h in hints]
+    noise = getattr(d, "noise", None) or {}
+    if noise.get("sentence"):
+        out.append(f"  NOISE: {noise['sentence']}.")
+    which = "estimated" if noise.get("used") == "estimated" else "stated"
+    unexplained = getattr(d, "unexplained", None)
     if not d.findings:
-        out.append("  no finding: the recording is explained by the baseline model within its stated uncertainty")
+        if unexplained is None:
+            out.append(f"  no finding: the recording is explained by the baseline model within its {which} uncertainty"
+                       + (" (not the stated one, see NOISE)" if which == "estimated" else ""))
+        else:
+            out.append("  no finding: no candidate of the library explains the misfit with plausible values")
         out.append(f"  ({len(d.considered)} candidates tested at a family-wise level of {d.settings['alpha']:g})")
     for f in d.findings:
         x = f.to_dict()
@@ -57,11 +66,57 @@ def diagnosis_text(d) -> str:
                        f"{' '.join(f.hints) or GENERIC_HINT}")
     if d.findings:
         out.append(f"  final: chi-square per dof {d.final['chi2_per_dof']:.3f}, RMS {_rms(d.final)}")
+        if unexplained is None:
+            out.append(f"  the final model explains the recording within its {which} uncertainty")
+    if unexplained is not None:
+        out += _unexplained_text(unexplained)
     for s in d.skipped:
         out.append(f"  skipped {s['effect']}{'[' + s['axis'] + ']' if s['axis'] else ''}: {s['reason']}")
     for s in d.untestable:
         out.append(f"  not testable {s['effect']}{'[' + s['axis'] + ']' if s['axis'] else ''}: {s['reason']}")
     return "\n".join(out)
+
+
+def _unexplained_text(u) -> list:
+    out = []
+    p = u.get("p_value")
+    ptxt = f"p = {p:.2g}" if p is not None else "no test possible"
+    out.append(f"  NOT EXPLAINED: the final model leaves a misfit beyond the noise (chi-square per dof "
+               f"{u['chi2_per_dof']:.3f} on {u['dof']} dof; {u['test']}: {ptxt})")
+    lof = u.get("lack_of_fit")
+    if lof:
+        out.append(f"    misfit beyond the scatter of repeated points: {lof['chi2_per_dof']:.2f} per dof vs "
+                   f"{lof['pure_error_chi2_per_dof']:.2f} (F = {lof['F']:.2f} on {lof['dof'][0]}, {lof['dof'][1]} dof)")
+    where = u.get("where", {})
+    lines = []
+    for a, v in where.get("by_direction", {}).items():
+        if abs(v["z"]) > 3:
+            lines.append(f"{a} residuals differ by {v['difference']:+.1f} {pretty('um')} between + and - approaches")
+    for a, v in where.get("by_time", {}).items():
+        if abs(v["z"]) > 3:
+            lines.append(f"{a} residuals drift {v['slope_um_per_h']:+.1f} {pretty('um/h')} ({v['z']:.1f} sigma)")
+    tools = where.get("by_tool", {})
+    if len(tools) > 1:
+        lines.append("by tool: " + ", ".join(f"tool {k} mean ({', '.join(f'{x:+.1f}' for x in v['mean'])}) {pretty('um')}"
+                                             for k, v in tools.items()))
+    for x in lines:
+        out.append(f"    - {x}")
+    for imp in u.get("implausible", []):
+        ax = f"[{imp['axis']}]" if imp["axis"] else ""
+        out.append(f"    IMPLAUSIBLE {imp['effect']}{ax} would fit, but {imp['reason']}: not a finding")
+    for n in u.get("notes", []):
+        out.append(f"    note: {n}")
+    dd = u.get("data_driven")
+    if dd:
+        h = dd["held_out"]
+        terms = "; ".join(f"{t['term']} ({t['rms']['value']:.2f} {pretty('um')} RMS, first in {t['selected_first_in']})"
+                          for t in dd["terms"])
+        out.append(f"    best description ({dd['kind']}): {terms}")
+        out.append(f"      on held-out points chi-square per dof {h['chi2_per_dof_before']:.3f} -> {h['chi2_per_dof_after']:.3f} "
+                   f"(F = {h['F']:.1f}, p = {h['p_value']:.2g}, {h['points']} points)")
+    else:
+        out.append("    no data-driven term built from the recording's columns describes it (confirmed on held-out points)")
+    return out
 
 
 def _rms(q) -> str:

@@ -7,7 +7,20 @@ from pathlib import Path
 
 import numpy as np
 
+from .report import write_html
 from .units import factor
+
+
+#: captions of the paper study's figures (the HTML reports show them under each figure)
+STUDY_CAPTIONS = {
+    "initial_errors": "Paper Fig. 12: initial error of the verification points (x, y, z and distance), before compensation",
+    "final_errors": "Paper Fig. 14: error of the verification points left after compensation",
+    "error_clouds": "Paper Figs. 13 and 15: error clouds at each mesh point before and after compensation, exaggerated",
+    "final_mean_error": "Final mean volumetric error (paper Eq. 27) over the simulated verifications, with a normal fit",
+    "placement_Y": "Paper Fig. 9: best tracker station of each test, tracker beside the machine (Y direction)",
+    "placement_X": "Paper Fig. 10: best tracker station of each test, tracker in front of the machine (X direction)",
+    "placement_histogram": "Paper Fig. 11: maximum point uncertainty u_p over the mesh at the best station of each test",
+}
 
 
 def placement_figures(res: dict, folder: Path) -> dict:
@@ -69,8 +82,9 @@ def placement_report(res: dict, j: dict, folder: Path) -> Path:
     lines += ["", f"The {red['better']} direction reduces the mean maximum error by {red['reduction']:.0%} against the "
               f"{red['worse']} direction ({red['mean_better_um']:.1f} vs {red['mean_worse_um']:.1f} um); the paper reports "
               "about 30 %.", ""]
-    lines += [f"![{k}]({p.name})" for k, p in figs.items()]
+    lines += [f"![{STUDY_CAPTIONS.get(k, k)}]({p.name})" for k, p in figs.items()]
     (folder / "placement.md").write_text("\n".join(lines) + "\n")
+    write_html(lines, folder, folder / "placement.html", "mtbudget tracker placement study")
     (folder / "placement.json").write_text(json.dumps(j, indent=1))
     return folder / "placement.md"
 

@@ -55,19 +55,48 @@ def _arr_schema(desc):
 
 
 SCHEMAS = {
-    "mtbudget.RunSpec": {"type": "object", "title": "mtbudget.RunSpec", "properties": {
-        "format": {"type": "string"}, "spec": {"type": "object"}, "trials": {"type": ["integer", "null"]},
-        "plugins": {"type": "array"}, "sources": {"type": "array"}, "outputs": {"type": "object"},
-        "parameter_names": {"type": "array"}, "parameter_units": {"type": "array"}}},
-    "mtbudget.Block": {"type": "object", "title": "mtbudget.Block", "properties": {
-        "block": {"type": "integer"}, "n": {"type": "integer"},
-        "scalars": {"type": "object", "additionalProperties": _arr_schema("per-trial values of one scalar output")},
-        "point_error_moments": {"type": "object"}, "parameter_moments": {"type": "object"}}},
-    "mtbudget.Convergence": {"type": "object", "title": "mtbudget.Convergence", "properties": {
-        "trials": {"type": "integer"}, "mean": {"type": "number"}, "std": {"type": "number"},
-        "low": {"type": "number"}, "high": {"type": "number"}}},
-    "mtbudget.Result": {"type": "object", "title": "mtbudget.Result"},
-    "mtbudget.End": {"type": "object", "title": "mtbudget.End", "properties": {"trials": {"type": "integer"}, "complete": {"type": "boolean"}}},
+    "mtbudget.RunSpec": {"type": "object", "title": "mtbudget.RunSpec", "description": "what the run is; written first",
+                         "properties": {
+        "format": {"type": "string", "description": "mtbudget-runlog/MAJOR"}, "mtbudget_version": {"type": "string"},
+        "spec": {"type": "object", "description": "config (the TOML as a table), config_path, seed, block (trials per block), "
+                                                  "sources (names), coverage"},
+        "trials": {"type": ["integer", "null"], "description": "trials asked for; null for an adaptive run"},
+        "plugins": {"type": "array", "description": "per source: plugin, package and version"},
+        "sources": {"type": "array", "items": {"type": "string"}},
+        "outputs": {"type": "object", "description": "scalar output -> its unit"},
+        "parameter_names": {"type": "array"}, "parameter_units": {"type": "array", "description": "um or urad"},
+        "mesh": {"type": "array", "description": "(M0, 3) nominal tool points of the mesh, machine frame", "unit": "mm"},
+        "commanded": {"type": "array", "description": "(M0, 3) commanded axis positions of the mesh points", "unit": "mm"},
+        "weights": {"type": ["object", "null"], "description": "identification weights stated apart from the drawn noise"}}},
+    "mtbudget.Block": {"type": "object", "title": "mtbudget.Block", "description": "one block of trials, in block order",
+                       "properties": {
+        "block": {"type": "integer"}, "n": {"type": "integer", "description": "trials in the block"},
+        "scalars": {"type": "object", "description": "output -> per-trial values in the unit of RunSpec.outputs",
+                    "additionalProperties": _arr_schema("per-trial values of one scalar output")},
+        "point_error_moments": {"type": "object", "description": "moments (n, mean, m2, min, max) of the 3-D error per point, um"},
+        "parameter_moments": {"type": "object", "description": "moments of the identified parameters, um or urad"},
+        "component_moments": {"type": "object", "description": "n, mean (M0, 3) and co-moments C (M0, 3, 3) of the per-point "
+                                                                "errors per axis, um and um^2"},
+        "components": _arr_schema("(n, 3 M0) per-trial errors per point and axis, um (absent for runs too long to log them)"),
+        "not_converged": {"type": "integer", "description": "trials whose identification did not converge"}}},
+    "mtbudget.Convergence": {"type": "object", "title": "mtbudget.Convergence",
+                             "description": "the main output after each chunk (Foxglove's Plot panel reads it)", "properties": {
+        "trials": {"type": "integer"}, "output": {"type": "string", "description": "which output"},
+        "unit": {"type": "string"}, "mean": {"type": "number"}, "std": {"type": "number", "description": "standard deviation over trials"},
+        "low": {"type": "number", "description": "symmetric coverage interval, low end"},
+        "high": {"type": "number", "description": "symmetric coverage interval, high end"}}},
+    "mtbudget.Result": {"type": "object", "title": "mtbudget.Result",
+                        "description": "the final results, as `mtbudget run --json` prints them", "properties": {
+        "trials": {"type": "integer"}, "coverage": {"type": "number"}, "complete": {"type": "boolean"},
+        "seed": {"type": "integer"}, "not_converged": {"type": "integer"},
+        "outputs": {"type": "object", "description": "scalar output -> unit, description, mean, std, symmetric, shortest"},
+        "budget": {"type": "object", "description": "output -> one-source-at-a-time budget; 'points': the per-point budget"},
+        "measurand": {"type": "string"},
+        "points": {"type": "array", "description": "per mesh point: nominal (mm), mean, u, covariance, interval, guf_u, clause8 (um)"},
+        "points_summary": {"type": "object"}, "guf_points": {"type": "object"},
+        "convergence": {"type": "array"}, "validation": {"type": ["object", "null"]}}},
+    "mtbudget.End": {"type": "object", "title": "mtbudget.End", "description": "written last; absent when the run was cut",
+                     "properties": {"trials": {"type": "integer"}, "complete": {"type": "boolean"}}},
     "foxglove.Log": {"title": "foxglove.Log", "type": "object", "properties": {
         "timestamp": {"type": "object", "properties": {"sec": {"type": "integer"}, "nsec": {"type": "integer"}}},
         "level": {"type": "integer", "description": "0 unknown, 1 debug, 2 info, 3 warning, 4 error, 5 fatal"},
@@ -245,6 +274,7 @@ def read_runlog(path) -> RunLog:
     if not path.exists():
         raise RunLogError(f"{path}: no such file")
     log = RunLog(path)
+    placement = False
     channels, schemas = {}, {}
     with open(path, "rb") as fh:
         head = fh.read(8)
@@ -262,6 +292,8 @@ def read_runlog(path) -> RunLog:
                 elif isinstance(rec, Metadata) and rec.name == "mtbudget.run":
                     log.metadata = dict(rec.metadata)
                     _check_format(path, log.metadata.get("format"))
+                elif isinstance(rec, Metadata) and rec.name == "mtbudget.placement":
+                    placement = True
                 elif isinstance(rec, Message):
                     ch = channels.get(rec.channel_id)
                     if ch is None:
@@ -291,6 +323,8 @@ def read_runlog(path) -> RunLog:
             log.truncated = True
             log.problem = f"{type(exc).__name__}: {exc}"
     if log.header is None:
+        if log.metadata.get("format", "").startswith("mtbudget-placement/") or placement:
+            raise RunLogError(f"{path}: a placement study log, not a run log; `mtbudget replay {path}` prints its summary")
         raise RunLogError(f"{path}: no run header; the file is not an mtbudget run log or was cut before its first record")
     if log.end is None:
         log.truncated = True
@@ -343,3 +377,43 @@ def write_placement_log(body: dict, arrays: dict, path: Path, config_text: str |
         body["arrays"] = {k: {name: _enc(a) for name, a in d.items()} for k, d in arrays.items()}
         w.add_message(channel_id=ch, log_time=t, publish_time=t, data=json.dumps(body).encode())
         w.finish()
+
+
+def log_kind(path) -> str:
+    """"run" or "placement", from the file's metadata (RunLogError when it is neither or not MCAP)."""
+    from mcap.records import Metadata
+    from mcap.stream_reader import StreamReader
+
+    path = Path(path)
+    if not path.exists():
+        raise RunLogError(f"{path}: no such file")
+    with open(path, "rb") as fh:
+        if fh.read(8) != b"\x89MCAP0\r\n":
+            raise RunLogError(f"{path}: not an MCAP file (bad magic bytes)")
+        fh.seek(0)
+        try:
+            for rec in StreamReader(fh, validate_crcs=True).records:
+                if isinstance(rec, Metadata) and rec.name == "mtbudget.placement":
+                    return "placement"
+                if isinstance(rec, Metadata) and rec.name == "mtbudget.run":
+                    return "run"
+        except Exception:
+            pass
+    return "run"
+
+
+def read_placement_log(path) -> dict:
+    """The summary of a placement study log (as placement.json holds it), with its per-test arrays."""
+    from mcap.records import Message
+    from mcap.stream_reader import StreamReader
+
+    with open(path, "rb") as fh:
+        try:
+            for rec in StreamReader(fh, validate_crcs=True).records:
+                if isinstance(rec, Message):
+                    body = json.loads(rec.data)
+                    body["arrays"] = {k: {name: _dec(a) for name, a in d.items()} for k, d in body.get("arrays", {}).items()}
+                    return body
+        except Exception as exc:
+            raise RunLogError(f"{path}: damaged placement log ({type(exc).__name__}: {exc})") from None
+    raise RunLogError(f"{path}: the placement log holds no study (cut before its only record)")

@@ -236,7 +236,9 @@ def _resolve_links(config: SimulationConfig, sources: list, tables: dict) -> dic
             drawn[key], stated_by[key] = value, where
     for s in sources:
         for param, key in s.links.items():
-            tables[s.name].setdefault(param, Q_(drawn[key], PHYSICAL_INPUTS[key][0]))
+            q = Q_(drawn[key], PHYSICAL_INPUTS[key][0])
+            unit = _unit_of(s, param)
+            tables[s.name].setdefault(param, q.to(unit) if unit else q)
     return drawn
 
 

@@ -19,6 +19,18 @@ what a shop would send::
 A candidate for an effect that has no simulating source yet needs one: write
 it as an opt-in source in the same plugin and pass its settings with
 ``extra_sources``.
+
+Beyond the library and beyond the stated noise: ``noise`` misstates the
+uncertainties (``{"range": 4, "transverse": 2, "repeatability": 3}`` simulates
+that much more noise than the recording states), and the effects
+``spindle_thermal_growth``, ``column_tilt``, ``tool_length_error``, ``axis_polynomial`` (axis
+``"xy2"``: a z error in x y^2; ``"xyz"``: an x error in x y z, outside every
+candidate) are drawn by the opt-in sources of plugins/machine_tool.py, written
+independently of the candidates.  :data:`EXPECTED` maps each to the candidate
+that should name it (None: outside the library).  Effects that follow a
+temperature are drawn with a physically plausible parameter: when the test's
+temperature change is too small for the effect to reach its multiple of the
+noise with one, the sensor's drift is made larger.
 """
 
 from __future__ import annotations
@@ -50,12 +62,27 @@ BASE = {
     # the noise a recording states is the noise it has: tracker noise at its stated angular value, and repeatability
     "sources": {"enable": ["tracker_noise", "repeatability"], "tracker_noise": {"angular_sd": "0 urad"}},
 }
-EFFECTS = ("thermal_expansion", "reversal", "tracker_drift", "tracker_range_offset", "axis_coupling", "air_temperature_drift")
+EFFECTS = ("thermal_expansion", "reversal", "tracker_drift", "tracker_range_offset", "axis_coupling", "air_temperature_drift",
+           "spindle_growth", "column_tilt", "tool_length", "axis_polynomial")
+#: (effect, axis) of a case -> the (effect, axis) a diagnosis should name, None when no candidate describes it
+EXPECTED = {("spindle_growth", None): ("spindle_growth", None), ("tool_length", None): ("tool_length", None),
+            ("column_tilt", "x"): ("column_tilt", "x"), ("column_tilt", "y"): ("column_tilt", "y"),
+            ("axis_polynomial", "xy2"): ("axis_coupling_quadratic", "xy"), ("axis_polynomial", "xyz"): None}
+#: the largest parameter drawn for effects that follow a temperature (the plausible ranges are wider)
+PLAUSIBLE_DRAW = {"thermal_expansion": 20.0, "spindle_growth": 30.0, "column_tilt": 30.0}  # um/(m*K), um/K, urad/K
 
 
-def case_config(seed: int, effects: tuple = (), multiple: float = 2.5) -> tuple[SimulationConfig, dict]:
+def expected(effect) -> tuple | None:
+    """The (effect, axis) a diagnosis should name for a concealed ``effect`` (None: outside the library)."""
+    return EXPECTED.get(tuple(effect), tuple(effect))
+
+
+def case_config(seed: int, effects: tuple = (), multiple: float = 2.5, noise: dict | None = None
+                ) -> tuple[SimulationConfig, dict]:
     """A random verification with ``effects`` ((name, axis) pairs) at ``multiple`` x the point noise.
 
+    ``noise``: factors by which the simulated noise exceeds the stated one ("range", "transverse",
+    "repeatability"); :func:`simulate_case` states the unscaled values.
     Returns the config and the truth of the effects in display units.
     """
     rng = np.random.default_rng(np.random.SeedSequence([seed, 7919]))
@@ -79,6 +106,19 @@ def case_config(seed: int, effects: tuple = (), multiple: float = 2.5) -> tuple[
     cfg = parse_config(raw)
     sigma = point_noise(cfg)
     plan = cfg.plan(np.random.default_rng(np.random.SeedSequence(cfg.seed)))
+    # effects that follow a temperature: a plausible parameter, the sensor drifting faster where needed
+    for name, axis in effects:
+        if name in PLAUSIBLE_DRAW:
+            col = f"T_{axis}" if name == "thermal_expansion" else "T_z"
+            for _ in range(8):
+                need = _sensor_effect_parameter(name, axis, plan, cfg, multiple * sigma)
+                if need <= PLAUSIBLE_DRAW[name]:
+                    break
+                sen = next(x for x in raw["sensors"] if x["column"] == col)
+                rate = float(sen["rate"].split()[0]) * min(need / PLAUSIBLE_DRAW[name] * 1.1, 4.0)
+                sen["rate"] = f"{rate:.4f} K/h"
+                cfg = parse_config(raw)
+                plan = cfg.plan(np.random.default_rng(np.random.SeedSequence(cfg.seed)))
     truth: dict = {}
     settings: dict = {}
 
@@ -113,15 +153,66 @@ def case_config(seed: int, effects: tuple = (), multiple: float = 2.5) -> tuple[
             sign = rng.choice([-1, 1])
             T = np.mean([plan.temperature[s.sensor.column] for s in cfg.sensors if s.sensor.attached_to == "air"], axis=0)
             put(name, "sensitivity", _q(display(amp * sign / np.ptp(T), 'mm/K', 'um/K'), "um/K"))
+        elif name == "spindle_growth":
+            g = _sensor_effect_parameter(name, axis, plan, cfg, amp)
+            put("spindle_thermal_growth", "growth", _q(g, "um/K"))
+            put("spindle_thermal_growth", "sensor", "T_z")
+            truth[(name, axis)] = g
+        elif name == "column_tilt":
+            tilt = _sensor_effect_parameter(name, axis, plan, cfg, amp) * rng.choice([-1, 1])
+            put(name, f"tilt_{axis}", _q(tilt, "urad/K"))
+            put(name, "sensor", "T_z")
+            truth[(name, axis)] = tilt
+        elif name == "tool_length":
+            sign = rng.choice([-1, 1])
+            put("tool_length_error", "error", _q(display(amp * sign, 'mm', 'um'), "um"))
+            put("tool_length_error", "tool", "2")
+        elif name == "axis_polynomial":
+            sign = rng.choice([-1, 1])
+            powers, direction = {"xy2": ((1, 2, 0), "z"), "xyz": ((1, 1, 1), "x")}[axis]
+            put(name, "amplitude", _q(display(amp * sign, 'mm', 'um'), "um"))
+            put(name, "direction", direction)
+            for a, pw in zip("xyz", powers):
+                put(name, f"p{a}", str(pw))
         else:
             raise ValueError(f"unknown effect {name!r}; known: {', '.join(EFFECTS)}")
         if sign is not None:
             truth[(name, axis)] = display(amp * sign, "mm", "um")
+    for key, f in (noise or {}).items():  # simulate more noise than the recording will state
+        if key == "range":
+            for k in ("distance", "distance_per_length"):
+                v, u = raw["tracker"][k].split(maxsplit=1)
+                raw["tracker"][k] = f"{float(v) * f!r} {u}"
+        elif key == "transverse":
+            v, u = raw["tracker"]["angular"].split(maxsplit=1)
+            raw["tracker"]["angular"] = f"{float(v) * f!r} {u}"
+        elif key == "repeatability":
+            v, u = raw["machine_tool"]["repeatability"].split(maxsplit=1)
+            raw["machine_tool"]["repeatability"] = f"{float(v) * f!r} {u}"
+        else:
+            raise ValueError(f"unknown noise component {key!r}; known: range, transverse, repeatability")
     if settings:
         raw["sources"]["enable"] = BASE["sources"]["enable"] + list(settings)
         raw["sources"].update(settings)
+    if settings or noise:
         cfg = parse_config(raw)
+    if noise:
+        cfg.stated_noise_factors = dict(noise)
     return cfg, truth
+
+
+def _sensor_effect_parameter(name, axis, plan, cfg, amp):
+    """The parameter (display units) an effect that follows a temperature needs to span ``amp`` (mm)."""
+    if name == "thermal_expansion":
+        i = AXIS_INDEX[axis]
+        dT = plan.axis_temperature(axis, cfg.reference_temperature) - cfg.reference_temperature
+        return display(amp / np.ptp(plan.nominal[:, i] * dT), "1/K", "um/(m*K)")
+    T = plan.temperature["T_z"]
+    dT = T - T[0]
+    if name == "spindle_growth":
+        return display(amp / np.ptp(dT), "mm/K", "um/K")
+    height = plan.nominal[:, 2] + plan.tool[:, 2]
+    return display(amp / np.ptp(dT * height), "1/K", "urad/K")
 
 
 def _q(value, unit: str) -> str:
@@ -137,8 +228,17 @@ def point_noise(cfg: SimulationConfig) -> float:
 
 
 def simulate_case(cfg: SimulationConfig, folder: Path, imperial: bool = False):
-    """Simulate the case (one engine trial of its scenario), write it as a recording and read it back."""
+    """Simulate the case (one engine trial of its scenario), write it as a recording and read it back.
+
+    A case drawn with misstated noise states the noise divided by its factors (what the shop believed)."""
     rec, truth = simulate_recording(build_scenario(cfg))
+    for key, f in getattr(cfg, "stated_noise_factors", {}).items():
+        if key == "range":
+            rec.distance, rec.distance_per_length = rec.distance / f, rec.distance_per_length / f
+        elif key == "transverse":
+            rec.angular = rec.angular / f
+        else:
+            rec.repeatability = rec.repeatability / f
     write_recording(rec, folder, truth=truth)
     if imperial:
         _to_imperial(folder)
@@ -165,11 +265,12 @@ def _to_imperial(folder: Path):
     p.write_text("\n".join(out) + "\n")
 
 
-def run_case(seed: int, effects: tuple = (), multiple: float = 2.5, imperial: bool = False, candidates=None):
+def run_case(seed: int, effects: tuple = (), multiple: float = 2.5, imperial: bool = False, candidates=None,
+             noise: dict | None = None):
     """Simulate one case and diagnose it: (diagnosis, truth)."""
     from .diagnose import diagnose
 
-    cfg, truth = case_config(seed, effects, multiple)
+    cfg, truth = case_config(seed, effects, multiple, noise)
     with tempfile.TemporaryDirectory() as tmp:
         rec = simulate_case(cfg, Path(tmp) / "rec", imperial)
         return diagnose(rec, candidates), truth
@@ -178,6 +279,11 @@ def run_case(seed: int, effects: tuple = (), multiple: float = 2.5, imperial: bo
 def named(diag) -> set:
     """The effects a diagnosis names outright."""
     return {(f.candidate.effect, f.candidate.axis) for f in diag.findings}
+
+
+def explained(diag) -> bool:
+    """Whether the diagnosis says the recording is explained (its fit gate passed)."""
+    return diag.unexplained is None
 
 
 def named_or_confounded(diag) -> set:

@@ -303,6 +303,109 @@ SOURCES = (TemperatureSensorCalibration, CTEUncertainty, EnvironmentalVariation,
            Repeatability, ControlError, GeometricErrorUncertainty) + EFFECTS
 
 
+# ----------------------------------------------------------------------------- more simulated physics (opt-in)
+# Written for the diagnosis calibration, independently of the candidates in plugins/physics.py: they read the
+# sensor by its column name, use the raw tool vector, and normalise positions over the plan's own range.
+
+
+def _sensor_change(ctx, column):
+    """Change (K) of a temperature column since the first point; zeros when the plan has no such column."""
+    T = ctx.plan.temperature.get(column)
+    return np.zeros(ctx.n_points) if T is None else np.asarray(T, float) - float(T[0])
+
+
+class SpindleGrowthEffect(Source):
+    """Simulated spindle thermal growth (ISO 230-3): the tool tip moves along its tool vector by ``growth``
+    per kelvin of the ``sensor`` column's change since the first point, plus ``rate`` per hour."""
+
+    name = "spindle_thermal_growth"
+    group = Group.MACHINE_TOOL
+    distribution = "fixed (simulated physics)"
+    targets = ("point_offset",)
+    parameters = {"growth": Q_(0.0, "um/K"), "rate": Q_(0.0, "um/h"), "sensor": "T_z"}
+    opt_in = True
+
+    def sample(self, n, rng, ctx):
+        tool = np.asarray(ctx.plan.tool, float)
+        length = np.linalg.norm(tool, axis=1)
+        along = np.where(length[:, None] > 0, tool / np.maximum(length, 1e-12)[:, None], [0.0, 0.0, -1.0])
+        amount = self.value("growth", "mm/K") * _sensor_change(ctx, self.parameters["sensor"])
+        amount = amount + self.value("rate", "mm/s") * (ctx.plan.time - ctx.plan.time[0])
+        return {"point_offset": Q_(np.tile(amount[:, None] * along, (n, 1, 1)), "mm")}
+
+
+class ColumnTiltEffect(Source):
+    """Simulated column tilt: the structure leans by ``tilt_x`` (towards +x) and ``tilt_y`` (towards +y) per kelvin
+    of the ``sensor`` column's change, so the tool tip moves sideways by the angle times its height (z + tool z)."""
+
+    name = "column_tilt"
+    group = Group.MACHINE_TOOL
+    distribution = "fixed (simulated physics)"
+    targets = ("point_offset",)
+    parameters = {"tilt_x": Q_(0.0, "urad/K"), "tilt_y": Q_(0.0, "urad/K"), "sensor": "T_z"}
+    opt_in = True
+
+    def sample(self, n, rng, ctx):
+        dT = _sensor_change(ctx, self.parameters["sensor"])
+        height = ctx.plan.nominal[:, 2] + ctx.plan.tool[:, 2]
+        disp = np.zeros((ctx.n_points, 3))
+        disp[:, 0] = self.value("tilt_x", "rad/K") * dT * height
+        disp[:, 1] = self.value("tilt_y", "rad/K") * dT * height
+        return {"point_offset": Q_(np.tile(disp, (n, 1, 1)), "mm")}
+
+
+class ToolLengthErrorEffect(Source):
+    """Simulated reflector holder of the wrong length: the points measured with tool number ``tool`` (1-based, in the
+    order the tools first appear) lie ``error`` further along that tool's vector than stated."""
+
+    name = "tool_length_error"
+    group = Group.MACHINE_TOOL
+    distribution = "fixed (simulated physics)"
+    targets = ("point_offset",)
+    parameters = {"error": Q_(0.0, "um"), "tool": Q_(2.0)}
+    opt_in = True
+
+    def sample(self, n, rng, ctx):
+        tool = np.asarray(ctx.plan.tool, float)
+        seen = []
+        for row in tool:
+            if not any(np.allclose(row, s) for s in seen):
+                seen.append(row)
+        k = int(round(float(self.parameters["tool"].magnitude))) - 1
+        disp = np.zeros((ctx.n_points, 3))
+        if 0 <= k < len(seen) and np.linalg.norm(seen[k]) > 0:
+            mine = np.all(np.isclose(tool, seen[k]), axis=1)
+            disp[mine] = self.value("error", "mm") * seen[k] / np.linalg.norm(seen[k])
+        return {"point_offset": Q_(np.tile(disp, (n, 1, 1)), "mm")}
+
+
+class AxisPolynomialEffect(Source):
+    """Simulated non-rigid error along ``direction``: ``amplitude`` times u_x^px u_y^py u_z^pz, each u the axis
+    position scaled to [-1, 1] over the plan's range (x y^2 with px = 1, py = 2, pz = 0)."""
+
+    name = "axis_polynomial"
+    group = Group.MACHINE_TOOL
+    distribution = "fixed (simulated physics)"
+    targets = ("point_offset",)
+    parameters = {"amplitude": Q_(0.0, "um"), "direction": "z", "px": Q_(1.0), "py": Q_(2.0), "pz": Q_(0.0)}
+    opt_in = True
+
+    def sample(self, n, rng, ctx):
+        f = np.ones(ctx.n_points)
+        for i, a in enumerate(AXES):
+            power = int(round(float(self.parameters[f"p{a}"].magnitude)))
+            p = ctx.plan.nominal[:, i]
+            span = np.ptp(p)
+            u = 2.0 * (p - p.min()) / span - 1.0 if span > 0 else np.zeros_like(p)
+            f = f * u**power
+        disp = np.zeros((ctx.n_points, 3))
+        disp[:, AXES.index(self.parameters["direction"].strip().lower())] = self.value("amplitude", "mm") * f
+        return {"point_offset": Q_(np.tile(disp, (n, 1, 1)), "mm")}
+
+
+SOURCES = SOURCES + (SpindleGrowthEffect, ColumnTiltEffect, ToolLengthErrorEffect, AxisPolynomialEffect)
+
+
 @hookimpl
 def mtbudget_register_sources(register):
     for cls in SOURCES:

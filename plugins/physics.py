@@ -6,7 +6,14 @@ parameters, in the machine or the tracker frame, and says which measurement
 would tell it from the effects it is easily confused with.  The effect names
 are fixed: thermal_expansion, reversal, tracker_drift, tracker_range_offset,
 tracker_range_scale, air_temperature_drift, approximation_degree,
-axis_coupling.
+axis_coupling, spindle_growth, column_tilt, tool_length, axis_coupling_quadratic.
+
+Every candidate declares the physically plausible range of its parameters
+(``plausible``, display units): an estimate outside it is reported as
+implausible, never as a finding.  The ranges are deliberately generous
+(a factor of two or three beyond what a shop meets), so they only reject
+physics that is not there, such as a negative CTE or a tracker range scale
+of 100 um/m.
 """
 
 from __future__ import annotations
@@ -38,9 +45,13 @@ def _varies(T, what):
 class ThermalExpansion(Candidate):
     effect = "thermal_expansion"
     parameters = {"cte": "um/(m*K)"}
+    #: steel and cast iron 10-12, aluminium 23; glass scales on a steel axis are in between
+    plausible = {"cte": (0.0, 30.0)}
+    quantity_names = {"cte": "a CTE"}
     hints = {
         "tracker_drift": "Measure while the temperature goes up and then down (not steadily one way).",
         "air_temperature_drift": "Add a sensor on the structure away from the air stream, or repeat at another temperature.",
+        "spindle_growth": "Measure with two tool lengths at the same temperature, or put a sensor on the spindle housing.",
     }
 
     def __init__(self, axis):
@@ -66,6 +77,9 @@ class ThermalExpansion(Candidate):
 class Reversal(Candidate):
     effect = "reversal"
     parameters = {"B": "um"}
+    #: lost motion is positive; a servo overshoot can make it slightly negative
+    plausible = {"B": (-20.0, 100.0)}
+    quantity_names = {"B": "a reversal B"}
 
     def __init__(self, axis):
         super().__init__(axis)
@@ -86,8 +100,13 @@ class TrackerDrift(Candidate):
     effect = "tracker_drift"
     description = "the tracker creeps relative to the machine during the test (apparent velocity of the points)"
     parameters = {"velocity": "um/h"}  # a vector: one column per machine axis
+    #: a tracker on a stable stand creeps a few um/h; 30 um/h is a stand that is moving
+    plausible = {"velocity": (-30.0, 30.0)}
+    quantity_names = {"velocity": "a tracker drift"}
     hints = {"air_temperature_drift": "Repeat the test with the air temperature held, or measure a fixed reference "
-                                      "point every few minutes."}
+                                      "point every few minutes.",
+             "spindle_growth": "Measure a fixed reference point on the table every few minutes (a drift moves it, a "
+                               "spindle growth does not)."}
 
     def requires(self, ctx):
         return None if np.ptp(ctx.plan.time) > 0 else "all points have the same time"
@@ -104,7 +123,11 @@ class TrackerRangeOffset(Candidate):
     description = "a constant error of every tracker distance (ADM zero, reflector of another type or size)"
     parameters = {"offset": "um"}
     frame = "tracker"
-    hints = {"tracker_range_scale": "Measure a calibrated length, or the same points from a second tracker station."}
+    #: an ADM zero error is a few um; a reflector of another size or type tens of um
+    plausible = {"offset": (-50.0, 50.0)}
+    quantity_names = {"offset": "a range offset"}
+    hints = {"tracker_range_scale": "Measure a calibrated length, or the same points from a second tracker station.",
+             "tool_length": "Measure the reflector holders on a tool presetter, or repeat with the tools swapped."}
 
     def columns(self, ctx):
         u = ctx.P_LT / np.linalg.norm(ctx.P_LT, axis=1, keepdims=True)
@@ -116,6 +139,10 @@ class TrackerRangeScale(Candidate):
     description = "tracker distances scaled (wrong air refractive index or weather-station reading)"
     parameters = {"scale": "um/m"}
     frame = "tracker"
+    #: refraction: about 1 um/m per K of air temperature or per 3 hPa of pressure
+    plausible = {"scale": (-10.0, 10.0)}
+    quantity_names = {"scale": "a range scale error"}
+    hints = {"tool_length": "Measure the reflector holders on a tool presetter, or repeat with the tools swapped."}
 
     def columns(self, ctx):
         return ctx.P_LT[:, :, None]
@@ -125,6 +152,9 @@ class AirTemperatureDrift(Candidate):
     effect = "air_temperature_drift"
     description = "the points move with the air temperature (tracker stand, bed or beam path warming), not with time"
     parameters = {"sensitivity": "um/K"}  # a vector: one column per machine axis
+    #: a 1.5 m steel tracker stand grows 17 um/K
+    plausible = {"sensitivity": (-30.0, 30.0)}
+    quantity_names = {"sensitivity": "an air-temperature sensitivity"}
 
     def requires(self, ctx):
         T = ctx.air_temperature()
@@ -144,6 +174,7 @@ class ApproximationDegree(Candidate):
     #: one column per error function of the axis: translational in um, angular in urad
     #: (on a 1 m lever an urad moves a point by 1 um, so the summary's RMS is in um either way)
     parameters = {"dx": "um", "dy": "um", "dz": "um", "ex": "urad", "ey": "urad", "ez": "urad"}
+    plausible = {k: (-50.0, 50.0) for k in parameters}
 
     def __init__(self, axis):
         super().__init__(axis)
@@ -177,6 +208,8 @@ class ApproximationDegree(Candidate):
 class AxisCoupling(Candidate):
     effect = "axis_coupling"
     parameters = {"amplitude": "um"}  # a vector: one column per machine axis
+    plausible = {"amplitude": (-50.0, 50.0)}
+    quantity_names = {"amplitude": "a coupling amplitude"}
 
     def __init__(self, pair):
         super().__init__(pair)
@@ -197,10 +230,179 @@ class AxisCoupling(Candidate):
         return (ua * ub)[:, None, None] * np.eye(3)[None]
 
 
+def _tool_direction(ctx):
+    """(M, 3) unit vector of each point's tool offset (spindle -> reflector); -z where there is none."""
+    t = np.asarray(ctx.plan.tool, float)
+    n = np.linalg.norm(t, axis=1, keepdims=True)
+    return np.where(n > 0, t / np.where(n > 0, n, 1.0), np.array([0.0, 0.0, -1.0]))
+
+
+def _tool_axis_temperature(ctx):
+    """(T, axis) of the sensor on the axis that carries the spindle (the last axis of the chain), or (None, axis)."""
+    axis = getattr(ctx.model.config, "tool", "") or "z"
+    axis = axis[-1] if axis[-1] in AXES else "z"
+    return ctx.axis_temperature_column(axis), axis
+
+
+class SpindleGrowth(Candidate):
+    """ISO 230-3 spindle thermal growth: the tool point moves along the tool axis as the spindle head warms."""
+
+    effect = "spindle_growth"
+    description = ("the spindle and tool grow along the tool axis as the spindle head warms (ISO 230-3): the tool point "
+                   "moves along its tool vector by G (T - T_start), T of the sensor on the spindle-carrying axis")
+    parameters = {"growth": "um/K"}
+    #: spindles grow by a few to about 20 um/K of housing temperature; a negative growth is not physical
+    plausible = {"growth": (-2.0, 50.0)}
+    quantity_names = {"growth": "a spindle growth"}
+    hints = {"tracker_drift": "Measure a fixed reference point on the table every few minutes (a drift moves it, a "
+                              "spindle growth does not).",
+             "thermal_expansion": "Measure with two tool lengths at the same temperature, or put a sensor on the "
+                                  "spindle housing.",
+             "column_tilt": "Measure at two heights of the tool at the same temperature."}
+
+    def requires(self, ctx):
+        T, axis = _tool_axis_temperature(ctx)
+        if T is None:
+            return (f"no temperature sensor on the {axis} axis (the spindle head); a growth that follows time alone "
+                    "cannot be told from a tracker drift")
+        return _varies(T, f"the {axis}-axis temperature")
+
+    def columns(self, ctx):
+        T, _ = _tool_axis_temperature(ctx)
+        return ((T - T[0])[:, None] * _tool_direction(ctx))[:, :, None]
+
+
+class ColumnTilt(Candidate):
+    """A column (or ram) that tilts as it warms: the tool point moves sideways in proportion to its height."""
+
+    effect = "column_tilt"
+    parameters = {"tilt": "urad/K"}
+    #: a column bends a few urad per K of front-to-back gradient; beyond 50 urad/K is not a machine tool
+    plausible = {"tilt": (-50.0, 50.0)}
+    quantity_names = {"tilt": "a column tilt"}
+    hints = {"thermal_expansion": "Measure at two tool lengths (a tilt grows with the lever, an expansion does not).",
+             "tracker_drift": "Measure a fixed reference point every few minutes at two heights.",
+             "spindle_growth": "Measure at two heights of the tool at the same temperature."}
+
+    def __init__(self, direction):
+        super().__init__(direction)
+        self.description = (f"the column tilts towards {direction} as it warms: the tool point moves along {direction} by "
+                            "tilt (T - T_start) times its height, T of the sensor on the spindle-carrying axis")
+
+    def requires(self, ctx):
+        T, axis = _tool_axis_temperature(ctx)
+        if T is None:
+            return f"no temperature sensor on the {axis} axis (the column or ram)"
+        return _varies(T, f"the {axis}-axis temperature")
+
+    def columns(self, ctx):
+        T, _ = _tool_axis_temperature(ctx)
+        height = ctx.plan.nominal[:, 2] + ctx.plan.tool[:, 2]  # mm: lever of the tilt (its constant part is a squareness)
+        return ((T - T[0]) * height)[:, None, None] * _e(self.axis)[None, :, None]
+
+
+def _tools(ctx):
+    """The distinct tool offsets in the order they first appear, and each point's index into them."""
+    t = np.round(np.asarray(ctx.plan.tool, float), 6)
+    _, first, inv = np.unique(t, axis=0, return_index=True, return_inverse=True)
+    order = np.argsort(first)
+    rank = np.empty_like(order)
+    rank[order] = np.arange(len(order))
+    return t[first[order]], rank[np.asarray(inv).reshape(-1)]
+
+
+class ToolLength(Candidate):
+    """The length of each reflector holder (tool offset) is not what the recording states."""
+
+    effect = "tool_length"
+    description = ("a tool offset (reflector holder) is longer or shorter than stated: each tool's points move along "
+                   "its tool vector by its length error (relative to the first tool; a common error is a tracker offset)")
+    parameters = {"length_error": "um"}  # a vector: one per tool after the first
+    #: a holder measured on a presetter is known to a few um; a wrong holder is hundreds of um off
+    plausible = {"length_error": (-500.0, 500.0)}
+    quantity_names = {"length_error": "a tool length error"}
+    hints = {"tracker_range_scale": "Measure the reflector holders on a tool presetter, or repeat with the tools swapped.",
+             "tracker_range_offset": "Measure the reflector holders on a tool presetter, or repeat with the tools swapped.",
+             "spindle_growth": "Measure the tools in the other order (a growth follows the temperature, a length error "
+                               "the tool)."}
+
+    def requires(self, ctx):
+        tools, _ = _tools(ctx)
+        return None if len(tools) >= 2 else "one tool offset only: its length error is a translation the pose absorbs"
+
+    def columns(self, ctx):
+        tools, idx = _tools(ctx)
+        u = _tool_direction(ctx)
+        C = np.zeros((len(ctx.plan), 3, len(tools) - 1))
+        for k in range(1, len(tools)):
+            C[idx == k, :, k - 1] = u[idx == k]
+        return C
+
+
+def _beyond_rigid(ctx, C, min_left=0.05):
+    """The columns of C (M, 3, k) that the rigid-body model (pose and geometric errors, unweighted) leaves more than
+    ``min_left`` of: a term the geometric errors nearly absorb gets a huge, meaningless coefficient."""
+    P, J = ctx.model.machine_points(ctx.theta[None], jacobian=True)
+    P, J = P[0], J[0]
+    M = len(P)
+    rigid = np.zeros((M, 3, 6))
+    rigid[:, :, :3] = np.eye(3)[None]
+    c = P - P.mean(0)
+    for i in range(3):  # small rotations about each axis: e_i x c
+        rigid[:, :, 3 + i] = np.cross(np.eye(3)[i][None], c)
+    A = np.concatenate([rigid, J], axis=2).reshape(3 * M, -1)
+    A = A[:, np.linalg.norm(A, axis=0) > 0]
+    U, sv, _ = np.linalg.svd(A / np.linalg.norm(A, axis=0), full_matrices=False)
+    U = U[:, sv > 1e-8 * sv[0]]
+    X = C.reshape(3 * M, -1)
+    left = np.linalg.norm(X - U @ (U.T @ X), axis=0) / np.maximum(np.linalg.norm(X, axis=0), 1e-300)
+    keep = left > min_left
+    return C[:, :, keep] if keep.any() else C[:, :, :1]
+
+
+class AxisCouplingQuadratic(Candidate):
+    """Errors that depend on two axis positions beyond the bilinear term: u_a u_b^2 and u_a^2 u_b."""
+
+    effect = "axis_coupling_quadratic"
+    parameters = {"amplitude": "um"}  # a vector: (u_a u_b^2, u_a^2 u_b) along x, y, z: six columns
+    plausible = {"amplitude": (-50.0, 50.0)}
+    quantity_names = {"amplitude": "a coupling amplitude"}
+    hints = {"axis_coupling": "Measure a finer mesh in the two axes (at least four positions each)."}
+
+    def __init__(self, pair):
+        super().__init__(pair)
+        a, b = pair
+        self.description = (f"a non-rigid coupling of third order: the error grows with {a} {b}^2 or {a}^2 {b} "
+                            "(a sagging beam, a twisting table), amplitude at the corners of the measured range")
+
+    def requires(self, ctx):
+        for x in self.axis:
+            if len(np.unique(np.round(ctx.plan.nominal[:, AXIS_INDEX[x]], 6))) < 3:
+                return f"the {x} axis has fewer than three positions: a quadratic term cannot be seen"
+        return None
+
+    def columns(self, ctx):
+        a, b = self.axis
+        em = ctx.model.errors
+        ua = em.normalised(a, ctx.plan.nominal[:, AXIS_INDEX[a]])
+        ub = em.normalised(b, ctx.plan.nominal[:, AXIS_INDEX[b]])
+        f = np.stack([ua * ub**2, ua**2 * ub], axis=1)  # (M, 2)
+        C = np.concatenate([f[:, None, :] * np.eye(3)[None, :, i:i + 1] for i in range(3)], axis=2)
+        return _beyond_rigid(ctx, C)
+
+    def summary(self, beta, cov):
+        """RMS of the six amplitudes (um) and of their standard uncertainties."""
+        f = factor("mm", "um")
+        b = np.asarray(beta) * f
+        return [float(np.sqrt(np.mean(b**2)))], [float(np.sqrt(np.trace(np.asarray(cov)) / max(len(b), 1)) * f)], "um"
+
+
 def all_candidates():
     out = [ThermalExpansion(a) for a in AXES] + [Reversal(a) for a in AXES]
     out += [TrackerDrift(), TrackerRangeOffset(), TrackerRangeScale(), AirTemperatureDrift()]
     out += [ApproximationDegree(a) for a in AXES] + [AxisCoupling(p) for p in ("xy", "xz", "yz")]
+    out += [SpindleGrowth(), ColumnTilt("x"), ColumnTilt("y"), ToolLength()]
+    out += [AxisCouplingQuadratic(p) for p in ("xy", "xz", "yz")]
     return out
 
 

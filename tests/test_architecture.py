@@ -23,7 +23,7 @@ LAYERS = [
     ["cli", "__main__"],
     ["runner", "study", "testing"],
     ["report", "report_study", "report_diagnosis", "budget"],
-    ["executors", "diagnose", "runlog"],
+    ["executors", "diagnose", "runlog", "compensate"],
     ["engine"],
     ["simulate"],
     ["scenario"],

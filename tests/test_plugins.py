@@ -30,7 +30,7 @@ from mtbudget.units import Q_
 
 ROOT = Path(__file__).resolve().parents[1]
 SMALL = ROOT / "tests" / "data" / "small.toml"
-BUILTIN = {"machine_tool", "measurement_system", "measurement_strategy", "optimisation_strategy", "physics"}
+BUILTIN = {"machine_tool", "measurement_system", "measurement_strategy", "optimisation_strategy", "physics", "exporters"}
 
 
 def plugin(name, register_fn, hook="mtbudget_register_sources"):

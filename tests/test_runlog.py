@@ -123,3 +123,31 @@ def test_bad_files_give_clear_errors(tmp_path, logged):
     odd.write_bytes(data.replace(b"mtbudget.Convergence", b"mtbudget.Convergencf"))
     res = CliRunner().invoke(main, ["replay", str(odd)])
     assert res.exit_code == 2 and "unknown schema" in res.output
+
+
+def test_replay_reads_a_placement_log_and_refuses_to_verify_it(tmp_path):
+    from click.testing import CliRunner
+
+    from mtbudget.cli import main
+
+    r = CliRunner().invoke(main, ["study", "placement", "--tests", "300", "--out", str(tmp_path), "--quiet"])
+    assert r.exit_code == 0, r.output
+    log = tmp_path / "placement.mcap"
+    r = CliRunner().invoke(main, ["replay", str(log), "--json"])
+    assert r.exit_code == 0, r.output
+    body = json.loads(r.output)
+    on_disk = json.loads((tmp_path / "placement.json").read_text())
+    assert body["directions"]["Y"]["max_error_um"] == on_disk["directions"]["Y"]["max_error_um"]
+    r = CliRunner().invoke(main, ["replay", str(log), "--verify"])
+    assert r.exit_code == 2 and "placement study log" in r.output
+    with pytest.raises(RunLogError, match="a placement study log, not a run log"):
+        read_runlog(log)
+
+
+def test_every_logged_message_type_describes_its_fields():
+    from mtbudget.runlog import PLACEMENT_SCHEMA, SCHEMAS
+
+    for name, schema in list(SCHEMAS.items()) + [("mtbudget.PlacementStudy", PLACEMENT_SCHEMA)]:
+        assert schema.get("properties"), f"{name} has no properties"
+    assert {"output", "unit"} <= set(SCHEMAS["mtbudget.Convergence"]["properties"])
+    assert "points" in SCHEMAS["mtbudget.Result"]["properties"]

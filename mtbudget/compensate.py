@@ -1,0 +1,787 @@
+"""From verification to compensation: identified errors -> tables, ISO 230-1 names, ISO 230-2 figures.
+
+:func:`build_table` identifies a recording (exactly like ``mtbudget identify``) and samples
+what a controller or a report needs on a grid the user sets:
+
+* every identified error function under its ISO 230-1 name (``EXX``, ``EYX``, ... and the
+  squareness errors ``EC(0X)Y``, ``EB(0X)Z``, ``EA(0Y)Z``), in the ISO sign convention (the
+  tool relative to the workpiece), with the standard uncertainty of each entry from the
+  identification covariance: ``cov(f) = B cov_theta B^T`` through the Legendre basis ``B``;
+* per axis, the positioning deviation along the axis on a reference line (the other axes at the
+  centre of their measured range, the plan's first tool), from the kinematic chain (so the
+  Abbe effect of the angular errors on that line is in it), relative to its first grid point,
+  with its standard uncertainty ``(J - J_0) cov_theta (J - J_0)^T``; and the mean reversal
+  value of the axis (ISO 230-2 ``B``, from the recording's bidirectional approaches), which the
+  directional controller tables carry;
+* ISO 230-2 figures per axis (A, E, M, R, B, unidirectional and bidirectional) from the
+  recording's approaches and from the identified model.
+
+Exporters (plugins, hook ``mtbudget_register_exporters``) write a table in one format.
+:func:`check_export` reads the written files back with the readers of this module (written from
+the formats' documentation, independently of the exporters) and applies them to the simulated
+machine of a recording's ``truth.json``: the positioning error left after compensation on each
+axis line, against the uncertainty the table states.  See docs/compensation.md.
+"""
+
+from __future__ import annotations
+
+import difflib
+import json
+import re
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from .errors import MtbudgetError
+from .machine import AXES, AXIS_INDEX, COMPONENT_ERRORS, ChainInputs, Configuration, chain, parse_error_name
+
+#: internal component-error letter -> ISO 230-1 rotation letter
+_ROTATION = {"x": "A", "y": "B", "z": "C"}
+#: squareness: internal name -> (ISO 230-1 name, sign of ISO value / internal value, meaning of a positive value)
+SQUARENESS_ISO = {
+    "sxy": ("EC(0X)Y", 1.0, "the angle between the +X and +Y motions exceeds 90 degrees (Y turned about +Z)"),
+    "sxz": ("EB(0X)Z", -1.0, "the angle between the +X and +Z motions is below 90 degrees (Z turned about +Y)"),
+    "syz": ("EA(0Y)Z", 1.0, "the angle between the +Y and +Z motions exceeds 90 degrees (Z turned about +X)"),
+}
+DEFAULT_STEP_MM = 50.0
+MAX_GRID = 100_000  # entries per axis of the neutral table (controller limits are the exporters')
+MODEL_DRAWS = 4000  # Monte Carlo draws over cov_theta for the uncertainty of the model's E, M, A
+MAX_ROUNDING_UM = 0.1  # --check: a read-back entry further than this from the table is a mismatch, not a rounding
+
+CONVENTIONS = {
+    "names": "ISO 230-1: E<error direction><axis>: EXX positioning of X, EYX/EZX straightness of X in Y/Z, "
+             "EAX/EBX/ECX rotations of X about X (roll), Y, Z; EC(0X)Y, EB(0X)Z, EA(0Y)Z squareness",
+    "sign": "error = actual - nominal, of the tool relative to the workpiece (ISO 230-1 / ISO 230-2); "
+            "a compensation subtracts it. For an axis that moves the workpiece this is minus mtbudget's "
+            "carriage error (dx(x) -> EXX = -dx(x) on XFYZ)",
+    "units": "lengths in um, angles in urad, positions in mm",
+    "error_functions": "Legendre P1..Pn of the axis position over the measured range, no constant term "
+                       "(a constant is a rigid-body offset no verification sees); straightness without its "
+                       "linear term (ISO 230-1: straightness about a reference line whose slope is squareness); "
+                       "the angular errors of the axis carrying the tool include a constant P0 (tool-holder tilt)",
+    "positioning": "per axis, the deviation along the axis on the reference line (other axes at the centre of "
+                   "their range, the plan's first tool), from the kinematic chain (Abbe effects on that line "
+                   "included), zero at the first grid point; forward = approach in the + direction",
+    "reversal": "ISO 230-2 reversal value B = mean deviation approaching in + minus in -, averaged over the "
+                "targets of the recording; forward = mean + B/2, reverse = mean - B/2",
+    "uncertainty": "standard uncertainty (k = 1): identification covariance through the basis "
+                   "(B cov B^T) or the chain Jacobian on the line relative to the datum ((J - J0) cov (J - J0)^T); "
+                   "directional entries add u(B)/2 in quadrature; empty where the plan cannot identify the function",
+}
+
+
+class CompensationError(MtbudgetError, ValueError):
+    """A compensation request that cannot be met (format, step, recording): one line, what to do."""
+
+
+# ----------------------------------------------------------------------------- ISO 230-1 names
+def iso_name(internal: str) -> str:
+    """ISO 230-1 name of a component error: ``dy(x)`` -> ``EYX``, ``ez(y)`` -> ``ECY`` (yaw of Y)."""
+    if internal in SQUARENESS_ISO:
+        return SQUARENESS_ISO[internal][0]
+    kind, comp, axis = parse_error_name(internal)
+    return "E" + (comp.upper() if kind == "d" else _ROTATION[comp]) + axis.upper()
+
+
+def iso_kind(internal: str) -> str:
+    kind, comp, axis = parse_error_name(internal)
+    if kind == "e":
+        return "angular"
+    return "positioning" if comp == axis else "straightness"
+
+
+def iso_sign(config: Configuration, axis: str) -> float:
+    """ISO value / mtbudget value of a component error of ``axis``: -1 when the axis moves the workpiece."""
+    return float(config.side(axis))
+
+
+# ----------------------------------------------------------------------------- the table
+@dataclass
+class ErrorFunction:
+    """One error function sampled on its axis' grid (display units)."""
+
+    iso: str
+    internal: str
+    axis: str
+    kind: str  # positioning, straightness, angular
+    unit: str  # um or urad
+    positions: np.ndarray  # mm
+    value: np.ndarray
+    u: np.ndarray  # NaN where not identifiable
+    identifiable: bool = True
+
+
+@dataclass
+class Squareness:
+    iso: str
+    internal: str
+    value: float  # urad
+    u: float
+    meaning: str
+    identifiable: bool = True
+
+
+@dataclass
+class Iso230_2:
+    """ISO 230-2 figures of one axis from a set of approaches (um)."""
+
+    axis: str
+    source: str  # "recording", "model", "compensated"
+    targets: np.ndarray  # (m,) mm
+    n_up: np.ndarray
+    n_down: np.ndarray
+    mean_up: np.ndarray
+    mean_down: np.ndarray
+    s_up: np.ndarray
+    s_down: np.ndarray
+    figures: dict  # A_up, A_down, A, E_up, E_down, E, M, R_up, R_down, R, B, B_mean
+    uncertainty: dict = field(default_factory=dict)  # figure -> standard uncertainty (model figures)
+    note: str = ""
+
+    @property
+    def reversal(self):
+        return self.mean_up - self.mean_down
+
+    @property
+    def mean_bidirectional(self):
+        return 0.5 * (self.mean_up + self.mean_down)
+
+    def to_dict(self) -> dict:
+        d = {"axis": self.axis, "source": self.source, "unit": "um", "targets_mm": self.targets.tolist(),
+             "n_up": self.n_up.tolist(), "n_down": self.n_down.tolist(),
+             "mean_up": _list(self.mean_up), "mean_down": _list(self.mean_down),
+             "s_up": _list(self.s_up), "s_down": _list(self.s_down), "reversal": _list(self.reversal),
+             "figures": {k: _num(v) for k, v in self.figures.items()}}
+        if self.uncertainty:
+            d["uncertainty"] = {k: _num(v) for k, v in self.uncertainty.items()}
+        if self.note:
+            d["note"] = self.note
+        return d
+
+
+@dataclass
+class AxisTable:
+    """The positioning table of one axis (um, positions in mm), datum at the first grid point."""
+
+    axis: str
+    positions: np.ndarray
+    deviation: np.ndarray  # mean bidirectional deviation along the axis on the reference line
+    u: np.ndarray
+    reversal: float  # ISO 230-2 mean reversal value B (x_up - x_down), um
+    u_reversal: float
+    reversal_source: str
+    reference: dict  # other axis -> mm
+    tool: np.ndarray  # (3,) mm
+    note: str = ""
+
+    @property
+    def forward(self):
+        """Deviation approaching in the + direction (ISO 230-2 up arrow)."""
+        return self.deviation + 0.5 * self.reversal
+
+    @property
+    def reverse(self):
+        return self.deviation - 0.5 * self.reversal
+
+    @property
+    def u_directional(self):
+        return np.sqrt(self.u**2 + (0.5 * self.u_reversal) ** 2)
+
+
+@dataclass
+class CompensationTable:
+    recording: str
+    machine: str
+    step: float  # mm
+    functions: list
+    squareness: list
+    axes: dict  # axis -> AxisTable
+    iso230_2: dict  # axis -> {"recording": Iso230_2 | None, "model": Iso230_2}
+    identification: dict  # chi2_per_dof, dof, points, converged, not_identifiable
+    conventions: dict = field(default_factory=lambda: dict(CONVENTIONS))
+    notes: list = field(default_factory=list)
+    # the identification behind the table (internal units: mm, rad), for the check and for propagation
+    model: object = field(default=None, repr=False)
+    theta: np.ndarray | None = field(default=None, repr=False)
+    cov_theta: np.ndarray | None = field(default=None, repr=False)
+
+    def function(self, iso: str) -> ErrorFunction:
+        for f in self.functions:
+            if f.iso == iso:
+                return f
+        raise KeyError(iso)
+
+    def to_dict(self) -> dict:
+        return {
+            "format": "mtbudget-compensation/1",
+            "recording": self.recording,
+            "machine": self.machine,
+            "grid_step_mm": self.step,
+            "conventions": self.conventions,
+            "identification": self.identification,
+            "iso230_1_names": {f.internal: f.iso for f in self.functions} | {s.internal: s.iso for s in self.squareness},
+            "error_functions": [
+                {"iso": f.iso, "mtbudget": f.internal, "axis": f.axis, "kind": f.kind, "unit": f.unit,
+                 "identifiable": f.identifiable, "positions_mm": f.positions.tolist(), "value": _list(f.value),
+                 "u": _list(f.u)} for f in self.functions],
+            "squareness": [{"iso": s.iso, "mtbudget": s.internal, "unit": "urad", "value": _num(s.value), "u": _num(s.u),
+                            "identifiable": s.identifiable, "positive_means": s.meaning} for s in self.squareness],
+            "positioning": {a: {"unit": "um", "positions_mm": t.positions.tolist(), "mean": _list(t.deviation),
+                                "u": _list(t.u), "forward": _list(t.forward), "reverse": _list(t.reverse),
+                                "u_directional": _list(t.u_directional), "reversal_B": _num(t.reversal),
+                                "u_reversal_B": _num(t.u_reversal), "reversal_source": t.reversal_source,
+                                "reference_mm": t.reference, "tool_mm": t.tool.tolist(), "note": t.note}
+                            for a, t in self.axes.items()},
+            "iso230_2": {a: {k: (v.to_dict() if v is not None else None) for k, v in d.items()}
+                         for a, d in self.iso230_2.items()},
+            "notes": self.notes,
+        }
+
+
+def _num(v):
+    v = float(v)
+    return None if not np.isfinite(v) else v
+
+
+def _list(a):
+    return [_num(v) for v in np.asarray(a, float)]
+
+
+# ----------------------------------------------------------------------------- ISO 230-2
+def iso230_2(axis: str, targets, direction, deviation, *, source: str = "recording", s=None,
+             min_approaches: int = 2) -> Iso230_2:
+    """ISO 230-2 figures from approaches: target position (mm), direction (+1 up, -1 down), deviation (um).
+
+    Statistics are per target position i and per direction, over that target's approaches j
+    in that direction only (never across targets, never mixing the directions):
+    mean x_i(up), x_i(down); s_i (n - 1 in the denominator); B_i = x_i(up) - x_i(down);
+    x_i = (x_i(up) + x_i(down)) / 2; R_i(up) = 4 s_i(up); R_i = max(2 s_i(up) + 2 s_i(down) + |B_i|,
+    R_i(up), R_i(down)); E(up) = max x_i(up) - min x_i(up); E = max over both - min over both;
+    M = max x_i - min x_i; A(up) = max(x_i(up) + 2 s_i(up)) - min(x_i(up) - 2 s_i(up));
+    A over both directions; R = max R_i; B = max |B_i|; B_mean = mean B_i.
+    ``s`` replaces the sample standard deviations by one stated value (the model's figures).
+    """
+    targets = np.asarray(targets, float)
+    direction = np.asarray(direction)
+    deviation = np.asarray(deviation, float)
+    keys = np.round(targets, 6)
+    uniq = np.unique(keys)
+    m = len(uniq)
+    n_up, n_down = np.zeros(m, int), np.zeros(m, int)
+    mu, md, su, sd = (np.full(m, np.nan) for _ in range(4))
+    for i, t in enumerate(uniq):
+        at = keys == t
+        up, down = deviation[at & (direction > 0)], deviation[at & (direction < 0)]
+        n_up[i], n_down[i] = len(up), len(down)
+        if len(up):
+            mu[i] = up.mean()
+            su[i] = up.std(ddof=1) if len(up) > 1 else np.nan
+        if len(down):
+            md[i] = down.mean()
+            sd[i] = down.std(ddof=1) if len(down) > 1 else np.nan
+    if s is not None:
+        su[:] = s
+        sd[:] = s
+    need = 1 if s is not None else min_approaches
+    keep = np.minimum(n_up, n_down) >= need
+    missing = [f"{t:g} mm" for t, k in zip(uniq, keep) if not k]
+    res = Iso230_2(axis, source, uniq[keep], n_up[keep], n_down[keep], mu[keep], md[keep], su[keep], sd[keep], {})
+    if missing:
+        res.note = (f"{len(missing)} of {m} targets left out, fewer than {need} approaches from a side "
+                    f"({', '.join(missing[:4])}{' ...' if len(missing) > 4 else ''})")
+    if keep.sum() < 2:
+        res.note = "not bidirectional: fewer than two targets approached from both sides" + \
+            (f"; {res.note}" if res.note else "")
+        return res
+    mu, md, su, sd = mu[keep], md[keep], su[keep], sd[keep]
+    Bi = mu - md
+    xi = 0.5 * (mu + md)
+    Rup, Rdn = 4 * su, 4 * sd
+    Ri = np.maximum(2 * su + 2 * sd + np.abs(Bi), np.maximum(Rup, Rdn))
+    both_hi = np.concatenate([mu + 2 * su, md + 2 * sd])
+    both_lo = np.concatenate([mu - 2 * su, md - 2 * sd])
+    res.figures = {
+        "A_up": float(np.max(mu + 2 * su) - np.min(mu - 2 * su)),
+        "A_down": float(np.max(md + 2 * sd) - np.min(md - 2 * sd)),
+        "A": float(both_hi.max() - both_lo.min()),
+        "E_up": float(np.ptp(mu)),
+        "E_down": float(np.ptp(md)),
+        "E": float(max(mu.max(), md.max()) - min(mu.min(), md.min())),
+        "M": float(np.ptp(xi)),
+        "R_up": float(Rup.max()),
+        "R_down": float(Rdn.max()),
+        "R": float(Ri.max()),
+        "B": float(np.max(np.abs(Bi))),
+        "B_mean": float(Bi.mean()),
+    }
+    return res
+
+
+def _reversal_estimate(r: Iso230_2) -> tuple[float, float]:
+    """Mean reversal value and its standard uncertainty (targets independent) from a recording's figures."""
+    if not r.figures:
+        return 0.0, 0.0
+    Bi = r.reversal
+    var = r.s_up**2 / r.n_up + r.s_down**2 / r.n_down
+    return float(Bi.mean()), float(np.sqrt(var.sum()) / len(Bi))
+
+
+# ----------------------------------------------------------------------------- building blocks
+def identify_recording(rec, max_degree: int = 3, strategy: str = "one-phase"):
+    """(model, identification) of one recording, as ``mtbudget identify`` does it."""
+    from .identify import Noise, Strategy, identify
+    from .model import MeasurementModel
+
+    model = MeasurementModel.for_plan(rec.machine, rec.plan, max_degree=max_degree)
+    strat = Strategy.one_phase() if strategy == "one-phase" else Strategy.multi_phase()
+    return model, identify(model, rec.lt, Noise.of(rec), strat)
+
+
+def parse_step(text) -> float:
+    """The grid step in mm from a quantity such as "50 mm"; a one-line error otherwise."""
+    from .units import to_internal
+
+    step = to_internal(text, "mm", where="--step", error=CompensationError)
+    if not np.ndim(step) == 0 or not step > 0:
+        raise CompensationError(f"--step: {text!r} must be one positive length, for example \"50 mm\"")
+    return float(step)
+
+
+def grid(lo: float, hi: float, step: float) -> np.ndarray:
+    """lo, lo + step, ... up to hi; hi is always the last point (the table covers the measured range)."""
+    if not step > 0:
+        raise CompensationError(f"grid step must be positive, got {step} mm")
+    n = int(np.floor((hi - lo) / step + 1e-9))
+    if n + 2 > MAX_GRID:
+        raise CompensationError(f"a step of {step:g} mm gives {n + 1} points over {hi - lo:g} mm; at most {MAX_GRID}")
+    pts = lo + step * np.arange(n + 1)
+    if hi - pts[-1] > 1e-9 * max(1.0, abs(hi)):
+        pts = np.append(pts, hi)
+    return pts
+
+
+def line_points(axis: str, positions, reference: dict) -> np.ndarray:
+    pts = np.zeros((len(positions), 3))
+    for b in AXES:
+        pts[:, AXIS_INDEX[b]] = positions if b == axis else reference[b]
+    return pts
+
+
+def line_deviation(config, errors, theta, cov, axis: str, positions, reference: dict, tool, datum=None):
+    """Deviation along ``axis`` on a line (mm), relative to ``datum`` (default: the first position).
+
+    Returns (e (G,), u (G,), D (G, p)): e = [P_W(theta) - P_W(0)]_axis minus its value at the datum,
+    D its Jacobian with respect to theta (relative to the datum), u = sqrt(diag(D cov D^T)).
+    """
+    positions = np.asarray(positions, float)
+    datum = positions[0] if datum is None else float(datum)
+    pos = np.concatenate([[datum], positions])
+    pts = line_points(axis, pos, reference)
+    inp = ChainInputs(pts, np.broadcast_to(np.asarray(tool, float), pts.shape).copy())
+    P, J = chain(config, errors, np.asarray(theta, float)[None], inp, jacobian=True)
+    P0 = chain(config, errors, np.zeros((1, len(errors.params))), inp)
+    k = AXIS_INDEX[axis]
+    e = (P - P0)[0, :, k]
+    D = J[0, :, k, :]
+    e, D = e[1:] - e[0], D[1:] - D[0]
+    u = np.sqrt(np.maximum(np.einsum("gp,pq,gq->g", D, cov, D), 0.0)) if cov is not None else np.zeros(len(e))
+    return e, u, D
+
+
+# ----------------------------------------------------------------------------- the table from a recording
+def build_table(rec, step: float = DEFAULT_STEP_MM, max_degree: int = 3, reference: dict | None = None,
+                identified=None) -> CompensationTable:
+    """Identify ``rec`` and sample its error functions and positioning tables on a grid of ``step`` mm."""
+    from .units import display
+
+    model, res = identified if identified is not None else identify_recording(rec, max_degree)
+    if not bool(res.converged[0]):
+        raise CompensationError(f"the identification of {rec.name!r} did not converge; no table is written")
+    errors, config = model.errors, model.config
+    theta, cov = res.theta[0], res.cov_theta[0]
+    ident = res.identifiability
+    unident = set(ident.unidentifiable_parameters())
+    grids = {a: grid(*errors.ranges[a], step) for a in AXES}
+    centre = {a: 0.5 * sum(errors.ranges[a]) for a in AXES}
+    reference = {**centre, **(reference or {})}
+    tool = np.asarray(rec.plan.tool[0], float)
+    notes = []
+
+    # error functions: f = B theta_g, cov f = B cov_gg B^T, ISO sign per axis side
+    functions = []
+    for name in COMPONENT_ERRORS:
+        idx = [j for j, p in enumerate(errors.params) if p.error == name]
+        if not idx:
+            continue
+        axis = name[3]
+        pts = line_points(axis, grids[axis], reference)
+        B = errors.basis(pts)[:, idx]
+        sgn = iso_sign(config, axis)
+        unit_i, unit_d = ("mm", "um") if name[0] == "d" else ("rad", "urad")
+        val = sgn * (B @ theta[idx])
+        u = np.sqrt(np.maximum(np.einsum("gi,ij,gj->g", B, cov[np.ix_(idx, idx)], B), 0.0))
+        ok = not any(errors.params[j].name in unident for j in idx)
+        functions.append(ErrorFunction(iso_name(name), name, axis, iso_kind(name), unit_d, grids[axis],
+                                       display(val, unit_i, unit_d), display(u, unit_i, unit_d) if ok else
+                                       np.full(len(val), np.nan), ok))
+    squareness = []
+    for s, (iso, sgn, meaning) in SQUARENESS_ISO.items():
+        if s not in errors.names:
+            continue
+        j = errors.index(s)
+        ok = errors.params[j].name not in unident
+        squareness.append(Squareness(iso, s, float(display(sgn * theta[j], "rad", "urad")),
+                                     float(display(np.sqrt(max(cov[j, j], 0.0)), "rad", "urad")) if ok else np.nan,
+                                     meaning, ok))
+
+    # positioning per axis: the chain on the reference line, and the ISO 230-2 figures
+    scale = _scale(errors)
+    null = ident.null_space / scale[:, None] if ident.null_space.size else np.zeros((len(theta), 0))
+    resid = display(res.residual_machine[0], "mm", "um")
+    axes, iso = {}, {}
+    for a in AXES:
+        others = {b: reference[b] for b in AXES if b != a}
+        e, u, D = line_deviation(config, errors, theta, cov, a, grids[a], reference, tool)
+        note = ""
+        if null.shape[1] and np.max(np.abs(D @ null)) > 1e-6:  # > 1 nm per um or urad of a null direction
+            note = "depends on a combination the plan cannot identify: its uncertainty is understated"
+            notes.append(f"positioning table of {a.upper()}: {note}")
+        # recording: every measured point's deviation along the axis, reduced to the reference line
+        pa = rec.plan.nominal[:, AXIS_INDEX[a]]
+        e_pts, _, _ = line_deviation(config, errors, theta, None, a, pa, reference, tool, datum=grids[a][0])
+        dev = display(e_pts, "mm", "um") + resid[:, AXIS_INDEX[a]]
+        r_rec = iso230_2(a, pa, rec.plan.direction[:, AXIS_INDEX[a]], dev, source="recording")
+        B, uB = _reversal_estimate(r_rec)
+        src = ("ISO 230-2 mean reversal value of the recording" if r_rec.figures else
+               f"none: {r_rec.note}; the directional entries equal the mean")
+        axes[a] = AxisTable(a, grids[a], display(e, "mm", "um"), display(u, "mm", "um"), B, uB, src, others, tool, note)
+        # model: the identified line at the recording's targets, the table's reversal, the stated repeatability
+        targets = r_rec.targets
+        e_t, _, D_t = line_deviation(config, errors, theta, cov, a, targets, reference, tool, datum=grids[a][0])
+        e_t = display(e_t, "mm", "um")
+        s_stated = float(display(rec.repeatability, "mm", "um"))
+        tt = np.concatenate([targets, targets])
+        dd = np.concatenate([np.ones(len(targets)), -np.ones(len(targets))])
+        r_mod = iso230_2(a, tt, dd, np.concatenate([e_t + B / 2, e_t - B / 2]), source="model", s=s_stated)
+        r_mod.uncertainty = _model_uncertainty(D_t, cov, theta, B, uB, s_stated, a, targets)
+        r_mod.note = (f"identified model on the reference line; reversal = the table's B; s = the stated "
+                      f"repeatability {s_stated:g} um")
+        iso[a] = {"recording": r_rec, "model": r_mod}
+
+    ident_summary = {"chi2_per_dof": float(res.chi2_per_dof[0]), "dof": int(res.dof), "points": len(rec),
+                     "converged": bool(res.converged[0]),
+                     "not_identifiable": [[{"parameter": n, "iso": iso_name(n.split("[")[0]) if "(" in n else n,
+                                            "weight": w} for n, w in c] for c in ident.combinations()]}
+    return CompensationTable(rec.name, rec.machine, float(step), functions, squareness, axes, iso, ident_summary,
+                             notes=notes, model=model, theta=theta, cov_theta=cov)
+
+
+def _scale(errors) -> np.ndarray:
+    from .units import factor
+
+    return np.array([factor(u, "um" if u == "mm" else "urad") for u in errors.units])
+
+
+def _model_uncertainty(D, cov, theta, B, uB, s, axis, targets, draws: int = MODEL_DRAWS) -> dict:
+    """Standard uncertainties of the model's E, M, A, B by Monte Carlo over cov_theta (linearised on the line)."""
+    rng = np.random.default_rng(230_2)
+    w, V = np.linalg.eigh(0.5 * (cov + cov.T))
+    L = V * np.sqrt(np.clip(w, 0.0, None))
+    dth = rng.standard_normal((draws, len(w))) @ L.T
+    e = (D @ (theta[:, None] + dth.T)).T * 1e3  # (draws, m) um
+    Bd = B + uB * rng.standard_normal(draws)
+    up, dn = e + Bd[:, None] / 2, e - Bd[:, None] / 2
+    E = np.maximum(up.max(1), dn.max(1)) - np.minimum(up.min(1), dn.min(1))
+    M = np.ptp(e, axis=1)
+    A = E + 4 * s
+    return {"E": float(E.std(ddof=1)), "M": float(M.std(ddof=1)), "A": float(A.std(ddof=1)), "B": float(uB),
+            "B_mean": float(uB)}
+
+
+# ----------------------------------------------------------------------------- exporters
+def exporters(host=None) -> dict:
+    from .plugins import default_host
+
+    host = host or default_host()
+    return {e.name: e for e in host.exporters()}
+
+
+def find_exporter(name: str, host=None):
+    found = exporters(host)
+    if name not in found:
+        close = difflib.get_close_matches(name, list(found), 1, 0.5)
+        hint = f"did you mean {close[0]!r}? " if close else ""
+        raise CompensationError(f"unknown format {name!r}; {hint}the formats are {', '.join(sorted(found))} "
+                                "(docs/compensation.md)")
+    return found[name]
+
+
+def export(table: CompensationTable, exporter, path) -> list:
+    """Write ``table`` with ``exporter`` (through the plugin host's call(), so a failure names the plugin)."""
+    from .plugins import call
+
+    if exporter.max_entries is not None:
+        for a, t in table.axes.items():
+            if len(t.positions) > exporter.max_entries:
+                raise CompensationError(
+                    f"--step {table.step:g} mm gives {len(t.positions)} entries on axis {a.upper()}; format "
+                    f"{exporter.name!r} accepts at most {exporter.max_entries} per axis: use a larger --step")
+    path = Path(path)
+    if path.parent and not path.parent.exists():
+        raise CompensationError(f"--out: folder {str(path.parent)!r} does not exist")
+    written = call(exporter, "write", table, path)
+    return [Path(p) for p in (written or [])]
+
+
+# ----------------------------------------------------------------------------- independent readers (for --check)
+# Written from the formats' documentation (docs/compensation.md), not from the exporters: each returns, per axis,
+# (commanded positions mm, trim forward mm, trim reverse mm), the trim being what the controller ADDS to the
+# commanded axis position when moving in that direction.
+
+def read_linuxcnc(path) -> tuple:
+    """LinuxCNC COMP_FILE_TYPE 1: 'nominal forward_trim reverse_trim' per line, machine units (mm here).
+
+    The loader (src/emc/motion/usrmotintf.cc, usrmotLoadComp) stops at the first line that is
+    not three numbers; trims are added to the joint command (control.c, motor_pos_cmd)."""
+    rows = []
+    for line in Path(path).read_text().splitlines():
+        parts = line.split()
+        try:
+            if len(parts) < 3:
+                raise ValueError
+            rows.append([float(p) for p in parts[:3]])
+        except ValueError:
+            break
+    a = np.array(rows, float).reshape(-1, 3)
+    return a[:, 0], a[:, 1], a[:, 2]
+
+
+def read_beckhoff(path) -> tuple:
+    """Beckhoff TwinCAT CNC leadscrew error compensation list (kw.ssfk.*), kw.ssfk.unit = 1 (0.1 um).
+
+    table[i].pos / .neg = actual - setpoint (the error), so the controller's trim is minus it."""
+    kv = {}
+    for line in Path(path).read_text().splitlines():
+        s = line.strip()
+        if not s or s.startswith("#"):
+            continue
+        parts = s.split()
+        if len(parts) >= 2:
+            kv[parts[0]] = parts[1]
+    if kv.get("kw.ssfk.unit") != "1":
+        raise CompensationError(f"{path}: kw.ssfk.unit must be 1 (0.1 um) for this reader")
+    n = int(kv["kw.ssfk.kw_nr_max"])
+    interval = float(kv.get("kw.ssfk.interval", "0"))
+    if interval:
+        setp = float(kv["kw.ssfk.kw_startpos"]) + interval * np.arange(n)
+    else:
+        setp = np.array([float(kv[f"kw.ssfk.table[{i}].setpoint"]) for i in range(n)])
+    pos = np.array([float(kv[f"kw.ssfk.table[{i}].pos"]) for i in range(n)])
+    neg = np.array([float(kv.get(f"kw.ssfk.table[{i}].neg", kv[f"kw.ssfk.table[{i}].pos"])) for i in range(n)])
+    return setp * 1e-4, -pos * 1e-4, -neg * 1e-4
+
+
+def read_neutral_csv(path) -> dict:
+    rows = {}
+    lines = [ln for ln in Path(path).read_text().splitlines() if ln.strip() and not ln.startswith("#")]
+    header = lines[0].split(",")
+    for ln in lines[1:]:
+        r = dict(zip(header, ln.split(",")))
+        if r["kind"] in ("positioning_forward", "positioning_reverse"):
+            rows.setdefault(r["axis"], {}).setdefault(r["kind"], []).append((float(r["position_mm"]), float(r["value"])))
+    out = {}
+    for a, d in rows.items():
+        f, r = np.array(d["positioning_forward"]), np.array(d["positioning_reverse"])
+        out[a] = (f[:, 0], -f[:, 1] * 1e-3, -r[:, 1] * 1e-3)
+    return out
+
+
+def read_neutral_json(path) -> dict:
+    d = json.loads(Path(path).read_text())
+    return {a: (np.array(t["positions_mm"]), -np.array(t["forward"]) * 1e-3, -np.array(t["reverse"]) * 1e-3)
+            for a, t in d["positioning"].items()}
+
+
+#: format -> reader of the written files: ("axis", fn(path) -> tuple) per axis file, or ("all", fn(path) -> dict)
+READERS = {
+    "linuxcnc": ("axis", read_linuxcnc),
+    "beckhoff-lsec": ("axis", read_beckhoff),
+    "neutral-csv": ("all", read_neutral_csv),
+    "neutral-json": ("all", read_neutral_json),
+}
+
+
+def read_back(exporter, written: list) -> dict:
+    """axis -> (positions mm, trim forward mm, trim reverse mm) from the files an exporter wrote."""
+    if exporter.name not in READERS:
+        raise CompensationError(f"--check has no independent reader for format {exporter.name!r}; "
+                                f"it can check {', '.join(sorted(READERS))}")
+    kind, fn = READERS[exporter.name]
+    if kind == "all":
+        return fn(written[0])
+    out = {}
+    for p in written:
+        m = re.search(r"_([xyz])\.[^.]+$", Path(p).name)
+        if m:
+            out[m.group(1)] = fn(p)
+    return out
+
+
+def interpolate(positions, values, at):
+    """Linear between entries, the end value held beyond the table (LinuxCNC control.c; assumed for the others)."""
+    return np.interp(at, positions, values)
+
+
+# ----------------------------------------------------------------------------- the round trip
+@dataclass
+class AxisCheck:
+    axis: str
+    positions: np.ndarray  # mm, grid points and midpoints
+    before: np.ndarray  # (2, G) um, forward and reverse, relative to the datum
+    after: np.ndarray  # (2, G) um
+    u: np.ndarray  # (2, G) um, the table's stated standard uncertainty there
+    iso_before: Iso230_2
+    iso_after: Iso230_2
+    rounding: float = 0.0  # um: largest difference between the read-back entries and the table (the format's resolution)
+
+    @property
+    def z(self):
+        with np.errstate(divide="ignore", invalid="ignore"):
+            return np.where(self.u > 0, self.after / self.u, np.where(np.abs(self.after) < 1e-3, 0.0, np.inf))
+
+    def to_dict(self) -> dict:
+        z = self.z
+        return {"axis": self.axis, "points": int(self.positions.size), "max_abs_before_um": float(np.abs(self.before).max()),
+                "max_abs_after_um": float(np.abs(self.after).max()), "max_abs_z": float(np.abs(z).max()),
+                "rms_z": float(np.sqrt(np.mean(z**2))), "within_2u": float(np.mean(np.abs(z) <= 2)),
+                "format_rounding_um": self.rounding,
+                "iso230_2_before": self.iso_before.figures, "iso230_2_after": self.iso_after.figures}
+
+
+def check_export(table: CompensationTable, rec, exporter, written: list) -> dict:
+    """Apply the exported tables (read back independently) to the simulated machine of ``truth.json``.
+
+    On each axis' reference line, at the grid points and midway between them, in both directions:
+    the positioning deviation of the true machine (its errors and its reversal; at the reference
+    temperature) before and after adding the tables' trims to the commanded position, relative to
+    the bidirectional mean at the datum, against the table's stated standard uncertainty.
+    """
+    from .simulate import parameters_from_truth, truth_error_model
+
+    truth_path = Path(rec.path or ".") / "truth.json"
+    if rec.path is None or not truth_path.is_file():
+        raise CompensationError("--check needs the truth.json of a simulated recording (mtbudget simulate writes it); "
+                                f"{str(rec.path or rec.name)!r} has none")
+    truth = json.loads(truth_path.read_text())
+    terr = truth_error_model(rec.plan, truth["geometric_errors"]["coefficients"])
+
+    class _M:  # parameters_from_truth reads model.errors only
+        errors = terr
+
+    theta_t, _, effects = parameters_from_truth(truth, _M)
+    reversal = effects.get("reversal", {})
+    config = Configuration.parse(rec.machine)
+    tables = read_back(exporter, written)
+    out = {"format": exporter.name, "files": [str(p) for p in written], "axes": {},
+           "ignored": [k for k in ("thermal", "drift") if effects.get(k)]}
+    for a, t in table.axes.items():
+        if a not in tables:
+            raise CompensationError(f"--check: the files written by {exporter.name!r} hold no table for axis {a.upper()}")
+        pos_tab, trim_f, trim_r = tables[a]
+        g = t.positions
+        pts = np.sort(np.concatenate([g, 0.5 * (g[1:] + g[:-1])]))
+        lp = line_points(a, pts, t.reference)
+        tool = np.broadcast_to(t.tool, lp.shape).copy()
+        k = AXIS_INDEX[a]
+        nominal = chain(config, terr, np.zeros((1, len(terr.params))), ChainInputs(lp, tool))[0, :, k]
+        B_true = float(reversal.get(a, 0.0))
+        before, after = np.zeros((2, len(pts))), np.zeros((2, len(pts)))
+        for row, d, trim in ((0, 1.0, trim_f), (1, -1.0, trim_r)):
+            lost = -d * B_true / 2.0  # the simulator's reversal: the axis stops B/2 short of its target
+            for arr, comp in ((before, 0.0), (after, interpolate(pos_tab, trim, pts))):
+                P = chain(config, terr, theta_t[None], ChainInputs(lp, tool, offset={a: (lost + np.broadcast_to(comp, pts.shape))[None, :]}))
+                arr[row] = (P[0, :, k] - nominal) * 1e3
+        datum = np.argmin(np.abs(pts - g[0]))
+        for arr in (before, after):
+            arr -= 0.5 * (arr[0, datum] + arr[1, datum])
+        # the table's stated uncertainty at these points (relative to its datum), directional
+        _, u_line, _ = line_deviation(table.model.config, table.model.errors, table.theta, table.cov_theta, a, pts,
+                                      {**t.reference, a: 0.0}, t.tool, datum=g[0])
+        # the format's own rounding, measured on the read-back at the grid points (rectangular, half-width q)
+        q = max(float(np.max(np.abs(interpolate(pos_tab, trim_f, g) * 1e3 + t.forward))),
+                float(np.max(np.abs(interpolate(pos_tab, trim_r, g) * 1e3 + t.reverse))))
+        if q > MAX_ROUNDING_UM:  # not a rounding: the file does not say what the table says (a sign, a unit)
+            out.setdefault("mismatch", {})[a] = q
+        u = np.sqrt((u_line * 1e3) ** 2 + (0.5 * t.u_reversal) ** 2 + min(q, MAX_ROUNDING_UM) ** 2 / 3.0)
+        u2 = np.vstack([u, u])
+        dirs = np.concatenate([np.ones(len(pts)), -np.ones(len(pts))])
+        tt = np.concatenate([pts, pts])
+        ib = iso230_2(a, tt, dirs, before.ravel(), source="true machine before compensation", s=0.0)
+        ia = iso230_2(a, tt, dirs, after.ravel(), source="true machine after compensation", s=0.0)
+        out["axes"][a] = AxisCheck(a, pts, before, after, u2, ib, ia, q)
+    return out
+
+
+# ----------------------------------------------------------------------------- text
+def _fig(r: Iso230_2, keys=("A", "E", "M", "R", "B", "B_mean")) -> str:
+    if not r.figures:
+        return r.note
+    parts = []
+    for k in keys:
+        v = r.figures[k]
+        u = r.uncertainty.get(k)
+        parts.append(f"{k} {v:6.2f}" + (f" ({u:.2f})" if u is not None else ""))
+    return "  ".join(parts) + (f"  [{r.note}]" if r.note and r.source == "recording" else "")
+
+
+def table_text(table: CompensationTable, written: list, exporter, check: dict | None = None) -> str:
+    idn = table.identification
+    lines = [f"compensation tables of {table.recording!r} ({table.machine}): chi-square per dof "
+             f"{idn['chi2_per_dof']:.3f}, {idn['points']} points, grid step {table.step:g} mm",
+             f"  format {exporter.name}: {exporter.description}",
+             *[f"  wrote {p}" for p in written],
+             "", "positioning tables (um, k = 1; zero at the first grid point; forward = approach in +):"]
+    for a, t in table.axes.items():
+        ref = ", ".join(f"{b} = {v:g} mm" for b, v in t.reference.items())
+        lines.append(f"  {a.upper()}: {len(t.positions)} entries {t.positions[0]:g}..{t.positions[-1]:g} mm on the line "
+                     f"{ref}; range of the mean deviation {np.ptp(t.deviation):.2f} um, largest u {t.u.max():.2f} um; "
+                     f"reversal B {t.reversal:+.2f} ({t.u_reversal:.2f}) um")
+        if t.note:
+            lines.append(f"     note: {t.note}")
+    lines += ["", "ISO 230-2 per axis (um; model figures with their standard uncertainty in brackets):"]
+    for a, d in table.iso230_2.items():
+        lines.append(f"  {a.upper()} recording  {_fig(d['recording'])}")
+        lines.append(f"  {a.upper()} model      {_fig(d['model'])}")
+    lines += ["", "ISO 230-1 error functions (largest |value| over the grid, largest u):"]
+    for f in table.functions:
+        uu = f"{np.nanmax(f.u):.2f}" if f.identifiable else "not identifiable"
+        lines.append(f"  {f.iso:<4} ({f.internal:<6}) {f.kind:<12} {np.abs(f.value).max():8.2f} {f.unit:<4} u {uu}")
+    for s in table.squareness:
+        uu = f"{s.u:.2f}" if s.identifiable else "not identifiable"
+        lines.append(f"  {s.iso:<8} ({s.internal}) squareness {s.value:+8.2f} urad u {uu}")
+    for n in table.notes:
+        lines.append(f"note: {n}")
+    if check is not None:
+        lines += ["", f"check: the written {check['format']} tables, read back independently, applied to the simulated "
+                      "machine of truth.json (positioning on each table's line, grid points and midpoints, both "
+                      "directions; um):"]
+        for a, c in check["axes"].items():
+            d = c.to_dict()
+            lines.append(f"  {a.upper()}: before max |e| {d['max_abs_before_um']:6.2f}  after max |e| "
+                         f"{d['max_abs_after_um']:5.2f}  max |e|/u {d['max_abs_z']:4.2f}  rms e/u {d['rms_z']:4.2f}  "
+                         f"within 2u {d['within_2u']:.0%}  | ISO 230-2 E {c.iso_before.figures['E']:.2f} -> "
+                         f"{c.iso_after.figures['E']:.2f}, B {c.iso_before.figures['B']:.2f} -> "
+                         f"{c.iso_after.figures['B']:.2f}")
+        for a, q in check.get("mismatch", {}).items():
+            lines.append(f"  MISMATCH on {a.upper()}: the read-back entries differ from the table by up to {q:.3g} um")
+        if check["ignored"]:
+            lines.append(f"  (truth.json also has {', '.join(check['ignored'])}: not applied, the check is at the "
+                         "reference temperature and in the machine frame)")
+    return "\n".join(lines)
+
+
+def check_json(check: dict) -> dict:
+    return {"format": check["format"], "files": check["files"], "ignored": check["ignored"],
+            "mismatch": check.get("mismatch", {}),
+            "axes": {a: c.to_dict() for a, c in check["axes"].items()}}

@@ -1,0 +1,143 @@
+"""Built-in compensation-table exporters (hook ``mtbudget_register_exporters``).
+
+* ``neutral-csv`` / ``neutral-json``: every identified error function under its ISO 230-1
+  name on the user's grid, the squareness errors, the per-axis positioning tables (mean,
+  forward, reverse) and the reversal, each entry with its standard uncertainty, units and
+  the sign convention stated in the file.
+* ``linuxcnc``: one LinuxCNC joint compensation file per axis, ``COMP_FILE_TYPE = 1``
+  (nominal, forward trim, reverse trim in machine units), LinuxCNC docs
+  docs/src/config/ini-config.adoc ``[JOINT_n]`` COMP_FILE / COMP_FILE_TYPE, loader
+  src/emc/motion/usrmotintf.cc ``usrmotLoadComp``, applied in src/emc/motion/control.c.
+* ``beckhoff-lsec``: one Beckhoff TwinCAT CNC (ISG kernel) compensation value list per axis
+  with bilateral leadscrew error compensation (``kw.ssfk.*``, P-COMP-00017..00025).
+
+docs/compensation.md states each format's grid, units, sign, extrapolation and backlash
+conventions with their sources.  Every writer here uses only the public fields of
+:class:`mtbudget.compensate.CompensationTable`.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+from mtbudget.contracts import Exporter
+from mtbudget.hookspecs import hookimpl
+
+_AXIS_NUMBER = {"x": 1, "y": 2, "z": 3}
+
+
+def _f(v, nd=4):
+    return "" if v is None or not np.isfinite(v) else f"{v:.{nd}f}"
+
+
+class NeutralCsv(Exporter):
+    name = "neutral-csv"
+    description = "every ISO 230-1 error function on the grid, positioning tables and reversal, with u (CSV)"
+    suffix = ".csv"
+    convention = ("mtbudget's own neutral table (docs/compensation.md, 'The neutral table'): ISO 230-1 names and "
+                  "sign (tool relative to workpiece, error = actual - nominal), um / urad / mm, k = 1 uncertainties")
+
+    def write(self, table, path):
+        path = Path(path)
+        head = [f"# mtbudget compensation table of recording {table.recording!r}, machine {table.machine}, "
+                f"grid step {table.step:g} mm"]
+        head += [f"# {k}: {v}" for k, v in table.conventions.items()]
+        rows = ["kind,iso_name,mtbudget_name,axis,position_mm,value,u,unit,identifiable"]
+        for f in table.functions:
+            for p, v, u in zip(f.positions, f.value, f.u):
+                rows.append(f"error_function,{f.iso},{f.internal},{f.axis},{p:.4f},{_f(v)},{_f(u)},{f.unit},"
+                            f"{int(f.identifiable)}")
+        for s in table.squareness:
+            rows.append(f"squareness,{s.iso},{s.internal},,,{_f(s.value)},{_f(s.u)},urad,{int(s.identifiable)}")
+        for a, t in table.axes.items():
+            pos = f"E{a.upper()}{a.upper()}"
+            for kind, vals, us in (("positioning_mean", t.deviation, t.u), ("positioning_forward", t.forward, t.u_directional),
+                                   ("positioning_reverse", t.reverse, t.u_directional)):
+                for p, v, u in zip(t.positions, vals, us):
+                    rows.append(f"{kind},{pos},line,{a},{p:.4f},{_f(v)},{_f(u)},um,1")
+            rows.append(f"reversal,B,reversal,{a},,{_f(t.reversal)},{_f(t.u_reversal)},um,1")
+        path.write_text("\n".join(head + rows) + "\n")
+        return [path]
+
+
+class NeutralJson(Exporter):
+    name = "neutral-json"
+    description = "the same neutral table as one JSON document, with the ISO 230-2 figures"
+    suffix = ".json"
+    convention = NeutralCsv.convention
+
+    def write(self, table, path):
+        path = Path(path)
+        path.write_text(json.dumps(table.to_dict(), indent=1) + "\n")
+        return [path]
+
+
+class LinuxCnc(Exporter):
+    name = "linuxcnc"
+    description = "LinuxCNC joint compensation files, COMP_FILE_TYPE = 1 (nominal, forward trim, reverse trim; mm)"
+    suffix = ".comp"
+    per_axis = True
+    max_entries = 256  # "Currently the limit inside LinuxCNC is for 256 triplets per joint"
+    convention = ("LinuxCNC INI configuration, [JOINT_n] COMP_FILE and COMP_FILE_TYPE (docs/src/config/ini-config.adoc); "
+                  "loader usrmotLoadComp (src/emc/motion/usrmotintf.cc), use in compute_screw_comp and motor_pos_cmd "
+                  "(src/emc/motion/control.c): trims in machine units added to the joint command, linear between "
+                  "nominals, end values held beyond the table, forward while the commanded velocity is > 0")
+
+    def write(self, table, path):
+        written = []
+        for a, t in table.axes.items():
+            p = self.axis_path(path, a)
+            # trim = nominal - actual = -(deviation): what the controller adds so the axis lands on nominal.
+            # No header or comment: the loader stops reading at the first line that is not three numbers.
+            fwd, rev = -t.forward * 1e-3, -t.reverse * 1e-3
+            p.write_text("".join(f"{n:.6f} {f:.6f} {r:.6f}\n" for n, f, r in zip(t.positions, fwd, rev)))
+            written.append(p)
+        return written
+
+
+class BeckhoffLsec(Exporter):
+    name = "beckhoff-lsec"
+    description = "Beckhoff TwinCAT CNC compensation value lists, bilateral leadscrew error compensation (0.1 um)"
+    suffix = ".lis"
+    per_axis = True
+    max_entries = 1500  # P-COMP-00059 default (kw.ssfk.max_points)
+    convention = ("Beckhoff Information System, TwinCAT CNC axis compensation: leadscrew error compensation "
+                  "kw.ssfk.* (P-COMP-00017 unit, -00018 interval, -00019 kw_startpos, -00020 kw_nr_max, -00021 "
+                  "bilateral, -00023 table[i].pos, -00024 table[i].neg, -00025 table[i].setpoint) and its example "
+                  "list: values are actual - setpoint in 0.1 um, linearly interpolated; comments '# ' per line")
+
+    def write(self, table, path):
+        written = []
+        for a, t in table.axes.items():
+            p = self.axis_path(path, a)
+            pos = np.rint(t.forward * 10).astype(int)  # um -> 0.1 um, actual - setpoint moving in +
+            neg = np.rint(t.reverse * 10).astype(int)
+            setp = np.rint(t.positions * 1e4).astype(int)  # mm -> 0.1 um
+            if np.abs(np.concatenate([pos, neg])).max(initial=0) > 32767:
+                raise ValueError(f"axis {a}: a compensation value exceeds the SGN16 range of kw.ssfk.table[i].pos/neg")
+            lines = [f"# mtbudget: leadscrew error compensation of axis {a.upper()} from recording {table.recording!r}",
+                     "# values = actual - setpoint (ISO 230-2 deviation) in 0.1 um; the CNC subtracts them",
+                     f"# on the line {', '.join(f'{b} = {v:g} mm' for b, v in t.reference.items())}; zero at the first "
+                     "setpoint; set kopf.log_achs_nr to the logical axis number of your configuration",
+                     f"kopf.log_achs_nr                {_AXIS_NUMBER[a]}",
+                     f"kopf.log_achs_name              {a.upper()}",
+                     "kw.ssfk.interval                0",
+                     f"kw.ssfk.kw_startpos             {setp[0]}",
+                     f"kw.ssfk.kw_nr_max               {len(setp)}",
+                     "kw.ssfk.unit                    1",
+                     "kw.ssfk.bilateral               1"]
+            lines += [f"kw.ssfk.table[{i}].setpoint{'':<6}{v}" for i, v in enumerate(setp)]
+            lines += [f"kw.ssfk.table[{i}].pos{'':<11}{v}" for i, v in enumerate(pos)]
+            lines += [f"kw.ssfk.table[{i}].neg{'':<11}{v}" for i, v in enumerate(neg)]
+            p.write_text("\n".join(lines) + "\n")
+            written.append(p)
+        return written
+
+
+@hookimpl
+def mtbudget_register_exporters(register):
+    for cls in (NeutralCsv, NeutralJson, LinuxCnc, BeckhoffLsec):
+        register(cls())
