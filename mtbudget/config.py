@@ -17,7 +17,8 @@ import numpy as np
 from .errors import ConfigError
 from .machine import AXES, COMPONENT_ERRORS, SQUARENESS, Configuration
 from .plan import Plan, Sensor, build_plan, mesh
-from .units import to_internal
+from .recording import ATTACHED_TO, COLUMNS, MAX_TIME, UNCERTAINTIES, uncertainty_problem
+from .units import ABSOLUTE_TEMPERATURE, to_internal
 
 try:
     import tomllib
@@ -26,6 +27,18 @@ except ModuleNotFoundError:  # pragma: no cover
 
 CONFIG_FORMAT = "mtbudget-config/1"
 DEFAULT_CONFIG = "paper_xfyz.toml"
+#: size and range guards, checked before anything is allocated: mesh points (the scenario holds a
+#: (3 M0)^2 projector), measured points of the plan, |length| of mesh, tools and tracker position (mm)
+MAX_MESH_POINTS = 1000
+MAX_PLAN_ROWS = 100_000
+MAX_LENGTH = 1.0e5
+MAX_CONFIG_BYTES = 1_048_576
+
+
+def _printable(text: str) -> str:
+    """``text`` on one line: a key with a newline or another control character is shown escaped."""
+    text = str(text)
+    return text if text.isprintable() else repr(text)[1:-1]
 
 
 def default_config_path() -> Path:
@@ -48,7 +61,7 @@ class Reader:
         self.data, self.path, self.prefix = data, path, prefix
 
     def where(self, key):
-        return f"{self.path}: {self.prefix}{key}" if self.path else f"{self.prefix}{key}"
+        return _printable(f"{self.path}: {self.prefix}{key}" if self.path else f"{self.prefix}{key}")
 
     def has(self, key):
         return key in self.data
@@ -193,7 +206,7 @@ class SimulationConfig:
         return True
 
     def where(self, key: str) -> str:
-        return f"{self.path}: {key}" if self.path else key
+        return _printable(f"{self.path}: {key}" if self.path else key)
 
     def plan(self, rng: np.random.Generator | None = None) -> Plan:
         """Build the plan (mesh, passes, timing) and its sensor readings."""
@@ -201,8 +214,17 @@ class SimulationConfig:
         plan = build_plan(pts, self.tools, self.runs, self.feed, self.stop_time, self.tool_change_time)
         rng = rng or np.random.default_rng(self.seed)
         plan.sensors = [s.sensor for s in self.sensors]
-        for s in self.sensors:
-            plan.temperature[s.sensor.column] = s.values(plan.time, rng)
+        if not plan.time[-1] <= MAX_TIME:
+            raise ConfigError(f"{self.where('plan')}: the plan lasts {plan.time[-1]:.3g} s; at most {MAX_TIME:g} s "
+                              "(check feed, stop_time and tool_change_time)")
+        for i, s in enumerate(self.sensors):
+            T = plan.temperature[s.sensor.column] = s.values(plan.time, rng)
+            lo, hi = ABSOLUTE_TEMPERATURE
+            if not np.all((T >= lo) & (T <= hi)):
+                bad = T[~((T >= lo) & (T <= hi))][0]
+                raise ConfigError(f"{self.where(f'sensors[{i}]')}: the simulated reading reaches {bad:.6g} K "
+                                  f"({bad - 273.15:.6g} degC), not a plausible absolute temperature ({lo:g} K to "
+                                  f"{hi:g} K); check start, rate, noise and cycle_amplitude")
         return plan
 
 
@@ -212,9 +234,22 @@ def load_config(path=None) -> SimulationConfig:
     if not path.exists():
         raise ConfigError(f"{path}: no such configuration file")
     try:
-        data = tomllib.loads(path.read_text(encoding="utf-8"))
+        if path.stat().st_size > MAX_CONFIG_BYTES:
+            raise ConfigError(f"{path}: larger than {MAX_CONFIG_BYTES} bytes; not a configuration")
+        raw = path.read_bytes()
+    except OSError as exc:
+        raise ConfigError(f"{path}: cannot read the file ({exc.strerror or type(exc).__name__})") from None
+    raw = raw[3:] if raw.startswith(b"\xef\xbb\xbf") else raw
+    try:
+        data = tomllib.loads(raw.decode("utf-8"))
+    except UnicodeDecodeError as exc:
+        line = raw.count(b"\n", 0, exc.start) + 1
+        raise ConfigError(f"{path}: line {line}: byte 0x{raw[exc.start]:02X} at byte offset {exc.start} is not UTF-8; "
+                          "save the file as UTF-8") from None
     except tomllib.TOMLDecodeError as exc:
-        raise ConfigError(f"{path}: invalid TOML ({exc})") from None
+        raise ConfigError(f"{path}: invalid TOML ({_printable(exc)})") from None
+    except RecursionError:
+        raise ConfigError(f"{path}: invalid TOML (nested too deeply)") from None
     return parse_config(data, path)
 
 
@@ -249,8 +284,18 @@ def parse_config(data: dict, path=None) -> SimulationConfig:
         ranges[a] = (to_unit(v[0], "mm", m.where(a)), to_unit(v[1], "mm", m.where(a)))
         if not ranges[a][1] >= ranges[a][0]:
             raise ConfigError(f"{m.where(a)}: low must not exceed high")
-        st = m.raw(f"step_{a}", m.raw("step"))
-        step[a] = to_unit(st, "mm", m.where("step"))
+        if max(abs(ranges[a][0]), abs(ranges[a][1])) > MAX_LENGTH:
+            raise ConfigError(f"{m.where(a)}: beyond {MAX_LENGTH:g} mm; not a machine tool's travel")
+        key = f"step_{a}" if m.has(f"step_{a}") else "step"
+        step[a] = to_unit(m.raw(key), "mm", m.where(key))
+        if not step[a] > 0:
+            raise ConfigError(f"{m.where(key)}: the mesh step must be positive")
+        if (ranges[a][1] - ranges[a][0]) / step[a] > MAX_MESH_POINTS:
+            raise ConfigError(f"{m.where(key)}: more than {MAX_MESH_POINTS} steps along {a}")
+    n_mesh = int(np.prod([round((ranges[a][1] - ranges[a][0]) / step[a]) + 1 for a in AXES]))
+    if n_mesh > MAX_MESH_POINTS:
+        raise ConfigError(f"{m.where('step')}: {n_mesh} mesh points; at most {MAX_MESH_POINTS} (the scenario holds a "
+                          f"{3 * n_mesh} x {3 * n_mesh} matrix)")
     pl = r.sub("plan")
     tools_raw = pl.raw("tools", [["0 mm", "0 mm", "0 mm"]])
     if not isinstance(tools_raw, list) or not tools_raw:
@@ -260,8 +305,21 @@ def parse_config(data: dict, path=None) -> SimulationConfig:
         if not (isinstance(t, list) and len(t) == 3):
             raise ConfigError(f"{pl.where('tools')}[{i}]: expected [tx, ty, tz]")
         tools.append([to_unit(v, "mm", f"{pl.where('tools')}[{i}]") for v in t])
+        if max(abs(v) for v in tools[-1]) > MAX_LENGTH:
+            raise ConfigError(f"{pl.where('tools')}[{i}]: beyond {MAX_LENGTH:g} mm; not a tool offset")
+    runs = pl.number("runs", 2, int, low=1)
+    if n_mesh * len(tools) * runs > MAX_PLAN_ROWS:
+        raise ConfigError(f"{pl.where('runs')}: {n_mesh} mesh points x {len(tools)} tools x {runs} runs is more than "
+                          f"{MAX_PLAN_ROWS} measured points")
+    plan_times = {}
+    for key, default, low in (("feed", "2000 mm/min", None), ("stop_time", "12 s", 0.0), ("tool_change_time", "120 s", 0.0)):
+        plan_times[key] = pl.quantity(key, "mm/s" if key == "feed" else "s", default)
+        if (low is None and not plan_times[key] > 0) or (low is not None and plan_times[key] < low):
+            raise ConfigError(f"{pl.where(key)}: must be {'positive' if low is None else 'zero or positive'}")
     tr = r.sub("tracker", required=True)
     pose = np.array([tr.quantity(k, "mm") for k in "DLH"] + [tr.quantity(k, "rad") for k in "abd"])
+    if np.any(np.abs(pose[:3]) > MAX_LENGTH):
+        raise ConfigError(f"{tr.where('DLH'[int(np.argmax(np.abs(pose[:3])))])}: beyond {MAX_LENGTH:g} mm")
     mt = r.sub("machine_tool")
     ge = r.sub("geometric_errors")
     geometric: dict = {"seed": ge.number("seed", 1, int, low=0)}
@@ -271,6 +329,8 @@ def parse_config(data: dict, path=None) -> SimulationConfig:
         for name, vals in co.data.items():
             if name not in COMPONENT_ERRORS:
                 raise ConfigError(f"{co.where(name)}: unknown component error; expected one of {', '.join(COMPONENT_ERRORS)}")
+            if not isinstance(vals, list):
+                raise ConfigError(f"{co.where(name)}: expected a list of coefficients, e.g. [\"2 um\", \"-1 um\"]")
             unit = "mm" if name[0] == "d" else "rad"
             coefs[name] = [to_unit(v, unit, co.where(name)) for v in vals]
         geometric["coefficients"] = coefs
@@ -280,22 +340,46 @@ def parse_config(data: dict, path=None) -> SimulationConfig:
             if k not in SQUARENESS:
                 raise ConfigError(f"{sq.where(k)}: unknown squareness; expected one of {SQUARENESS}")
     else:
-        geometric["translational"] = [to_unit(v, "mm", ge.where("translational")) for v in ge.raw("translational", ["8 um", "3 um", "1.5 um"])]
-        geometric["angular"] = [to_unit(v, "rad", ge.where("angular")) for v in ge.raw("angular", ["10 urad", "5 urad", "2.5 urad"])]
+        for key, unit, default in (("translational", "mm", ["8 um", "3 um", "1.5 um"]),
+                                   ("angular", "rad", ["10 urad", "5 urad", "2.5 urad"])):
+            vals = ge.raw(key, default)
+            if not isinstance(vals, list) or not vals:
+                raise ConfigError(f"{ge.where(key)}: expected a list of standard deviations per order, e.g. {default}")
+            geometric[key] = [to_unit(v, unit, ge.where(key)) for v in vals]
         geometric["squareness"] = ge.quantity("squareness", "rad", "30 urad")
+        if min(geometric["translational"] + geometric["angular"] + [geometric["squareness"]]) < 0:
+            raise ConfigError(f"{ge.where('')[:-1]}: a standard deviation must not be negative")
     tref = r.quantity("reference_temperature", "K", "20 degC", absolute_temperature=True)
     sensors = []
-    for i, s in enumerate(data.get("sensors", [])):
+    sensors_raw = data.get("sensors", [])
+    for i, s in enumerate(sensors_raw):
         sr = Reader(s, path, f"sensors[{i}].")
         if "column" not in s or "attached_to" not in s:
             raise ConfigError(f"{sr.where('column')}: each [[sensors]] needs column and attached_to")
+        for key in ("column", "attached_to"):
+            if not isinstance(s[key], str):
+                raise ConfigError(f"{sr.where(key)}: expected a string, got {s[key]!r:.60}")
+        if not s["column"].isidentifier() or not s["column"].isascii() or s["column"] in COLUMNS:
+            raise ConfigError(f"{sr.where('column')}: {s['column']!r:.60} is not a sensor column name (letters, digits "
+                              "and _, not a column of points.csv such as x or time)")
+        if s["column"] in [x["column"] for x in sensors_raw[:i]]:
+            raise ConfigError(f"{sr.where('column')}: column {s['column']!r} is declared twice")
+        if s["attached_to"].strip().lower() not in ATTACHED_TO:
+            raise ConfigError(f"{sr.where('attached_to')}: expected 'x axis', 'y axis', 'z axis' or 'air', "
+                              f"got {s['attached_to']!r:.60}")
         pos = s.get("position")
         sensor = Sensor(s["column"], s["attached_to"], None if pos is None else sr.quantity("position", "mm"))
+        if sensor.position is not None and abs(sensor.position) > MAX_LENGTH:
+            raise ConfigError(f"{sr.where('position')}: beyond {MAX_LENGTH:g} mm")
         start = sr.quantity("start", "K", "20 degC", absolute_temperature=True)
         rate = sr.quantity("rate", "K/s", "0 K/h")
         noise = sr.quantity("noise", "K", "0 K")
-        sensors.append(SensorSpec(sensor, start, rate, noise, sr.quantity("cycle_amplitude", "K", "0 K"),
-                                  sr.quantity("cycle_period", "s", "30 min"), sr.quantity("cycle_phase", "rad", "0 rad")))
+        spec = SensorSpec(sensor, start, rate, noise, sr.quantity("cycle_amplitude", "K", "0 K"),
+                          sr.quantity("cycle_period", "s", "30 min"), sr.quantity("cycle_phase", "rad", "0 rad"))
+        for key in ("noise", "cycle_amplitude", "cycle_period"):
+            if getattr(spec, key) < 0 or (key == "cycle_period" and not spec.cycle_period > 0):
+                raise ConfigError(f"{sr.where(key)}: must be {'positive' if key == 'cycle_period' else 'zero or positive'}")
+        sensors.append(spec)
     eff = r.sub("effects")
     effects = {
         "thermal": {a: eff.sub("thermal").quantity(a, "1/K") for a in eff.sub("thermal").data},
@@ -317,6 +401,10 @@ def parse_config(data: dict, path=None) -> SimulationConfig:
         physical[attr] = r.sub(table).quantity(name, unit, default)
         if attr != "cte" and physical[attr] < 0:  # a standard uncertainty (a CTE may be negative)
             raise ConfigError(f"{r.sub(table).where(name)}: a standard uncertainty must not be negative")
+        problem = uncertainty_problem(key, physical[attr]) if key in UNCERTAINTIES else (
+            None if abs(physical[attr]) <= 1e-3 else "a CTE beyond 1000 um/(m*K) is not plausible")
+        if problem:  # the rule of recordings: what `simulate` writes must read back
+            raise ConfigError(f"{r.sub(table).where(name)}: {problem}")
     weights = None
     if r.has("weights"):
         w = r.sub("weights")
@@ -327,6 +415,9 @@ def parse_config(data: dict, path=None) -> SimulationConfig:
             weights[name] = w.quantity(name, PHYSICAL_INPUTS[WEIGHT_KEYS[name]][0])
             if weights[name] < 0:
                 raise ConfigError(f"{w.where(name)}: a standard uncertainty must not be negative")
+            problem = uncertainty_problem(WEIGHT_KEYS[name], weights[name])
+            if problem:
+                raise ConfigError(f"{w.where(name)}: {problem}")
     return SimulationConfig(
         name=str(r.raw("name", Path(path).stem if path else "simulation")),
         description=str(r.raw("description", "")),
@@ -335,11 +426,9 @@ def parse_config(data: dict, path=None) -> SimulationConfig:
         seed=r.number("seed", 1, int, low=0),
         mesh_ranges=ranges,
         mesh_step=step,
-        runs=pl.number("runs", 2, int, low=1),
+        runs=runs,
         tools=tools,
-        feed=pl.quantity("feed", "mm/s", "2000 mm/min"),
-        stop_time=pl.quantity("stop_time", "s", "12 s"),
-        tool_change_time=pl.quantity("tool_change_time", "s", "120 s"),
+        **plan_times,
         pose=pose,
         **physical,
         weights=weights,

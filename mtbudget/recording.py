@@ -1,16 +1,22 @@
 """Read and write verification recordings (docs/recording-format.md).
 
 A recording is a folder with ``recording.toml`` and ``points.csv``.  Column
-units are anything pint parses; values are converted once to the internal
-system (mm, s, K).  Every problem raises :class:`RecordingError` naming the
-file, the line and the column.
+units are anything the one quantity grammar accepts (:func:`mtbudget.units.parse_unit`);
+values are converted once to the internal system (mm, s, K).  The reader is
+strict: every cell is checked (count per row, number, range), the file must be
+UTF-8, and its size is bounded before anything is allocated.  Every problem
+raises :class:`RecordingError` naming the file, the line (1-based, the header
+is line 1) and the column, or the key of ``recording.toml``.
 """
 
 from __future__ import annotations
 
+import codecs
 import csv
+import difflib
 import math
 import re
+from array import array
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -18,7 +24,7 @@ import numpy as np
 
 from .errors import RecordingError
 from .plan import Plan, Sensor, T20
-from .units import Q_, display, to_internal, ureg
+from .units import ABSOLUTE_TEMPERATURE, Q_, display, parse_unit, to_internal, ureg
 
 try:  # Python 3.11+
     import tomllib
@@ -27,6 +33,7 @@ except ModuleNotFoundError:  # pragma: no cover
 
 FORMAT = "mtbudget-recording/1"
 _HEADER = re.compile(r"^\s*([A-Za-z_][A-Za-z0-9_]*)\s*(?:\[(.*)\])?\s*$")
+_NAME = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*$")
 
 #: required columns: name -> (dimension, internal unit) ; None = a bare count/sign
 COLUMNS = {
@@ -47,6 +54,39 @@ COLUMNS = {
     "lt_z": ("[length]", "mm"),
 }
 
+#: size guards, checked before the rows are parsed (read_recording takes other limits)
+MAX_ROWS = 1_000_000
+MAX_COLUMNS = 256
+MAX_LINE_BYTES = 65_536
+MAX_TOML_BYTES = 1_048_576
+MIN_ROWS = 3  # three points fix the tracker pose (6 unknowns); the identification checks the rest
+#: plausible ranges of the values (internal units); outside them a value is a unit or typing mistake
+MAX_INDEX = 999_999_999  # point and run: whole numbers 0 .. MAX_INDEX
+MAX_LENGTH = 1.0e6  # mm: |x|, |tool_x|, |lt_x| ... at most 1 km
+MAX_TIME = 1.0e8  # s: about three years
+#: the stated standard uncertainties (k = 1) of recording.toml and of a configuration: key -> (internal
+#: unit, display unit, low, high): positive and within low .. high, or, where low is 0, zero or at most
+#: high.  Outside, a value is a unit mistake (and 1e-300 or 1e300 would overflow the identification's
+#: weights).
+UNCERTAINTIES = {
+    "tracker.angular": ("rad", "urad", 1e-12, 1e-2),
+    "tracker.distance": ("mm", "um", 1e-9, 10.0),
+    "tracker.distance_per_length": ("mm/mm", "um/m", 0.0, 1e-2),
+    "machine_tool.repeatability": ("mm", "um", 1e-9, 10.0),
+}
+ATTACHED_TO = ("x axis", "y axis", "z axis", "air")
+#: keys of recording.toml this version reads (others are kept in Recording.extra)
+KNOWN_KEYS = ("format", "name", "machine", "description", "reference_temperature", "tracker", "machine_tool",
+              "sensors", "ignore_columns")
+
+#: bytes that are common non-UTF-8 characters of real exports (Latin-1 / Windows-1252)
+_LATIN1_HINTS = {0xB5: "µ (micro)", 0xB0: "° (degree)", 0xB2: "² (squared)", 0xB3: "³ (cubed)", 0xE4: "ä", 0xF6: "ö",
+                 0xFC: "ü", 0xDF: "ß", 0xE9: "é", 0xE8: "è", 0xF1: "ñ", 0xC4: "Ä", 0xD6: "Ö", 0xDC: "Ü"}
+_BOMS = ((codecs.BOM_UTF32_LE, "UTF-32"), (codecs.BOM_UTF32_BE, "UTF-32"), (codecs.BOM_UTF16_LE, "UTF-16"),
+         (codecs.BOM_UTF16_BE, "UTF-16"))
+_INT_CELL = re.compile(r"\s*[+-]?[0-9]+\s*")
+_FRACTION_CELL = re.compile(r"[0-9]+(?:[eE][+-]?[0-9]+)?\s*")
+
 
 @dataclass
 class Recording:
@@ -64,6 +104,9 @@ class Recording:
     description: str = ""
     extra: dict = field(default_factory=dict)
     path: Path | None = None
+    #: columns of points.csv left out of the model: listed in ignore_columns, free text (no unit), or a
+    #: quantity no [[sensors]] table declares (its cells checked as numbers all the same)
+    unused_columns: list = field(default_factory=list)
 
     def __len__(self):
         return len(self.plan)
@@ -78,65 +121,176 @@ def _quantity(text, *, path, key, dim, unit, nonnegative=False, absolute_tempera
     return value
 
 
-def read_recording(folder) -> Recording:
-    """Read a recording folder; raise :class:`RecordingError` on any violation."""
+def _decode_error(exc: UnicodeDecodeError, raw: bytes, offset: int, path, line: int, column=None, encoding="utf-8"):
+    """A RecordingError for bytes that are not ``encoding``: the byte, its offset in the file, a hint."""
+    byte = raw[exc.start]
+    hint = _LATIN1_HINTS.get(byte)
+    what = (f"byte 0x{byte:02X} at byte offset {offset + exc.start} is not {encoding.upper()}"
+            + (f"; it is {hint} in Latin-1/Windows-1252, a common export encoding" if hint else ""))
+    return RecordingError(f"{what}: save the file as UTF-8 (with or without BOM)", path, line=line, column=column)
+
+
+def _read_toml(path: Path) -> dict:
+    try:
+        size = path.stat().st_size
+        if size > MAX_TOML_BYTES:
+            raise RecordingError(f"{size} bytes; a recording.toml has at most {MAX_TOML_BYTES}", path)
+        raw = path.read_bytes()
+    except OSError as exc:
+        raise RecordingError(f"cannot read the file ({exc.strerror or type(exc).__name__})", path) from None
+    for bom, name in _BOMS:
+        if raw.startswith(bom):
+            raise RecordingError(f"the file is {name} (byte order mark at byte offset 0): save it as UTF-8", path, line=1)
+    if raw.startswith(codecs.BOM_UTF8):
+        raw = raw[len(codecs.BOM_UTF8):]
+    try:
+        text = raw.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        line = raw.count(b"\n", 0, exc.start) + 1
+        raise _decode_error(exc, raw, 0, path, line) from None
+    try:
+        return tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise RecordingError(f"invalid TOML ({str(exc).splitlines()[0]})", path) from None
+    except RecursionError:
+        raise RecordingError("invalid TOML (nested too deeply)", path) from None
+
+
+def _string(meta, key, path, default=None):
+    value = meta.get(key, default)
+    if not isinstance(value, str):
+        raise RecordingError(f"expected a string, got {type(value).__name__} {value!r:.60}", path, key=key)
+    return value
+
+
+def _table(meta, key, path) -> dict:
+    value = meta.get(key)
+    if value is None:
+        raise RecordingError(f"missing table [{key}]", path, key=key)
+    if not isinstance(value, dict):
+        raise RecordingError(f"expected a table [{key}], got {type(value).__name__}", path, key=key)
+    return value
+
+
+def uncertainty_problem(key: str, value: float) -> str | None:
+    """None when ``value`` (internal unit) is a plausible stated standard uncertainty ``key`` (a key of
+    :data:`UNCERTAINTIES`), otherwise what is wrong; configurations apply the same rule."""
+    unit, disp, low, high = UNCERTAINTIES[key]
+    if low > 0 and not value > 0:
+        return f"must be positive, got {display(value, unit, disp):g} {disp}"
+    if value < 0:
+        return f"a standard uncertainty must not be negative, got {display(value, unit, disp):g} {disp}"
+    if value and not low <= value <= high:
+        lo, hi = display(low, unit, disp), display(high, unit, disp)
+        return (f"{display(value, unit, disp):g} {disp} is not a plausible standard uncertainty; expected "
+                f"{'0 or ' if low == 0 else ''}{lo:g} to {hi:g} {disp}")
+    return None
+
+
+def _uncertainty(table: dict, key: str, path) -> float:
+    """A stated standard uncertainty (``tracker.angular`` ...): present, a quantity, within its plausible range."""
+    section, name = key.split(".")
+    if name not in table:
+        raise RecordingError(f"missing key {key}", path, key=key)
+    value = _quantity(table[name], path=path, key=key, dim=None, unit=UNCERTAINTIES[key][0], nonnegative=True)
+    problem = uncertainty_problem(key, value)
+    if problem:
+        raise RecordingError(f"{table[name]!r:.60}: {problem}", path, key=key)
+    return value
+
+
+def _sensors(meta, path) -> list:
+    raw = meta.get("sensors", [])
+    if not isinstance(raw, list) or not all(isinstance(s, dict) for s in raw):
+        raise RecordingError("expected [[sensors]] tables", path, key="sensors")
+    sensors, seen = [], set()
+    for i, s in enumerate(raw):
+        where = f"sensors[{i}]"
+        for key in ("column", "attached_to"):
+            if key not in s:
+                raise RecordingError(f"missing key {key!r}; each [[sensors]] table needs 'column' and 'attached_to'",
+                                     path, key=f"{where}.{key}")
+            if not isinstance(s[key], str):
+                raise RecordingError(f"expected a string, got {type(s[key]).__name__} {s[key]!r:.60}", path,
+                                     key=f"{where}.{key}")
+        column = s["column"]
+        if not _NAME.match(column):
+            raise RecordingError(f"{column!r:.60} is not a column name (letters, digits and _; for example \"T_x\")",
+                                 path, key=f"{where}.column")
+        if column in COLUMNS:
+            raise RecordingError(f"{column!r} is a required column of points.csv, not a sensor", path, key=f"{where}.column")
+        if column in seen:
+            raise RecordingError(f"column {column!r} is declared by two [[sensors]] tables", path, key=f"{where}.column")
+        seen.add(column)
+        if s["attached_to"].strip().lower() not in ATTACHED_TO:
+            raise RecordingError(f"{s['attached_to']!r:.60}: expected 'x axis', 'y axis', 'z axis' or 'air'", path,
+                                 key=f"{where}.attached_to")
+        pos = s.get("position")
+        if pos is not None:
+            pos = _quantity(pos, path=path, key=f"{where}.position", dim="[length]", unit="mm")
+            if abs(pos) > MAX_LENGTH:
+                raise RecordingError(f"{s['position']!r} is not a plausible position (at most {MAX_LENGTH:g} mm)", path,
+                                     key=f"{where}.position")
+        sensors.append(Sensor(column, s["attached_to"], pos))
+    return sensors
+
+
+def read_recording(folder, *, max_rows: int = MAX_ROWS, max_columns: int = MAX_COLUMNS,
+                   encoding: str = "utf-8") -> Recording:
+    """Read a recording folder; raise :class:`RecordingError` on any violation.
+
+    ``max_rows`` and ``max_columns`` bound points.csv (checked before the rows are parsed);
+    ``encoding`` reads a points.csv that is not UTF-8 (an ASCII-compatible encoding such as
+    ``"latin-1"`` or ``"cp1252"``); a UTF-8 byte order mark is always accepted.
+    """
     folder = Path(folder)
     toml_path = folder / "recording.toml"
     csv_path = folder / "points.csv"
     if not folder.is_dir():
         raise RecordingError("not a folder (a recording is a folder with recording.toml and points.csv)", folder)
-    if not toml_path.exists():
+    if not toml_path.is_file():
         raise RecordingError("missing recording.toml", folder)
-    if not csv_path.exists():
+    if not csv_path.is_file():
         raise RecordingError("missing points.csv", folder)
-    try:
-        meta = tomllib.loads(toml_path.read_text(encoding="utf-8"))
-    except tomllib.TOMLDecodeError as exc:
-        raise RecordingError(f"invalid TOML ({exc})", toml_path) from None
+    meta = _read_toml(toml_path)
     fmt = meta.get("format")
     if fmt is None:
-        raise RecordingError(f"missing 'format' key; expected format = \"{FORMAT}\"", toml_path)
+        raise RecordingError(f"missing 'format' key; expected format = \"{FORMAT}\"", toml_path, key="format")
     if fmt != FORMAT:
-        raise RecordingError(f"unsupported format {fmt!r}; this version reads {FORMAT!r}", toml_path)
-    tr = meta.get("tracker", {})
-    mt = meta.get("machine_tool", {})
-
-    def need(table, key, where, dim, unit):
-        if key not in table:
-            raise RecordingError(f"missing key {where}.{key}", toml_path)
-        return _quantity(table[key], path=toml_path, key=f"{where}.{key}", dim=dim, unit=unit, nonnegative=True)
-
-    angular = need(tr, "angular", "tracker", "angle", "rad")
-    distance = need(tr, "distance", "tracker", "[length]", "mm")
-    dpl = need(tr, "distance_per_length", "tracker", "dimensionless (length per length)", "mm/mm")
-    repeat = need(mt, "repeatability", "machine_tool", "[length]", "mm")
+        raise RecordingError(f"unsupported format {fmt!r:.60}; this version reads {FORMAT!r}", toml_path, key="format")
+    tr = _table(meta, "tracker", toml_path)
+    mt = _table(meta, "machine_tool", toml_path)
+    angular = _uncertainty(tr, "tracker.angular", toml_path)
+    distance = _uncertainty(tr, "tracker.distance", toml_path)
+    dpl = _uncertainty(tr, "tracker.distance_per_length", toml_path)
+    repeat = _uncertainty(mt, "machine_tool.repeatability", toml_path)
     tref = _quantity(meta.get("reference_temperature", "20 degC"), path=toml_path, key="reference_temperature",
                      dim="[temperature]", unit="K", absolute_temperature=True)
-    for key, val in (("tracker.angular", angular), ("tracker.distance", distance), ("machine_tool.repeatability", repeat)):
-        if not val > 0:
-            raise RecordingError(f"must be positive, got {val}", toml_path, key=key)
-    sensors = []
-    for i, s in enumerate(meta.get("sensors", [])):
-        if "column" not in s or "attached_to" not in s:
-            raise RecordingError(f"sensors[{i}] needs 'column' and 'attached_to'", toml_path)
-        if s["attached_to"].strip().lower() not in ("x axis", "y axis", "z axis", "air"):
-            raise RecordingError(f"sensors[{i}].attached_to {s['attached_to']!r}: expected 'x axis', 'y axis', 'z axis' or 'air'", toml_path)
-        pos = s.get("position")
-        sensors.append(Sensor(s["column"], s["attached_to"],
-                              None if pos is None else _quantity(pos, path=toml_path, key=f"sensors[{i}].position", dim="[length]", unit="mm")))
-    machine = str(meta.get("machine", "XFYZ"))
+    sensors = _sensors(meta, toml_path)
+    ignored = meta.get("ignore_columns", [])
+    if not isinstance(ignored, list) or not all(isinstance(c, str) for c in ignored):
+        raise RecordingError("expected a list of column names", toml_path, key="ignore_columns")
+    for c in ignored:
+        if c in COLUMNS or c in {s.column for s in sensors}:
+            raise RecordingError(f"{c!r} is a column mtbudget reads; it cannot be ignored", toml_path, key="ignore_columns")
+    machine = _string(meta, "machine", toml_path, "XFYZ")
+    name = _string(meta, "name", toml_path, folder.name)
+    description = _string(meta, "description", toml_path, "")
     from .machine import Configuration
 
     try:
         Configuration.parse(machine)
     except Exception as exc:
-        raise RecordingError(str(exc), toml_path, column="machine") from None
+        raise RecordingError(str(exc), toml_path, key="machine") from None
 
-    columns, temps = _read_points(csv_path, sensors)
-    known = {"format", "name", "machine", "description", "reference_temperature", "tracker", "machine_tool", "sensors"}
+    try:
+        columns, temps, unused = _read_points(csv_path, sensors, ignored=set(ignored), max_rows=max_rows,
+                                              max_columns=max_columns, encoding=encoding)
+    except OSError as exc:
+        raise RecordingError(f"cannot read the file ({exc.strerror or type(exc).__name__})", csv_path) from None
     plan = Plan(
-        point=columns["point"].astype(int),
-        run=columns["run"].astype(int),
+        point=columns["point"].astype(np.int64),
+        run=columns["run"].astype(np.int64),
         time=columns["time"],
         nominal=np.stack([columns["x"], columns["y"], columns["z"]], axis=1),
         direction=np.stack([columns["dir_x"], columns["dir_y"], columns["dir_z"]], axis=1),
@@ -145,101 +299,326 @@ def read_recording(folder) -> Recording:
         sensors=sensors,
     )
     return Recording(
-        name=str(meta.get("name", folder.name)),
+        name=name,
         machine=machine,
         plan=plan,
         lt=np.stack([columns["lt_x"], columns["lt_y"], columns["lt_z"]], axis=1),
         angular=angular, distance=distance, distance_per_length=dpl, repeatability=repeat,
-        reference_temperature=tref, description=str(meta.get("description", "")),
-        extra={k: v for k, v in meta.items() if k not in known}, path=folder,
+        reference_temperature=tref, description=description,
+        extra={k: v for k, v in meta.items() if k not in KNOWN_KEYS}, path=folder, unused_columns=unused,
     )
 
 
-def _read_points(csv_path: Path, sensors):
-    with open(csv_path, newline="", encoding="utf-8") as fh:
-        reader = csv.reader(fh)
+class _Lines:
+    """The decoded lines of points.csv for :mod:`csv`, checked one at a time: encoding, NUL bytes, length.
+
+    ``line`` is the physical line last read (1-based) and ``offset`` the byte offset of its start.
+    """
+
+    def __init__(self, fh, path, encoding):
+        self.fh, self.path, self.encoding = fh, path, encoding
+        self.line, self.offset, self.next_offset = 0, 0, 0
+        self.header = None  # the column names, once known (for the column of a bad byte)
+
+    def __iter__(self):
+        return self
+
+    def __next__(self) -> str:
+        raw = self.fh.readline(MAX_LINE_BYTES + 1)
+        if not raw:
+            raise StopIteration
+        self.line += 1
+        self.offset, self.next_offset = self.next_offset, self.next_offset + len(raw)
+        if self.line == 1:
+            for bom, name in _BOMS:
+                if raw.startswith(bom):
+                    raise RecordingError(f"the file is {name} (byte order mark at byte offset 0): save it as UTF-8",
+                                         self.path, line=1)
+            if raw.startswith(codecs.BOM_UTF8):
+                raw = raw[len(codecs.BOM_UTF8):]
+                self.offset += len(codecs.BOM_UTF8)
+        if len(raw) > MAX_LINE_BYTES:
+            raise RecordingError(f"line longer than {MAX_LINE_BYTES} bytes (a file with other line endings, or not a "
+                                 "CSV file?)", self.path, line=self.line)
+        nul = raw.find(b"\x00")
+        if nul >= 0:
+            raise RecordingError(f"NUL byte at byte offset {self.offset + nul} (a binary file, or UTF-16?)", self.path,
+                                 line=self.line, column=self._column(raw, nul))
         try:
-            header = next(reader)
-        except StopIteration:
-            raise RecordingError("empty file (no header line)", csv_path, line=1) from None
-        rows = [(i, row) for i, row in enumerate(reader, start=2) if any(c.strip() for c in row)]
+            return raw.decode(self.encoding)
+        except UnicodeDecodeError as exc:
+            raise _decode_error(exc, raw, self.offset, self.path, self.line, self._column(raw, exc.start),
+                                self.encoding) from None
+
+    def _column(self, raw: bytes, pos: int):
+        j = raw.count(b",", 0, pos)
+        if self.header is None:  # the header itself: the cell, decoded as well as it can be
+            return raw.split(b",")[j].decode(self.encoding, errors="backslashreplace").strip()
+        return self.header[j] if j < len(self.header) else None
+
+
+def _count_rows(path: Path, limit: int) -> int:
+    """Non-blank lines after the header, counted on the bytes and stopping past ``limit`` (nothing is kept)."""
+    n = -1
+    with open(path, "rb") as fh:
+        for raw in iter(lambda: fh.readline(MAX_LINE_BYTES + 1), b""):
+            if len(raw) > MAX_LINE_BYTES:
+                break  # the parse reports the over-long line with its number
+            if raw.strip(b" \t\r\n,"):
+                n += 1
+                if n > limit:
+                    break
+    return n
+
+
+def _bad_count(cells, header, path, line):
+    """The error of a row whose cell count differs from the header's; finds a decimal comma when it can."""
+    n, m = len(cells), len(header)
+    if n > m:
+        for j in range(min(n - 1, m)):
+            if _INT_CELL.fullmatch(cells[j]) and _FRACTION_CELL.fullmatch(cells[j + 1]):
+                merged = cells[:j] + [cells[j].strip() + "." + cells[j + 1].strip()] + cells[j + 2:]
+                if len(merged) == m and j > 1 and header[j].split("[")[0].strip() not in ("dir_x", "dir_y", "dir_z"):
+                    return RecordingError(f"{n} cells, the header has {m}: {cells[j].strip()},{cells[j + 1].strip()} looks "
+                                          f"like a number with a decimal comma; points.csv needs a decimal point "
+                                          f"({cells[j].strip()}.{cells[j + 1].strip()}) and commas only between cells",
+                                          path, line=line, column=header[j])
+        return RecordingError(f"{n} cells, the header has {m} (a decimal comma, or a separator inside a cell?)",
+                              path, line=line, column=header[-1])
+    return RecordingError(f"{n} cells, the header has {m}: no cell for this column and the ones after it", path,
+                          line=line, column=header[n] if n < m else None)
+
+
+def _bad_cell(text, path, line, column):
+    t = text.strip()
+    if not t:
+        return RecordingError("empty cell", path, line=line, column=column)
+    if t.lower().lstrip("+-") in ("nan", "inf", "infinity"):
+        return RecordingError(f"value {text!r} is not finite", path, line=line, column=column)
+    try:
+        v = float(t)
+    except ValueError:
+        v = None
+    if v is not None and not math.isfinite(v):
+        return RecordingError(f"value {text!r:.40} is not finite (out of the range of a float)", path, line=line,
+                              column=column)
+    hint = "; use a decimal point, not a comma" if re.fullmatch(r"[+-]?[0-9]*,[0-9]+", t) else ""
+    return RecordingError(f"not a number: {text!r:.40}{hint}", path, line=line, column=column)
+
+
+def _read_points(csv_path: Path, sensors, *, ignored=frozenset(), max_rows=MAX_ROWS, max_columns=MAX_COLUMNS,
+                 encoding="utf-8"):
+    try:
+        ascii_compatible = "\n,.-+0123456789eE".encode(encoding) == b"\n,.-+0123456789eE"
+    except (LookupError, UnicodeError):
+        ascii_compatible = False
+    if not ascii_compatible:
+        raise RecordingError(f"encoding {encoding!r} is not an ASCII-compatible encoding this reader takes "
+                             "(save the file as UTF-8)", csv_path)
+    n_rows = _count_rows(csv_path, max_rows)
+    if n_rows > max_rows:
+        raise RecordingError(f"more than {max_rows} data rows; the reader's limit is max_rows={max_rows}", csv_path,
+                             line=max_rows + 2)
+    temp_cols = {s.column for s in sensors}
+    with open(csv_path, "rb") as fh:
+        lines = _Lines(fh, csv_path, encoding)
+        reader = csv.reader(lines, strict=True)
+        try:
+            header = next(reader, None)
+            if header is None:
+                raise RecordingError("empty file (no header line)", csv_path, line=1)
+            parsed, targets, unused = _parse_header(header, csv_path, temp_cols, ignored, max_columns)
+            lines.header = header
+            values = {name: array("d") for name in targets.values()}
+            appends = [(j, values[name].append, header[j]) for j, name in targets.items()]
+            rows = []  # line number of every data row
+            m = len(header)
+            for cells in reader:
+                line = lines.line
+                if not cells or (len(cells) == 1 and not cells[0].strip()):
+                    continue  # a blank line
+                if len(cells) != m:
+                    raise _bad_count(cells, header, csv_path, line)
+                for j, append, h in appends:
+                    c = cells[j]
+                    try:
+                        v = float(c)
+                    except ValueError:
+                        raise _bad_cell(c, csv_path, line, h) from None
+                    if v - v != 0.0 or not c.isascii() or "_" in c:
+                        raise _bad_cell(c, csv_path, line, h)
+                    append(v)
+                rows.append(line)
+        except csv.Error as exc:
+            raise RecordingError(f"not a valid CSV line ({exc})", csv_path, line=lines.line) from None
+    if not rows:
+        raise RecordingError("no data rows", csv_path, line=2)
+    if len(rows) < MIN_ROWS:
+        raise RecordingError(f"{len(rows)} data row{'s' if len(rows) > 1 else ''}; a recording needs at least {MIN_ROWS} "
+                             "(the tracker pose alone has 6 unknowns)", csv_path, line=rows[-1])
+    out, temps = _convert(parsed, {k: np.frombuffer(v, dtype=float) for k, v in values.items()}, rows, csv_path,
+                          temp_cols)
+    return out, temps, unused
+
+
+def _unit_names(u) -> list:
+    return [name for name, _ in Q_(1.0, u).unit_items()]
+
+
+def _parse_header(header, csv_path, temp_cols, ignored, max_columns):
+    """{name: (index, unit, header text)} of the columns, {index: name} of the columns to parse, and the
+    names of the columns left out of the model."""
+    if len(header) > max_columns:
+        raise RecordingError(f"{len(header)} columns; the reader's limit is max_columns={max_columns}", csv_path, line=1)
+    if len(header) == 1 and (";" in header[0] or "\t" in header[0]):
+        sep = "';'" if ";" in header[0] else "a tab"
+        raise RecordingError(f"the header is separated by {sep}; points.csv is comma-separated (with a decimal point)",
+                             csv_path, line=1, column=header[0][:40])
     parsed = {}
     for j, h in enumerate(header):
         m = _HEADER.match(h)
         if not m:
-            raise RecordingError(f"bad column header {h!r}; expected 'name [unit]' or 'name'", csv_path, line=1, column=h)
+            raise RecordingError(f"bad column header {h!r:.60}; expected 'name [unit]' or 'name'", csv_path, line=1,
+                                 column=h[:60])
         name, unit = m.group(1), m.group(2)
         if name in parsed:
             raise RecordingError(f"column {name!r} appears twice", csv_path, line=1, column=h)
+        if name == "station":
+            raise RecordingError("a station column needs format 2 (several stations), which this version does not "
+                                 "read", csv_path, line=1, column=h)
         parsed[name] = (j, unit, h)
-    temp_cols = {s.column for s in sensors}
     for name in list(COLUMNS) + sorted(temp_cols):
         if name not in parsed:
-            raise RecordingError(f"missing column {name!r}", csv_path, line=1, column=name)
-    if not rows:
-        raise RecordingError("no data rows", csv_path, line=2)
-    out, temps = {}, {}
+            unknown = [n for n in parsed if n not in COLUMNS and n not in temp_cols]
+            close = difflib.get_close_matches(name, unknown, n=1, cutoff=0.6)
+            hint = f"; the header has {close[0]!r}: a misspelling?" if close else ""
+            raise RecordingError(f"missing column {name!r}{hint}", csv_path, line=1, column=name)
+    targets, unused = {}, []
     for name, (j, unit, h) in parsed.items():
-        if name in COLUMNS:
-            spec = COLUMNS[name]
-        elif name in temp_cols:
-            spec = ("[temperature]", "K")
-        else:
-            continue  # unknown columns are kept out of the model and not checked
-        if spec is None and unit:
-            raise RecordingError(f"column {name!r} is a count or sign and takes no unit, got [{unit}]", csv_path, line=1, column=h)
-        values = np.empty(len(rows))
-        for k, (line, row) in enumerate(rows):
-            if j >= len(row) or not row[j].strip():
-                raise RecordingError("empty cell", csv_path, line=line, column=h)
-            try:
-                v = float(row[j])
-            except ValueError:
-                raise RecordingError(f"not a number: {row[j]!r}", csv_path, line=line, column=h) from None
-            if not math.isfinite(v):
-                raise RecordingError(f"value {row[j]!r} is not finite", csv_path, line=line, column=h)
-            values[k] = v
-        if spec is None:
-            out[name] = values
+        known = name in COLUMNS or name in temp_cols
+        if name in ignored or (not known and not (unit and unit.strip())):
+            unused.append(name)  # free text (or a count nobody reads): left out, not parsed
             continue
-        dim, internal = spec
-        if not unit:
-            raise RecordingError(f"column {name!r} needs a unit of {dim}, e.g. '{name} [{internal}]'", csv_path, line=1, column=h)
-        try:
-            u = ureg.Unit(unit)
-        except Exception:
-            raise RecordingError(f"unit {unit!r} is not a unit pint knows", csv_path, line=1, column=h) from None
-        if u.dimensionality != ureg.Unit(internal).dimensionality:
-            raise RecordingError(f"unit {unit!r} has dimension {u.dimensionality}, expected {dim}", csv_path, line=1, column=h)
-        conv = Q_(values, u).to(internal).magnitude
+        spec = COLUMNS.get(name, ("[temperature]", "K") if name in temp_cols else None)
+        if spec is None and known:
+            if unit is not None and unit.strip():
+                raise RecordingError(f"column {name!r} is a count or sign and takes no unit, got [{unit}]", csv_path,
+                                     line=1, column=h)
+        else:
+            if unit is None or not unit.strip():
+                raise RecordingError(f"column {name!r} needs a unit of {spec[0]}, e.g. '{name} [{spec[1]}]'", csv_path,
+                                     line=1, column=h)
+            u = parse_unit(unit.strip(), where="unit", error=lambda msg: RecordingError(
+                f"unit {msg.split(': ', 1)[-1]}", csv_path, line=1, column=h))
+            if spec is not None and u.dimensionality != ureg.Unit(spec[1]).dimensionality:
+                raise RecordingError(f"unit {unit!r} has dimension {u.dimensionality}, expected {spec[0]}", csv_path,
+                                     line=1, column=h)
+            if name in temp_cols and any(n.startswith("delta_") for n in _unit_names(u)):
+                raise RecordingError(f"unit {unit!r} is a temperature difference; a sensor column holds absolute "
+                                     f"temperatures, e.g. '{name} [degC]' or '{name} [K]'", csv_path, line=1, column=h)
+            parsed[name] = (j, u, h)
+            if not known:  # a quantity column nobody declared: checked, then left out of the model
+                unused.append(name)
+        targets[j] = name
+    return parsed, targets, unused
+
+
+def _convert(parsed, values, rows, csv_path, temp_cols):
+    """Columns in internal units, checked against their meaning: indices, signs, time order, plausible ranges."""
+    out, temps = {}, {}
+
+    def fail(name, k, reason):
+        raise RecordingError(reason, csv_path, line=rows[k], column=parsed[name][2])
+
+    lo, hi = ABSOLUTE_TEMPERATURE
+    for name, v in values.items():
+        unit = parsed[name][1]
+        if COLUMNS.get(name, True) is None:
+            out[name] = v
+            continue
+        if name not in COLUMNS and name not in temp_cols:  # an undeclared quantity column, left out of the model
+            names = _unit_names(unit)
+            if len(names) == 1 and Q_(0.0, unit).to_base_units().magnitude != 0:  # degC, degF: absolute readings
+                bad = np.flatnonzero(~((Q_(v, unit).to("K").magnitude >= lo) & (Q_(v, unit).to("K").magnitude <= hi)))
+                if bad.size:
+                    fail(name, bad[0], f"{v[bad[0]]:g} {unit:~P} is not a plausible absolute temperature "
+                                       f"({lo:g} K to {hi:g} K)")
+            continue
+        conv = np.asarray(Q_(v, unit).to("K" if name in temp_cols else COLUMNS[name][1]).magnitude, float)
+        bad = np.flatnonzero(~np.isfinite(conv))
+        if bad.size:
+            fail(name, bad[0], f"value {v[bad[0]]:g} is not finite in internal units")
         (temps if name in temp_cols else out)[name] = conv
-    # semantic checks
     for name in ("dir_x", "dir_y", "dir_z"):
-        bad = np.flatnonzero(~np.isin(out[name], (-1.0, 1.0)))
+        bad = np.flatnonzero((out[name] != 1.0) & (out[name] != -1.0))
         if bad.size:
-            raise RecordingError(f"direction must be +1 or -1, got {out[name][bad[0]]:g}", csv_path, line=rows[bad[0]][0], column=name)
+            fail(name, bad[0], f"direction must be +1 or -1, got {out[name][bad[0]]:g}")
     for name in ("point", "run"):
-        bad = np.flatnonzero((out[name] != np.round(out[name])) | (out[name] < 0))
+        v = out[name]
+        bad = np.flatnonzero((v != np.round(v)) | (v < 0) | (v > MAX_INDEX))
         if bad.size:
-            raise RecordingError(f"must be a whole number >= 0, got {out[name][bad[0]]:g}", csv_path, line=rows[bad[0]][0], column=name)
+            fail(name, bad[0], f"must be a whole number from 0 to {MAX_INDEX}, got {v[bad[0]]:.10g}")
+    for name in ("x", "y", "z", "tool_x", "tool_y", "tool_z", "lt_x", "lt_y", "lt_z"):
+        bad = np.flatnonzero(np.abs(out[name]) > MAX_LENGTH)
+        if bad.size:
+            fail(name, bad[0], f"{out[name][bad[0]]:g} mm is not a plausible position (at most {MAX_LENGTH:g} mm)")
     t = out["time"]
+    bad = np.flatnonzero((t < 0) | (t > MAX_TIME))
+    if bad.size:
+        fail("time", bad[0], f"{t[bad[0]]:g} s is not a time since the start of the test (0 to {MAX_TIME:g} s)")
     back = np.flatnonzero(np.diff(t) < 0)
     if back.size:
         k = back[0] + 1
-        raise RecordingError(f"time goes backwards ({t[k - 1]:g} s then {t[k]:g} s); rows must be in time order",
-                             csv_path, line=rows[k][0], column=parsed["time"][2])
+        fail("time", k, f"time goes backwards ({t[k - 1]:g} s then {t[k]:g} s); rows must be in time order")
+    for name, T in temps.items():
+        bad = np.flatnonzero((T < lo) | (T > hi))
+        if bad.size:
+            k = bad[0]
+            unit = parsed[name][1]
+            hint = ""
+            if unit == ureg.kelvin and -60 <= values[name][k] <= 130:
+                hint = f"; the column is in K but holds what look like degC readings: write '{name} [degC]'"
+            kelvin = "" if unit == ureg.kelvin else f" ({T[k]:.6g} K)"
+            fail(name, k, f"{values[name][k]:g} {unit:~P}{kelvin} is not a plausible absolute temperature "
+                          f"({lo:g} K to {hi:g} K){hint}")
+    nominal = np.stack([out["x"], out["y"], out["z"]], axis=1)
+    _, first, inverse = np.unique(out["point"], return_index=True, return_inverse=True)
+    moved = np.flatnonzero(np.any(nominal != nominal[first[inverse.ravel()]], axis=1))
+    if moved.size:
+        k = moved[0]
+        k0 = first[inverse.ravel()[k]]
+        fail("x", k, f"point {int(out['point'][k])} is at ({', '.join(f'{c:g}' for c in nominal[k])}) mm here and at "
+                     f"({', '.join(f'{c:g}' for c in nominal[k0])}) mm on line {rows[k0]}; one point index is one "
+                     "nominal position")
     key = np.stack([out["point"], out["run"], t, out["tool_x"], out["tool_y"], out["tool_z"]], axis=1)
     _, first, counts = np.unique(key, axis=0, return_index=True, return_counts=True)
     if np.any(counts > 1):
         dup_key = key[first[np.argmax(counts > 1)]]
         idx = np.flatnonzero(np.all(key == dup_key, axis=1))
-        raise RecordingError(f"duplicate row (same point, run, time and tool as line {rows[idx[0]][0]})",
-                             csv_path, line=rows[idx[1]][0])
+        raise RecordingError(f"duplicate row (same point, run, time and tool as line {rows[idx[0]]})",
+                             csv_path, line=rows[idx[1]], column=parsed["point"][2])
     return out, temps
 
 
 def _fmt_row(values):
     return ",".join(values)
+
+
+def _toml_string(text) -> str:
+    """A TOML basic string of ``text``: quote, backslash and control characters escaped; a lone surrogate
+    (which no file can hold) becomes U+FFFD."""
+    out = []
+    for ch in str(text):
+        c = ord(ch)
+        if ch in '"\\':
+            out.append("\\" + ch)
+        elif c < 0x20 or c == 0x7F:
+            out.append(f"\\u{c:04X}")
+        elif 0xD800 <= c <= 0xDFFF:
+            out.append("\ufffd")
+        else:
+            out.append(ch)
+    return '"' + "".join(out) + '"'
 
 
 def write_recording(rec: Recording, folder, *, truth: dict | None = None) -> Path:
@@ -251,9 +630,9 @@ def write_recording(rec: Recording, folder, *, truth: dict | None = None) -> Pat
     p = rec.plan
     lines = [
         f'format = "{FORMAT}"',
-        f"name = {json.dumps(rec.name)}",
-        f"machine = {json.dumps(rec.machine)}",
-        f"description = {json.dumps(rec.description)}",
+        f"name = {_toml_string(rec.name)}",
+        f"machine = {_toml_string(rec.machine)}",
+        f"description = {_toml_string(rec.description)}",
         f'reference_temperature = "{rec.reference_temperature - 273.15:.6g} degC"',
         "",
         "[tracker]",
@@ -265,7 +644,7 @@ def write_recording(rec: Recording, folder, *, truth: dict | None = None) -> Pat
         f'repeatability = "{display(rec.repeatability, "mm", "um"):.9g} um"',
     ]
     for s in p.sensors:
-        lines += ["", "[[sensors]]", f"column = {json.dumps(s.column)}", f"attached_to = {json.dumps(s.attached_to)}"]
+        lines += ["", "[[sensors]]", f"column = {_toml_string(s.column)}", f"attached_to = {_toml_string(s.attached_to)}"]
         if s.position is not None:
             lines.append(f'position = "{s.position:.6f} mm"')
     (folder / "recording.toml").write_text("\n".join(lines) + "\n", encoding="utf-8")

@@ -42,20 +42,87 @@ INTERNAL = {
     "[temperature] / [time]": "K/s",
 }
 
-#: how a quantity string may look: a number, an optional exponent, then a unit expression
-#: of words, spaces, * / ( ) and single small integer powers (** or ^).
-_NUMBER = r"[+-]?(?:\d+\.?\d*|\.\d+)(?:[eE][+-]?\d{1,3})?"
-_UNIT_WORD = r"[A-Za-zµμΩ°%_][A-Za-z0-9µμΩ°%_]*"
-_POWER = r"(?:\s*(?:\*\*|\^)\s*[+-]?\d)?"
-_UNIT_EXPR = rf"(?:{_UNIT_WORD}{_POWER}|[()*/\s]|\d(?=\s*\)))*"
-_GRAMMAR = re.compile(rf"^\s*(?:{_NUMBER})?\s*{_UNIT_EXPR}\s*$")
+#: how a quantity string may look: a number (with an optional exponent), then a
+#: unit expression of words, spaces, * / ( ) and single-digit powers (** or ^); ``1/`` may open it.
+#: The string is split into tokens by one linear scan (no regular expression with nested
+#: repetition, which backtracks exponentially on a long word that fails), the number is read by
+#: ``float`` and the unit expression by ``ureg.parse_units``: pint never evaluates an expression.
+_NUMBER = re.compile(r"[+-]?(?:[0-9]+\.?[0-9]*|\.[0-9]+)(?:[eE][+-]?[0-9]+)?")
+_TOKEN = re.compile(r"(?P<word>%|°[A-Za-z]*|[A-Za-zµμΩ][A-Za-z0-9_]*)(?P<power>[ ]*(?:\*\*|\^)[ ]*[+-]?[0-9](?![0-9]))?"
+                    r"|(?P<one>1(?=[ ]*/))|(?P<op>[*/()])|(?P<space>[ ]+)")
+_SPACES = str.maketrans({"\t": " ", "\u00a0": " ", "\u202f": " ", "\u2009": " "})
+_NOT_UNITS = {"inf", "infinity", "nan"}
 _MAX_TEXT = 120
+#: the plausible range of an absolute temperature (K): a machine shop, not a cryostat or a furnace.
+#: A value outside it is almost always a unit mix-up (a K column holding degC readings, -300 degC).
+ABSOLUTE_TEMPERATURE = (200.0, 400.0)
 
 
 def _fail(error, message):
     from .errors import UnitError
 
     raise (error or UnitError)(message)
+
+
+def _clip(value, n: int = 60) -> str:
+    """repr of ``value`` on one line, shortened to about ``n`` characters."""
+    r = repr(value)
+    return r if len(r) <= n else r[: n - 5] + "..." + r[-2:]
+
+
+def _split(text: str):
+    """(number text or None, unit text, lower-case unit words) of a quantity string, or None when it does
+    not follow the grammar."""
+    text = text.translate(_SPACES).strip()
+    m = _NUMBER.match(text)
+    number = m.group(0) if m else None
+    pos = m.end() if m else 0
+    depth, words = 0, []
+    while pos < len(text):
+        t = _TOKEN.match(text, pos)
+        if t is None:
+            return None
+        if t.group("word"):
+            words.append(t.group("word").lower())
+        elif t.group("op") == "(":
+            depth += 1
+        elif t.group("op") == ")":
+            depth -= 1
+            if depth < 0:
+                return None
+        pos = t.end()
+    if depth:
+        return None
+    return number, text[m.end() if m else 0:].strip(), words
+
+
+def parse_unit(text, *, where: str = "unit", error=None):
+    """Parse a unit expression ("mm", "um/(m*K)", "degC") into a pint Unit through the same grammar.
+
+    A unit made of several factors reads an offset temperature unit as a difference (pint's
+    ``as_delta``): ``degC/h`` is ``delta_degC/h``.
+    """
+    if not isinstance(text, str):
+        _fail(error, f"{where}: expected a unit such as \"mm\", got {type(text).__name__} {_clip(text)}")
+    parts = _split(text) if len(text) <= _MAX_TEXT else None
+    if parts is not None and parts[0] == "1" and parts[1].startswith("/"):  # "1/K"
+        parts = (None,) + parts[1:]
+    if parts is None or parts[0] is not None or not parts[1]:
+        _fail(error, f"{where}: {_clip(text)} is not a unit expression (for example \"mm\", \"um/m\" or \"degC\")")
+    return _units(parts, text, where, error)
+
+
+def _units(parts, value, where, error):
+    _, unit_text, words = parts
+    if set(words) & _NOT_UNITS:
+        _fail(error, f"{where}: {_clip(value)} is not finite")
+    if unit_text.startswith("/"):
+        unit_text = "1" + unit_text
+    try:
+        return ureg.parse_units(unit_text)
+    except Exception as exc:  # pint raises several types (and AssertionError on a dangling operator)
+        kind = "unknown unit" if isinstance(exc, pint.UndefinedUnitError) else "cannot parse the unit"
+        _fail(error, f"{where}: {_clip(value)}: {kind} {_clip(unit_text)}")
 
 
 def parse_quantity(value, *, where: str = "value", error=None) -> pint.Quantity:
@@ -68,24 +135,28 @@ def parse_quantity(value, *, where: str = "value", error=None) -> pint.Quantity:
     if isinstance(value, pint.Quantity):
         q = value
     elif isinstance(value, bool) or not isinstance(value, (str, int, float, np.floating, np.integer)):
-        _fail(error, f"{where}: expected a quantity string such as \"5 um\", got {type(value).__name__} {value!r}")
+        _fail(error, f"{where}: expected a quantity string such as \"5 um\", got {type(value).__name__} {_clip(value)}")
     elif isinstance(value, str):
-        text = value.strip()
-        if not text:
+        if not value.strip():
             _fail(error, f"{where}: empty quantity; expected for example \"5 um\"")
-        if len(text) > _MAX_TEXT or not _GRAMMAR.match(text):
-            _fail(error, f"{where}: {value!r} is not a quantity of the form NUMBER UNIT (for example \"5 um\" or \"0.8 um/m\")")
-        try:
-            q = ureg.Quantity(text)
-        except Exception as exc:  # pint raises several types
-            _fail(error, f"{where}: cannot parse {value!r} as a quantity ({type(exc).__name__})")
-        if not isinstance(q, pint.Quantity):
-            q = Q_(float(q))
+        parts = _split(value) if len(value) <= _MAX_TEXT else None
+        if parts is None or parts[0] is None:
+            if parts is not None and set(parts[2]) & _NOT_UNITS:
+                _fail(error, f"{where}: {_clip(value)} is not finite")
+            _fail(error, f"{where}: {_clip(value)} is not a quantity of the form NUMBER UNIT (for example \"5 um\" or \"0.8 um/m\")")
+        mag = float(parts[0])
+        q = Q_(mag, _units(parts, value, where, error)) if parts[1] else Q_(mag)
     else:
-        q = Q_(float(value))
-    mag = np.asarray(q.magnitude, dtype=float) if not isinstance(q.magnitude, (int, float)) else q.magnitude
+        try:
+            q = Q_(float(value))
+        except OverflowError:
+            _fail(error, f"{where}: {_clip(value)} is not finite")
+    try:
+        mag = np.asarray(q.magnitude, dtype=float)
+    except (TypeError, ValueError):
+        _fail(error, f"{where}: {_clip(value)} does not have a numeric magnitude")
     if not np.all(np.isfinite(mag)):
-        _fail(error, f"{where}: {value!r} is not finite")
+        _fail(error, f"{where}: {_clip(value)} is not finite")
     return q
 
 
@@ -94,32 +165,71 @@ def _has_unit(value) -> bool:
     if isinstance(value, pint.Quantity):
         return not value.unitless
     if isinstance(value, str):
-        q = ureg.Quantity(value.strip())
-        return isinstance(q, pint.Quantity) and not q.unitless
+        parts = _split(value)
+        return bool(parts and parts[1])
     return False
+
+
+def _offset_alone(q) -> bool:
+    """Whether ``q`` is on an offset temperature scale (degC, degF) alone: an absolute reading."""
+    items = list(q.unit_items())
+    return len(items) == 1 and items[0][1] == 1 and _is_offset(items[0][0])
+
+
+@lru_cache(maxsize=64)
+def _is_offset(name: str) -> bool:
+    return Q_(0.0, name).to_base_units().magnitude != 0
 
 
 def to_internal(value, unit: str, *, where: str = "value", error=None, absolute_temperature: bool = False) -> float:
     """Parse ``value`` and return its magnitude in ``unit`` (a plain float).
 
-    An angle (``unit`` rad, deg, urad ...) needs an explicit unit; an absolute
-    temperature (``absolute_temperature=True``) refuses ``delta_*`` units.
+    An angle or a ratio (``unit`` rad, deg, urad, mm/mm ...) needs an explicit
+    unit.  A temperature is an absolute temperature when
+    ``absolute_temperature=True``: it refuses ``delta_*`` units and values
+    outside :data:`ABSOLUTE_TEMPERATURE`; otherwise it is a temperature
+    difference, which refuses an offset scale alone ("0.1 degC" is ambiguous:
+    write "0.1 K" or "0.1 delta_degC").
     """
     q = parse_quantity(value, where=where, error=error)
     target = ureg.Unit(unit)
     if target.dimensionality != q.dimensionality:
         _fail(error, f"{where}: {_show(value)} is not a quantity of {_dimension(target)} (for example {unit})")
-    if target.dimensionless and target != ureg.dimensionless and not _has_unit(value):
-        _fail(error, f"{where}: {_show(value)} needs an explicit unit (for example \"{value} {unit}\"); "
-                     "a bare number is ambiguous for an angle")
+    if target.dimensionless and unit.strip() not in ("", "1", "dimensionless") and not _has_unit(value):
+        what = "an angle" if Q_(1.0, unit).to_root_units().units == ureg.radian else "a ratio"
+        _fail(error, f"{where}: {_show(value)} needs an explicit unit (for example \"{_show_bare(value)} {unit}\"); "
+                     f"a bare number is ambiguous for {what}")
+    if unit.strip() in ("", "1", "dimensionless") and not q.unitless and q.to_root_units().units == ureg.radian:
+        _fail(error, f"{where}: {_show(value)} is an angle; expected a plain number")
+    temperature = target.dimensionality == ureg.kelvin.dimensionality
     if absolute_temperature and any(name.startswith("delta_") for name, _ in q.unit_items()):
         _fail(error, f"{where}: {_show(value)} is a temperature difference; give an absolute temperature such as \"20 degC\"")
-    out = q.to(target).magnitude
+    if temperature and not absolute_temperature and _offset_alone(q):
+        _fail(error, f"{where}: {_show(value)} is a temperature difference on an offset scale, which is ambiguous; "
+                     f"write it in K or delta_degC (for example \"{_show_bare(q.magnitude)} K\")")
+    try:
+        out = q.to(target).magnitude
+    except Exception as exc:  # pint: an offset unit in a product, a logarithmic unit ...
+        _fail(error, f"{where}: {_show(value)} cannot be converted to {unit} ({type(exc).__name__})")
+    if np.ndim(out) == 0 and not math.isfinite(float(out)) or np.ndim(out) and not np.all(np.isfinite(out)):
+        _fail(error, f"{where}: {_show(value)} is not finite in {unit}")
+    if absolute_temperature and temperature:
+        k = np.asarray(q.to("K").magnitude, float)
+        lo, hi = ABSOLUTE_TEMPERATURE
+        if np.any(k < lo) or np.any(k > hi):
+            bad = float(k.flat[np.flatnonzero((k < lo) | (k > hi))[0]])
+            _fail(error, f"{where}: {_show(value)} ({bad:.6g} K, {bad - 273.15:.6g} degC) is not a plausible absolute "
+                         f"temperature; expected {lo:g} K to {hi:g} K ({lo - 273.15:g} degC to {hi - 273.15:g} degC)")
     return float(out) if np.ndim(out) == 0 else np.asarray(out, float)
 
 
+def _show_bare(value) -> str:
+    return f"{value:g}" if isinstance(value, (int, float, np.floating, np.integer)) and not isinstance(value, bool) \
+        else str(value).strip()[:40]
+
+
 def _show(value) -> str:
-    return f"{value:~P}" if isinstance(value, pint.Quantity) else repr(value)
+    return _clip(f"{value:~P}") if isinstance(value, pint.Quantity) else _clip(value)
 
 
 def _dimension(unit) -> str:
