@@ -23,7 +23,7 @@ from .executors import Executor
 from .outputs import MEAN_SQUARE_OUTPUTS, SCALARS, RunResult, accumulate_block
 from .plugins import call
 from .progress import progress_bar
-from .stats import Accumulator
+from .stats import Accumulator, percent
 
 
 def attribution(engine, result: RunResult, n: int, *, ex_kind="inline", workers=None, address=None,
@@ -190,11 +190,11 @@ def conformance(res: RunResult, tolerance_um: float, characteristic: str = "comp
         lo, hi = s["symmetric"]
         verdict = "conforms" if hi <= T else "does not conform" if lo > T else "undecided"
         return {"characteristic": "largest 3-D error over the mesh after compensation (compensation_max)",
-                "rule": f"ISO 14253-1 guarded acceptance: conformance proven when the upper end of the {p:.0%} coverage "
+                "rule": f"ISO 14253-1 guarded acceptance: conformance proven when the upper end of the {percent(p)} coverage "
                         f"interval is within the tolerance; non-conformance when its lower end exceeds it",
                 "tolerance": T, "unit": "um", "coverage": p, "interval": [lo, hi], "verdict": verdict,
                 "statement": f"The largest error over the mesh after compensation lies in [{lo:.1f}, {hi:.1f}] um "
-                             f"({p:.0%} coverage): against a tolerance of {T:g} um the compensated machine {verdict}."}
+                             f"({percent(p)} coverage): against a tolerance of {T:g} um the compensated machine {verdict}."}
     pts = res.points()
     if not pts or "interval" not in pts[0]:
         raise ValueError("the per-point intervals are not available for this run")
@@ -205,8 +205,8 @@ def conformance(res: RunResult, tolerance_um: float, characteristic: str = "comp
     outside = (hi < -T) | (lo > T)
     n = lo.size
     return {"characteristic": "each error component (x, y, z) at each mesh point after compensation",
-            "rule": f"ISO 14253-1 guarded acceptance per point and axis: conformance proven where the {p:.0%} coverage "
-                    f"interval lies within [-T, T] (acceptance zone |mean| <= T - U, U its half-width), "
+            "rule": f"ISO 14253-1 guarded acceptance per point and axis: conformance proven where the {percent(p)} coverage "
+                    f"interval lies within [-T, T] (for a symmetric interval: |mean| <= T - U, U its half-width), "
                     f"non-conformance where it lies outside",
             "tolerance": T, "unit": "um", "coverage": p, "U_max": float(U.max()), "U_unit": "um",
             "conforming": int(inside.sum()), "nonconforming": int(outside.sum()),
@@ -215,4 +215,4 @@ def conformance(res: RunResult, tolerance_um: float, characteristic: str = "comp
             "statement": (f"Tolerance +-{T:g} um on each axis at each point: conformance proven at {int(inside.sum())} of "
                           f"{n} point-axes, non-conformance at {int(outside.sum())}, undecided at "
                           f"{int(n - inside.sum() - outside.sum())} (largest guard band U = {U.max():.1f} um, "
-                          f"{p:.0%} coverage).")}
+                          f"{percent(p)} coverage).")}

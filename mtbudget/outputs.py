@@ -55,11 +55,13 @@ class BlockResult:
     component_moments: CoMoments | None = None
 
     def truncated(self, n: int) -> "BlockResult":
-        """The first ``n`` trials of the block."""
+        """The first ``n`` trials of the block (a run logs the block it merged, already cut to its trials)."""
+        if n >= self.n:
+            return self
         if self.point_error is None:
             from .errors import ConfigError
 
-            raise ConfigError("a resumed block cannot be shortened; resume with the logged trial count")
+            raise ConfigError("a block read back from a log cannot be shortened; resume with the logged trial count")
         return BlockResult(self.block, n, {k: v[:n] for k, v in self.scalars.items()}, self.point_error[:n],
                            self.parameters[:n], self.not_converged,
                            components=None if self.components is None else self.components[:n])

@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 
 from .distributions import t_factor
-from .stats import decimals_for
+from .stats import decimals_for, percent
 from .units import display, pretty
 
 from .budget import conformance
@@ -97,9 +97,9 @@ def point_lines(res: RunResult) -> list:
     lines.append("    smallest u                                      " + "".join(f"{x:9.{nd}f}" for x in sm["u_min"]))
     lines.append("    largest u                                       " + "".join(f"{x:9.{nd}f}" for x in sm["u_max"]))
     if half is not None:
-        label = f"largest half-width of the {res.coverage:.0%} interval"
+        label = f"largest half-width of the {percent(res.coverage)} interval"
         lines.append(f"    {label:<48}" + "".join(f"{x:9.{nd}f}" for x in half.max(axis=0))
-                     + f"   (coverage {res.coverage:.0%}; a normal would give k = {k:.2f})")
+                     + f"   (coverage {percent(res.coverage)}; a normal would give k = {k:.2f})")
     w = sm["worst_point"]
     lines.append(f"  worst point #{w['point']} at x, y, z = {_vec(w['nominal']['value'], 0)} mm: u = {_vec(w['u'], nd)} {u}, "
                  f"mean (bias) {_vec(w['mean'], nd)} {u}")
@@ -114,7 +114,7 @@ def point_lines(res: RunResult) -> list:
 def budget_text(res: RunResult) -> str:
     lines = []
     status = "" if res.complete else "  (INCOMPLETE: partial results)"
-    lines.append(f"Monte Carlo: {res.trials} trials, coverage probability {res.coverage:.0%}, seed {res.spec.get('seed')}{status}")
+    lines.append(f"Monte Carlo: {res.trials} trials, coverage probability {percent(res.coverage)}, seed {res.spec.get('seed')}{status}")
     if getattr(res, "stopped_at_limit", False):
         lines.append("  note: the adaptive run stopped at its trial limit before reaching its numerical tolerance")
     if res.not_converged:
@@ -205,7 +205,7 @@ def _figures(res: RunResult, folder):
             ax.hist(y, bins=60, density=True, color="#7aa6c2", label="MCM")
             lo, hi = res.summary(k)["symmetric"]
             ax.axvline(lo, color="k", ls="--", lw=1)
-            ax.axvline(hi, color="k", ls="--", lw=1, label=f"{res.coverage:.0%} interval")
+            ax.axvline(hi, color="k", ls="--", lw=1, label=f"{percent(res.coverage)} interval")
             ax.set_title(k, fontsize=9)
             unit = pretty(SCALARS[k][0])
             ax.set_xlabel(f"{k} [{unit}]" if unit else k)
@@ -276,7 +276,7 @@ def provenance_lines(res: RunResult) -> list:
              f"| tool offset of the statement | {(cfg.get('plan', {}).get('tools') or [['0 mm'] * 3])[0]} |",
              f"| tracker pose | D {tr.get('D')}, L {tr.get('L')}, H {tr.get('H')}, a {tr.get('a')}, b {tr.get('b')}, d {tr.get('d')} |",
              f"| sources drawn | {', '.join(res.spec.get('sources') or []) or 'none'} |",
-             f"| trials, seed, coverage | {res.trials}, {res.spec.get('seed')}, {res.coverage:.0%} |",
+             f"| trials, seed, coverage | {res.trials}, {res.spec.get('seed')}, {percent(res.coverage)} |",
              f"| mtbudget | {__version__} |", f"| report written | {time.strftime('%Y-%m-%d %H:%M %Z')} |"]
     if res.weights:
         lines.append("| identification weights | stated apart from the drawn noise: " + "; ".join(
@@ -375,26 +375,30 @@ def run_report(res: RunResult, folder, tolerance_um: float | None = None, charac
     md += ["## Measurand", "", MEASURAND[0].upper() + MEASURAND[1:] + ".", ""]
     md += provenance_lines(res)
     pts = data.get("points")
+    if pts and "interval" not in pts[0]:
+        md += ["", "## Result", "", "The per-point coverage intervals are not available for this log (an incomplete log of a "
+               "run too long to log every trial); finish it with `mtbudget run --resume`."]
+        pts = None
     if pts:
         sm = data["points_summary"]
         nd = decimals_for(min(sm["u_min"]))
         half = np.array([[(h - lo) / 2 for lo, h in zip(q["interval"]["low"], q["interval"]["high"])] for q in pts])
         md += ["", "## Result", "",
-               f"Standard uncertainty u (k = 1) and the {res.coverage:.0%} coverage interval of each error component, "
+               f"Standard uncertainty u (k = 1) and the {percent(res.coverage)} coverage interval of each error component, "
                f"from {res.trials} Monte Carlo trials (JCGM 101); values in {pretty(sm['unit'])}, shown to the digits the "
                "run supports.", "",
                "| summary over the mesh | x | y | z |", "| --- | --- | --- | --- |",
                "| RMS of u | " + " | ".join(f"{x:.{nd}f}" for x in sm["u_rms_over_mesh"]) + " |",
                "| smallest u | " + " | ".join(f"{x:.{nd}f}" for x in sm["u_min"]) + " |",
                "| largest u | " + " | ".join(f"{x:.{nd}f}" for x in sm["u_max"]) + " |",
-               f"| largest half-width of the {res.coverage:.0%} interval | " + " | ".join(f"{x:.{nd}f}" for x in half.max(axis=0)) + " |",
+               f"| largest half-width of the {percent(res.coverage)} interval | " + " | ".join(f"{x:.{nd}f}" for x in half.max(axis=0)) + " |",
                "| RMS of the mean (bias) | " + " | ".join(f"{x:.{nd}f}" for x in sm["bias_rms_over_mesh"]) + " |", ""]
         w = sm["worst_point"]
         md.append(f"Worst point: #{w['point']} at x, y, z = {_vec(w['nominal']['value'], 0)} mm, u = {_vec(w['u'], nd)} "
                   f"{pretty(sm['unit'])}.")
         md += ["", "## Every point", "",
                f"| point | x, y, z commanded [mm] | mean x, y, z [{pretty(sm['unit'])}] | u x, y, z [{pretty(sm['unit'])}] | "
-               f"{res.coverage:.0%} interval x | y | z |", "| --- | --- | --- | --- | --- | --- | --- |"]
+               f"{percent(res.coverage)} interval x | y | z |", "| --- | --- | --- | --- | --- | --- | --- |"]
         for q in pts:
             iv = q["interval"]
             md.append(f"| {q['point']} | {_vec(q['nominal']['value'], 0)} | {_vec(q['mean']['value'], nd)} | "

@@ -144,9 +144,11 @@ def _run(config, settings, *, on_chunk, resume_blocks, engine, host, **overrides
     chunk_blocks = settings.chunk_blocks
     try:
         def merge(b, target_n):
+            """Merge block b, cut to the trials the run still needs; the merged (cut) block is what gets logged."""
             left = target_n - acc.n
-            accumulate_block(acc, b if left >= b.n else b.truncated(left))
-            return b
+            t = b if left >= b.n else b.truncated(left)
+            accumulate_block(acc, t)
+            return t
 
         def consume(block_ids, target_n):
             todo = [b for b in block_ids if b not in done]

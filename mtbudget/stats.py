@@ -57,6 +57,11 @@ def decimals_for(u: float, ndig: int = 2) -> int:
     return max(0, (ndig - 1) - math.floor(math.log10(abs(u))))
 
 
+def percent(p: float) -> str:
+    """A coverage probability as people read it, never rounded into another one: 0.95 -> "95 %", 0.999 -> "99.9 %"."""
+    return f"{100 * p:.6g} %"
+
+
 def clause8(guf_interval, mcm_interval, u: float, ndig: int = 2):
     """JCGM 101 8.2: (d_low, d_high, delta, passed) for a GUF and an MCM coverage interval.
 

@@ -28,7 +28,7 @@ def test_markdown_has_every_section(report_dir):
     for part in ("## Measurand", "## Conditions", "## Result", "## Every point", "## Budget of the per-point measurand",
                  "GUF vs MCM (JCGM 101 clause 8), per point and axis", "## Decision (ISO 14253-1)", "Rule: ISO 14253-1",
                  "## Volume summaries and the paper's figures", "### Budget of compensation_rms", "tracker_noise",
-                 "measurement system", "sha256", "k = 1", "95% coverage interval"):
+                 "measurement system", "sha256", "k = 1", "95 % coverage interval"):
         assert part in md, part
     assert md.count("\n| ") > 27 + 10  # one table row per mesh point (27 in the small study) and the summaries
     for fig in ("uncertainty_map.png", "distributions.png", "contributions.png", "convergence.png"):

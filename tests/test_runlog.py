@@ -151,3 +151,13 @@ def test_every_logged_message_type_describes_its_fields():
         assert schema.get("properties"), f"{name} has no properties"
     assert {"output", "unit"} <= set(SCHEMAS["mtbudget.Convergence"]["properties"])
     assert "points" in SCHEMAS["mtbudget.Result"]["properties"]
+
+
+def test_the_log_holds_exactly_the_trials_the_run_used(tmp_path):
+    """20 trials in blocks of 16: the log keeps the second block cut to 4 trials, so replay states what the run did."""
+    res = execute(SMALL, trials=20, block=16, attribution_trials=0, log_path=tmp_path / "cut.mcap")
+    again = replay(tmp_path / "cut.mcap")
+    assert again.trials == res.trials == 20
+    for k in SCALARS:
+        assert np.array_equal(again.acc.scalar_samples(k), res.acc.scalar_samples(k)), k
+    assert again.points() == res.points()
