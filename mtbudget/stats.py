@@ -140,13 +140,20 @@ class VectorHistogram:
         np.add.at(self.counts, (k[ok], idx[ok]), 1)
 
     def quantiles(self, prob) -> np.ndarray:
-        """(K, len(prob)) quantiles by linear interpolation of the binned CDF."""
+        """(K, len(prob)) quantiles by linear interpolation of the binned CDF.
+
+        A quantile that falls among the values below or above the histogram's
+        range (fixed from the first block) cannot be located: it is NaN, never
+        the range's edge.
+        """
+        prob = np.asarray(prob, float)
         out = np.empty((self.counts.shape[0], len(prob)))
         for k in range(self.counts.shape[0]):
             tot = self.counts[k].sum() + self.under[k] + self.over[k]
             cdf = (self.under[k] + np.concatenate([[0], np.cumsum(self.counts[k])])) / tot
             edges = np.linspace(self.low[k], self.high[k], self.bins + 1)
             out[k] = np.interp(prob, cdf, edges)
+            out[k, (prob <= self.under[k] / tot) | (prob >= 1 - self.over[k] / tot)] = np.nan
         return out
 
 

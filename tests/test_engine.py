@@ -131,3 +131,18 @@ def test_adaptive_run_stops_at_its_tolerance(small):
     batches = y.reshape(-1, 256)
     s = batches.mean(axis=1).std(ddof=1) / np.sqrt(len(batches))
     assert 2 * s <= numerical_tolerance(y.std(ddof=1), 1)
+
+
+def test_histogram_quantiles_never_clamp_to_their_range():
+    """Values outside the range fixed by the first block make the affected quantiles NaN, not the range edge."""
+    from mtbudget.stats import VectorHistogram
+
+    rng = np.random.default_rng(3)
+    h = VectorHistogram(np.zeros((4, 1)))  # a first block with no spread: a tiny range around 0
+    h.add(rng.normal(0.0, 1.0, (2000, 1)))
+    q = h.quantiles(np.array([0.025, 0.975]))
+    assert np.isnan(q).all()
+    h2 = VectorHistogram(rng.normal(0.0, 1.0, (64, 1)))
+    h2.add(rng.normal(0.0, 1.0, (20000, 1)))
+    q2 = h2.quantiles(np.array([0.025, 0.975]))[0]
+    assert q2 == pytest.approx([-1.96, 1.96], abs=0.06)  # the normal's quantiles, located inside the range
