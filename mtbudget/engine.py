@@ -59,7 +59,7 @@ class Engine:
         point_err = np.empty((n, len(sc.mesh_rows)))
         components = np.empty((n, len(sc.mesh_rows), 3))
         params = np.zeros((n, base.n_params))
-        not_converged = 0
+        not_converged = fallbacks = 0
         um = self._um
         for key in np.unique(keys):
             idx = np.flatnonzero(keys == key)
@@ -71,6 +71,7 @@ class Engine:
             model, strategy = self._identification_setup(settings)
             res = identify(model, meas[idx], sc.noise, strategy, chunk=self.block)
             not_converged += int((~res.converged).sum())
+            fallbacks += int(res.n_fallback)
             F_id = model.machine_points(res.theta)[:, sc.mesh_rows]
             D = (F_true[idx] - F_id).reshape(len(idx), -1) @ sc.rigid_free.T
             comp = D.reshape(len(idx), -1, 3) * um
@@ -92,7 +93,8 @@ class Engine:
                 for j, nm in enumerate(model.errors.names):
                     if nm in names:
                         params[idx, names.index(nm)] = res.theta[:, j] * scale[j]
-        return BlockResult(block, n, out_scalars, point_err, params, not_converged, components=components)
+        return BlockResult(block, n, out_scalars, point_err, params, not_converged, components=components,
+                           fallbacks=fallbacks)
 
     def _identification_setup(self, settings: dict):
         model = self.scenario.identification_model(int(settings.get("max_degree", self.scenario.max_degree)))

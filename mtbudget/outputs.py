@@ -53,6 +53,7 @@ class BlockResult:
     parameter_moments: Moments | None = None
     components: np.ndarray | None = None  # (n, M0, 3) um: the compensated machine's error per point and axis
     component_moments: CoMoments | None = None
+    fallbacks: int = 0  # trials whose fast identification handed over to full Gauss-Newton
 
     def truncated(self, n: int) -> "BlockResult":
         """The first ``n`` trials of the block (a run logs the block it merged, already cut to its trials)."""
@@ -64,7 +65,8 @@ class BlockResult:
             raise ConfigError("a block read back from a log cannot be shortened; resume with the logged trial count")
         return BlockResult(self.block, n, {k: v[:n] for k, v in self.scalars.items()}, self.point_error[:n],
                            self.parameters[:n], self.not_converged,
-                           components=None if self.components is None else self.components[:n])
+                           components=None if self.components is None else self.components[:n],
+                           fallbacks=self.fallbacks)
 
     def vector_moments(self) -> dict:
         out = {"point_error": self.point_moments if self.point_moments is not None else Moments.of(self.point_error),
@@ -81,7 +83,7 @@ def accumulate_block(acc: Accumulator, b: BlockResult):
     """Merge one block into the run's statistics (scalars exactly, vector outputs by their moments,
     the per-point components also by their samples or a histogram for their intervals)."""
     vectors = None if b.components is None else {"components": b.components.reshape(b.n, -1)}
-    acc.add(b.block, b.n, b.scalars, b.vector_moments(), b.not_converged, vectors)
+    acc.add(b.block, b.n, b.scalars, b.vector_moments(), b.not_converged, vectors, b.fallbacks)
 
 
 @dataclass
@@ -107,6 +109,10 @@ class RunResult:
     @property
     def not_converged(self) -> int:
         return self.acc.not_converged
+
+    @property
+    def fallbacks(self) -> int:
+        return self.acc.fallbacks
 
     def summary(self, name: str = MAIN_OUTPUT) -> dict:
         return self.acc.summary(name, self.coverage)

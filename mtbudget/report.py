@@ -17,7 +17,7 @@ from .outputs import MAIN_OUTPUT, SCALARS, RunResult
 
 def result_json(res: RunResult) -> dict:
     out = {"trials": res.trials, "coverage": res.coverage, "complete": res.complete, "seed": res.spec.get("seed"),
-           "not_converged": res.not_converged, "outputs": {}, "budget": res.budget, "convergence": res.convergence}
+           "not_converged": res.not_converged, "fallbacks": res.fallbacks, "outputs": {}, "budget": res.budget, "convergence": res.convergence}
     if res.weights:
         out["weights"] = res.weights
     for k, v in res.outputs().items():
@@ -117,6 +117,9 @@ def budget_text(res: RunResult) -> str:
     lines.append(f"Monte Carlo: {res.trials} trials, coverage probability {percent(res.coverage)}, seed {res.spec.get('seed')}{status}")
     if getattr(res, "stopped_at_limit", False):
         lines.append("  note: the adaptive run stopped at its trial limit before reaching its numerical tolerance")
+    if res.fallbacks:
+        lines.append(f"  note: {res.fallbacks} of {res.trials} trials left the linear range of the fast identification "
+                     "and were solved by full Gauss-Newton (the reference solver)")
     if res.not_converged:
         lines.append(f"  note: the identification of {res.not_converged} of {res.trials} trials did not converge; "
                      "their results are included as they stood at the iteration limit")

@@ -78,7 +78,8 @@ SCHEMAS = {
         "component_moments": {"type": "object", "description": "n, mean (M0, 3) and co-moments C (M0, 3, 3) of the per-point "
                                                                 "errors per axis, um and um^2"},
         "components": _arr_schema("(n, 3 M0) per-trial errors per point and axis, um (absent for runs too long to log them)"),
-        "not_converged": {"type": "integer", "description": "trials whose identification did not converge"}}},
+        "not_converged": {"type": "integer", "description": "trials whose identification did not converge"},
+        "fallbacks": {"type": "integer", "description": "trials the fast identification handed to full Gauss-Newton"}}},
     "mtbudget.Convergence": {"type": "object", "title": "mtbudget.Convergence",
                              "description": "the main output after each chunk (Foxglove's Plot panel reads it)", "properties": {
         "trials": {"type": "integer"}, "output": {"type": "string", "description": "which output"},
@@ -196,7 +197,7 @@ class RunLogWriter:
             self.write("/mtbudget/blocks", {
                 "block": b.block, "n": b.n, "scalars": {k: _enc(v) for k, v in b.scalars.items()},
                 "point_error_moments": _moments_enc(vm["point_error"]),
-                "parameter_moments": _moments_enc(vm["parameters"]), "not_converged": int(b.not_converged),
+                "parameter_moments": _moments_enc(vm["parameters"]), "not_converged": int(b.not_converged), "fallbacks": int(b.fallbacks),
                 **({"component_moments": _comoments_enc(vm["components"])} if "components" in vm else {}),
                 **({"components": _enc(b.components.reshape(b.n, -1))}
                    if self.log_components and b.components is not None else {})})
@@ -260,7 +261,8 @@ class RunLog:
             cm = _comoments_dec(b["component_moments"]) if "component_moments" in b else None
             out.append(BlockResult(b["block"], b["n"], {k: _dec(v) for k, v in b["scalars"].items()}, None, None,
                                    int(b.get("not_converged", 0)), _moments_dec(b["point_error_moments"]),
-                                   _moments_dec(b["parameter_moments"]), components=comp, component_moments=cm))
+                                   _moments_dec(b["parameter_moments"]), components=comp, component_moments=cm,
+                                   fallbacks=int(b.get("fallbacks", 0))))
         return out
 
 

@@ -211,13 +211,14 @@ class Accumulator:
         self.vector_hist: dict = {}
         self.n = 0
         self.not_converged = 0
+        self.fallbacks = 0
         self.moments: dict = {}
         self.hist: dict = {}
         self.samples: dict = {}
         self.blocks: list = []
 
     def add(self, block: int, n: int, scalars: dict, vector_moments: dict, not_converged: int = 0,
-            vectors: dict | None = None):
+            vectors: dict | None = None, fallbacks: int = 0):
         """Merge one block: ``scalars`` name -> (n,) values; ``vector_moments`` name -> Moments (or CoMoments);
         ``vectors`` name -> (n, K) values whose per-component coverage intervals are wanted."""
         for k, v in (vectors or {}).items():
@@ -241,6 +242,7 @@ class Accumulator:
             self.moments[key] = m if key not in self.moments else self.moments[key].merge(m)
         self.n += n
         self.not_converged += int(not_converged)
+        self.fallbacks += int(fallbacks)
 
     def vector_intervals(self, name: str, coverage: float) -> dict | None:
         """Per-component probabilistically symmetric (and, from samples, shortest) intervals of a vector output."""

@@ -146,3 +146,21 @@ def test_histogram_quantiles_never_clamp_to_their_range():
     h2.add(rng.normal(0.0, 1.0, (20000, 1)))
     q2 = h2.quantiles(np.array([0.025, 0.975]))[0]
     assert q2 == pytest.approx([-1.96, 1.96], abs=0.06)  # the normal's quantiles, located inside the range
+
+
+def test_fallbacks_to_gauss_newton_are_counted_and_logged(small, tmp_path):
+    """A machine 300 times the small study's errors leaves the linear range: every trial falls back, and says so."""
+    import copy
+
+    from mtbudget.config import parse_config
+    from mtbudget.report import budget_text, result_json
+    from mtbudget.runner import execute, replay
+
+    raw = copy.deepcopy(load_config(SMALL).source)
+    raw["geometric_errors"] = {"seed": 3, "translational": ["2.4 mm", "0.9 mm", "0.45 mm"],
+                               "angular": ["3000 urad", "1500 urad", "750 urad"], "squareness": "9000 urad"}
+    big = execute(parse_config(raw), trials=32, block=16, attribution_trials=0, log_path=tmp_path / "big.mcap")
+    assert big.fallbacks == 32 and result_json(big)["fallbacks"] == 32
+    assert "solved by full Gauss-Newton" in budget_text(big)
+    assert replay(tmp_path / "big.mcap").fallbacks == 32
+    assert run(small, trials=32, block=16, attribution_trials=0).fallbacks == 0  # the paper-sized errors stay linear
