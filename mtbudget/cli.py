@@ -81,16 +81,11 @@ def simulate(config, out, seed, trial, no_identify):
         _print_identification(out)
 
 
-def _shown(internal_unit: str) -> str:
-    """The unit results are shown in: um for lengths, urad for angles."""
-    return "um" if internal_unit == "mm" else "urad"
-
-
 def _print_identification(folder, as_json=False, max_degree=3, strategy="one-phase"):
     from .identify import Noise, Strategy, identify
     from .model import MeasurementModel
     from .recording import read_recording
-    from .units import display
+    from .units import display, shown_unit
 
     rec = read_recording(folder)
     model = MeasurementModel.for_plan(rec.machine, rec.plan, max_degree=max_degree)
@@ -109,8 +104,8 @@ def _print_identification(folder, as_json=False, max_degree=3, strategy="one-pha
         "pose": dict(zip("DLHabd", map(float, res.pose[0]))),
         "pose_units": dict(zip("DLHabd", ["mm"] * 3 + ["rad"] * 3)),
         "parameters": [
-            {"name": p.name, "value": float(display(v, p.unit, _shown(p.unit))),
-             "uncertainty": float(display(s, p.unit, _shown(p.unit))), "unit": _shown(p.unit)}
+            {"name": p.name, "value": float(display(v, p.unit, shown_unit(p.unit))),
+             "uncertainty": float(display(s, p.unit, shown_unit(p.unit))), "unit": shown_unit(p.unit)}
             for p, v, s in zip(model.errors.params, res.theta[0], u)
         ],
         "not_identifiable": [[{"parameter": n, "weight": w} for n, w in combo]

@@ -478,9 +478,9 @@ def build_table(rec, step: float = DEFAULT_STEP_MM, max_degree: int = 3, referen
 
 
 def _scale(errors) -> np.ndarray:
-    from .units import factor
+    from .units import factor, shown_unit
 
-    return np.array([factor(u, "um" if u == "mm" else "urad") for u in errors.units])
+    return np.array([factor(u, shown_unit(u)) for u in errors.units])
 
 
 def _model_uncertainty(D, cov, theta, B, uB, s, axis, targets, draws: int = MODEL_DRAWS) -> dict:

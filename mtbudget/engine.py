@@ -19,7 +19,7 @@ from .outputs import POINT_UNIT, SCALARS, BlockResult
 from .plugins import call
 from .scenario import Scenario, target_shapes
 from .simulate import sample_source, simulate_block
-from .units import factor
+from .units import factor, shown_unit
 
 
 class Engine:
@@ -85,7 +85,7 @@ class Engine:
             out_scalars["mean_error_before"][idx] = res.mean_error_before * um
             out_scalars["max_residual"][idx] = res.max_residual * um
             out_scalars["chi2_per_dof"][idx] = res.chi2_per_dof
-            scale = np.array([factor(u, self._display_unit(u)) for u in model.errors.units])
+            scale = np.array([factor(u, shown_unit(u)) for u in model.errors.units])
             if model is base:
                 params[idx] = res.theta * scale
             else:
@@ -107,14 +107,10 @@ class Engine:
         return model, base
 
     # ------------------------------------------------------------------ description
-    @staticmethod
-    def _display_unit(internal_unit: str) -> str:
-        return "um" if internal_unit == "mm" else "urad"
-
     @property
     def parameter_names(self) -> list:
         return self.scenario.id_model.errors.names
 
     @property
     def parameter_units(self) -> list:
-        return [self._display_unit(u) for u in self.scenario.id_model.errors.units]
+        return [shown_unit(u) for u in self.scenario.id_model.errors.units]

@@ -63,7 +63,7 @@ from . import tracker as lt
 from .errors import IdentificationError
 from .machine import AXES, AXIS_INDEX, skew, skew_basis
 from .model import MeasurementModel
-from .units import factor
+from .units import factor, shown_unit
 
 GROUPS = ("pose", "translational", "angular", "squareness")
 
@@ -255,12 +255,11 @@ class Identification:
 
 
 #: the scaled parameter units: lengths in um, angles in urad (on a 1 m lever both are um of effect)
-SCALED_UNIT = {"mm": "um", "rad": "urad"}
 
 
 def scale_vector(model: MeasurementModel) -> np.ndarray:
     """um per mm and urad per rad: parameters in comparable effect units."""
-    return np.array([factor(u, SCALED_UNIT[u]) for u in model.errors.units])
+    return np.array([factor(u, shown_unit(u)) for u in model.errors.units])
 
 
 #: scale of the pose (D, L, H in mm; a, b, d in rad), as :func:`scale_vector`

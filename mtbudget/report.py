@@ -9,7 +9,7 @@ import numpy as np
 
 from .distributions import t_factor
 from .stats import decimals_for, percent
-from .units import display, pretty
+from .units import display, pretty, shown_unit
 
 from .budget import conformance
 from .outputs import MAIN_OUTPUT, SCALARS, RunResult
@@ -68,10 +68,6 @@ def points_summary(pts: list) -> dict:
     return out
 
 
-def _show_unit(internal_unit: str) -> str:
-    return {"rad": "urad", "mm": "um", "mm/mm": "um/m"}.get(internal_unit, internal_unit)
-
-
 def _fmt(x, nd=3):
     return "-" if x is None else f"{x:.{nd}g}"
 
@@ -126,9 +122,9 @@ def budget_text(res: RunResult) -> str:
     if res.weights:
         lines.append("  identification weights stated apart from what the run draws ([weights]):")
         for name, w in res.weights.items():
-            lines.append(f"    {name:<20} stated {display(w['stated'], w['unit'], _show_unit(w['unit'])):.4g} "
-                         f"{pretty(_show_unit(w['unit']))}, drawn {display(w['drawn'], w['unit'], _show_unit(w['unit'])):.4g} "
-                         f"{pretty(_show_unit(w['unit']))}")
+            lines.append(f"    {name:<20} stated {display(w['stated'], w['unit'], shown_unit(w['unit'])):.4g} "
+                         f"{pretty(shown_unit(w['unit']))}, drawn {display(w['drawn'], w['unit'], shown_unit(w['unit'])):.4g} "
+                         f"{pretty(shown_unit(w['unit']))}")
     lines.append("")
     lines += point_lines(res)
     pb = res.budget.get("points")
@@ -283,8 +279,8 @@ def provenance_lines(res: RunResult) -> list:
              f"| mtbudget | {__version__} |", f"| report written | {time.strftime('%Y-%m-%d %H:%M %Z')} |"]
     if res.weights:
         lines.append("| identification weights | stated apart from the drawn noise: " + "; ".join(
-            f"{k} {display(w['stated'], w['unit'], _show_unit(w['unit'])):.3g} vs {display(w['drawn'], w['unit'], _show_unit(w['unit'])):.3g} "
-            f"{pretty(_show_unit(w['unit']))}" for k, w in res.weights.items()) + " |")
+            f"{k} {display(w['stated'], w['unit'], shown_unit(w['unit'])):.3g} vs {display(w['drawn'], w['unit'], shown_unit(w['unit'])):.3g} "
+            f"{pretty(shown_unit(w['unit']))}" for k, w in res.weights.items()) + " |")
     return lines
 
 

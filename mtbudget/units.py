@@ -288,6 +288,15 @@ def pretty(unit: str) -> str:
     return f"{top}/{bottom}"
 
 
+#: the unit results are shown in, for each internal unit: lengths in um, angles in urad, ratios in um/m
+SHOWN = {"mm": "um", "rad": "urad", "mm/mm": "um/m"}
+
+
+def shown_unit(internal_unit: str) -> str:
+    """The unit mtbudget shows an internal quantity in (um for mm, urad for rad, um/m for mm/mm)."""
+    return SHOWN.get(internal_unit, internal_unit)
+
+
 def from_internal(value, unit: str, out_unit: str | None = None) -> pint.Quantity:
     """Wrap an internal-unit value as a Quantity, optionally converting."""
     q = Q_(value, unit)
