@@ -32,6 +32,19 @@ class Sensor:
         return s[0] if s in ("x axis", "y axis", "z axis") else None
 
 
+@dataclass(frozen=True)
+class Scale:
+    """The nominal thermal behaviour of an axis scale, for the correction to the reference temperature.
+
+    At the axis temperature T the scale reads the nominal position p while the axis is at
+    ``fixed_point + (p - fixed_point) * (1 + cte * (T - T_ref))`` (the paper's Eq. 7-9 with the
+    scale's fixed point instead of the axis zero).  ``cte`` in 1/K, ``fixed_point`` in mm.
+    """
+
+    cte: float
+    fixed_point: float = 0.0
+
+
 @dataclass
 class Plan:
     point: np.ndarray  # (M,) int
@@ -42,6 +55,7 @@ class Plan:
     tool: np.ndarray  # (M, 3) mm
     temperature: dict = field(default_factory=dict)  # column -> (M,) K
     sensors: list = field(default_factory=list)
+    scales: dict = field(default_factory=dict)  # axis -> Scale: the nominal expansion to correct (none: no correction)
 
     def __len__(self):
         return len(self.point)
@@ -71,7 +85,25 @@ class Plan:
         return Plan(
             self.point[mask], self.run[mask], self.time[mask], self.nominal[mask], self.direction[mask],
             self.tool[mask], {k: v[mask] for k, v in self.temperature.items()}, list(self.sensors),
+            dict(self.scales),
         )
+
+    def nominal_expansion(self, reference: float = T20) -> dict:
+        """The known expansion of the stated scales as fixed model inputs (``identify(..., fixed=...)``).
+
+        For each axis with a :class:`Scale`: ``axis_scale.<a>`` = cte (T_a - T_ref) and
+        ``axis_offset.<a>`` = -fixed_point s / (1 + s), so that the chain's effective position
+        ``(p + offset) (1 + scale)`` is ``fixed_point + (p - fixed_point) (1 + s)``.  Applied in the
+        identification, the geometric errors it returns are those of the machine at the reference
+        temperature.  Empty when no scale is stated (no correction).
+        """
+        out = {}
+        for axis, sc in sorted(self.scales.items()):
+            s = sc.cte * (self.axis_temperature(axis, reference) - reference)
+            out[f"axis_scale.{axis}"] = s
+            if sc.fixed_point:
+                out[f"axis_offset.{axis}"] = -sc.fixed_point * s / (1.0 + s)
+        return out
 
 
 def mesh(ranges: dict, step: dict | float) -> np.ndarray:

@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from .errors import RecordingError
-from .plan import Plan, Sensor, T20
+from .plan import Plan, Scale, Sensor, T20
 from .units import ABSOLUTE_TEMPERATURE, Q_, display, parse_unit, to_internal, ureg
 
 try:  # Python 3.11+
@@ -77,7 +77,9 @@ UNCERTAINTIES = {
 ATTACHED_TO = ("x axis", "y axis", "z axis", "air")
 #: keys of recording.toml this version reads (others are kept in Recording.extra)
 KNOWN_KEYS = ("format", "name", "machine", "description", "reference_temperature", "tracker", "machine_tool",
-              "sensors", "ignore_columns")
+              "sensors", "scales", "ignore_columns")
+#: plausible nominal CTE of an axis scale (1/K): glass ceramics and Invar near 0, steel 11.5, aluminium 23
+CTE_RANGE = (-2e-6, 30e-6)
 
 #: bytes that are common non-UTF-8 characters of real exports (Latin-1 / Windows-1252)
 _LATIN1_HINTS = {0xB5: "µ (micro)", 0xB0: "° (degree)", 0xB2: "² (squared)", 0xB3: "³ (cubed)", 0xE4: "ä", 0xF6: "ö",
@@ -110,6 +112,20 @@ class Recording:
 
     def __len__(self):
         return len(self.plan)
+
+    def fixed_inputs(self) -> dict:
+        """What the identification takes as known: the nominal expansion of the stated scales (``[scales]``)."""
+        return self.plan.nominal_expansion(self.reference_temperature)
+
+    @property
+    def thermal_correction(self) -> str:
+        """One sentence on the correction to the reference temperature applied to this recording."""
+        tref = f"{self.reference_temperature - 273.15:g} degC"
+        if not self.plan.scales:
+            return (f"no correction to {tref} applied: recording.toml states no [scales] (nominal expansion "
+                    f"coefficients), so the identified errors include the scales' expansion at the test temperatures")
+        parts = [f"{a} {sc.cte * 1e6:g} um/(m*K) about {sc.fixed_point:g} mm" for a, sc in sorted(self.plan.scales.items())]
+        return f"scales corrected to {tref}: " + ", ".join(parts)
 
 
 def _quantity(text, *, path, key, dim, unit, nonnegative=False, absolute_temperature=False):
@@ -235,6 +251,44 @@ def _sensors(meta, path) -> list:
     return sensors
 
 
+def _scales(meta, path, sensors) -> dict:
+    """``[scales.<axis>]``: the nominal CTE and fixed point of each axis scale whose expansion is corrected."""
+    raw = meta.get("scales")
+    if raw is None:
+        return {}
+    if not isinstance(raw, dict):
+        raise RecordingError(f"expected a table [scales], got {type(raw).__name__}", path, key="scales")
+    out = {}
+    for axis, t in raw.items():
+        where = f"scales.{axis}"
+        if axis not in ("x", "y", "z"):
+            raise RecordingError(f"unknown axis {axis!r:.20}; expected [scales.x], [scales.y] or [scales.z]", path,
+                                 key=where)
+        if not isinstance(t, dict):
+            raise RecordingError(f"expected a table [{where}] with cte and fixed_point, got {type(t).__name__}", path,
+                                 key=where)
+        unknown = sorted(set(t) - {"cte", "fixed_point"})
+        if unknown:
+            raise RecordingError(f"unknown key {unknown[0]!r:.40}; [{where}] has cte and fixed_point", path,
+                                 key=f"{where}.{unknown[0]}")
+        if "cte" not in t:
+            raise RecordingError("missing key 'cte', the nominal expansion coefficient of the scale "
+                                 "(for example \"11.5 um/(m*K)\")", path, key=f"{where}.cte")
+        cte = _quantity(t["cte"], path=path, key=f"{where}.cte", dim=None, unit="1/K")
+        if not CTE_RANGE[0] <= cte <= CTE_RANGE[1]:
+            raise RecordingError(f"{t['cte']!r:.60} is not a plausible expansion coefficient of a scale (expected "
+                                 f"{CTE_RANGE[0] * 1e6:g} to {CTE_RANGE[1] * 1e6:g} um/(m*K))", path, key=f"{where}.cte")
+        x0 = _quantity(t.get("fixed_point", "0 mm"), path=path, key=f"{where}.fixed_point", dim=None, unit="mm")
+        if abs(x0) > MAX_LENGTH:
+            raise RecordingError(f"{t['fixed_point']!r:.60} is not a plausible position (at most {MAX_LENGTH:g} mm)",
+                                 path, key=f"{where}.fixed_point")
+        if not any(s.axis == axis for s in sensors):
+            raise RecordingError(f"no [[sensors]] table is attached to the {axis} axis; correcting the scale's "
+                                 f"expansion needs its temperature", path, key=where)
+        out[axis] = Scale(cte, x0)
+    return out
+
+
 def read_recording(folder, *, max_rows: int = MAX_ROWS, max_columns: int = MAX_COLUMNS,
                    encoding: str = "utf-8") -> Recording:
     """Read a recording folder; raise :class:`RecordingError` on any violation.
@@ -267,6 +321,7 @@ def read_recording(folder, *, max_rows: int = MAX_ROWS, max_columns: int = MAX_C
     tref = _quantity(meta.get("reference_temperature", "20 degC"), path=toml_path, key="reference_temperature",
                      dim="[temperature]", unit="K", absolute_temperature=True)
     sensors = _sensors(meta, toml_path)
+    scales = _scales(meta, toml_path, sensors)
     ignored = meta.get("ignore_columns", [])
     if not isinstance(ignored, list) or not all(isinstance(c, str) for c in ignored):
         raise RecordingError("expected a list of column names", toml_path, key="ignore_columns")
@@ -297,6 +352,7 @@ def read_recording(folder, *, max_rows: int = MAX_ROWS, max_columns: int = MAX_C
         tool=np.stack([columns["tool_x"], columns["tool_y"], columns["tool_z"]], axis=1),
         temperature=temps,
         sensors=sensors,
+        scales=scales,
     )
     return Recording(
         name=name,
@@ -647,6 +703,9 @@ def write_recording(rec: Recording, folder, *, truth: dict | None = None) -> Pat
         lines += ["", "[[sensors]]", f"column = {_toml_string(s.column)}", f"attached_to = {_toml_string(s.attached_to)}"]
         if s.position is not None:
             lines.append(f'position = "{s.position:.6f} mm"')
+    for axis, sc in sorted(p.scales.items()):
+        lines += ["", f"[scales.{axis}]", f'cte = "{display(sc.cte, "1/K", "um/(m*K)"):.9g} um/(m*K)"',
+                  f'fixed_point = "{sc.fixed_point:.6f} mm"']
     (folder / "recording.toml").write_text("\n".join(lines) + "\n", encoding="utf-8")
     tcols = [s.column for s in p.sensors if s.column in p.temperature]
     header = ["point", "run", "time [s]", "x [mm]", "y [mm]", "z [mm]", "dir_x", "dir_y", "dir_z",
