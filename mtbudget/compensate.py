@@ -35,15 +35,8 @@ import numpy as np
 
 from .errors import MtbudgetError
 from .machine import AXES, AXIS_INDEX, COMPONENT_ERRORS, ChainInputs, Configuration, chain, parse_error_name
+from .model import SQUARENESS_ISO, iso_name, iso_parameter  # noqa: F401  (the one map lives in model; re-exported)
 
-#: internal component-error letter -> ISO 230-1 rotation letter
-_ROTATION = {"x": "A", "y": "B", "z": "C"}
-#: squareness: internal name -> (ISO 230-1 name, sign of ISO value / internal value, meaning of a positive value)
-SQUARENESS_ISO = {
-    "sxy": ("EC(0X)Y", 1.0, "the angle between the +X and +Y motions exceeds 90 degrees (Y turned about +Z)"),
-    "sxz": ("EB(0X)Z", -1.0, "the angle between the +X and +Z motions is below 90 degrees (Z turned about +Y)"),
-    "syz": ("EA(0Y)Z", 1.0, "the angle between the +Y and +Z motions exceeds 90 degrees (Z turned about +X)"),
-}
 DEFAULT_STEP_MM = 50.0
 MAX_GRID = 100_000  # entries per axis of the neutral table (controller limits are the exporters')
 MODEL_DRAWS = 4000  # Monte Carlo draws over cov_theta for the uncertainty of the model's E, M, A
@@ -76,14 +69,6 @@ class CompensationError(MtbudgetError, ValueError):
 
 
 # ----------------------------------------------------------------------------- ISO 230-1 names
-def iso_name(internal: str) -> str:
-    """ISO 230-1 name of a component error: ``dy(x)`` -> ``EYX``, ``ez(y)`` -> ``ECY`` (yaw of Y)."""
-    if internal in SQUARENESS_ISO:
-        return SQUARENESS_ISO[internal][0]
-    kind, comp, axis = parse_error_name(internal)
-    return "E" + (comp.upper() if kind == "d" else _ROTATION[comp]) + axis.upper()
-
-
 def iso_kind(internal: str) -> str:
     kind, comp, axis = parse_error_name(internal)
     if kind == "e":
@@ -190,6 +175,47 @@ class AxisTable:
 
 
 @dataclass
+class CrossTable:
+    """Deviation of the line of ``axis`` in the direction of ``output`` (um), datum at its first grid point.
+
+    ISO sign (tool relative to workpiece, actual - nominal); through the chain, so straightness, squareness
+    (X the reference) and the Abbe effect of the angular errors on that line are in it.  What a sag / cross
+    compensation table (Siemens $AN_CEC, Heidenhain .COM columns) carries."""
+
+    iso: str  # EYX: deviation in Y along the X line
+    axis: str  # input (base) axis
+    output: str  # compensated axis
+    positions: np.ndarray
+    deviation: np.ndarray
+    u: np.ndarray
+    note: str = ""
+
+
+@dataclass
+class ResidualAxis:
+    """The compensated machine at the recording's points, one axis: residual against its stated U (k = 2).
+
+    residual = measured - identified model (machine frame, um): what a verification of the compensated machine
+    would show at these points.  U = 2 u(residual), u from the recording's stated tracker noise and
+    repeatability net of the part the fit absorbs, u^2 = diag(R L (I - H_ii) L^T R^T), H the hat matrix."""
+
+    axis: str
+    positions: np.ndarray  # (M,) mm, commanded position along this axis
+    residual: np.ndarray  # (M,) um
+    U: np.ndarray  # (M,) um, k = 2
+
+    def summary(self) -> dict:
+        r, U = self.residual, self.U
+        with np.errstate(divide="ignore", invalid="ignore"):
+            z = np.abs(r) / U
+        return {"axis": self.axis, "points": int(r.size), "unit": "um", "k": 2.0,
+                "rms_residual": float(np.sqrt(np.mean(r**2))), "max_abs_residual": float(np.abs(r).max()),
+                "median_U": float(np.median(U)), "max_U": float(U.max()), "max_abs_residual_over_U": float(np.nanmax(z)),
+                "within_U": float(np.mean(np.abs(r) <= U)),
+                "expected_within_U": 0.9545}
+
+
+@dataclass
 class CompensationTable:
     recording: str
     machine: str
@@ -201,6 +227,8 @@ class CompensationTable:
     identification: dict  # chi2_per_dof, dof, points, converged, not_identifiable
     conventions: dict = field(default_factory=lambda: dict(CONVENTIONS))
     notes: list = field(default_factory=list)
+    cross: dict = field(default_factory=dict)  # ISO name (EYX ...) -> CrossTable
+    residual: dict = field(default_factory=dict)  # axis -> ResidualAxis (the compensated machine at the recording)
     # the identification behind the table (internal units: mm, rad), for the check and for propagation
     model: object = field(default=None, repr=False)
     theta: np.ndarray | None = field(default=None, repr=False)
@@ -235,6 +263,13 @@ class CompensationTable:
                             for a, t in self.axes.items()},
             "iso230_2": {a: {k: (v.to_dict() if v is not None else None) for k, v in d.items()}
                          for a, d in self.iso230_2.items()},
+            "cross": {k: {"iso": c.iso, "input_axis": c.axis, "output_axis": c.output, "unit": "um",
+                          "positions_mm": c.positions.tolist(), "deviation": _list(c.deviation), "u": _list(c.u),
+                          "note": c.note} for k, c in self.cross.items()},
+            "residual_against_U": {
+                "what": "residual = measured - identified model at the recording's points (machine frame), against "
+                        "U = 2 u of that residual from the stated tracker noise and repeatability (k = 2, about 95 %)",
+                "axes": {a: r.summary() for a, r in self.residual.items()}},
             "notes": self.notes,
         }
 
@@ -349,16 +384,15 @@ def parse_step(text) -> float:
 
 
 def grid(lo: float, hi: float, step: float) -> np.ndarray:
-    """lo, lo + step, ... up to hi; hi is always the last point (the table covers the measured range)."""
+    """Equidistant points from lo to hi, both included, spaced at most ``step`` (the table covers the measured
+    range; the step is shortened, if needed, so that equal intervals fill the range: the equidistant controller
+    tables, Siemens ``$AA_ENC_COMP_STEP`` and ``$AN_CEC_STEP``, need one spacing from MIN to MAX)."""
     if not step > 0:
         raise CompensationError(f"grid step must be positive, got {step} mm")
-    n = int(np.floor((hi - lo) / step + 1e-9))
-    if n + 2 > MAX_GRID:
+    n = max(1, int(np.ceil((hi - lo) / step - 1e-9)))
+    if n + 1 > MAX_GRID:
         raise CompensationError(f"a step of {step:g} mm gives {n + 1} points over {hi - lo:g} mm; at most {MAX_GRID}")
-    pts = lo + step * np.arange(n + 1)
-    if hi - pts[-1] > 1e-9 * max(1.0, abs(hi)):
-        pts = np.append(pts, hi)
-    return pts
+    return lo + (hi - lo) * np.arange(n + 1) / n
 
 
 def line_points(axis: str, positions, reference: dict) -> np.ndarray:
@@ -368,10 +402,12 @@ def line_points(axis: str, positions, reference: dict) -> np.ndarray:
     return pts
 
 
-def line_deviation(config, errors, theta, cov, axis: str, positions, reference: dict, tool, datum=None):
-    """Deviation along ``axis`` on a line (mm), relative to ``datum`` (default: the first position).
+def line_deviation(config, errors, theta, cov, axis: str, positions, reference: dict, tool, datum=None,
+                   component: str | None = None):
+    """Deviation along ``component`` (default: ``axis``) on the line of ``axis`` (mm), relative to ``datum``
+    (default: the first position).
 
-    Returns (e (G,), u (G,), D (G, p)): e = [P_W(theta) - P_W(0)]_axis minus its value at the datum,
+    Returns (e (G,), u (G,), D (G, p)): e = [P_W(theta) - P_W(0)]_component minus its value at the datum,
     D its Jacobian with respect to theta (relative to the datum), u = sqrt(diag(D cov D^T)).
     """
     positions = np.asarray(positions, float)
@@ -381,7 +417,7 @@ def line_deviation(config, errors, theta, cov, axis: str, positions, reference: 
     inp = ChainInputs(pts, np.broadcast_to(np.asarray(tool, float), pts.shape).copy())
     P, J = chain(config, errors, np.asarray(theta, float)[None], inp, jacobian=True)
     P0 = chain(config, errors, np.zeros((1, len(errors.params))), inp)
-    k = AXIS_INDEX[axis]
+    k = AXIS_INDEX[component or axis]
     e = (P - P0)[0, :, k]
     D = J[0, :, k, :]
     e, D = e[1:] - e[0], D[1:] - D[0]
@@ -439,7 +475,7 @@ def build_table(rec, step: float = DEFAULT_STEP_MM, max_degree: int = 3, referen
     scale = _scale(errors)
     null = ident.null_space / scale[:, None] if ident.null_space.size else np.zeros((len(theta), 0))
     resid = display(res.residual_machine[0], "mm", "um")
-    axes, iso = {}, {}
+    axes, iso, cross, raw = {}, {}, {}, {}
     for a in AXES:
         others = {b: reference[b] for b in AXES if b != a}
         e, u, D = line_deviation(config, errors, theta, cov, a, grids[a], reference, tool)
@@ -468,13 +504,81 @@ def build_table(rec, step: float = DEFAULT_STEP_MM, max_degree: int = 3, referen
         r_mod.note = (f"identified model on the reference line; reversal = the table's B; s = the stated "
                       f"repeatability {s_stated:g} um")
         iso[a] = {"recording": r_rec, "model": r_mod}
+        # cross (sag) tables: the deviation of a's line in the other two directions
+        for b in AXES:
+            if b == a:
+                continue
+            eb, _, Db = line_deviation(config, errors, theta, cov, a, grids[a], reference, tool, component=b)
+            raw[(a, b)] = (grids[a], np.column_stack([eb, Db]))
+    raw = frame_convention(raw)
+    for (a, b), (g, ED) in raw.items():
+        eb, Db = ED[:, 0], ED[:, 1:]
+        ub = np.sqrt(np.maximum(np.einsum("gp,pq,gq->g", Db, cov, Db), 0.0))
+        cnote = ""
+        if null.shape[1] and np.max(np.abs(Db @ null)) > 1e-6:
+            cnote = "depends on a combination the plan cannot identify: its uncertainty is understated"
+            notes.append(f"cross table E{b.upper()}{a.upper()}: {cnote}")
+        cross[f"E{b.upper()}{a.upper()}"] = CrossTable(f"E{b.upper()}{a.upper()}", a, b, g,
+                                                       display(eb, "mm", "um"), display(ub, "mm", "um"), cnote)
 
     ident_summary = {"chi2_per_dof": float(res.chi2_per_dof[0]), "dof": int(res.dof), "points": len(rec),
                      "converged": bool(res.converged[0]),
                      "not_identifiable": [[{"parameter": n, "iso": iso_name(n.split("[")[0]) if "(" in n else n,
                                             "weight": w} for n, w in c] for c in ident.combinations()]}
     return CompensationTable(rec.name, rec.machine, float(step), functions, squareness, axes, iso, ident_summary,
-                             notes=notes, model=model, theta=theta, cov_theta=cov)
+                             notes=notes, cross=cross, residual=residual_against_u(rec, res),
+                             model=model, theta=theta, cov_theta=cov)
+
+
+#: the rigid rotation of a small-angle frame change omega on the line of axis a, direction b: slope (omega x e_a)_b
+_ROTATION_SLOPE = {("x", "y"): ("z", 1.0), ("x", "z"): ("y", -1.0), ("y", "x"): ("z", -1.0),
+                   ("y", "z"): ("x", 1.0), ("z", "x"): ("y", 1.0), ("z", "y"): ("x", -1.0)}
+
+
+def frame_convention(lines: dict) -> dict:
+    """The ISO 230-1 frame of the cross deviations: X's line defines the X direction, X and Y the XY plane.
+
+    ``lines``: (axis, direction) -> (positions (G,), values (G, k)), each relative to its first position.  A
+    tracker verification does not see the orientation of the machine frame (the pose absorbs it), so the slope
+    of a line in a perpendicular direction is defined only relative to the others.  The small rotation omega
+    that makes the least-squares slopes of EYX, EZX and EZY zero is removed from all six lines (each column of
+    ``values`` alike, so a Jacobian can ride along): the remaining slopes of EXY, EXZ, EYZ are the squareness
+    errors of Y to X, Z to X and Z to Y."""
+    def slope(key):
+        g, v = lines[key]
+        x = g - g.mean()
+        return (x @ v) / (x @ x)
+
+    omega = {"z": slope(("x", "y")), "y": -slope(("x", "z")), "x": slope(("y", "z"))}
+    out = {}
+    for (a, b), (g, v) in lines.items():
+        about, sign = _ROTATION_SLOPE[(a, b)]
+        out[(a, b)] = (g, v - sign * np.outer(g - g[0], omega[about]).reshape(v.shape))
+    return out
+
+
+def residual_against_u(rec, res, k: float = 2.0) -> dict:
+    """axis -> :class:`ResidualAxis`: the residual of the identification at the recording's points (machine frame,
+    um) against U = k u(residual), u from the stated point covariances net of the fitted part.
+
+    In whitened coordinates the residual is (I - H) w with H = A (A^T A)^+ A^T the hat matrix of the design A,
+    so cov(residual_i) = L_i (I - H_ii) L_i^T in the tracker frame (C_i = L_i L_i^T), R_LT that in the machine
+    frame (P_W = R_LT P_LT + T_LT)."""
+    from .tracker import rotation
+
+    A = res.design[0]
+    m = A.shape[0] // 3
+    G = np.linalg.pinv(A.T @ A)
+    Ab = A.reshape(m, 3, -1)
+    H = np.einsum("mia,ab,mjb->mij", Ab, G, Ab)
+    L = np.linalg.inv(res.whitener[0])
+    C = L @ (np.eye(3)[None] - H) @ np.swapaxes(L, 1, 2)
+    R = rotation(*res.pose[0, 3:])
+    Cm = R[None] @ C @ R.T[None]
+    u = np.sqrt(np.clip(np.einsum("mii->mi", Cm), 0.0, None)) * 1e3
+    r = res.residual_machine[0] * 1e3
+    return {a: ResidualAxis(a, rec.plan.nominal[:, AXIS_INDEX[a]], r[:, AXIS_INDEX[a]], k * u[:, AXIS_INDEX[a]])
+            for a in AXES}
 
 
 def _scale(errors) -> np.ndarray:
@@ -603,12 +707,126 @@ def read_neutral_json(path) -> dict:
             for a, t in d["positioning"].items()}
 
 
-#: format -> reader of the written files: ("axis", fn(path) -> tuple) per axis file, or ("all", fn(path) -> dict)
+_SIEMENS_AXES = {"AX1": "x", "AX2": "y", "AX3": "z", "X1": "x", "Y1": "y", "Z1": "z"}
+_SIEMENS_LINE = re.compile(r"^\$(AA_ENC_COMP|AN_CEC)(_[A-Z_]+)?\[([^\]]*)\]\s*=\s*(\S+)")
+
+
+def read_siemens(paths) -> dict:
+    """SINUMERIK 840D sl LEC ($AA_ENC_COMP...) and sag compensation ($AN_CEC...) programs (K3 function manual).
+
+    Equidistant tables: position of interpolation point N = MIN + N STEP, MIN..MAX; values in mm; the
+    compensation value acts like a measured error ("a positive compensation value causes the machine axis to
+    move in the negative direction"), so the trim added to the command is minus it.  CEC tables with
+    $AN_CEC_DIRECTION = 1 / -1 act in one direction of travel of the base axis only; 0 in both; the output
+    axis gets the value at the base axis' setpoint; a table with input = output axis adds to that axis."""
+    lec, cec = {}, {}
+    for path in paths:
+        for line in Path(path).read_text().splitlines():
+            m = _SIEMENS_LINE.match(line.split(";")[0].strip())
+            if not m:
+                continue
+            group, attr, idx, value = m.group(1), m.group(2) or "", [i.strip() for i in m.group(3).split(",")], m.group(4)
+            if group == "AA_ENC_COMP":
+                axis = _SIEMENS_AXES[idx[-1]]
+                d = lec.setdefault(axis, {"values": {}})
+                if attr == "":
+                    d["values"][int(idx[1])] = float(value)
+                else:
+                    d[attr] = value
+            else:
+                d = cec.setdefault(int(idx[0]), {"values": {}})
+                if attr == "":
+                    d["values"][int(idx[1])] = float(value)
+                else:
+                    d[attr] = value
+
+    def points(d, prefix):
+        step, lo, hi = (float(d[f"{prefix}{k}"]) for k in ("_STEP", "_MIN", "_MAX"))
+        n = int(round((hi - lo) / step))
+        vals = np.array([d["values"].get(i, 0.0) for i in range(n + 1)])
+        return lo + step * np.arange(n + 1), vals
+
+    out = {}
+    for a, d in lec.items():
+        pos, v = points(d, "")
+        out[a] = [pos, -v, -v]
+    cross = {}
+    for t, d in sorted(cec.items()):
+        pos, v = points(d, "")
+        a, b = (_SIEMENS_AXES[d[k].strip("\"'")] for k in ("_INPUT_AXIS", "_OUTPUT_AXIS"))
+        direction = int(d.get("_DIRECTION", "0"))
+        if a == b:
+            base = out.setdefault(a, [pos, np.zeros(len(pos)), np.zeros(len(pos))])
+            add = -np.interp(base[0], pos, v)
+            if direction >= 0:
+                base[1] = base[1] + add
+            if direction <= 0:
+                base[2] = base[2] + add
+        else:
+            if direction != 0:
+                raise CompensationError(f"{paths[0]}: a direction-dependent cross table ({a} -> {b}) is not read here")
+            cross[(a, b)] = (pos, -v)
+    res = {a: tuple(v) for a, v in out.items()}
+    res["cross"] = cross
+    return res
+
+
+def read_heidenhain(paths) -> dict:
+    """HEIDENHAIN TNC nonlinear axis error compensation: the .CMA assignment and its .COM tables.
+
+    .CMA: one column per axis, a .COM file name in it, '*' in ACTIVE on the active line; the .COM entered in
+    the column of axis A holds F(A): AXISPOS (positions of A, mm, from the machine datum), one column per
+    compensated axis (its compensation value at AXISPOS, mm) and BACKLASH (the value measured moving in the
+    negative direction, for A's own column).  Values are the error (entry = actual - nominal), so the trim is
+    minus it; the BACKLASH reading is an interpretation (docs/compensation.md)."""
+    paths = [Path(p) for p in paths]
+    cma = [p for p in paths if p.suffix.lower() == ".cma"]
+    if len(cma) != 1:
+        raise CompensationError("--check: the heidenhain files must include exactly one .CMA assignment table")
+
+    def table(path):
+        lines = [ln for ln in path.read_text().splitlines() if ln.strip()]
+        if not lines[0].startswith("BEGIN") or not lines[-1].startswith("[END]"):
+            raise CompensationError(f"{path}: a TNC table starts with BEGIN and ends with [END]")
+        head = lines[1].split()
+        return lines[0].split(), [dict(zip(head, ln.split())) for ln in lines[2:-1]]
+
+    _, rows = table(cma[0])
+    active = [r for r in rows if r.get("ACTIVE") == "*"]
+    if len(active) != 1:
+        raise CompensationError(f"{cma[0]}: exactly one line must be active ('*' in ACTIVE)")
+    by_name = {p.name.upper(): p for p in paths}
+    out, cross = {}, {}
+    for col, fname in active[0].items():
+        if col in ("NR", "ACTIVE") or fname in ("", "-"):
+            continue
+        a = col.lower()
+        begin, rows_c = table(by_name[fname.upper()])
+        if begin[-1] != "MM":
+            raise CompensationError(f"{fname}: only metric (MM) tables are read here")
+        pos = np.array([float(r["AXISPOS"]) for r in rows_c])
+        for b in AXES:
+            if b.upper() not in rows_c[0]:
+                continue
+            v = np.array([float(r[b.upper()]) for r in rows_c])
+            if b == a:
+                back = np.array([float(r.get("BACKLASH", r[b.upper()])) for r in rows_c])
+                out[a] = (pos, -v, -back)
+            else:
+                cross[(a, b)] = (pos, -v)
+    out["cross"] = cross
+    return out
+
+
+#: format -> reader of the written files: ("axis", fn(path) -> tuple) per axis file, ("all", fn(path) -> dict)
+#: for one file, ("files", fn(paths) -> dict) for a set; a dict may hold "cross": {(input, output): (pos, trim)}
 READERS = {
     "linuxcnc": ("axis", read_linuxcnc),
     "beckhoff-lsec": ("axis", read_beckhoff),
     "neutral-csv": ("all", read_neutral_csv),
     "neutral-json": ("all", read_neutral_json),
+    "siemens-840d": ("files", read_siemens),
+    "heidenhain-tnc": ("files", read_heidenhain),
 }
 
 
@@ -620,6 +838,8 @@ def read_back(exporter, written: list) -> dict:
     kind, fn = READERS[exporter.name]
     if kind == "all":
         return fn(written[0])
+    if kind == "files":
+        return fn(list(written))
     out = {}
     for p in written:
         m = re.search(r"_([xyz])\.[^.]+$", Path(p).name)
@@ -659,6 +879,44 @@ class AxisCheck:
                 "iso230_2_before": self.iso_before.figures, "iso230_2_after": self.iso_after.figures}
 
 
+@dataclass
+class CrossCheck:
+    """--check of one cross (sag) table: the deviation of a's line in direction b before and after (um)."""
+
+    iso: str
+    axis: str
+    output: str
+    positions: np.ndarray
+    before: np.ndarray
+    after: np.ndarray
+    u: np.ndarray
+    rounding: float = 0.0
+
+    def to_dict(self) -> dict:
+        with np.errstate(divide="ignore", invalid="ignore"):
+            z = np.where(self.u > 0, self.after / self.u, np.where(np.abs(self.after) < 1e-3, 0.0, np.inf))
+        return {"iso": self.iso, "input_axis": self.axis, "output_axis": self.output, "points": int(self.positions.size),
+                "max_abs_before_um": float(np.abs(self.before).max()), "max_abs_after_um": float(np.abs(self.after).max()),
+                "max_abs_z": float(np.abs(z).max()), "within_2u": float(np.mean(np.abs(z) <= 2)),
+                "format_rounding_um": self.rounding}
+
+
+def _truth_frame(table, config, terr, theta_t) -> dict:
+    """(a, b) -> (positions, the rigid rotation's part of the true machine's deviation on that line (um)): what
+    :func:`frame_convention` removes from the truth, so truth and tables share the ISO 230-1 frame."""
+    lines = {}
+    for a, t in table.axes.items():
+        g = t.positions
+        lp = line_points(a, g, t.reference)
+        inp = ChainInputs(lp, np.broadcast_to(t.tool, lp.shape).copy())
+        dev = (chain(config, terr, theta_t[None], inp) - chain(config, terr, np.zeros((1, len(terr.params))), inp))[0]
+        for b in AXES:
+            if b != a:
+                lines[(a, b)] = (g, (dev[:, AXIS_INDEX[b]] - dev[0, AXIS_INDEX[b]]) * 1e3)
+    conv = frame_convention(lines)
+    return {k: (lines[k][0], lines[k][1] - conv[k][1]) for k in lines}
+
+
 def check_export(table: CompensationTable, rec, exporter, written: list) -> dict:
     """Apply the exported tables (read back independently) to the simulated machine of ``truth.json``.
 
@@ -682,9 +940,40 @@ def check_export(table: CompensationTable, rec, exporter, written: list) -> dict
     theta_t, _, effects = parameters_from_truth(truth, _M)
     reversal = effects.get("reversal", {})
     config = Configuration.parse(rec.machine)
-    tables = read_back(exporter, written)
-    out = {"format": exporter.name, "files": [str(p) for p in written], "axes": {},
+    tables = dict(read_back(exporter, written))
+    cross_tables = tables.pop("cross", {})
+    truth_lines = None
+    out = {"format": exporter.name, "files": [str(p) for p in written], "axes": {}, "cross": {},
            "ignored": [k for k in ("thermal", "drift") if effects.get(k)]}
+    for (a, b), (pos_tab, trim) in cross_tables.items():
+        c = table.cross.get(f"E{b.upper()}{a.upper()}")
+        if c is None:
+            continue
+        t = table.axes[a]
+        g = c.positions
+        pts = np.sort(np.concatenate([g, 0.5 * (g[1:] + g[:-1])]))
+        lp = line_points(a, pts, t.reference)
+        tool = np.broadcast_to(t.tool, lp.shape).copy()
+        kb = AXIS_INDEX[b]
+        nominal = chain(config, terr, np.zeros((1, len(terr.params))), ChainInputs(lp, tool))[0, :, kb]
+        rows = []
+        for comp in (np.zeros(len(pts)), interpolate(pos_tab, trim, pts)):
+            P = chain(config, terr, theta_t[None], ChainInputs(lp, tool, offset={b: comp[None, :]}))
+            rows.append((P[0, :, kb] - nominal) * 1e3)
+        datum = np.argmin(np.abs(pts - g[0]))
+        before, after = (r - r[datum] for r in rows)
+        if truth_lines is None:  # the true machine in the same frame convention as the tables
+            truth_lines = _truth_frame(table, config, terr, theta_t)
+        pts_g, rot = truth_lines[(a, b)]
+        shift = np.interp(pts, pts_g, rot)
+        before, after = before - shift, after - shift
+        _, u_line, _ = line_deviation(table.model.config, table.model.errors, table.theta, table.cov_theta, a, pts,
+                                      {**t.reference, a: 0.0}, t.tool, datum=g[0], component=b)
+        q = float(np.max(np.abs(interpolate(pos_tab, trim, g) * 1e3 + c.deviation)))
+        if q > MAX_ROUNDING_UM:
+            out.setdefault("mismatch", {})[c.iso] = q
+        u = np.sqrt((u_line * 1e3) ** 2 + min(q, MAX_ROUNDING_UM) ** 2 / 3.0)
+        out["cross"][c.iso] = CrossCheck(c.iso, a, b, pts, before, after, u, q)
     for a, t in table.axes.items():
         if a not in tables:
             raise CompensationError(f"--check: the files written by {exporter.name!r} hold no table for axis {a.upper()}")
@@ -735,6 +1024,21 @@ def _fig(r: Iso230_2, keys=("A", "E", "M", "R", "B", "B_mean")) -> str:
     return "  ".join(parts) + (f"  [{r.note}]" if r.note and r.source == "recording" else "")
 
 
+def residual_lines(table: CompensationTable) -> list:
+    """The compensated machine at the recording's points: residual against U (k = 2), per axis (text)."""
+    if not table.residual:
+        return []
+    lines = ["compensated machine at the recording's points: residual = measured - identified model (machine frame), "
+             "against U = 2 u of that residual (k = 2, about 95 % for a normal; u from the stated tracker noise and "
+             "repeatability, net of the fitted part); um:"]
+    for a, r in table.residual.items():
+        d = r.summary()
+        lines.append(f"  {a.upper()}: {d['points']} points, RMS residual {d['rms_residual']:6.2f}, max |residual| "
+                     f"{d['max_abs_residual']:6.2f}, median U {d['median_U']:6.2f}, max |residual|/U "
+                     f"{d['max_abs_residual_over_U']:4.2f}, within U {d['within_U']:.1%} (expected 95.4 %)")
+    return lines
+
+
 def table_text(table: CompensationTable, written: list, exporter, check: dict | None = None) -> str:
     idn = table.identification
     lines = [f"compensation tables of {table.recording!r} ({table.machine}): chi-square per dof "
@@ -760,6 +1064,13 @@ def table_text(table: CompensationTable, written: list, exporter, check: dict | 
     for s in table.squareness:
         uu = f"{s.u:.2f}" if s.identifiable else "not identifiable"
         lines.append(f"  {s.iso:<8} ({s.internal}) squareness {s.value:+8.2f} urad u {uu}")
+    if table.cross:
+        lines += ["", "cross (sag) tables: deviation of each axis' line in the other directions (um, k = 1; zero at the "
+                      "first grid point; squareness and Abbe effects on the line included):"]
+        for c in table.cross.values():
+            lines.append(f"  {c.iso} ({c.output.upper()} as a function of {c.axis.upper()}): range {np.ptp(c.deviation):6.2f} um, "
+                         f"largest u {c.u.max():5.2f} um" + (f"  [{c.note}]" if c.note else ""))
+    lines += ["", *residual_lines(table)]
     for n in table.notes:
         lines.append(f"note: {n}")
     if check is not None:
@@ -773,6 +1084,11 @@ def table_text(table: CompensationTable, written: list, exporter, check: dict | 
                          f"within 2u {d['within_2u']:.0%}  | ISO 230-2 E {c.iso_before.figures['E']:.2f} -> "
                          f"{c.iso_after.figures['E']:.2f}, B {c.iso_before.figures['B']:.2f} -> "
                          f"{c.iso_after.figures['B']:.2f}")
+        for k, c in check.get("cross", {}).items():
+            d = c.to_dict()
+            lines.append(f"  {k} ({c.output.upper()} on the {c.axis.upper()} line): before max |e| {d['max_abs_before_um']:6.2f}  "
+                         f"after max |e| {d['max_abs_after_um']:5.2f}  max |e|/u {d['max_abs_z']:4.2f}  "
+                         f"within 2u {d['within_2u']:.0%}")
         for a, q in check.get("mismatch", {}).items():
             lines.append(f"  MISMATCH on {a.upper()}: the read-back entries differ from the table by up to {q:.3g} um")
         if check["ignored"]:
@@ -784,4 +1100,5 @@ def table_text(table: CompensationTable, written: list, exporter, check: dict | 
 def check_json(check: dict) -> dict:
     return {"format": check["format"], "files": check["files"], "ignored": check["ignored"],
             "mismatch": check.get("mismatch", {}),
-            "axes": {a: c.to_dict() for a, c in check["axes"].items()}}
+            "axes": {a: c.to_dict() for a, c in check["axes"].items()},
+            "cross": {k: c.to_dict() for k, c in check.get("cross", {}).items()}}

@@ -15,8 +15,41 @@ import numpy as np
 
 from . import tracker as lt
 from .errors import ConfigError
-from .machine import AXES, AXIS_INDEX, ChainInputs, Configuration, ErrorModel, chain
+from .machine import AXES, AXIS_INDEX, ChainInputs, Configuration, ErrorModel, chain, parse_error_name
 from .plan import Plan
+
+# ----------------------------------------------------------------------------- ISO 230-1 names (the one map)
+#: internal rotation letter -> ISO 230-1 rotation letter (A, B, C about X, Y, Z)
+_ROTATION = {"x": "A", "y": "B", "z": "C"}
+#: squareness: internal name -> (ISO 230-1 name, sign of ISO value / internal value, meaning of a positive value).
+#: The long form names the reference axis in brackets: EC(0X)Y is the orientation about Z of the Y axis' reference
+#: line relative to X (short form EC0Y).
+SQUARENESS_ISO = {
+    "sxy": ("EC(0X)Y", 1.0, "the angle between the +X and +Y motions exceeds 90 degrees (Y turned about +Z)"),
+    "sxz": ("EB(0X)Z", -1.0, "the angle between the +X and +Z motions is below 90 degrees (Z turned about +Y)"),
+    "syz": ("EA(0Y)Z", 1.0, "the angle between the +Y and +Z motions exceeds 90 degrees (Z turned about +X)"),
+}
+
+
+def iso_name(internal: str) -> str:
+    """ISO 230-1 name of a component error: ``dy(x)`` -> ``EYX``, ``ez(y)`` -> ``ECY`` (yaw of Y), ``sxy`` -> ``EC(0X)Y``.
+
+    ``E`` + the direction of the error (X, Y, Z for a translation, A, B, C for a rotation about X, Y, Z)
+    + the moving axis.  The one map of mtbudget's names onto ISO 230-1's (docs/compensation.md).
+    """
+    if internal in SQUARENESS_ISO:
+        return SQUARENESS_ISO[internal][0]
+    kind, comp, axis = parse_error_name(internal)
+    return "E" + (comp.upper() if kind == "d" else _ROTATION[comp]) + axis.upper()
+
+
+def iso_parameter(name: str) -> str:
+    """ISO 230-1 name of a model parameter: ``dy(x)[P2]`` -> ``EYX[P2]``, ``sxy`` -> ``EC(0X)Y``; others unchanged."""
+    base, sep, rest = name.partition("[")
+    try:
+        return iso_name(base) + sep + rest
+    except ConfigError:  # not a component error (pose, a plugin's parameter): keep its own name
+        return name
 
 #: every model input a perturbation may target: key -> (internal unit, shape after the trial axis)
 #: ("M" is the number of measured points, "p" the number of geometric parameters)

@@ -291,6 +291,8 @@ CAPTIONS = {
     "distributions": "Distributions over the simulated verifications of the volume summaries, with their coverage intervals",
     "contributions": "Share of each source in the variance of the per-point errors, coloured by the paper's four groups",
     "convergence": "Convergence of compensation_rms and of its standard deviation with the number of trials",
+    "residual_vs_U": "Residual of the compensated machine at the recording's points per axis, with its expanded "
+                     "uncertainty U (k = 2)",
 }
 
 
@@ -320,7 +322,8 @@ def write_html(md: list, folder: Path, path: Path, title: str):
         elif line.startswith("| ---"):
             continue
         elif line.startswith("|"):
-            cells = [c.strip() for c in line.strip("|").split("|")]
+            # split on the table's pipes only: a user string keeps its own as "\|" (md_escape)
+            cells = [c.strip() for c in _cells(line)]
             tag = "td"
             if not body or not (body[-1].startswith("<tr") or body[-1].startswith("<table")):
                 body.append('<table class="budget">')
@@ -351,6 +354,84 @@ def write_html(md: list, folder: Path, path: Path, title: str):
     path.write_text(page)
 
 
+def _cells(line: str) -> list:
+    """The cells of a Markdown table row: split on the pipes not escaped with a backslash."""
+    import re
+
+    body = line.strip()
+    body = body[1:] if body.startswith("|") else body
+    body = body[:-1] if body.endswith("|") and not body.endswith("\\|") else body
+    return re.split(r"(?<!\\)\|", body)
+
+
+def compensation_lines(table: dict) -> list:
+    """Markdown: the compensated machine's residual against its U (k = 2) per axis, from
+    ``CompensationTable.to_dict()`` (``residual_against_U``), and the --check (``check``) when there is one."""
+    res = table.get("residual_against_U") or {}
+    axes = res.get("axes") or {}
+    if not axes:
+        return []
+    md = ["", "## Compensated machine: residual against its uncertainty", "",
+          f"Recording {md_escape(table.get('recording', '-'))}: {md_escape(res['what'])}. Values in µm.", "",
+          "| axis | points | RMS residual | max \\|residual\\| | median U (k = 2) | max \\|residual\\|/U | within U | expected |",
+          "| --- | --- | --- | --- | --- | --- | --- | --- |"]
+    for a, d in axes.items():
+        md.append(f"| {a.upper()} | {d['points']} | {d['rms_residual']:.2f} | {d['max_abs_residual']:.2f} | "
+                  f"{d['median_U']:.2f} | {d['max_abs_residual_over_U']:.2f} | {d['within_U']:.1%} | "
+                  f"{d['expected_within_U']:.1%} |")
+    chk = table.get("check")
+    if chk:
+        md += ["", f"Round trip (`--check`, format {md_escape(chk['format'])}): the written tables applied to the simulated "
+                   "machine; error left on each table's line against the table's stated u (k = 1), µm.", "",
+               "| line | before max \\|e\\| | after max \\|e\\| | max \\|e\\|/u | within 2u |", "| --- | --- | --- | --- | --- |"]
+        for k, d in {**chk.get("axes", {}), **chk.get("cross", {})}.items():
+            md.append(f"| {k.upper() if len(k) == 1 else k} | {d['max_abs_before_um']:.2f} | {d['max_abs_after_um']:.2f} | "
+                      f"{d['max_abs_z']:.2f} | {d['within_2u']:.0%} |")
+    return md
+
+
+def compensation_figure(table, folder) -> Path | None:
+    """residual_vs_U.png: per axis, the residual at the recording's points and +-U (k = 2) against position."""
+    if not table.residual:
+        return None
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axs = plt.subplots(1, len(table.residual), figsize=(4 * len(table.residual), 3.2), squeeze=False)
+    for ax, (a, r) in zip(axs[0], table.residual.items()):
+        order = np.argsort(r.positions, kind="stable")
+        ax.plot(r.positions[order], r.residual[order], ".", ms=3, label="residual")
+        ax.plot(r.positions[order], r.U[order], "k-", lw=0.6, label="±U (k = 2)")
+        ax.plot(r.positions[order], -r.U[order], "k-", lw=0.6)
+        ax.set_xlabel(f"{a} commanded [mm]")
+        ax.set_ylabel(f"residual along {a} [µm]")
+        ax.legend(fontsize=6)
+    fig.suptitle("compensated machine at the recording's points: residual and its U (k = 2)")
+    fig.tight_layout()
+    path = Path(folder) / "residual_vs_U.png"
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+    return path
+
+
+def compensation_report(table, folder, check: dict | None = None) -> dict:
+    """compensation.md and a self-contained compensation.html (with residual_vs_U.png) for a compensation table."""
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    data = table.to_dict()
+    if check is not None:
+        data["check"] = check
+    md = [f"# Compensation of {md_escape(table.recording)}", ""] + compensation_lines(data)
+    fig = compensation_figure(table, folder)
+    if fig is not None:
+        md += ["", "## Figures", "", f"![{md_escape(CAPTIONS['residual_vs_U'])}]({fig.name})"]
+    (folder / "compensation.md").write_text("\n".join(md) + "\n")
+    write_html(md, folder, folder / "compensation.html", f"mtbudget compensation of {table.recording}")
+    return {"markdown": folder / "compensation.md", "html": folder / "compensation.html", "figure": fig}
+
+
 def _unescape_md(text: str) -> str:
     import html
     import re
@@ -359,7 +440,7 @@ def _unescape_md(text: str) -> str:
 
 
 def run_report(res: RunResult, folder, tolerance_um: float | None = None, characteristic: str = "component",
-               extra_figures: dict | None = None) -> dict:
+               extra_figures: dict | None = None, compensation: dict | None = None) -> dict:
     """Write report.md and a self-contained report.html (figures inlined) into ``folder``.
 
     extra_figures: name -> (PNG path in ``folder``, caption), e.g. the paper study's figures.
@@ -428,6 +509,8 @@ def run_report(res: RunResult, folder, tolerance_um: float | None = None, charac
         md += ["", "## Decision (ISO 14253-1)", "", f"Characteristic: {conf['characteristic']}.", "",
                f"Rule: {conf['rule']}.", "", f"**{conf['statement']}**"]
         data["conformance"] = conf
+    if compensation:  # CompensationTable.to_dict() (with "check"), where a compensation is available
+        md += compensation_lines(compensation)
     md += ["", "## Volume summaries and the paper's figures", "",
            "Per simulated verification; the spread is over verifications, not the uncertainty of a point.", "",
            "| output | unit | mean | std dev over trials | symmetric interval | shortest interval |",

@@ -10,6 +10,10 @@
   src/emc/motion/usrmotintf.cc ``usrmotLoadComp``, applied in src/emc/motion/control.c.
 * ``beckhoff-lsec``: one Beckhoff TwinCAT CNC (ISG kernel) compensation value list per axis
   with bilateral leadscrew error compensation (``kw.ssfk.*``, P-COMP-00017..00025).
+* ``siemens-840d``: SINUMERIK 840D sl LEC tables (``$AA_ENC_COMP``) and sag / cross compensation
+  tables (``$AN_CEC``), two programs ``FILE_eec.ini`` and ``FILE_cec.ini``.
+* ``heidenhain-tnc``: HEIDENHAIN TNC nonlinear axis error compensation, ``FILE_x.com`` ... and
+  the assignment ``FILE.cma``.
 
 docs/compensation.md states each format's grid, units, sign, extrapolation and backlash
 conventions with their sources.  Every writer here uses only the public fields of
@@ -59,6 +63,9 @@ class NeutralCsv(Exporter):
                 for p, v, u in zip(t.positions, vals, us):
                     rows.append(f"{kind},{pos},line,{a},{p:.4f},{_f(v)},{_f(u)},um,1")
             rows.append(f"reversal,B,reversal,{a},,{_f(t.reversal)},{_f(t.u_reversal)},um,1")
+        for c in getattr(table, "cross", {}).values():
+            for p, v, u in zip(c.positions, c.deviation, c.u):
+                rows.append(f"cross,{c.iso},line,{c.axis},{p:.4f},{_f(v)},{_f(u)},um,1")
         path.write_text("\n".join(head + rows) + "\n")
         return [path]
 
@@ -137,7 +144,116 @@ class BeckhoffLsec(Exporter):
         return written
 
 
+_SIEMENS_AXIS = {"x": "AX1", "y": "AX2", "z": "AX3"}
+
+
+def _equidistant(positions, what):
+    d = np.diff(positions)
+    if len(d) == 0 or np.ptp(d) > 1e-6 * max(1.0, abs(d[0])):
+        raise ValueError(f"{what}: the grid is not equidistant (step MIN..MAX tables need one spacing)")
+    return float(d[0])
+
+
+class Siemens840d(Exporter):
+    name = "siemens-840d"
+    description = ("SINUMERIK 840D sl: LEC tables $AA_ENC_COMP (mean positioning) and sag / cross compensation "
+                   "$AN_CEC (reversal by direction, straightness and squareness of each line); mm")
+    suffix = ".ini"
+    convention = ("SINUMERIK 840D sl Function Manual Extended Functions, K3 Compensation: interpolatory compensation, "
+                  "LEC/MSEC ($AA_ENC_COMP[0,N,AXi], _STEP, _MIN, _MAX, _IS_MODULO; example %_N_AX_EEC_INI, values in mm) "
+                  "and sag compensation ($AN_CEC[t,N], _INPUT_AXIS, _OUTPUT_AXIS, _STEP, _MIN, _MAX, _DIRECTION, "
+                  "_MULT_BY_TABLE, _IS_MODULO; first / last value held beyond MIN / MAX; MD38000, MD18342 points); "
+                  "sign from the SINUMERIK 808D LEC manual: a positive value moves the axis in the negative direction")
+
+    def write(self, table, path):
+        path = Path(path)
+        stem, suf = path.stem, path.suffix or self.suffix
+        eec, cec = path.with_name(f"{stem}_eec{suf}"), path.with_name(f"{stem}_cec{suf}")
+        head = [f"; mtbudget: compensation of recording {table.recording!r} ({table.machine}); values in mm",
+                "; value = measured error (actual - nominal, tool relative to workpiece): a positive value moves the "
+                "axis in the negative direction",
+                "; machine axes AX1, AX2, AX3 = X, Y, Z: rename them to your configuration"]
+        lines = ["%_N_AX_EEC_INI", *head,
+                 "; LEC: mean bidirectional positioning deviation on each axis' reference line, zero at MIN",
+                 "CHANDATA(1)"]
+        for a, t in table.axes.items():
+            ax = _SIEMENS_AXIS[a]
+            step = _equidistant(t.positions, f"axis {a}")
+            lines.append(f"; axis {a.upper()}: {len(t.positions)} interpolation points, set MD38000 "
+                         f"$MA_MM_ENC_COMP_MAX_POINTS[0,{ax}] >= {len(t.positions)}")
+            lines += [f"$AA_ENC_COMP[0,{i},{ax}]={v * 1e-3:.6f}" for i, v in enumerate(t.deviation)]
+            lines += [f"$AA_ENC_COMP_STEP[0,{ax}]={step:.6f}", f"$AA_ENC_COMP_MIN[0,{ax}]={t.positions[0]:.6f}",
+                      f"$AA_ENC_COMP_MAX[0,{ax}]={t.positions[-1]:.6f}", f"$AA_ENC_COMP_IS_MODULO[0,{ax}]=0"]
+        lines.append("M17")
+        eec.write_text("\n".join(lines) + "\n")
+
+        lines = ["%_N_NC_CEC_INI", *head,
+                 "; tables 0..5: reversal, one table per direction of travel of the same axis ($AN_CEC_DIRECTION = 1 / -1)",
+                 "; then the cross (sag) tables: output axis as a function of the input axis' setpoint"]
+        tables = []
+        for a, t in table.axes.items():
+            n = len(t.positions)
+            tables.append((a, a, t.positions, np.full(n, 0.5 * t.reversal), 1, f"reversal of {a.upper()}, + direction: +B/2"))
+            tables.append((a, a, t.positions, np.full(n, -0.5 * t.reversal), -1, f"reversal of {a.upper()}, - direction: -B/2"))
+        for c in table.cross.values():
+            tables.append((c.axis, c.output, c.positions, c.deviation, 0,
+                           f"{c.iso}: deviation in {c.output.upper()} along {c.axis.upper()}"))
+        for k, (a, b, pos, val, direction, what) in enumerate(tables):
+            step = _equidistant(pos, f"table {k}")
+            lines.append(f"; table {k}: {what}; set MD18342 $MN_MM_CEC_MAX_POINTS[{k}] >= {len(pos)}")
+            lines += [f"$AN_CEC[{k},{i}]={v * 1e-3:.6f}" for i, v in enumerate(val)]
+            lines += [f"$AN_CEC_INPUT_AXIS[{k}]={_SIEMENS_AXIS[a]}", f"$AN_CEC_OUTPUT_AXIS[{k}]={_SIEMENS_AXIS[b]}",
+                      f"$AN_CEC_STEP[{k}]={step:.6f}", f"$AN_CEC_MIN[{k}]={pos[0]:.6f}", f"$AN_CEC_MAX[{k}]={pos[-1]:.6f}",
+                      f"$AN_CEC_DIRECTION[{k}]={direction}", f"$AN_CEC_MULT_BY_TABLE[{k}]=0", f"$AN_CEC_IS_MODULO[{k}]=0"]
+        lines.append("M17")
+        cec.write_text("\n".join(lines) + "\n")
+        return [eec, cec]
+
+
+class HeidenhainTnc(Exporter):
+    name = "heidenhain-tnc"
+    description = ("HEIDENHAIN TNC nonlinear axis error compensation: one .COM table per axis (its positioning, "
+                   "BACKLASH for the negative direction, the other axes' sag on its line) and the .CMA assignment; mm")
+    suffix = ".com"
+    per_axis = True
+    max_entries = 256  # TNC 407/415/425 technical manual, module 9095: "more than 256 entries" is an error
+    convention = ("HEIDENHAIN technical manuals, nonlinear axis error compensation: TNC 407/415/425 (243 020), "
+                  "section 'Non-linear axis error compensation' (.COM tables assigned per axis in a .CMA file, one line "
+                  "active, at most 256 entries, sign of the linear compensation: 'positive when the table travels too "
+                  "far'); MANUALplus 620 (2012), 'Entering compensation values' and 'Assigning the compensation value "
+                  "tables' (AXISPOS from the machine datum, a column per dependent axis, BACKLASH = values measured in "
+                  "the negative direction, ACTIVE '*')")
+
+    def write(self, table, path):
+        path = Path(path)
+        written = []
+        cma_cols = {}
+        for a, t in table.axes.items():
+            p = self.axis_path(path, a)
+            cols = {a.upper(): t.forward}
+            for c in table.cross.values():
+                if c.axis == a:
+                    cols[c.output.upper()] = c.deviation
+            names = ["NR", "AXISPOS", *sorted(cols), "BACKLASH"]
+            lines = [f"BEGIN {p.name.upper()} MM", "  ".join(f"{n:<12}" for n in names).rstrip()]
+            for i, pos in enumerate(t.positions):
+                vals = [f"{i:<12}", f"{pos:<+12.4f}"] + [f"{cols[n][i] * 1e-3:<+12.4f}" for n in sorted(cols)] + \
+                    [f"{t.reverse[i] * 1e-3:<+12.4f}"]
+                lines.append("  ".join(vals).rstrip())
+            lines.append("[END]")
+            p.write_text("\n".join(lines) + "\n")
+            written.append(p)
+            cma_cols[a.upper()] = p.name.upper()
+        cma = path.with_suffix(".cma")
+        head = ["NR", *cma_cols, "ACTIVE"]
+        cma.write_text("\n".join([f"BEGIN {cma.name.upper()}", "  ".join(f"{n:<16}" for n in head).rstrip(),
+                                   "  ".join(f"{v:<16}" for v in ["0", *cma_cols.values(), "*"]).rstrip(),
+                                   "[END]"]) + "\n")
+        written.append(cma)
+        return written
+
+
 @hookimpl
 def mtbudget_register_exporters(register):
-    for cls in (NeutralCsv, NeutralJson, LinuxCnc, BeckhoffLsec):
+    for cls in (NeutralCsv, NeutralJson, LinuxCnc, BeckhoffLsec, Siemens840d, HeidenhainTnc):
         register(cls())
