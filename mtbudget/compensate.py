@@ -364,13 +364,14 @@ def _reversal_estimate(r: Iso230_2) -> tuple[float, float]:
 
 # ----------------------------------------------------------------------------- building blocks
 def identify_recording(rec, max_degree: int = 3, strategy: str = "one-phase"):
-    """(model, identification) of one recording, as ``mtbudget identify`` does it."""
+    """(model, identification) of one recording, as ``mtbudget identify`` does it: corrected to the reference
+    temperature where the recording states its scales' nominal expansion (``Recording.fixed_inputs``)."""
     from .identify import Noise, Strategy, identify
     from .model import MeasurementModel
 
     model = MeasurementModel.for_plan(rec.machine, rec.plan, max_degree=max_degree)
     strat = Strategy.one_phase() if strategy == "one-phase" else Strategy.multi_phase()
-    return model, identify(model, rec.lt, Noise.of(rec), strat)
+    return model, identify(model, rec.lt, Noise.of(rec), strat, fixed=rec.fixed_inputs())
 
 
 def parse_step(text) -> float:
@@ -442,7 +443,7 @@ def build_table(rec, step: float = DEFAULT_STEP_MM, max_degree: int = 3, referen
     centre = {a: 0.5 * sum(errors.ranges[a]) for a in AXES}
     reference = {**centre, **(reference or {})}
     tool = np.asarray(rec.plan.tool[0], float)
-    notes = []
+    notes = [rec.thermal_correction]
 
     # error functions: f = B theta_g, cov f = B cov_gg B^T, ISO sign per axis side
     functions = []

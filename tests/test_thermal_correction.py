@@ -126,3 +126,21 @@ def test_a_scale_needs_a_sensor_on_its_axis(tmp_path):
     (folder / "recording.toml").write_text(text.replace(block, ""))
     with pytest.raises(RecordingError, match="no \\[\\[sensors\\]\\] table is attached to the x axis"):
         read_recording(folder)
+
+
+def test_compensation_of_thermal_x_holds_at_20_degC_only_with_the_correction(tmp_path):
+    """The exported X table, applied to the true machine of truth.json at the reference temperature: with the
+    correction the compensated X axis is within 2u everywhere; without it, the expansion at 20.4-22.4 degC is
+    written into the table and most of the line is outside."""
+    from mtbudget.compensate import build_table, check_export, export, find_exporter
+
+    within = {}
+    for label, folder in (("raw", example_recording("thermal_x")),
+                          ("corrected", with_scales(tmp_path, f'[scales.x]\ncte = "{CTE_STEEL}"'))):
+        rec = read_recording(folder)
+        table = build_table(rec, 50.0)
+        assert table.notes[0] == rec.thermal_correction
+        ex = find_exporter("neutral-csv")
+        written = export(table, ex, tmp_path / f"{label}{ex.suffix}")
+        within[label] = check_export(table, rec, ex, written)["axes"]["x"].to_dict()["within_2u"]
+    assert within["corrected"] == 1.0 and within["raw"] < 0.5
