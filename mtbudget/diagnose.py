@@ -67,13 +67,36 @@ from .errors import DiagnosisError, MtbudgetError, PluginError
 from .identify import Noise, identify
 from .machine import AXES, AXIS_INDEX
 from .model import MODEL_INPUTS, MeasurementModel, merge
+from .progress import Steps
 from .recording import Recording
-from .units import display, internal_unit_of, ureg
+from .units import display, internal_unit_of, pretty, ureg
 
 HOOK = "mtbudget_register_candidates"
 #: a candidate of which less than this fraction (whitened norm) is left once the baseline has absorbed
 #: what it can is not testable with the plan
 ABSORBED = 1e-3
+
+
+def json_unit(unit: str) -> str:
+    """The one spelling of a unit in JSON output (docs/diagnose.md, "Units in JSON"): ASCII, parsed by
+    :func:`mtbudget.units.parse_unit`, the same symbols as :func:`mtbudget.units.pretty` with ``u`` for micro
+    and ``*`` for a product: "um", "um/h", "um/(m*K)", "urad", "m"."""
+    text = pretty(str(unit)) if str(unit).strip() else ""
+    for a, b in (("Δ°C", "delta_degC"), ("Δ°F", "delta_degF"), ("°C", "degC"), ("°F", "degF"), ("µ", "u"), ("μ", "u"),
+                 ("·", "*"), ("²", "**2"), ("³", "**3"), ("^", "**")):
+        text = text.replace(a, b)
+    return text
+
+
+def _implausible_entry(c: Candidate, reason: str, est: list, unc: list, unit: str) -> dict:
+    """A candidate that would fit only with implausible values: the values and the plausible range (display units)."""
+    scalar = len(est) == 1
+    return {"effect": c.effect, "axis": c.axis, "plugin": c.plugin, "reason": reason,
+            "estimate": {"value": est[0] if scalar else est, "unit": unit},
+            "uncertainty": {"value": unc[0] if scalar else unc, "unit": unit},
+            "plausible": [{"parameter": name, "quantity": c.quantity_names.get(name, name), "low": float(lo),
+                           "high": float(hi), "unit": json_unit(c.parameters[name])}
+                          for name, (lo, hi) in c.plausible.items() if name in c.parameters]}
 
 
 def _call(c: Candidate, method: str, *args):
@@ -191,7 +214,7 @@ def locate(ctx: DiagnosisContext, residual_machine: np.ndarray, whitened: np.nda
     uniq, first = np.unique(t_rows, axis=0, return_index=True)
     for k, j in enumerate(sorted(first), start=1):
         m = np.all(t_rows == t_rows[j], axis=1)
-        tools[k] = {"tool": display(plan.tool[j], "mm", "mm").round(3).tolist(), "points": int(m.sum()),
+        tools[k] = {"tool": display(plan.tool[j], "mm", "mm").round(3).tolist(), "tool_unit": "mm", "points": int(m.sum()),
                     "rms": float(np.sqrt((r[m] ** 2).sum(1).mean())), "mean": r[m].mean(0).round(3).tolist(),
                     "chi2_per_point": float(chi_pt[m].mean() / 3)}
     out["by_tool"] = tools
@@ -204,7 +227,8 @@ def locate(ctx: DiagnosisContext, residual_machine: np.ndarray, whitened: np.nda
             coef, res, *_ = np.linalg.lstsq(X, r[:, i], rcond=None)
             s2 = float(((r[:, i] - X @ coef) ** 2).sum() / max(n - 2, 1))
             se = math.sqrt(s2 / ((t - t.mean()) ** 2).sum())
-            trend[a] = {"slope_um_per_h": float(coef[1]), "stderr": se, "z": float(coef[1] / se) if se > 0 else 0.0}
+            trend[a] = {"slope_um_per_h": float(coef[1]), "stderr": se, "z": float(coef[1] / se) if se > 0 else 0.0,
+                        "unit": "um/h"}
     out["by_time"] = trend
     # by approach direction: mean residual along each axis for + and - approaches
     dirs = {}
@@ -294,14 +318,28 @@ def _quality(res) -> dict:
 
 def diagnose(rec: Recording, candidates: list | None = None, *, alpha: float = 0.01, max_set: int = 3,
              confound_margin: float = 6.0, max_degree: int = 3, host=None, gate_alpha: float = 0.01,
-             data_driven: bool = True) -> Diagnosis:
-    """Diagnose a recording (see the module docstring)."""
+             data_driven: bool = True, progress: bool = False) -> Diagnosis:
+    """Diagnose a recording (see the module docstring).
+
+    progress: a bar on stderr naming the running step (baseline fit, candidate columns, noise estimate,
+    candidate scan, refit with the findings, fit gate, data-driven search); silent by default, and never on
+    stdout, so ``--json`` stays one object.
+    """
     from .plugins import default_host
 
     if candidates is None:
         candidates = (host or default_host()).candidates()
+    steps = Steps(5 + len(candidates), f"diagnose {rec.name}", progress)
+    try:
+        return _diagnose(rec, candidates, alpha, max_set, confound_margin, max_degree, gate_alpha, data_driven, steps)
+    finally:
+        steps.close()
+
+
+def _diagnose(rec, candidates, alpha, max_set, confound_margin, max_degree, gate_alpha, data_driven, steps):
     model = MeasurementModel.for_plan(rec.machine, rec.plan, max_degree=max_degree)
     noise = Noise.of(rec)
+    steps.begin("baseline fit")
     try:
         base = identify(model, rec.lt, noise)
     except MtbudgetError as exc:
@@ -316,8 +354,11 @@ def diagnose(rec: Recording, candidates: list | None = None, *, alpha: float = 0
     lin0 = _Linear(base.design[0], base.whitened[0].reshape(-1))
 
     mismatch = locate(ctx, base.residual_machine[0], base.whitened[0])
+    steps.done()
     skipped, untestable, usable = [], [], []
     for c in candidates:
+        steps.begin(f"candidate columns: {c.label}")
+        steps.done()
         _check_declaration(c)
         reason = _call(c, "requires", ctx)
         if reason is not None and not isinstance(reason, str):
@@ -342,6 +383,7 @@ def diagnose(rec: Recording, candidates: list | None = None, *, alpha: float = 0
         usable.append((c, col, raw))
 
     # the noise: estimated from the data, used for selection and the gate when the stated one does not match
+    steps.begin("noise estimate (REML)")
     est = _estimate_noise(rec, ctx, Wh, base.design[0], lin0.w, [u[1] for u in usable])
     Wn = est.pop("whitener")  # (M, 3, 3) the whitener selection and the gate use
     groups_design = est.pop("groups")
@@ -355,6 +397,8 @@ def diagnose(rec: Recording, candidates: list | None = None, *, alpha: float = 0
         usable = [(c, _whitened(raw, c.frame, ctx, Wn), raw) for c, _, raw in usable]
     else:
         lin = lin0
+    steps.done()
+    steps.begin(f"candidate scan ({len(usable)} candidates, sets up to {max_set})")
     n_obs = lin.n
     K = max(len(usable), 1)
     level = alpha / K  # Bonferroni over the candidates tested
@@ -437,6 +481,8 @@ def diagnose(rec: Recording, candidates: list | None = None, *, alpha: float = 0
             if ok and not cancelling(idx, f):
                 best, best_bic = idx, b
     chosen = list(best)
+    steps.done()
+    steps.begin(f"refit with the findings ({len(chosen)})")
     findings, f_all = _findings(chosen, usable, lin, fit, ftest, bic, kcols, K, alpha, confound_margin, ctx)
     # refit the full model with the effects in it at their estimates: "after" each finding (cumulative)
     offsets = np.cumsum([0] + [usable[i][1].shape[1] for i in chosen])
@@ -460,8 +506,11 @@ def diagnose(rec: Recording, candidates: list | None = None, *, alpha: float = 0
     res_after = res.residual_machine[0] if pert_parts else None
 
     # the global goodness-of-fit gate, and what is left when it fails
+    steps.done()
+    steps.begin("fit gate")
     gate = _gate(lin, f_all, kcols(chosen), est, groups_design, Wn, usable, gate_alpha)
     unexplained = None
+    steps.done()
     if not gate["explained"]:
         where = locate(ctx, res.residual_machine[0], res.whitened[0])
         unexplained = {
@@ -469,13 +518,16 @@ def diagnose(rec: Recording, candidates: list | None = None, *, alpha: float = 0
             "noise_used": est["used"], "lack_of_fit": gate.get("lack_of_fit"),
             "where": {k: where[k] for k in ("by_run", "by_tool", "by_time", "by_direction", "by_position",
                                             "by_temperature", "worst_points")},
-            "implausible": [{"effect": usable[i][0].effect, "axis": usable[i][0].axis, "reason": why}
+            "implausible": [_implausible_entry(usable[i][0], why, *_present(usable[i][0], *members([i], fit([i]))[0]))
                             for i, why in implausible_alone.items() if i not in chosen],
             "notes": notes, "data_driven": None,
         }
         if data_driven and gate["p_value"] is not None:
             X_final = np.concatenate([lin.Q0] + [usable[i][1] for i in chosen], axis=1)
-            unexplained["data_driven"] = _data_driven(ctx, lin, X_final, Wn, alpha)
+            splits = 20
+            steps.more(splits)
+            steps.begin("data-driven search")
+            unexplained["data_driven"] = _data_driven(ctx, lin, X_final, Wn, alpha, splits, on_split=steps.done)
     return Diagnosis(rec.name, _quality(base), mismatch, findings, final, skipped, untestable, considered,
                      {"alpha": alpha, "bonferroni_level": level, "max_set": max_set, "confound_margin_bic": confound_margin,
                       "gate_alpha": gate_alpha, "candidates": [c.label for c in candidates]},
@@ -760,7 +812,7 @@ def _features(ctx) -> dict:
     return feats
 
 
-def _data_driven(ctx, lin, X_final, Wn, alpha, splits: int = 20) -> dict | None:
+def _data_driven(ctx, lin, X_final, Wn, alpha, splits: int = 20, on_split=None) -> dict | None:
     """The best sparse description of what the final model leaves, from the recording's own columns.
 
     Forward selection (up to three terms, each significant at a Bonferroni level over the library on the
@@ -818,6 +870,8 @@ def _data_driven(ctx, lin, X_final, Wn, alpha, splits: int = 20) -> dict | None:
         perm = rng.permutation(M)
         A, Bh = np.sort(perm[: M // 2]), np.sort(perm[M // 2:])
         sel = forward(point_rows(A))
+        if on_split is not None:
+            on_split()
         if sel:
             first[sel[0]] = first.get(sel[0], 0) + 1
         if k == 0:
@@ -883,7 +937,7 @@ def _present(c: Candidate, beta, cov):
         _fail(c, f"must return (estimates, uncertainties, unit), got {out!r}", "summary")
     if len(est) != len(unc):
         _fail(c, f"returned {len(est)} estimates and {len(unc)} uncertainties", "summary")
-    return est, unc, str(unit)
+    return est, unc, json_unit(unit)
 
 
 def _stability(lin, usable, chosen, pos, ctx):

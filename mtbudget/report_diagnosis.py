@@ -1,9 +1,14 @@
-"""Diagnosis results for people: the text summary and the Markdown report with residual plots."""
+"""Diagnosis results for people: the text summary, and the Markdown and self-contained HTML report with
+residual plots.  Every user string (recording name and description, column, plugin and effect names, notes
+from plugins) is escaped for Markdown (:func:`mtbudget.report.md_escape`), HTML and matplotlib's mathtext."""
 
 from __future__ import annotations
 
+import html
+import math
 from pathlib import Path
 
+from .report import md_escape
 from .units import display, pretty
 
 #: when the confounded candidates give no hint of their own
@@ -127,49 +132,350 @@ def _not_converged(q) -> str:
     return "" if q.get("converged", True) else " (the identification did NOT converge: these numbers are not at its minimum)"
 
 
-def diagnosis_report(d, rec, folder) -> Path:
-    """Markdown report with residual plots before and after (PNG beside it)."""
+class U(str):
+    """A user string inside report text: escaped for Markdown and HTML (the rest of the text is mtbudget's own)."""
+
+
+def _md(parts) -> str:
+    parts = (parts,) if isinstance(parts, str) else parts
+    return "".join(md_escape(p) if isinstance(p, U) else p for p in parts)
+
+
+def _html(parts) -> str:
+    parts = (parts,) if isinstance(parts, str) else parts
+    return html.escape("".join(parts))
+
+
+def mpl_escape(text) -> str:
+    """A user string inside a matplotlib title or label: ``$`` would start mathtext."""
+    return str(text).replace("$", r"\$")
+
+
+def _label(effect, axis) -> tuple:
+    return (U(effect), "[", U(axis), "]") if axis else (U(effect),)
+
+
+def _num(x, nd=3) -> str:
+    if x is None or (isinstance(x, float) and not math.isfinite(x)):
+        return "-"
+    return _fmt_value(x, nd)
+
+
+def _q(q, nd=3) -> str:
+    """A {"value", "unit"} quantity as text: value and pretty unit."""
+    return "-" if q is None else f"{_num(q['value'], nd)} {pretty(q['unit'])}".rstrip()
+
+
+class _Doc:
+    """Blocks rendered once as Markdown and once as HTML: the same content, escaped for each."""
+
+    def __init__(self):
+        self.blocks = []
+
+    def h(self, level, *parts):
+        self.blocks.append(("h", level, parts))
+
+    def p(self, *parts, strong=False):
+        self.blocks.append(("p", strong, parts))
+
+    def ul(self, items):
+        if items:
+            self.blocks.append(("ul", [tuple(i) if isinstance(i, (tuple, list)) else (i,) for i in items]))
+
+    def table(self, header, rows):
+        self.blocks.append(("table", header, [[c if isinstance(c, (tuple, list)) else (c,) for c in r] for r in rows]))
+
+    def fig(self, name, caption):
+        self.blocks.append(("fig", name, caption))
+
+    def markdown(self) -> str:
+        out = []
+        for b in self.blocks:
+            if b[0] == "h":
+                out += ["#" * b[1] + " " + _md(b[2]), ""]
+            elif b[0] == "p":
+                t = _md(b[2])
+                out += [f"**{t}**" if b[1] else t, ""]
+            elif b[0] == "ul":
+                out += [f"- {_md(i)}" for i in b[1]] + [""]
+            elif b[0] == "table":
+                out.append("| " + " | ".join(_md(h) for h in b[1]) + " |")
+                out.append("|" + " --- |" * len(b[1]))
+                out += ["| " + " | ".join(_md(c) for c in r) + " |" for r in b[2]]
+                out.append("")
+            else:
+                out += [f"![{_md(b[2])}]({b[1]})", "", f"*{_md(b[2])}*", ""]
+        return "\n".join(out)
+
+    def html(self, folder: Path, title) -> str:
+        import base64
+
+        body = []
+        for b in self.blocks:
+            if b[0] == "h":
+                body.append(f"<h{b[1]}>{_html(b[2])}</h{b[1]}>")
+            elif b[0] == "p":
+                t = _html(b[2])
+                body.append(f"<p><strong>{t}</strong></p>" if b[1] else f"<p>{t}</p>")
+            elif b[0] == "ul":
+                body.append("<ul>" + "".join(f"<li>{_html(i)}</li>" for i in b[1]) + "</ul>")
+            elif b[0] == "table":
+                body.append('<table class="diagnosis"><tr>' + "".join(f"<th>{_html(h)}</th>" for h in b[1]) + "</tr>"
+                            + "".join("<tr>" + "".join(f"<td>{_html(c)}</td>" for c in r) + "</tr>" for r in b[2])
+                            + "</table>")
+            else:
+                b64 = base64.b64encode((folder / b[1]).read_bytes()).decode()
+                cap = _html(b[2])
+                body.append(f'<figure><img alt="{cap}" src="data:image/png;base64,{b64}"><figcaption>{cap}</figcaption>'
+                            "</figure>")
+        return ("<!DOCTYPE html><html><head><meta charset='utf-8'><title>" + _html(title) + "</title><style>"
+                "body{font-family:sans-serif;max-width:1100px;margin:2em auto;padding:0 1em;color:#222}"
+                "table{border-collapse:collapse;margin:0.5em 0 1em}td,th{border:1px solid #bbb;padding:3px 8px;"
+                "font-size:13px;text-align:left}th{background:#eef}img{max-width:100%}"
+                "figcaption{font-size:13px;color:#444}li{margin:0.2em 0}</style>"
+                "<script>window.addEventListener('load',function(){var im=document.images,ok=0;"
+                "for(var i=0;i<im.length;i++){if(im[i].complete&&im[i].naturalWidth>0)ok++;}"
+                "document.body.setAttribute('data-images',ok+'/'+im.length);"
+                "document.body.setAttribute('data-tables',document.querySelectorAll('table.diagnosis').length);"
+                "var r=[];for(var i=0;i<im.length;i++){var b=im[i].getBoundingClientRect();"
+                "r.push([Math.round(b.left+window.scrollX),Math.round(b.top+window.scrollY),Math.round(b.width),"
+                "Math.round(b.height)].join(','));}document.body.setAttribute('data-figures',r.join(';'));});"
+                "</script></head><body>\n" + "\n".join(body) + "\n</body></html>\n")
+
+
+def _verdict(d) -> tuple:
+    noise = getattr(d, "noise", None) or {}
+    which = "estimated" if noise.get("used") == "estimated" else "stated"
+    names = []
+    for f in d.findings:
+        names += list(_label(f.candidate.effect, f.candidate.axis)) + [", "]
+    if getattr(d, "unexplained", None) is not None:
+        found = ("Found: ", *names[:-1], ". ") if names else ("No named effect accounts for it. ",)
+        return ("NOT EXPLAINED: the final model leaves a misfit beyond the noise (see Not explained). ", *found)
+    if d.findings:
+        return ("Found: ", *names[:-1], f". The final model explains the recording within its {which} uncertainty.")
+    return (f"No finding: the recording is explained by the baseline model within its {which} uncertainty"
+            + (" (not the stated one: see Noise)." if which == "estimated" else "."),)
+
+
+def _noise_section(doc: _Doc, n: dict):
+    doc.h(2, "Noise: stated and estimated")
+    if not n:
+        doc.p("No noise estimate in this diagnosis.")
+        return
+    doc.p(f"Standard deviations (k = 1) of one measured point; the estimate is {n['method']} "
+          f"({n['dof']} degrees of freedom). Along and across the beam at the mean range "
+          f"{_q(n['mean_range'])}. The ratio is estimated / stated, with its standard uncertainty (k = 1). "
+          f"Selection and the fit gate used the {n['used']} noise.")
+
+    def row(name, comp, stated, estimated, ratio, ratio_u, mis):
+        r = "-" if ratio is None else f"{ratio:.2f}" + ("" if ratio_u is None else f" ± {ratio_u:.2f}")
+        return [name, comp, stated, estimated, r, "MISSTATED" if mis else "as stated"]
+
+    rows = [row("along the beam", "tracker range and repeatability", _q(n["along_beam"]["stated"]),
+                _q(n["along_beam"]["estimated"]), n["along_beam"]["ratio"], n["along_beam"]["ratio_uncertainty"],
+                n["along_beam"]["misstated"]),
+            row("across the beam", "tracker angles and repeatability", _q(n["across_beam"]["stated"]),
+                _q(n["across_beam"]["estimated"]), n["across_beam"]["ratio"], n["across_beam"]["ratio_uncertainty"],
+                n["across_beam"]["misstated"])]
+    tr, tt, mr = n["tracker_range"], n["tracker_transverse"], n["machine_repeatability"]
+    rows.append(row("tracker range", f"{_q(tr['stated']['distance'])} + {_q(tr['stated']['distance_per_length'])}, "
+                    "at the mean range", _q(tr["stated"]["at_mean_range"]), _q(tr["estimated"]["at_mean_range"]),
+                    tr["ratio"], None, tr["misstated"]))
+    rows.append(row("tracker transverse", "angle", _q(tt["stated"]["angular"]), _q(tt["estimated"]["angular"]),
+                    tt["ratio"], None, tt["misstated"]))
+    est_r = mr["estimated"]
+    rows.append(row("machine repeatability", "per point", _q(mr["stated"]),
+                    _q(est_r) if est_r else "not separable", est_r["value"] / mr["stated"]["value"]
+                    if est_r and mr["stated"]["value"] > 0 else None, None, False))
+    doc.table(["component", "what", "stated (k = 1)", "estimated (k = 1)", "ratio estimated / stated", "verdict"], rows)
+    if n.get("sentence"):
+        doc.p(n["sentence"][0].upper() + n["sentence"][1:] + ".", strong=True)
+    if mr.get("note"):
+        doc.p(f"Machine repeatability: {mr['note']}.")
+
+
+def _unexplained_section(doc: _Doc, u: dict):
+    doc.h(2, "Not explained")
+    p = u.get("p_value")
+    doc.p(f"The final model does not explain the recording: χ²/dof = {u['chi2_per_dof']:.3f} on {u['dof']} degrees of "
+          "freedom, " + (f"p-value {p:.2g}" if p is not None else "no test possible") +
+          f". Test: {u['test']}; noise used: {u.get('noise_used', 'stated')}.", strong=True)
+    lof = u.get("lack_of_fit")
+    if lof:
+        doc.p(f"Misfit beyond the scatter of repeated points: {lof['chi2_per_dof']:.3f} per degree of freedom against a "
+              f"pure error of {lof['pure_error_chi2_per_dof']:.3f} (F = {lof['F']:.2f} on {lof['dof'][0]} and "
+              f"{lof['dof'][1]} degrees of freedom).")
+    w = u.get("where", {})
+    um = pretty("um")
+    doc.h(3, "Where the misfit lives")
+    doc.p(f"Residuals after the final model, in the machine frame, in {um}.")
+    if w.get("by_run"):
+        doc.p("By run:")
+        doc.table(["run", "points", f"mean x, y, z [{um}]", f"RMS [{um}]", "χ² per coordinate"],
+                  [[str(k), str(v["points"]), _vec(v["mean"]), f"{v['rms']:.2f}", f"{v['chi2_per_point']:.2f}"]
+                   for k, v in w["by_run"].items()])
+    if w.get("by_tool"):
+        doc.p("By tool (reflector holder offset):")
+        doc.table(["tool", f"offset [{pretty(next(iter(w['by_tool'].values())).get('tool_unit', 'mm'))}]", "points",
+                   f"mean x, y, z [{um}]", f"RMS [{um}]", "χ² per coordinate"],
+                  [[str(k), _vec(v["tool"]), str(v["points"]), _vec(v["mean"]), f"{v['rms']:.2f}",
+                    f"{v['chi2_per_point']:.2f}"] for k, v in w["by_tool"].items()])
+    if w.get("by_time"):
+        doc.p("Drift over the test (slope of the residual against time):")
+        doc.table(["axis", f"drift [{pretty('um/h')}]", "standard error (k = 1)", "z"],
+                  [[a, f"{v['slope_um_per_h']:+.2f}", f"{v['stderr']:.2f}", f"{v['z']:+.1f}"]
+                   for a, v in w["by_time"].items()])
+    if w.get("by_direction"):
+        doc.p("By approach direction:")
+        doc.table(["axis", f"+ approach mean [{um}]", f"- approach mean [{um}]", f"difference [{um}]", "z"],
+                  [[a, f"{v['plus_mean']:+.2f}", f"{v['minus_mean']:+.2f}", f"{v['difference']:+.2f}", f"{v['z']:+.1f}"]
+                   for a, v in w["by_direction"].items()])
+    if w.get("worst_points"):
+        doc.p("The five points with the largest misfit:")
+        doc.table(["row", "point", "run", f"residual x, y, z [{um}]", "χ²"],
+                  [[str(v["row"]), str(v["point"]), str(v["run"]), _vec(v["residual"]), f"{v['chi2']:.1f}"]
+                   for v in w["worst_points"]])
+    if u.get("implausible"):
+        doc.h(3, "Implausible: would fit, but not a finding")
+        doc.p("Each of these candidates alone would reduce the misfit significantly, but only with a value outside "
+              "its physically plausible range; the structure it tried to explain stays here.")
+        rows = []
+        for imp in u["implausible"]:
+            est, unc = imp.get("estimate"), imp.get("uncertainty")
+            pl = imp.get("plausible", [])
+            what = pl[0]["quantity"] if len(pl) == 1 else "a value"
+            rng = "; ".join((f"{md_escape(r['parameter'])}: " if len(pl) > 1 else "") +
+                            f"{_num(r['low'], 3)} to {_num(r['high'], 3)} {pretty(r['unit'])}" for r in pl) or "-"
+            need = (U(what), f" of {_q(est)} ± {_q(unc, 2)} (k = 1)") if est else (U(imp["reason"]),)
+            rows.append([_label(imp["effect"], imp["axis"]), need, rng, "implausible: not a finding"])
+        doc.table(["candidate", "would need", "plausible range", "verdict"], rows)
+    notes = u.get("notes") or []
+    doc.ul([("note: ", U(x)) for x in notes])
+    dd = u.get("data_driven")
+    doc.h(3, "Best data-driven description")
+    if dd:
+        h = dd["held_out"]
+        doc.p(f"{dd['kind'][0].upper() + dd['kind'][1:]}: terms built from the recording's own columns "
+              f"({dd['library']['features']} features, {dd['library']['terms_searched']} terms searched), "
+              f"selected on one half of the points and confirmed on the other: χ²/dof on the {h['points']} held-out "
+              f"points {h['chi2_per_dof_before']:.3f} → {h['chi2_per_dof_after']:.3f} "
+              f"(F = {h['F']:.1f}, p-value {h['p_value']:.2g}).")
+        doc.table(["term (data-driven, not a named physical effect)", "coefficient", "RMS over the points",
+                   "selected first in"],
+                  [[(U(t["term"]),), _q(t["coefficient"]), _q(t["rms"]), t["selected_first_in"]] for t in dd["terms"]])
+    else:
+        doc.p("No data-driven term built from the recording's columns describes the misfit (none confirmed on "
+              "held-out points).")
+
+
+def _vec(v, nd=2) -> str:
+    return "(" + ", ".join(f"{x:.{nd}f}" for x in v) + ")"
+
+
+def _residual_figure(d, rec, path: Path):
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    folder = Path(folder)
-    folder.mkdir(parents=True, exist_ok=True)
     plan = rec.plan
     t = display(plan.time, "s", "h")
-    fig, axes = plt.subplots(3, 2, figsize=(11, 8), sharex="col")
+    fig, axes = plt.subplots(3, 2, figsize=(11, 8), sharex="col", sharey="row")
+    after_label = "after the findings" if d.residuals_after is not None else "after (no finding: unchanged)"
     for i, a in enumerate("xyz"):
-        for j, (res, label) in enumerate(((d.residuals_before, "before"), (d.residuals_after, "after"))):
+        for j, (res, label) in enumerate(((d.residuals_before, "before (baseline)"),
+                                          (d.residuals_after, after_label))):
             ax = axes[i, j]
-            if res is None:
-                res = d.residuals_before
-                label = "after (no finding: unchanged)"
-            for dirn, mk in ((1, "^"), (-1, "v")):
+            res = d.residuals_before if res is None else res
+            for dirn, mk, col in ((1, "^", "tab:blue"), (-1, "v", "tab:orange")):
                 m = plan.direction[:, i] == dirn
-                ax.scatter(t[m], display(res[m, i], "mm", "um"), s=9, marker=mk,
-                           label=f"{a} approached {'+' if dirn > 0 else '-'}")
+                if m.any():
+                    ax.scatter(t[m], display(res[m, i], "mm", "um"), s=9, marker=mk, color=col,
+                               label=f"approached from {'+' if dirn > 0 else '-'}{a}")
             ax.axhline(0, color="k", lw=0.5)
-            ax.set_ylabel(f"{a} residual [{pretty('um')}]")
+            if j == 0:
+                ax.set_ylabel(f"{a} residual [{pretty('um')}]")
             if i == 0:
                 ax.set_title(f"residuals {label}")
             if i == 2:
-                ax.set_xlabel("time [h]")
-            ax.legend(fontsize=7, loc="upper right")
-    fig.suptitle(f"{d.recording}: machine-frame residuals before and after the findings")
+                ax.set_xlabel("time since the start [h]")
+            ax.legend(fontsize=7, loc="best", framealpha=0.85)
+    fig.suptitle(f"{mpl_escape(d.recording)}: machine-frame residuals before and after")
     fig.tight_layout()
-    fig.savefig(folder / "residuals.png", dpi=110)
+    fig.savefig(path, dpi=110)
     plt.close(fig)
-    lines = [f"# Diagnosis of {d.recording}", "", "```", diagnosis_text(d), "```", "",
-             "![residuals before and after](residuals.png)", ""]
+
+
+def diagnosis_report(d, rec, folder) -> Path:
+    """diagnosis.md and a self-contained diagnosis.html (figures inlined) with residual plots before and after
+    (PNG beside them).  Returns the Markdown path."""
+    import time
+
+    from . import __version__
+
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    _residual_figure(d, rec, folder / "residuals.png")
+    doc = _Doc()
+    doc.h(1, "Diagnosis of ", U(d.recording))
+    doc.p(*_verdict(d), strong=True)
+    doc.h(2, "Recording")
+    plan = rec.plan
+    sensors = "; ".join(f"{s.column} on {s.attached_to}" for s in getattr(plan, "sensors", []) or []) or "none"
+    doc.table(["item", "value"], [
+        ["recording", (U(d.recording),)],
+        ["folder", (U(str(getattr(rec, "path", None) or "-")),)],
+        ["description", (U(getattr(rec, "description", "") or "-"),)],
+        ["machine", (U(rec.machine),)],
+        ["points, runs", f"{len(plan)}, {len(set(plan.run.tolist()))}"],
+        ["temperature sensors", (U(sensors),)],
+        ["candidates tested", (U(", ".join(d.settings.get("candidates", []))),)],
+        ["family-wise level (Bonferroni), fit gate level", f"{d.settings['alpha']:g}, {d.settings.get('gate_alpha', 0.01):g}"],
+        ["mtbudget, report written", f"{__version__}, {time.strftime('%Y-%m-%d %H:%M %Z')}"],
+    ])
+    doc.h(2, "Fit before and after")
+    doc.p("χ²/dof is the chi-square of the whitened residuals per degree of freedom (1 when the model explains "
+          "the recording within its stated noise); RMS of the residuals in the machine frame.")
+    b, fin = d.baseline, d.final
+    doc.table(["model", "χ²/dof", "degrees of freedom", "RMS residual", "converged"],
+              [["baseline (rigid-body model)", f"{b['chi2_per_dof']:.3f}", str(b["dof"]), _q(b["rms"], 3),
+                "yes" if b.get("converged", True) else "NO"],
+               ["final (with the findings)", f"{fin['chi2_per_dof']:.3f}", str(fin["dof"]), _q(fin["rms"], 3),
+                "yes" if fin.get("converged", True) else "NO"]])
+    doc.h(2, "Findings")
     if d.findings:
-        lines += ["| effect | axis | estimate | uncertainty (k=1) | p (Bonferroni) | chi2/dof after | confounded with |",
-                  "| --- | --- | --- | --- | --- | --- | --- |"]
+        rows = []
         for f in d.findings:
             x = f.to_dict()
             unit = pretty(f.unit)
-            lines.append(f"| {f.candidate.effect} | {f.candidate.axis or '-'} | {_fmt_value(x['estimate']['value'])} {unit} | "
-                         f"{_fmt_value(x['uncertainty']['value'], 2)} {unit} | {f.evidence['p_value_bonferroni']:.2g} | "
-                         f"{f.after['chi2_per_dof']:.3f} | {', '.join(c['effect'] for c in f.confounded_with) or '-'} |")
-    (folder / "diagnosis.md").write_text("\n".join(lines) + "\n")
+            conf = [c for c in f.confounded_with]
+            cw = []
+            for c in conf:
+                cw += list(_label(c["effect"], c["axis"])) + [", "]
+            rows.append([_label(f.candidate.effect, f.candidate.axis), (U(f.candidate.plugin or "-"),),
+                         f"{_fmt_value(x['estimate']['value'])} {unit}", f"{_fmt_value(x['uncertainty']['value'], 2)} {unit}",
+                         f"{f.evidence['p_value_bonferroni']:.2g}", f"{f.after['chi2_per_dof']:.3f}",
+                         tuple(cw[:-1]) if cw else "-"])
+        doc.table(["effect", "plugin", "estimate", "standard uncertainty (k = 1)", "p-value (Bonferroni)",
+                   "χ²/dof after", "confounded with"], rows)
+        for f in d.findings:
+            doc.p(*_label(f.candidate.effect, f.candidate.axis), ": ", U(f.candidate.description))
+            if f.confounded_with:
+                doc.p("Confounded: the data fit the alternatives about as well. ", U(" ".join(f.hints) or GENERIC_HINT))
+    else:
+        doc.p(f"No effect of the library is significant and plausible ({len(d.considered)} candidates tested at a "
+              f"family-wise level of {d.settings['alpha']:g}).")
+    _noise_section(doc, getattr(d, "noise", None) or {})
+    if getattr(d, "unexplained", None) is not None:
+        _unexplained_section(doc, d.unexplained)
+    if d.skipped or d.untestable:
+        doc.h(2, "Candidates not tested")
+        doc.ul([("skipped ", *_label(s["effect"], s["axis"]), ": ", U(s["reason"])) for s in d.skipped]
+               + [("not testable ", *_label(s["effect"], s["axis"]), ": ", U(s["reason"])) for s in d.untestable])
+    doc.h(2, "Figures")
+    doc.fig("residuals.png", "Machine-frame residuals (µm) against time (h), before and after the findings, per axis; "
+                             "triangles up and down: approached from the + and - side.")
+    (folder / "diagnosis.md").write_text(doc.markdown() + "\n")
+    (folder / "diagnosis.html").write_text(doc.html(folder, ("Diagnosis of ", U(d.recording))))
     return folder / "diagnosis.md"

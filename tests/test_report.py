@@ -67,3 +67,68 @@ def test_html_renders_in_headless_chromium(report_dir, tmp_path):
     assert int(re.search(r'data-tables="(\d+)"', dom).group(1)) >= 3
     assert "tracker_noise" in dom
     assert "Uncaught" not in out.stderr
+
+
+# --------------------------------------------------------------------------- screenshots (issue 18)
+def _browser(exe, tmp_path, *args):
+    cmd = [exe, "--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
+           "--disable-background-networking", "--disable-component-update", "--disable-sync", "--hide-scrollbars",
+           "--force-device-scale-factor=1", f"--user-data-dir={tmp_path / 'profile'}", "--virtual-time-budget=5000",
+           *args]
+    out = subprocess.run(cmd, capture_output=True, text=True, timeout=120, check=False)
+    assert out.returncode == 0, out.stderr[-2000:]
+    return out
+
+
+def _screenshot(page: Path, png: Path, tmp_path, width=1280, height=9000):
+    """Render ``page`` in headless Chromium to ``png``; the pixels as an (H, W, 3) array of 0-255 values, and the
+    positions of the page's figures (x, y, w, h) when the page records them (the diagnosis report does)."""
+    from matplotlib.image import imread
+
+    exe = _chromium()
+    if exe is None:
+        pytest.skip("no Chromium on this machine: install Debian's 'chromium' (.ci/run does) to take the screenshots")
+    size = f"--window-size={width},{height}"
+    _browser(exe, tmp_path, size, f"--screenshot={png}", page.as_uri())
+    dom = _browser(exe, tmp_path, size, "--dump-dom", page.as_uri()).stdout
+    m = re.search(r'data-figures="([^"]*)"', dom)
+    rects = [tuple(int(v) for v in r.split(",")) for r in m.group(1).split(";") if r] if m else []
+    img = imread(png)[:, :, :3]
+    return (img * 255).round(), rects
+
+
+def _not_blank(px):
+    non_white = (px < 245).any(axis=2)
+    assert non_white.mean() > 0.02, f"only {non_white.mean():.1%} of the screenshot is not white"
+    # the figures' colours (matplotlib's blue and orange markers, the colour maps): saturated pixels
+    sat = px.max(axis=2) - px.min(axis=2)
+    assert (sat > 100).sum() > 2000, "no coloured pixels: the figures did not render"
+    return non_white
+
+
+def test_run_report_screenshot(report_dir, tmp_path):
+    px, _ = _screenshot(report_dir / "report.html", tmp_path / "report.png", tmp_path)
+    non_white = _not_blank(px)
+    # the four figures are at the end of the page: the last third is mostly plots, not white
+    rows = non_white.mean(axis=1)
+    assert (rows > 0.05).sum() > 1000, "fewer than 1000 rows of the page carry content: figures missing"
+
+
+def test_diagnosis_report_screenshot(tmp_path):
+    from mtbudget.config import example_recording
+    from mtbudget.diagnose import diagnose
+    from mtbudget.recording import read_recording
+    from mtbudget.report_diagnosis import diagnosis_report
+
+    rec = read_recording(example_recording("thermal_x"))
+    diagnosis_report(diagnose(rec), rec, tmp_path / "rep")
+    px, rects = _screenshot(tmp_path / "rep" / "diagnosis.html", tmp_path / "diagnosis.png", tmp_path, height=4000)
+    _not_blank(px)
+    assert len(rects) == 1, rects
+    for x, y, w, h in rects:
+        assert w > 500 and h > 300, (x, y, w, h)  # the figure is shown at a readable size
+        assert y + h <= px.shape[0], "the figure lies below the screenshot: raise its height"
+        region = px[y:y + h, x:x + w]
+        assert region.std() > 20, "the figure's region is uniform: the image did not render"
+        sat = region.max(axis=2) - region.min(axis=2)
+        assert (sat > 100).mean() > 0.002, "no markers in the figure's region"
