@@ -193,8 +193,8 @@ def conformance(res: RunResult, tolerance_um: float, characteristic: str = "comp
                 "rule": f"ISO 14253-1 guarded acceptance: conformance proven when the upper end of the {percent(p)} coverage "
                         f"interval is within the tolerance; non-conformance when its lower end exceeds it",
                 "tolerance": T, "unit": "um", "coverage": p, "interval": [lo, hi], "verdict": verdict,
-                "statement": f"The largest error over the mesh after compensation lies in [{lo:.1f}, {hi:.1f}] um "
-                             f"({percent(p)} coverage): against a tolerance of {T:g} um the compensated machine {verdict}."}
+                "statement": f"The largest error over the mesh after compensation lies in [{lo:.1f}, {hi:.1f}] µm "
+                             f"({percent(p)} coverage): against a tolerance of {T:g} µm the compensated machine {verdict}."}
     pts = res.points()
     if not pts or "interval" not in pts[0]:
         raise ValueError("the per-point intervals are not available for this run")
@@ -212,7 +212,7 @@ def conformance(res: RunResult, tolerance_um: float, characteristic: str = "comp
             "conforming": int(inside.sum()), "nonconforming": int(outside.sum()),
             "undecided": int(n - inside.sum() - outside.sum()), "of": n,
             "verdict": "conforms" if inside.all() else "does not conform" if outside.any() else "undecided",
-            "statement": (f"Tolerance +-{T:g} um on each axis at each point: conformance proven at {int(inside.sum())} of "
+            "statement": (f"Tolerance ±{T:g} µm on each axis at each point: conformance proven at {int(inside.sum())} of "
                           f"{n} point-axes, non-conformance at {int(outside.sum())}, undecided at "
-                          f"{int(n - inside.sum() - outside.sum())} (largest guard band U = {U.max():.1f} um, "
+                          f"{int(n - inside.sum() - outside.sum())} (largest guard band U = {U.max():.1f} µm, "
                           f"{percent(p)} coverage).")}

@@ -39,7 +39,7 @@ def result_json(res: RunResult) -> dict:
         out["validation"] = out["points_summary"].get("clause8")
     if res.guf is not None:
         out["guf_points"] = {"estimate": np.asarray(res.guf["estimate"]).tolist(), "cov": np.asarray(res.guf["cov"]).tolist(),
-                             "unit": "um", "cov_unit": "um^2"}
+                             "unit": "um", "cov_unit": "um**2"}
     return out
 
 
@@ -238,21 +238,33 @@ def _figures(res: RunResult, folder):
         c = res.convergence
         n = [x["trials"] for x in c]
         fig, ax = plt.subplots(1, 2, figsize=(11, 3.5))
-        ax[0].plot(n, [x["mean"] for x in c], label="mean")
-        ax[0].plot(n, [x["low"] for x in c], "--", label="interval low")
-        ax[0].plot(n, [x["high"] for x in c], "--", label="interval high")
-        ax[1].plot(n, [x["std"] for x in c], color="k", label="standard deviation over trials")
+        ax[0].plot(n, [x["mean"] for x in c], "o-", ms=3, label="mean")
+        ax[0].plot(n, [x["low"] for x in c], "v--", ms=3, label="interval low")
+        ax[0].plot(n, [x["high"] for x in c], "^--", ms=3, label="interval high")
+        ax[1].plot(n, [x["std"] for x in c], "o-", ms=3, color="k", label="standard deviation over trials")
+        if len(n) < 2:  # one block: a point, not a curve; say so instead of drawing an empty axis
+            for a in ax:
+                a.text(0.5, 0.9, "one block only: run more trials to see convergence", transform=a.transAxes,
+                       ha="center", fontsize=8, color="#555")
         for a in ax:
             a.set_xlabel("trials")
             a.legend(fontsize=7)
         ax[0].set_ylabel(f"{MAIN_OUTPUT} [{um}]")
         ax[1].set_ylabel(f"standard deviation of {MAIN_OUTPUT} [{um}]")
         fig.suptitle("convergence of the Monte Carlo estimate")
-        fig.tight_layout()
+        fig.tight_layout(rect=(0, 0, 1, 0.94))
         figs["convergence"] = folder / "convergence.png"
         fig.savefig(figs["convergence"], dpi=100)
         plt.close(fig)
     return figs
+
+
+def _span(v, sep=" to ") -> str:
+    """A configuration value as a person writes it: ["800 mm", "1200 mm"] -> 800 mm to 1200 mm; a vector in brackets."""
+    if isinstance(v, (list, tuple)):
+        text = sep.join(_span(x) for x in v)
+        return f"({text})" if sep != " to " else text
+    return md_escape(str(v))
 
 
 def provenance_lines(res: RunResult) -> list:
@@ -271,8 +283,9 @@ def provenance_lines(res: RunResult) -> list:
              f"| configuration | {md_escape(res.spec.get('config_path') or '(built in code)')} "
              f"({md_escape(cfg.get('name', '-'))}; sha256 {digest}) |",
              f"| machine | {cfg.get('machine', 'XFYZ')} |",
-             f"| mesh | x {mesh.get('x')}, y {mesh.get('y')}, z {mesh.get('z')}, step {mesh.get('step', '-')} |",
-             f"| tool offset of the statement | {(cfg.get('plan', {}).get('tools') or [['0 mm'] * 3])[0]} |",
+             f"| mesh | x {_span(mesh.get('x'))}, y {_span(mesh.get('y'))}, z {_span(mesh.get('z'))}, "
+             f"step {_span(mesh.get('step', '-'))} |",
+             f"| tool offset of the statement | {_span((cfg.get('plan', {}).get('tools') or [['0 mm'] * 3])[0], ', ')} |",
              f"| tracker pose | D {tr.get('D')}, L {tr.get('L')}, H {tr.get('H')}, a {tr.get('a')}, b {tr.get('b')}, d {tr.get('d')} |",
              f"| sources drawn | {', '.join(res.spec.get('sources') or []) or 'none'} |",
              f"| trials, seed, coverage | {res.trials}, {res.spec.get('seed')}, {percent(res.coverage)} |",
@@ -314,11 +327,11 @@ def write_html(md: list, folder: Path, path: Path, title: str):
     body = []
     for line in md:
         if line.startswith("# "):
-            body.append(f"<h1>{html.escape(line[2:])}</h1>")
+            body.append(f"<h1>{html.escape(_unescape_md(line[2:]))}</h1>")
         elif line.startswith("### "):
-            body.append(f"<h3>{html.escape(line[4:])}</h3>")
+            body.append(f"<h3>{html.escape(_unescape_md(line[4:]))}</h3>")
         elif line.startswith("## "):
-            body.append(f"<h2>{html.escape(line[3:])}</h2>")
+            body.append(f"<h2>{html.escape(_unescape_md(line[3:]))}</h2>")
         elif line.startswith("| ---"):
             continue
         elif line.startswith("|"):
