@@ -47,7 +47,7 @@ def default_config_path() -> Path:
 
 
 def example_recording(name: str) -> Path:
-    """Path of a bundled example recording (null, thermal_x, reversal_y, tracker_drift)."""
+    """Path of a bundled example recording (null, thermal_x, reversal_y, tracker_drift, four_stations)."""
     p = Path(str(resources.files("mtbudget") / "data" / "recordings" / name))
     if not p.is_dir():
         raise ConfigError(f"no bundled example recording {name!r}")

@@ -32,6 +32,9 @@ except ModuleNotFoundError:  # pragma: no cover
     import tomli as tomllib
 
 FORMAT = "mtbudget-recording/1"
+#: several stations (docs/recording-format.md, "Format 2: several stations")
+FORMAT2 = "mtbudget-recording/2"
+FORMATS = (FORMAT, FORMAT2)
 _HEADER = re.compile(r"^\s*([A-Za-z_][A-Za-z0-9_]*)\s*(?:\[(.*)\])?\s*$")
 _NAME = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*$")
 
@@ -77,7 +80,17 @@ UNCERTAINTIES = {
 ATTACHED_TO = ("x axis", "y axis", "z axis", "air")
 #: keys of recording.toml this version reads (others are kept in Recording.extra)
 KNOWN_KEYS = ("format", "name", "machine", "description", "reference_temperature", "tracker", "machine_tool",
-              "sensors", "scales", "ignore_columns")
+              "sensors", "scales", "ignore_columns", "stations")
+#: format 2 only: the columns a recording from several stations adds
+COLUMNS_V2 = {"station": None, "lt_range": ("[length]", "mm")}
+#: a station's measurement kind: "xyz" (a laser tracker: range and two angles, Cartesian in its own frame) or
+#: "range" (a tracking interferometer: a distance with an unknown dead-path offset)
+STATION_KINDS = ("xyz", "range")
+#: the keys of a [[stations]] table
+STATION_KEYS = ("id", "kind", "angular", "distance", "distance_per_length", "description")
+#: distinct measured positions a station needs for its own unknowns: an xyz station's pose (6) needs 3 points
+#: off one line, a range station's position and dead path (4) need 4 ranges off one plane
+MIN_STATION_POINTS = {"xyz": 3, "range": 4}
 #: plausible nominal CTE of an axis scale (1/K): glass ceramics and Invar near 0, steel 11.5, aluminium 23
 CTE_RANGE = (-2e-6, 30e-6)
 
@@ -90,9 +103,40 @@ _INT_CELL = re.compile(r"\s*[+-]?[0-9]+\s*")
 _FRACTION_CELL = re.compile(r"[0-9]+(?:[eE][+-]?[0-9]+)?\s*")
 
 
+@dataclass(frozen=True)
+class Station:
+    """One station of a recording: its id (the ``station`` column), its kind and its stated uncertainties (k = 1).
+
+    ``angular`` is None for a ``range`` station (it measures no angle); ``distance`` (mm) and
+    ``distance_per_length`` (mm/mm) state u_r = distance + distance_per_length * r.
+    """
+
+    id: int
+    kind: str  # "xyz" or "range"
+    angular: float | None  # rad
+    distance: float  # mm
+    distance_per_length: float  # mm/mm
+    description: str = ""
+
+    @property
+    def unknowns(self) -> int:
+        """Its own unknowns: a pose (6) for an xyz station, a position and a dead-path offset (4) for a range one."""
+        return 6 if self.kind == "xyz" else 4
+
+    @property
+    def label(self) -> str:
+        return f"station {self.id} ({self.kind})"
+
+
 @dataclass
 class Recording:
-    """A verification recording in internal units."""
+    """A verification recording in internal units.
+
+    Format 2 (several stations) adds ``station`` (M,) the station of every row, ``stations`` the
+    declared :class:`Station` tables and ``lt_range`` (M,) the range of every row of a range station;
+    ``lt`` then holds each xyz row in its own station's frame, NaN on the rows of range stations (and
+    ``lt_range`` is NaN on the rows of xyz stations).  A format 1 recording is one xyz station.
+    """
 
     name: str
     machine: str
@@ -109,9 +153,31 @@ class Recording:
     #: columns of points.csv left out of the model: listed in ignore_columns, free text (no unit), or a
     #: quantity no [[sensors]] table declares (its cells checked as numbers all the same)
     unused_columns: list = field(default_factory=list)
+    station: np.ndarray | None = None  # (M,) int: the station of every row (format 2)
+    stations: list = field(default_factory=list)  # [Station]: format 2's [[stations]]; empty: one xyz station
+    lt_range: np.ndarray | None = None  # (M,) mm: the range of every row of a range station, else NaN
+    format_version: int = 1
 
     def __len__(self):
         return len(self.plan)
+
+    def station_list(self) -> list:
+        """The stations (a format 1 recording: one xyz station, id 1, with the [tracker] uncertainties)."""
+        if self.stations:
+            return list(self.stations)
+        return [Station(1, "xyz", self.angular, self.distance, self.distance_per_length)]
+
+    def station_ids(self) -> np.ndarray:
+        """(M,) the station of every row."""
+        if self.station is None:
+            return np.full(len(self), self.station_list()[0].id, dtype=np.int64)
+        return self.station
+
+    @property
+    def several_stations(self) -> bool:
+        """True when the recording is more than one xyz station (several stations, or any range station)."""
+        st = self.station_list()
+        return len(st) > 1 or st[0].kind != "xyz"
 
     def fixed_inputs(self) -> dict:
         """What the identification takes as known: the nominal expansion of the stated scales (``[scales]``)."""
@@ -233,8 +299,9 @@ def _sensors(meta, path) -> list:
         if not _NAME.match(column):
             raise RecordingError(f"{column!r:.60} is not a column name (letters, digits and _; for example \"T_x\")",
                                  path, key=f"{where}.column")
-        if column in COLUMNS:
-            raise RecordingError(f"{column!r} is a required column of points.csv, not a sensor", path, key=f"{where}.column")
+        if column in COLUMNS or column in COLUMNS_V2:
+            raise RecordingError(f"{column!r} is a column of points.csv mtbudget reads, not a sensor", path,
+                                 key=f"{where}.column")
         if column in seen:
             raise RecordingError(f"column {column!r} is declared by two [[sensors]] tables", path, key=f"{where}.column")
         seen.add(column)
@@ -290,12 +357,17 @@ def _scales(meta, path, sensors) -> dict:
 
 
 def read_recording(folder, *, max_rows: int = MAX_ROWS, max_columns: int = MAX_COLUMNS,
-                   encoding: str = "utf-8") -> Recording:
+                   encoding: str = "utf-8", several_stations: bool = False) -> Recording:
     """Read a recording folder; raise :class:`RecordingError` on any violation.
 
     ``max_rows`` and ``max_columns`` bound points.csv (checked before the rows are parsed);
     ``encoding`` reads a points.csv that is not UTF-8 (an ASCII-compatible encoding such as
     ``"latin-1"`` or ``"cp1252"``); a UTF-8 byte order mark is always accepted.
+
+    ``several_stations``: a format 2 recording of more than one xyz station (several stations, or a
+    range station) is refused unless the caller says it identifies several stations
+    (:mod:`mtbudget.multistation`): a one-station consumer would otherwise fit every station's frame
+    as one.  Format 1 recordings, and format 2 with one xyz station, read either way.
     """
     folder = Path(folder)
     toml_path = folder / "recording.toml"
@@ -310,8 +382,10 @@ def read_recording(folder, *, max_rows: int = MAX_ROWS, max_columns: int = MAX_C
     fmt = meta.get("format")
     if fmt is None:
         raise RecordingError(f"missing 'format' key; expected format = \"{FORMAT}\"", toml_path, key="format")
-    if fmt != FORMAT:
-        raise RecordingError(f"unsupported format {fmt!r:.60}; this version reads {FORMAT!r}", toml_path, key="format")
+    if fmt not in FORMATS:
+        raise RecordingError(f"unsupported format {fmt!r:.60}; this version reads {FORMAT!r} and {FORMAT2!r}",
+                             toml_path, key="format")
+    version = FORMATS.index(fmt) + 1
     tr = _table(meta, "tracker", toml_path)
     mt = _table(meta, "machine_tool", toml_path)
     angular = _uncertainty(tr, "tracker.angular", toml_path)
@@ -322,11 +396,14 @@ def read_recording(folder, *, max_rows: int = MAX_ROWS, max_columns: int = MAX_C
                      dim="[temperature]", unit="K", absolute_temperature=True)
     sensors = _sensors(meta, toml_path)
     scales = _scales(meta, toml_path, sensors)
+    if version == 1 and "stations" in meta:
+        raise RecordingError(f"[[stations]] needs format = \"{FORMAT2}\" (several stations)", toml_path, key="stations")
+    stations = _stations(meta, toml_path, angular, distance, dpl) if version == 2 else []
     ignored = meta.get("ignore_columns", [])
     if not isinstance(ignored, list) or not all(isinstance(c, str) for c in ignored):
         raise RecordingError("expected a list of column names", toml_path, key="ignore_columns")
     for c in ignored:
-        if c in COLUMNS or c in {s.column for s in sensors}:
+        if c in COLUMNS or c in COLUMNS_V2 or c in {s.column for s in sensors}:
             raise RecordingError(f"{c!r} is a column mtbudget reads; it cannot be ignored", toml_path, key="ignore_columns")
     machine = _string(meta, "machine", toml_path, "XFYZ")
     name = _string(meta, "name", toml_path, folder.name)
@@ -340,9 +417,25 @@ def read_recording(folder, *, max_rows: int = MAX_ROWS, max_columns: int = MAX_C
 
     try:
         columns, temps, unused = _read_points(csv_path, sensors, ignored=set(ignored), max_rows=max_rows,
-                                              max_columns=max_columns, encoding=encoding)
+                                              max_columns=max_columns, encoding=encoding, stations=stations or None,
+                                              toml_path=toml_path)
     except OSError as exc:
         raise RecordingError(f"cannot read the file ({exc.strerror or type(exc).__name__})", csv_path) from None
+    n = len(columns["point"])
+    lt_cols = [columns.get(c, np.full(n, np.nan)) for c in ("lt_x", "lt_y", "lt_z")]
+    station = lt_range = None
+    if version == 2:
+        station = columns["station"].astype(np.int64) if "station" in columns else np.full(n, stations[0].id, np.int64)
+        lt_range = columns.get("lt_range", np.full(n, np.nan))
+        if len(stations) > 1 or stations[0].kind != "xyz":
+            if not several_stations:
+                kinds = ", ".join(f"{sum(s.kind == k for s in stations)} {k}" for k in STATION_KINDS
+                                  if any(s.kind == k for s in stations))
+                raise RecordingError(f"{len(stations)} station{'s' if len(stations) > 1 else ''} ({kinds}): this "
+                                     "command reads one-station recordings only; identify several stations with "
+                                     "`mtbudget identify` (mtbudget.multistation)", toml_path, key="stations")
+        else:  # one xyz station: a format 1 recording with that station's uncertainties
+            angular, distance, dpl = stations[0].angular, stations[0].distance, stations[0].distance_per_length
     plan = Plan(
         point=columns["point"].astype(np.int64),
         run=columns["run"].astype(np.int64),
@@ -358,11 +451,62 @@ def read_recording(folder, *, max_rows: int = MAX_ROWS, max_columns: int = MAX_C
         name=name,
         machine=machine,
         plan=plan,
-        lt=np.stack([columns["lt_x"], columns["lt_y"], columns["lt_z"]], axis=1),
+        lt=np.stack(lt_cols, axis=1),
         angular=angular, distance=distance, distance_per_length=dpl, repeatability=repeat,
         reference_temperature=tref, description=description,
         extra={k: v for k, v in meta.items() if k not in KNOWN_KEYS}, path=folder, unused_columns=unused,
+        station=station, stations=stations, lt_range=lt_range, format_version=version,
     )
+
+
+def _stations(meta, path, angular, distance, dpl) -> list:
+    """Format 2's ``[[stations]]``: id, kind and the uncertainties that override ``[tracker]``."""
+    raw = meta.get("stations")
+    if raw is None:
+        raise RecordingError("format 2 needs at least one [[stations]] table (id and kind)", path, key="stations")
+    if not isinstance(raw, list) or not raw or not all(isinstance(s, dict) for s in raw):
+        raise RecordingError("expected one or more [[stations]] tables (id and kind)", path, key="stations")
+    out, seen = [], {}
+    for i, s in enumerate(raw):
+        where = f"stations[{i}]"
+        unknown = sorted(set(s) - set(STATION_KEYS))
+        if unknown:
+            raise RecordingError(f"unknown key {unknown[0]!r:.40}; a [[stations]] table has {', '.join(STATION_KEYS)}",
+                                 path, key=f"{where}.{unknown[0]}")
+        for key in ("id", "kind"):
+            if key not in s:
+                raise RecordingError(f"missing key {key!r}; each [[stations]] table needs 'id' and 'kind'", path,
+                                     key=f"{where}.{key}")
+        sid = s["id"]
+        if isinstance(sid, bool) or not isinstance(sid, int) or not 0 <= sid <= MAX_INDEX:
+            raise RecordingError(f"expected a whole number from 0 to {MAX_INDEX} (the station column's value), got "
+                                 f"{type(sid).__name__} {sid!r:.40}", path, key=f"{where}.id")
+        if sid in seen:
+            raise RecordingError(f"station {sid} is declared twice (also stations[{seen[sid]}])", path, key=f"{where}.id")
+        seen[sid] = i
+        kind = s["kind"]
+        if not isinstance(kind, str) or kind not in STATION_KINDS:
+            raise RecordingError(f"{kind!r:.40}: expected kind = \"xyz\" (a laser tracker) or \"range\" (a tracking "
+                                 "interferometer)", path, key=f"{where}.kind")
+        description = _string(s, "description", path, "") if "description" in s else ""
+        values = {}
+        for name, default in (("angular", angular), ("distance", distance), ("distance_per_length", dpl)):
+            key = f"{where}.{name}"
+            if name not in s:
+                values[name] = default
+                continue
+            if name == "angular" and kind == "range":
+                raise RecordingError("a range station measures no angle; state its distance and distance_per_length "
+                                     "only", path, key=key)
+            value = _quantity(s[name], path=path, key=key, dim=None, unit=UNCERTAINTIES[f"tracker.{name}"][0],
+                              nonnegative=True)
+            problem = uncertainty_problem(f"tracker.{name}", value)
+            if problem:
+                raise RecordingError(f"{s[name]!r:.60}: {problem}", path, key=key)
+            values[name] = value
+        out.append(Station(sid, kind, None if kind == "range" else values["angular"], values["distance"],
+                           values["distance_per_length"], description))
+    return out
 
 
 class _Lines:
@@ -463,7 +607,7 @@ def _bad_cell(text, path, line, column):
 
 
 def _read_points(csv_path: Path, sensors, *, ignored=frozenset(), max_rows=MAX_ROWS, max_columns=MAX_COLUMNS,
-                 encoding="utf-8"):
+                 encoding="utf-8", stations=None, toml_path=None):
     try:
         ascii_compatible = "\n,.-+0123456789eE".encode(encoding) == b"\n,.-+0123456789eE"
     except (LookupError, UnicodeError):
@@ -476,6 +620,14 @@ def _read_points(csv_path: Path, sensors, *, ignored=frozenset(), max_rows=MAX_R
         raise RecordingError(f"more than {max_rows} data rows; the reader's limit is max_rows={max_rows}", csv_path,
                              line=max_rows + 2)
     temp_cols = {s.column for s in sensors}
+    if stations is None:  # format 1
+        columns, required, optional = COLUMNS, list(COLUMNS), ()
+    else:  # format 2: the measured columns follow the stations' kinds; a cell a row's kind does not use is empty
+        columns = {**COLUMNS, **COLUMNS_V2}
+        kinds = {s.kind for s in stations}
+        required = [c for c in COLUMNS if "xyz" in kinds or not c.startswith("lt_")]
+        required += (["lt_range"] if "range" in kinds else []) + (["station"] if len(stations) > 1 else [])
+        optional = ("lt_x", "lt_y", "lt_z", "lt_range")
     with open(csv_path, "rb") as fh:
         lines = _Lines(fh, csv_path, encoding)
         reader = csv.reader(lines, strict=True)
@@ -483,10 +635,12 @@ def _read_points(csv_path: Path, sensors, *, ignored=frozenset(), max_rows=MAX_R
             header = next(reader, None)
             if header is None:
                 raise RecordingError("empty file (no header line)", csv_path, line=1)
-            parsed, targets, unused = _parse_header(header, csv_path, temp_cols, ignored, max_columns)
+            parsed, targets, unused = _parse_header(header, csv_path, temp_cols, ignored, max_columns, columns,
+                                                    required, stations is not None)
             lines.header = header
             values = {name: array("d") for name in targets.values()}
             appends = [(j, values[name].append, header[j]) for j, name in targets.items()]
+            may_be_empty = {j for j, name in targets.items() if name in optional}
             rows = []  # line number of every data row
             m = len(header)
             for cells in reader:
@@ -500,6 +654,9 @@ def _read_points(csv_path: Path, sensors, *, ignored=frozenset(), max_rows=MAX_R
                     try:
                         v = float(c)
                     except ValueError:
+                        if j in may_be_empty and not c.strip():
+                            append(math.nan)  # a cell this row's station kind does not use (checked below)
+                            continue
                         raise _bad_cell(c, csv_path, line, h) from None
                     if v - v != 0.0 or not c.isascii() or "_" in c:
                         raise _bad_cell(c, csv_path, line, h)
@@ -513,15 +670,63 @@ def _read_points(csv_path: Path, sensors, *, ignored=frozenset(), max_rows=MAX_R
         raise RecordingError(f"{len(rows)} data row{'s' if len(rows) > 1 else ''}; a recording needs at least {MIN_ROWS} "
                              "(the tracker pose alone has 6 unknowns)", csv_path, line=rows[-1])
     out, temps = _convert(parsed, {k: np.frombuffer(v, dtype=float) for k, v in values.items()}, rows, csv_path,
-                          temp_cols)
+                          temp_cols, columns)
+    if stations is not None:
+        _check_stations(out, parsed, rows, csv_path, stations, toml_path)
     return out, temps, unused
+
+
+def _check_stations(out, parsed, rows, csv_path, stations, toml_path):
+    """Format 2: every row's station declared, its cells those of its kind, enough points per station."""
+    n = len(rows)
+    by_id = {s.id: s for s in stations}
+    sid = out["station"] if "station" in out else np.full(n, stations[0].id, float)
+    known = np.isin(sid, list(by_id))
+    if not known.all():
+        k = int(np.flatnonzero(~known)[0])
+        raise RecordingError(f"station {int(sid[k])} is not declared in recording.toml (its [[stations]] ids: "
+                             f"{', '.join(str(s.id) for s in stations)})", csv_path, line=rows[k],
+                             column=parsed["station"][2])
+    nan = np.full(n, np.nan)
+    lt = {c: out.get(c, nan) for c in ("lt_x", "lt_y", "lt_z", "lt_range")}
+    is_range = np.isin(sid, [s.id for s in stations if s.kind == "range"])
+    for c, v in lt.items():
+        uses = is_range if c == "lt_range" else ~is_range
+        extra = np.flatnonzero(~uses & ~np.isnan(v))
+        if extra.size:
+            k = int(extra[0])
+            st = by_id[int(sid[k])]
+            what = ("an xyz station (a laser tracker: lt_x, lt_y, lt_z in its own frame)" if st.kind == "xyz" else
+                    "a range station (a tracking interferometer: lt_range only)")
+            raise RecordingError(f"station {st.id} is {what}, but this row has a {c} value; one row is one kind of "
+                                 f"measurement: leave the cell empty", csv_path, line=rows[k], column=parsed[c][2])
+        missing = np.flatnonzero(uses & np.isnan(v))
+        if missing.size:
+            k = int(missing[0])
+            raise RecordingError(f"empty cell: station {int(sid[k])} is {'a range' if c == 'lt_range' else 'an xyz'} "
+                                 f"station and measures {c}", csv_path, line=rows[k],
+                                 column=parsed[c][2] if c in parsed else c)
+    where = np.stack([out["x"] + out["tool_x"], out["y"] + out["tool_y"], out["z"] + out["tool_z"]], axis=1)
+    for i, st in enumerate(stations):
+        mine = np.flatnonzero(sid == st.id)
+        if not mine.size:
+            raise RecordingError(f"station {st.id} measures no row of points.csv; remove its [[stations]] table",
+                                 toml_path, key=f"stations[{i}].id")
+        distinct = len(np.unique(where[mine], axis=0))
+        need = MIN_STATION_POINTS[st.kind]
+        if distinct < need:
+            own = "pose (6 unknowns)" if st.kind == "xyz" else "position and dead-path offset (4 unknowns)"
+            raise RecordingError(f"station {st.id} ({st.kind}) measures {distinct} distinct point"
+                                 f"{'s' if distinct != 1 else ''}; its {own} needs at least {need}", csv_path,
+                                 line=rows[int(mine[-1])], column=parsed["station"][2] if "station" in parsed else None)
 
 
 def _unit_names(u) -> list:
     return [name for name, _ in Q_(1.0, u).unit_items()]
 
 
-def _parse_header(header, csv_path, temp_cols, ignored, max_columns):
+def _parse_header(header, csv_path, temp_cols, ignored, max_columns, columns=COLUMNS, required=None,
+                  format2=False):
     """{name: (index, unit, header text)} of the columns, {index: name} of the columns to parse, and the
     names of the columns left out of the model."""
     if len(header) > max_columns:
@@ -539,23 +744,23 @@ def _parse_header(header, csv_path, temp_cols, ignored, max_columns):
         name, unit = m.group(1), m.group(2)
         if name in parsed:
             raise RecordingError(f"column {name!r} appears twice", csv_path, line=1, column=h)
-        if name == "station":
-            raise RecordingError("a station column needs format 2 (several stations), which this version does not "
-                                 "read", csv_path, line=1, column=h)
+        if name in COLUMNS_V2 and not format2:
+            raise RecordingError(f"a {name} column needs format 2 (several stations): format = \"{FORMAT2}\" and "
+                                 "[[stations]] tables in recording.toml", csv_path, line=1, column=h)
         parsed[name] = (j, unit, h)
-    for name in list(COLUMNS) + sorted(temp_cols):
+    for name in list(COLUMNS if required is None else required) + sorted(temp_cols):
         if name not in parsed:
-            unknown = [n for n in parsed if n not in COLUMNS and n not in temp_cols]
+            unknown = [n for n in parsed if n not in columns and n not in temp_cols]
             close = difflib.get_close_matches(name, unknown, n=1, cutoff=0.6)
             hint = f"; the header has {close[0]!r}: a misspelling?" if close else ""
             raise RecordingError(f"missing column {name!r}{hint}", csv_path, line=1, column=name)
     targets, unused = {}, []
     for name, (j, unit, h) in parsed.items():
-        known = name in COLUMNS or name in temp_cols
+        known = name in columns or name in temp_cols
         if name in ignored or (not known and not (unit and unit.strip())):
             unused.append(name)  # free text (or a count nobody reads): left out, not parsed
             continue
-        spec = COLUMNS.get(name, ("[temperature]", "K") if name in temp_cols else None)
+        spec = columns.get(name, ("[temperature]", "K") if name in temp_cols else None)
         if spec is None and known:
             if unit is not None and unit.strip():
                 raise RecordingError(f"column {name!r} is a count or sign and takes no unit, got [{unit}]", csv_path,
@@ -579,7 +784,7 @@ def _parse_header(header, csv_path, temp_cols, ignored, max_columns):
     return parsed, targets, unused
 
 
-def _convert(parsed, values, rows, csv_path, temp_cols):
+def _convert(parsed, values, rows, csv_path, temp_cols, columns=COLUMNS):
     """Columns in internal units, checked against their meaning: indices, signs, time order, plausible ranges."""
     out, temps = {}, {}
 
@@ -589,10 +794,10 @@ def _convert(parsed, values, rows, csv_path, temp_cols):
     lo, hi = ABSOLUTE_TEMPERATURE
     for name, v in values.items():
         unit = parsed[name][1]
-        if COLUMNS.get(name, True) is None:
+        if columns.get(name, True) is None:
             out[name] = v
             continue
-        if name not in COLUMNS and name not in temp_cols:  # an undeclared quantity column, left out of the model
+        if name not in columns and name not in temp_cols:  # an undeclared quantity column, left out of the model
             names = _unit_names(unit)
             if len(names) == 1 and Q_(0.0, unit).to_base_units().magnitude != 0:  # degC, degF: absolute readings
                 bad = np.flatnonzero(~((Q_(v, unit).to("K").magnitude >= lo) & (Q_(v, unit).to("K").magnitude <= hi)))
@@ -600,8 +805,8 @@ def _convert(parsed, values, rows, csv_path, temp_cols):
                     fail(name, bad[0], f"{v[bad[0]]:g} {unit:~P} is not a plausible absolute temperature "
                                        f"({lo:g} K to {hi:g} K)")
             continue
-        conv = np.asarray(Q_(v, unit).to("K" if name in temp_cols else COLUMNS[name][1]).magnitude, float)
-        bad = np.flatnonzero(~np.isfinite(conv))
+        conv = np.asarray(Q_(v, unit).to("K" if name in temp_cols else columns[name][1]).magnitude, float)
+        bad = np.flatnonzero(~np.isfinite(conv) & ~np.isnan(v))  # NaN: an empty cell of format 2, checked later
         if bad.size:
             fail(name, bad[0], f"value {v[bad[0]]:g} is not finite in internal units")
         (temps if name in temp_cols else out)[name] = conv
@@ -609,12 +814,16 @@ def _convert(parsed, values, rows, csv_path, temp_cols):
         bad = np.flatnonzero((out[name] != 1.0) & (out[name] != -1.0))
         if bad.size:
             fail(name, bad[0], f"direction must be +1 or -1, got {out[name][bad[0]]:g}")
-    for name in ("point", "run"):
+    for name in ("point", "run", "station"):
+        if name not in out:
+            continue
         v = out[name]
         bad = np.flatnonzero((v != np.round(v)) | (v < 0) | (v > MAX_INDEX))
         if bad.size:
             fail(name, bad[0], f"must be a whole number from 0 to {MAX_INDEX}, got {v[bad[0]]:.10g}")
-    for name in ("x", "y", "z", "tool_x", "tool_y", "tool_z", "lt_x", "lt_y", "lt_z"):
+    for name in ("x", "y", "z", "tool_x", "tool_y", "tool_z", "lt_x", "lt_y", "lt_z", "lt_range"):
+        if name not in out:
+            continue
         bad = np.flatnonzero(np.abs(out[name]) > MAX_LENGTH)
         if bad.size:
             fail(name, bad[0], f"{out[name][bad[0]]:g} mm is not a plausible position (at most {MAX_LENGTH:g} mm)")
@@ -646,12 +855,16 @@ def _convert(parsed, values, rows, csv_path, temp_cols):
         fail("x", k, f"point {int(out['point'][k])} is at ({', '.join(f'{c:g}' for c in nominal[k])}) mm here and at "
                      f"({', '.join(f'{c:g}' for c in nominal[k0])}) mm on line {rows[k0]}; one point index is one "
                      "nominal position")
-    key = np.stack([out["point"], out["run"], t, out["tool_x"], out["tool_y"], out["tool_z"]], axis=1)
+    key = [out["point"], out["run"], t, out["tool_x"], out["tool_y"], out["tool_z"]]
+    if "station" in out:  # several stations may measure one point at one time (simultaneous interferometers)
+        key.append(out["station"])
+    key = np.stack(key, axis=1)
     _, first, counts = np.unique(key, axis=0, return_index=True, return_counts=True)
     if np.any(counts > 1):
         dup_key = key[first[np.argmax(counts > 1)]]
         idx = np.flatnonzero(np.all(key == dup_key, axis=1))
-        raise RecordingError(f"duplicate row (same point, run, time and tool as line {rows[idx[0]]})",
+        same = "point, run, time, tool and station" if "station" in out else "point, run, time and tool"
+        raise RecordingError(f"duplicate row (same {same} as line {rows[idx[0]]})",
                              csv_path, line=rows[idx[1]], column=parsed["point"][2])
     return out, temps
 
@@ -678,14 +891,20 @@ def _toml_string(text) -> str:
 
 
 def write_recording(rec: Recording, folder, *, truth: dict | None = None) -> Path:
-    """Write ``rec`` as a recording folder (mm, s, degC, 6 decimals for lengths)."""
+    """Write ``rec`` as a recording folder (mm, s, degC, 6 decimals for lengths).
+
+    Format 2 (a ``station`` column, ``[[stations]]`` with each station's stated uncertainties written
+    out) when ``rec`` has several stations or was read as format 2; format 1 otherwise.
+    """
     import json
 
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
     p = rec.plan
+    v2 = rec.format_version == 2 or bool(rec.stations)
+    stations = rec.station_list()
     lines = [
-        f'format = "{FORMAT}"',
+        f'format = "{FORMAT2 if v2 else FORMAT}"',
         f"name = {_toml_string(rec.name)}",
         f"machine = {_toml_string(rec.machine)}",
         f"description = {_toml_string(rec.description)}",
@@ -706,11 +925,29 @@ def write_recording(rec: Recording, folder, *, truth: dict | None = None) -> Pat
     for axis, sc in sorted(p.scales.items()):
         lines += ["", f"[scales.{axis}]", f'cte = "{display(sc.cte, "1/K", "um/(m*K)"):.9g} um/(m*K)"',
                   f'fixed_point = "{sc.fixed_point:.6f} mm"']
+    if v2:
+        for st in stations:
+            lines += ["", "[[stations]]", f"id = {int(st.id)}", f'kind = "{st.kind}"']
+            if st.kind == "xyz":
+                lines.append(f'angular = "{display(st.angular, "rad", "urad"):.9g} urad"')
+            lines += [f'distance = "{display(st.distance, "mm", "um"):.9g} um"',
+                      f'distance_per_length = "{display(st.distance_per_length, "", "um/m"):.9g} um/m"']
+            if st.description:
+                lines.append(f"description = {_toml_string(st.description)}")
     (folder / "recording.toml").write_text("\n".join(lines) + "\n", encoding="utf-8")
     tcols = [s.column for s in p.sensors if s.column in p.temperature]
+    kinds = {st.kind for st in stations}
     header = ["point", "run", "time [s]", "x [mm]", "y [mm]", "z [mm]", "dir_x", "dir_y", "dir_z",
-              "tool_x [mm]", "tool_y [mm]", "tool_z [mm]", "lt_x [mm]", "lt_y [mm]", "lt_z [mm]"]
+              "tool_x [mm]", "tool_y [mm]", "tool_z [mm]"]
+    header += (["station"] if v2 else []) + (["lt_x [mm]", "lt_y [mm]", "lt_z [mm]"] if "xyz" in kinds else [])
+    header += ["lt_range [mm]"] if "range" in kinds else []
     header += [f"{c} [degC]" for c in tcols]
+    sid = rec.station_ids()
+    lt_range = rec.lt_range if rec.lt_range is not None else np.full(len(p), np.nan)
+
+    def cell(v):
+        return "" if np.isnan(v) else f"{v:.6f}"
+
     with open(folder / "points.csv", "w", newline="", encoding="utf-8") as fh:
         fh.write(",".join(header) + "\n")
         for i in range(len(p)):
@@ -718,7 +955,12 @@ def write_recording(rec: Recording, folder, *, truth: dict | None = None) -> Pat
             vals += [f"{v:.6f}" for v in p.nominal[i]]
             vals += [str(int(v)) for v in p.direction[i]]
             vals += [f"{v:.6f}" for v in p.tool[i]]
-            vals += [f"{v:.6f}" for v in rec.lt[i]]
+            if v2:
+                vals.append(str(int(sid[i])))
+            if "xyz" in kinds:
+                vals += [cell(v) for v in rec.lt[i]]
+            if "range" in kinds:
+                vals.append(cell(lt_range[i]))
             vals += [f"{p.temperature[c][i] - 273.15:.4f}" for c in tcols]
             fh.write(_fmt_row(vals) + "\n")
     if truth is not None:

@@ -1,0 +1,470 @@
+"""Identification over several stations at once: multi-station verification and multilateration.
+
+One recording measured from several stations (format 2 of docs/recording-format.md): laser
+trackers (``xyz``: a point in the station's own frame) and tracking interferometers
+(``range``: a distance plus an unknown dead-path offset).  The unknowns are
+
+* the geometric error parameters theta of the machine (the error model of :mod:`mtbudget.model`),
+* for every xyz station its pose (D, L, H in mm, a, b, d in rad; the paper's Eq. 21-22),
+* for every range station its position S (mm, machine/workpiece frame) and dead-path offset o (mm),
+
+and all of them are estimated together by weighted least squares:
+
+    xyz row i of station s:    x_i = R_s^T (P_W(theta)_i - T_s)             covariance Eq. 23 + repeatability
+    range row i of station s:  l_i = |P_W(theta)_i - S_s| + o_s             variance (a + b r)^2 + repeatability^2
+
+(each row is its own positioning of the machine: the repeatability is independent from row to row).
+
+Algorithm: closed-form starts (Kabsch for an xyz station, the linearised multilateration
+|P|^2 - l^2 = 2 P.S - 2 l o + (o^2 - |S|^2) for a range station, theta = 0), then Gauss-Newton
+with the exact analytic Jacobian (the chain's dP_W/dtheta, :func:`mtbudget.tracker.pose_jacobian`,
+the unit beam vector for a range), in scaled unknowns (um and urad), with step halving where the
+cost rises.
+
+Datum (gauge): a rigid motion of the machine points together with every station leaves every
+measurement unchanged.  Whether it is a freedom of the unknowns depends on whether the error model
+can move the machine points rigidly: mtbudget's default model cannot (no constant terms fix the
+origin; the ISO 230-1 convention, no P1 term of a straightness, fixes the orientation), so the datum
+is fixed by the error model's convention, and :attr:`MultiIdentification.gauge` says so for each of the
+six freedoms, tested on the Jacobian.  Every direction the data cannot see (a rigid freedom the
+model can produce, or what the stations' geometry leaves unseen, as a roll that no tool offset shows)
+is a null direction of the whitened Jacobian: it is held at its start value (minimum norm), named
+(ISO 230-1 names), and counted in the rank; the condition number is that of the column-equilibrated
+Jacobian on the identifiable directions.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from . import tracker as lt
+from .errors import IdentificationError
+from .identify import POSE_SCALE, Identifiability, range_basis, scale_vector, whitener
+from .model import MeasurementModel, iso_parameter
+from .recording import Recording, read_recording
+from .units import display, shown_unit
+
+#: scaled unknowns: a station position and a dead-path offset in um (mm -> um)
+UM_PER_MM = 1e3
+RIGID_FREEDOMS = ("translation along X", "translation along Y", "translation along Z", "rotation about X",
+                  "rotation about Y", "rotation about Z")
+
+
+@dataclass
+class MultiIdentification:
+    """The result of one identification over several stations (internal units: mm, rad)."""
+
+    model: MeasurementModel
+    stations: list  # [recording.Station], in the order of the unknowns
+    names: list  # every unknown's name: theta's (internal), then "station 1: D", ...
+    units: list  # "mm" or "rad" per unknown
+    x: np.ndarray  # (n,) all unknowns at the solution
+    cov: np.ndarray  # (n, n) their covariance from the stated uncertainties (not scaled by chi2/dof)
+    chi2: float
+    dof: int
+    rank: int
+    condition: float  # of the column-equilibrated whitened Jacobian on the identifiable directions
+    singular_values: np.ndarray
+    null_space: np.ndarray  # (n, k) orthonormal, scaled unknowns (um, urad)
+    gauge: list  # [{freedom, fixed_by}] the six rigid freedoms of the whole
+    converged: bool
+    iterations: int
+    row_station: np.ndarray  # (M,) station id of every row
+    residual_xyz: np.ndarray  # (M, 3) measured - predicted in the station's frame, mm (NaN on range rows)
+    residual_range: np.ndarray  # (M,) measured - predicted range, mm (NaN on xyz rows)
+    whitened: np.ndarray  # (n_res,) whitened residuals
+    station_chi2: dict = field(default_factory=dict)  # id -> (chi2, number of residuals)
+
+    @property
+    def n_params(self) -> int:
+        return self.model.n_params
+
+    @property
+    def n_unknowns(self) -> int:
+        return len(self.x)
+
+    @property
+    def theta(self) -> np.ndarray:
+        return self.x[: self.n_params]
+
+    @property
+    def cov_theta(self) -> np.ndarray:
+        return self.cov[: self.n_params, : self.n_params]
+
+    @property
+    def u(self) -> np.ndarray:
+        """Standard uncertainty (k = 1) of every unknown (mm, rad)."""
+        return np.sqrt(np.maximum(np.diag(self.cov), 0.0))
+
+    def u_theta(self) -> np.ndarray:
+        return self.u[: self.n_params]
+
+    @property
+    def chi2_per_dof(self) -> float:
+        return self.chi2 / self.dof if self.dof > 0 else float("nan")
+
+    @property
+    def iso_names(self) -> list:
+        return [iso_parameter(n) for n in self.names]
+
+    def _slice(self, sid):
+        k = self.n_params
+        for st in self.stations:
+            if st.id == sid:
+                return slice(k, k + st.unknowns), st
+            k += st.unknowns
+        raise KeyError(f"no station {sid}")
+
+    def station_values(self, sid) -> tuple[np.ndarray, np.ndarray]:
+        """(values, standard uncertainties) of a station's own unknowns: an xyz pose (D, L, H mm; a, b, d rad) or a
+        range station's (S_x, S_y, S_z, dead path) in mm."""
+        sl, _ = self._slice(sid)
+        return self.x[sl].copy(), self.u[sl].copy()
+
+    def identifiable(self, threshold: float = 1e-6) -> np.ndarray:
+        """(n,) False for the unknowns that take part in a non-identifiable direction (held at their start, u = 0)."""
+        if self.null_space.size == 0:
+            return np.ones(self.n_unknowns, bool)
+        return np.linalg.norm(self.null_space, axis=1) <= threshold
+
+    def combinations(self, threshold: float = 0.2, top: int = 6) -> list:
+        """Each non-identifiable direction as [(ISO 230-1 name, weight), ...] (scaled unknowns, unit norm)."""
+        ident = Identifiability(self.iso_names, self.rank, self.n_unknowns, self.singular_values, self.null_space,
+                                True)
+        return ident.combinations(threshold, top)
+
+
+def _names(model: MeasurementModel, stations) -> tuple[list, list]:
+    names, units = list(model.errors.names), list(model.errors.units)
+    for st in stations:
+        if st.kind == "xyz":
+            names += [f"station {st.id}: {n}" for n in lt.POSE_NAMES]
+            units += list(lt.POSE_UNITS)
+        else:
+            names += [f"station {st.id}: {n}" for n in ("S_x", "S_y", "S_z", "dead path")]
+            units += ["mm"] * 4
+    return names, units
+
+
+def _scales(model: MeasurementModel, stations) -> np.ndarray:
+    parts = [scale_vector(model)]
+    for st in stations:
+        parts.append(POSE_SCALE if st.kind == "xyz" else np.full(4, UM_PER_MM))
+    return np.concatenate(parts)
+
+
+def multilaterate(points: np.ndarray, ranges: np.ndarray) -> tuple[np.ndarray, float]:
+    """Closed-form position S (3,) and dead-path offset o of a range station from points (n, 3) and ranges (n,).
+
+    Linearised: |P - c|^2 - l^2 = 2 (P - c).(S - c) - 2 l o + (o^2 - |S - c|^2), linear least squares in
+    (S - c, o, k) about the centroid c; needs 5 points off one plane and one sphere.  Exact for exact data.
+    """
+    P = np.asarray(points, float)
+    rho = np.asarray(ranges, float)
+    c = P.mean(axis=0)
+    Q = P - c
+    A = np.column_stack([2.0 * Q, -2.0 * rho, np.ones(len(rho))])
+    b = (Q * Q).sum(axis=1) - rho * rho
+    scale = np.linalg.norm(A, axis=0)
+    scale[scale == 0] = 1.0
+    sol, _, rank, sv = np.linalg.lstsq(A / scale, b, rcond=None)
+    if rank < 5 or sv[-1] < 1e-10 * sv[0]:
+        raise IdentificationError("the ranges of a station do not fix its position and dead path in closed form "
+                                  "(its points lie on one plane or one sphere, or there are fewer than 5)")
+    sol = sol / scale
+    return sol[:3] + c, float(sol[3])
+
+
+@dataclass
+class _Rows:
+    """One station's rows and what stays fixed during the iterations (whiteners, sigmas)."""
+
+    station: object
+    idx: np.ndarray
+    meas: np.ndarray  # (n, 3) or (n,)
+    weight: np.ndarray  # (n, 3, 3) whiteners or (n,) 1/sigma
+
+
+def _evaluate(model, fixed, rows, x, sv, jacobian=True):
+    """Whitened residuals (n_res,) and, optionally, the whitened Jacobian of the predictions in scaled unknowns."""
+    p = model.n_params
+    theta = x[:p]
+    if jacobian:
+        P_W, J_W = model.machine_points(theta[None], fixed, jacobian=True)
+        P_W, J_W = P_W[0], J_W[0]
+    else:
+        P_W = model.machine_points(theta[None], fixed)[0]
+    res, jac, raw = [], [], []
+    k = p
+    n = len(x)
+    for r in rows:
+        st = r.station
+        P = P_W[r.idx]
+        if st.kind == "xyz":
+            pose = x[k:k + 6]
+            R = lt.rotation(pose[3], pose[4], pose[5])
+            pred = (P - pose[:3]) @ R  # R^T (P - T), row by row
+            e = r.meas - pred
+            raw.append(e)
+            res.append(np.einsum("nij,nj->ni", r.weight, e).ravel())
+            if jacobian:
+                J = np.zeros((len(r.idx), 3, n))
+                J[:, :, :p] = np.einsum("ji,njk->nik", R, J_W[r.idx])
+                J[:, :, k:k + 6] = lt.pose_jacobian(P[None], pose[None])[0]
+                jac.append(np.einsum("nij,njk->nik", r.weight, J).reshape(-1, n))
+            k += 6
+        else:
+            S, o = x[k:k + 3], x[k + 3]
+            d = P - S
+            dist = np.linalg.norm(d, axis=1)
+            e = r.meas - (dist + o)
+            raw.append(e)
+            res.append(r.weight * e)
+            if jacobian:
+                u = d / dist[:, None]
+                J = np.zeros((len(r.idx), n))
+                J[:, :p] = np.einsum("ni,nik->nk", u, J_W[r.idx])
+                J[:, k:k + 3] = -u
+                J[:, k + 3] = 1.0
+                jac.append(r.weight[:, None] * J)
+            k += 4
+    w = np.concatenate(res)
+    if not jacobian:
+        return w, raw, None
+    return w, raw, np.concatenate(jac, axis=0) / sv  # d(whitened prediction)/d(scaled unknowns)
+
+
+def _null_space(A: np.ndarray, rank_tol: float):
+    """rank, singular values, condition number and orthonormal null space (scaled unknowns) of A."""
+    norms = np.linalg.norm(A, axis=0)
+    norms[norms == 0] = 1.0
+    _, s, Vt = np.linalg.svd(A / norms, full_matrices=A.shape[0] < A.shape[1])
+    s_full = np.zeros(A.shape[1])
+    s_full[:s.size] = s
+    rank = int((s_full > rank_tol * s_full[0]).sum())
+    V = Vt.T / norms[:, None]
+    null = V[:, rank:]
+    if null.shape[1]:
+        q, rr = np.linalg.qr(null)
+        null = q[:, np.abs(np.diag(rr)) > 1e-14 * max(np.abs(np.diag(rr)).max(), 1e-300)]
+    return rank, s_full, float(s_full[0] / s_full[rank - 1]) if rank else float("inf"), null
+
+
+def _gauge(model, fixed, stations, P0, J_W) -> list:
+    """The six rigid freedoms of the whole (machine points and every station together): for each, whether the
+    error model can move the machine points that way (then the data cannot see it: a null direction, held at the
+    start by minimum norm) or not (then the error model's convention fixes it)."""
+    M = P0.shape[0]
+    c = P0.mean(axis=0)
+    G = np.zeros((M, 3, 6))
+    G[:, :, :3] = np.eye(3)[None]
+    for a in range(3):
+        e = np.zeros(3)
+        e[a] = 1.0
+        G[:, :, 3 + a] = np.cross(e, P0 - c)
+    A = J_W.reshape(3 * M, -1)
+    Gm = G.reshape(3 * M, 6)
+    if A.shape[1]:
+        coef = np.linalg.lstsq(A, Gm, rcond=None)[0]  # the closest the geometric parameters come to each motion
+        left = np.linalg.norm(A @ coef - Gm, axis=0) / np.linalg.norm(Gm, axis=0)
+    else:
+        left = np.ones(6)
+    out = []
+    for k, name in enumerate(RIGID_FREEDOMS):
+        null = bool(left[k] <= 1e-6)
+        out.append({
+            "freedom": f"{name} of the machine points and every station together",
+            "fixed_by": ("minimum norm: the error model can move the machine points this way, so the data cannot see "
+                         "it (a null direction, named under 'not identifiable'), held at its start" if null else
+                         f"the error model's convention: no combination of its parameters moves the machine points "
+                         f"this way (the closest leaves {left[k]:.0%} of it)"),
+            "null_direction": null})
+    return out
+
+
+def identify_stations(model: MeasurementModel, stations: list, row_station, lt_xyz, lt_range, repeatability: float,
+                      *, fixed: dict | None = None, max_iter: int = 50, xtol: float = 1e-7, rank_tol: float = 1e-7
+                      ) -> MultiIdentification:
+    """Identify the geometric errors and every station's own unknowns from all stations at once.
+
+    stations: :class:`mtbudget.recording.Station` (id, kind, stated uncertainties); row_station (M,) the station of
+    every row of ``model.plan``; lt_xyz (M, 3) the xyz rows in their station's frame (mm, NaN elsewhere); lt_range
+    (M,) the range rows (mm, NaN elsewhere); repeatability (mm) of the machine; fixed: known perturbations
+    (``MODEL_INPUTS`` keys, e.g. ``Recording.fixed_inputs()``).  xtol: convergence, largest step of a scaled
+    unknown (um, urad).
+    """
+    row_station = np.asarray(row_station)
+    M = model.n_points
+    if row_station.shape != (M,):
+        raise IdentificationError(f"row_station has shape {row_station.shape}; the plan has {M} points")
+    lt_xyz = np.asarray(lt_xyz, float).reshape(M, 3) if lt_xyz is not None else np.full((M, 3), np.nan)
+    lt_range = np.asarray(lt_range, float).reshape(M) if lt_range is not None else np.full(M, np.nan)
+    fixed = dict(fixed or {})
+    ids = [st.id for st in stations]
+    if len(set(ids)) != len(ids):
+        raise IdentificationError(f"station ids must be unique, got {ids}")
+    if not np.isin(row_station, ids).all():
+        bad = int(row_station[~np.isin(row_station, ids)][0])
+        raise IdentificationError(f"rows of station {bad}, which is not among the stations {ids}")
+    P0, J0 = model.machine_points(np.zeros((1, model.n_params)), fixed, jacobian=True)
+    P0, J0 = P0[0], J0[0]
+    x0 = [np.zeros(model.n_params)]
+    rows = []
+    for st in stations:
+        idx = np.flatnonzero(row_station == st.id)
+        if st.kind == "xyz":
+            meas = lt_xyz[idx]
+            if len(idx) < 3 or not np.isfinite(meas).all():
+                raise IdentificationError(f"{st.label}: needs at least 3 rows with finite lt_x, lt_y, lt_z")
+            C = lt.covariance(meas, st.angular, st.distance, st.distance_per_length) + repeatability**2 * np.eye(3)
+            rows.append(_Rows(st, idx, meas, whitener(C)))
+            x0.append(lt.register(P0[idx], meas[None])[0])
+        elif st.kind == "range":
+            meas = lt_range[idx]
+            if len(idx) < 5 or not np.isfinite(meas).all():
+                raise IdentificationError(f"{st.label}: needs at least 5 rows with a finite lt_range for a start "
+                                          "position")
+            S, o = multilaterate(P0[idx], meas)
+            r = np.linalg.norm(P0[idx] - S, axis=1)  # the length-proportional part at the start's distances
+            sigma = np.sqrt((st.distance + st.distance_per_length * r) ** 2 + repeatability**2)
+            rows.append(_Rows(st, idx, meas, 1.0 / sigma))
+            x0.append(np.concatenate([S, [o]]))
+        else:
+            raise IdentificationError(f"station {st.id}: unknown kind {st.kind!r}; expected 'xyz' or 'range'")
+    if not np.isin(np.arange(M), np.concatenate([r.idx for r in rows])).all():
+        raise IdentificationError("some rows belong to no station")
+    x = np.concatenate(x0)
+    sv = _scales(model, stations)
+    names, units = _names(model, stations)
+    n = len(x)
+
+    w, raw, A = _evaluate(model, fixed, rows, x, sv)
+    if A.shape[0] <= n:
+        raise IdentificationError(f"too few measurements: {A.shape[0]} residuals for {n} unknowns")
+    rank, s, cond, null = _null_space(A, rank_tol)
+    Q = range_basis(np.ones(n, bool), null)
+    if A.shape[0] <= Q.shape[1]:
+        raise IdentificationError(f"too few measurements: {A.shape[0]} residuals for {Q.shape[1]} identifiable "
+                                  "unknowns (no redundancy left)")
+    cost = float(w @ w)
+    converged = False
+    it = 0
+    for it in range(1, max_iter + 1):
+        y = np.linalg.lstsq(A @ Q, w, rcond=None)[0]
+        z = Q @ y
+        step = 1.0
+        for _ in range(40):
+            x_new = x + step * z / sv
+            w_new, raw_new, A_new = _evaluate(model, fixed, rows, x_new, sv)
+            c_new = float(w_new @ w_new)
+            if c_new <= cost * (1 + 1e-10) + 1e-300:
+                break
+            step *= 0.5
+        else:
+            break
+        small = np.abs(z).max() * step < xtol or cost - c_new <= 1e-15 * cost
+        x, w, raw, A, cost = x_new, w_new, raw_new, A_new, c_new
+        if small:
+            converged = True
+            break
+    AQ = A @ Q
+    H = AQ.T @ AQ
+    cov_z = Q @ np.linalg.solve(H, Q.T)
+    cov = cov_z / np.outer(sv, sv)
+    res_xyz = np.full((M, 3), np.nan)
+    res_rng = np.full(M, np.nan)
+    station_chi2 = {}
+    k = 0
+    for r, e in zip(rows, raw):
+        m = e.size
+        station_chi2[r.station.id] = (float(w[k:k + m] @ w[k:k + m]), m)
+        k += m
+        if r.station.kind == "xyz":
+            res_xyz[r.idx] = e
+        else:
+            res_rng[r.idx] = e
+    return MultiIdentification(
+        model=model, stations=list(stations), names=names, units=units, x=x, cov=cov, chi2=cost,
+        dof=int(A.shape[0] - rank), rank=rank, condition=cond, singular_values=s, null_space=null,
+        gauge=_gauge(model, fixed, stations, P0, J0), converged=converged, iterations=it, row_station=row_station,
+        residual_xyz=res_xyz, residual_range=res_rng, whitened=w, station_chi2=station_chi2)
+
+
+def identify_recording_any(rec, max_degree: int = 3) -> tuple[Recording, MultiIdentification]:
+    """Read (a folder) or take a :class:`Recording` of any format and identify it over all its stations.
+
+    A format 1 recording is one xyz station (the same minimum as :func:`mtbudget.identify.identify`).  The stated
+    scales' expansion (``[scales]``) is taken as known, as ``compensate`` does.  Returns (recording, result).
+    """
+    if not isinstance(rec, Recording):
+        rec = read_recording(rec, several_stations=True)
+    model = MeasurementModel.for_plan(rec.machine, rec.plan, max_degree=max_degree)
+    res = identify_stations(model, rec.station_list(), rec.station_ids(), rec.lt, rec.lt_range, rec.repeatability,
+                            fixed=rec.fixed_inputs())
+    return rec, res
+
+
+def summary(rec: Recording, res: MultiIdentification) -> dict:
+    """One JSON-able summary: every value with its unit and its standard uncertainty (k = 1)."""
+    def shown(v, unit):
+        return float(display(v, unit, shown_unit(unit)))
+
+    stations = []
+    for st in res.stations:
+        vals, us = res.station_values(st.id)
+        names = lt.POSE_NAMES if st.kind == "xyz" else ("S_x", "S_y", "S_z", "dead path")
+        units = lt.POSE_UNITS if st.kind == "xyz" else ("mm",) * 4
+        chi2, m = res.station_chi2[st.id]
+        stations.append({
+            "id": st.id, "kind": st.kind, "rows": int(np.count_nonzero(res.row_station == st.id)),
+            "chi2": chi2, "residuals": m,
+            "values": [{"name": nm, "value": float(v), "uncertainty": float(u), "unit": un}
+                       for nm, v, u, un in zip(names, vals, us, units)],
+        })
+    p = res.n_params
+    ok = res.identifiable()
+    return {
+        "recording": rec.name, "format": rec.format_version, "points": len(rec),
+        "chi2_per_dof": float(res.chi2_per_dof), "dof": res.dof, "converged": bool(res.converged),
+        "rank": res.rank, "unknowns": res.n_unknowns, "condition_number": res.condition,
+        "coverage": "uncertainties are standard uncertainties (k = 1) from the stated ones, not scaled by chi2/dof",
+        "stations": stations,
+        "parameters": [{"name": res.iso_names[j], "internal_name": res.names[j],
+                        "value": shown(res.x[j], res.units[j]), "uncertainty": shown(res.u[j], res.units[j]),
+                        "unit": shown_unit(res.units[j]), "identifiable": bool(ok[j])} for j in range(p)],
+        "gauge": res.gauge,
+        "not_identifiable": [[{"parameter": nm, "weight": w} for nm, w in combo] for combo in res.combinations()],
+    }
+
+
+def summary_text(rec: Recording, res: MultiIdentification) -> list[str]:
+    """The text ``mtbudget identify`` prints for a recording of several stations."""
+    kinds = ", ".join(f"{st.id} {st.kind}" for st in res.stations)
+    out = [f"identified {rec.name!r} over {len(res.stations)} station(s) ({kinds}): {len(rec)} rows, "
+           f"{res.n_unknowns} unknowns, rank {res.rank}, {res.dof} degrees of freedom",
+           f"  chi-square per dof        {res.chi2_per_dof:.3f}  (1 = residuals match the stated uncertainties)",
+           f"  condition number          {res.condition:.3g}  (column-equilibrated whitened Jacobian, identifiable "
+           "directions)",
+           "  stations (standard uncertainties, k = 1):"]
+    for st in res.stations:
+        vals, us = res.station_values(st.id)
+        chi2, m = res.station_chi2[st.id]
+        if st.kind == "xyz":
+            pos = ", ".join(f"{v:.4f} ± {u * 1e3:.2f} um" for v, u in zip(vals[:3], us[:3]))
+            ang = ", ".join(f"{v:.6f} rad ± {u * 1e6:.2f} urad" for v, u in zip(vals[3:], us[3:]))
+            out.append(f"    station {st.id} (xyz)   D, L, H = {pos} (mm); a, b, d = {ang};  chi2 {chi2:.1f} over {m}")
+        else:
+            pos = ", ".join(f"{v:.4f} ± {u * 1e3:.2f} um" for v, u in zip(vals[:3], us[:3]))
+            out.append(f"    station {st.id} (range) S = {pos} (mm); dead path {vals[3]:.4f} mm ± {us[3] * 1e3:.2f} "
+                       f"um;  chi2 {chi2:.1f} over {m}")
+    out.append("  datum (the six rigid freedoms of the whole):")
+    for g in res.gauge:
+        out.append(f"    {g['freedom']}: fixed by {g['fixed_by']}")
+    combos = res.combinations()
+    if combos:
+        out.append("  not identifiable from these stations and this plan (held at their initial value):")
+        for combo in combos:
+            out.append("    " + " ".join(f"{w:+.2f}*{nm}" for nm, w in combo))
+    return out
