@@ -289,15 +289,21 @@ def plugins_cmd(config, as_json):
               help="Trials per source for the budget (one source at a time); 0 skips the budget.")
 @click.option("--log", "log_path", type=click.Path(dir_okay=False, path_type=Path), default=None,
               help="Write the run to this MCAP file (default: mtbudget-run.mcap; an existing file needs --force).")
-@click.option("--force", is_flag=True, help="Overwrite an existing run log.")
-@click.option("--resume", "resume_path", type=click.Path(dir_okay=False, exists=True, path_type=Path), default=None,
-              help="Finish an interrupted run from its MCAP log (same config and seed).")
+@click.option("--force", is_flag=True, help="Overwrite an existing run log or an interrupted one (LOG.partial); "
+                                            "never one that another run is writing.")
+@click.option("--resume", "resume_path", type=click.Path(dir_okay=False, path_type=Path), default=None,
+              help="Finish an interrupted run from its MCAP log (LOG or LOG.partial; same config and seed): the "
+                   "verified blocks are kept, damaged or missing ones recomputed.")
+@click.option("--block", type=click.IntRange(min=1, max=100_000), default=64, show_default=True,
+              help="Trials per block: the unit the run log saves and --resume reuses. Each block draws from its "
+                   "own random stream, so a seed repeats the same trials only with the same block size "
+                   "(a resume takes it from the log).")
 @click.option("--adaptive-batch", type=click.IntRange(min=2), default=None,
               help="With --trials 0: trials per adaptive batch (default: JCGM 101's max(100/(1-p), 10^4)).")
 @click.option("--json", "as_json", is_flag=True, help="Print the results as one JSON object (progress still goes to stderr).")
 @click.option("--quiet", is_flag=True, help="No progress bars.")
 def run_cmd(config, trials, seed, coverage, executor, workers, address, attribution_trials, log_path, force, resume_path,
-            adaptive_batch, as_json, quiet):
+            block, adaptive_batch, as_json, quiet):
     """Monte Carlo uncertainty of a verification, with its budget.
 
     CONFIG is a TOML configuration (default: the built-in paper study). Each
@@ -307,7 +313,11 @@ def run_cmd(config, trials, seed, coverage, executor, workers, address, attribut
     output gives, for each result, the MCM estimate, standard uncertainty
     and coverage intervals, and a budget by source and by group. Progress
     goes to stderr; the run is logged to MCAP as it goes (see `mtbudget
-    replay` and `mtbudget report`).
+    replay` and `mtbudget report`): into LOG.partial, renamed to LOG when
+    the run completes. A killed run is finished with --resume LOG; a second
+    run on the same log is refused. If the log cannot be written (a full
+    disk), the results are still printed, a warning says what happened and
+    the exit status is 1; LOG.partial keeps what was written (docs/runlog.md).
     """
     from .report import budget_text, result_json
     from .runner import RunSettings, execute
@@ -320,12 +330,17 @@ def run_cmd(config, trials, seed, coverage, executor, workers, address, attribut
                                  param_hint="--attribution-trials")
     settings = RunSettings(trials=trials or None, seed=seed, coverage=coverage, executor=executor, workers=workers,
                            address=address, attribution_trials=attribution_trials, progress=not quiet,
-                           adaptive_batch=adaptive_batch)
+                           adaptive_batch=adaptive_batch, block=block)
     res = execute(config, settings, log_path=log_path, resume_path=resume_path, force=force)
     if as_json:
         click.echo(json.dumps(result_json(res), indent=1))
     else:
         click.echo(budget_text(res))
+    for n in res.resume_notes:
+        click.echo(f"note: resume: {n}", err=True)
+    if res.log_problem:
+        click.echo(f"warning: {res.log_problem}", err=True)
+        raise SystemExit(1)
 
 
 @main.command()

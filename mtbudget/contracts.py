@@ -28,7 +28,7 @@ from typing import TYPE_CHECKING
 
 from .errors import PluginError
 from .model import MODEL_INPUTS
-from .units import Q_, parse_quantity, ureg
+from .units import ABSOLUTE_TEMPERATURE, Q_, is_offset_temperature, is_temperature_difference_unit, parse_quantity, ureg
 
 if TYPE_CHECKING:  # annotations only: the contract does not import the layers that use it
     from .model import MeasurementModel
@@ -112,6 +112,9 @@ class Source:
     excludes: tuple = ()
     #: parameters that must not be negative (standard uncertainties, widths, bounds)
     nonnegative: tuple = ()
+    #: temperature parameters that are absolute temperatures (a default in degC or degF alone is one too);
+    #: every other temperature parameter is a difference, which refuses "0.1 degC" (pint: 273.25 K)
+    absolute_temperatures: tuple = ()
 
     # stamped by the plugin host
     plugin: str = ""
@@ -144,6 +147,20 @@ class Source:
                 if new.dimensionality != old.dimensionality:
                     raise PluginError(f"parameter {k!r}: {new:~P} does not have the dimension of {old:~P}",
                                       self.plugin or None, self.name)
+                if old.dimensionality == ureg.kelvin.dimensionality:
+                    if is_offset_temperature(old) or k in self.absolute_temperatures:
+                        if is_temperature_difference_unit(new):
+                            raise PluginError(f"parameter {k!r}: {v!r} is a temperature difference; it is an absolute "
+                                              "temperature: write for example \"20 degC\"", self.plugin or None, self.name)
+                        kelvin, (lo, hi) = float(new.to("K").magnitude), ABSOLUTE_TEMPERATURE
+                        if not lo <= kelvin <= hi:
+                            raise PluginError(f"parameter {k!r}: {v!r} ({kelvin:.6g} K) is not a plausible absolute "
+                                              f"temperature; expected {lo:g} K to {hi:g} K", self.plugin or None, self.name)
+                    elif is_offset_temperature(new):
+                        delta = "delta_degF" if "Fahrenheit" in next(iter(new.unit_items()))[0] else "delta_degC"
+                        raise PluginError(f"parameter {k!r}: {v!r} is a temperature difference written on an offset "
+                                          f"scale (read as {new.to('K').magnitude:.6g} K); write \"{new.magnitude:g} "
+                                          f"{delta}\" or give it in K", self.plugin or None, self.name)
             self.parameters[k] = new
         return self
 

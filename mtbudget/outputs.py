@@ -105,6 +105,8 @@ class RunResult:
     commanded: np.ndarray | None = None  # (M0, 3) commanded axis positions of the mesh points (mm)
     guf: dict | None = None  # law of propagation per point: {"estimate": (M0, 3) um, "cov": (M0, 3, 3) um^2}
     logged_points: list | None = None  # per-point results of a complete log (replay of a run too long to log trials)
+    log_problem: str | None = None  # the run log could not be written (a full disk): what happened, how to resume
+    resume_notes: list = field(default_factory=list)  # what a resume recomputed and why (damaged blocks ...)
 
     @property
     def not_converged(self) -> int:

@@ -17,20 +17,27 @@ Layout (docs/runlog.md has every schema):
 * ``/mtbudget/log``: ``foxglove.Log`` warnings and errors;
 * ``/mtbudget/result``: the final outputs and budget; ``/mtbudget/end``.
 
-The file is written without chunking and flushed after every chunk of
-trials, so a run killed at any moment leaves a file that reads up to its last
-complete record.
+The file is written without chunking, under ``LOG.partial``, and flushed
+(fsynced) after every chunk of trials, so a run killed at any moment leaves a
+file that reads up to its last complete record; it is renamed to ``LOG``
+when the run completes.  Every message on mtbudget's topics carries a
+``crc32`` of its topic and body, and a finished file the MCAP data-section
+and summary CRCs: a damaged record is reported (file, byte offset, block) and
+never used.  ``RunLogLock`` keeps two runs off one log.
 """
 
 from __future__ import annotations
 
 import base64
+import errno
+import io
 import json
 import os
 import platform
 import socket
 import struct
 import time
+import zlib
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -42,8 +49,9 @@ from .outputs import BlockResult
 from .stats import CoMoments, Moments
 from .units import factor
 
-FORMAT = "mtbudget-runlog/1"
+FORMAT = "mtbudget-runlog/1.1"  # 1.1: a crc32 in every message, histogram checkpoints
 FORMAT_MAJOR = 1
+LEGACY_FORMAT = "mtbudget-runlog/1"  # before checksums: read, unverified
 
 
 
@@ -96,6 +104,16 @@ SCHEMAS = {
         "points": {"type": "array", "description": "per mesh point: nominal (mm), mean, u, covariance, interval, guf_u, clause8 (um)"},
         "points_summary": {"type": "object"}, "guf_points": {"type": "object"},
         "convergence": {"type": "array"}, "validation": {"type": ["object", "null"]}}},
+    "mtbudget.HistogramState": {"type": "object", "title": "mtbudget.HistogramState",
+                                "description": "checkpoint of the per-point histograms of a run too long to log every "
+                                               "trial's per-point errors; a resume restores it", "properties": {
+        "blocks": {"type": "integer", "description": "blocks merged (0 .. blocks-1)"}, "trials": {"type": "integer"},
+        "last_block": {"type": "integer"}, "bins": {"type": "integer"},
+        "low": _arr_schema("(3 M0,) low end of each component's range, um"),
+        "high": _arr_schema("(3 M0,) high end of each component's range, um"),
+        "counts": {"type": "object", "description": "(3 M0, bins) int64 counts, zlib then base64"},
+        "under": {"type": "object", "description": "(3 M0,) counts below the range"},
+        "over": {"type": "object", "description": "(3 M0,) counts above the range"}}},
     "mtbudget.End": {"type": "object", "title": "mtbudget.End", "description": "written last; absent when the run was cut",
                      "properties": {"trials": {"type": "integer"}, "complete": {"type": "boolean"}}},
     "foxglove.Log": {"title": "foxglove.Log", "type": "object", "properties": {
@@ -116,7 +134,7 @@ SCHEMAS = {
 TOPICS = {
     "/mtbudget/run": "mtbudget.RunSpec", "/mtbudget/blocks": "mtbudget.Block", "/mtbudget/convergence": "mtbudget.Convergence",
     "/mtbudget/points": "foxglove.PointCloud", "/mtbudget/log": "foxglove.Log", "/mtbudget/result": "mtbudget.Result",
-    "/mtbudget/end": "mtbudget.End",
+    "/mtbudget/end": "mtbudget.End", "/mtbudget/histogram": "mtbudget.HistogramState",
 }
 
 
@@ -148,51 +166,198 @@ def _moments_dec(d) -> Moments:
     return Moments(int(d["n"]), _dec(d["mean"]), _dec(d["m2"]), _dec(d["min"]), _dec(d["max"]))
 
 
+# ------------------------------------------------------------------ checksums
+def _body_crc(topic: str, obj: dict) -> int:
+    """CRC-32 of a message's topic and its JSON body without the ``crc32`` key (written last)."""
+    return zlib.crc32(json.dumps(obj).encode(), zlib.crc32(topic.encode() + b"\n"))
+
+
+def _with_crc(topic: str, obj: dict) -> bytes:
+    body = {k: v for k, v in obj.items() if k != "crc32"}
+    return json.dumps({**body, "crc32": _body_crc(topic, body)}).encode()
+
+
+def partial_path(path) -> Path:
+    """Where a run log is written until the run completes: ``LOG.partial``."""
+    return Path(str(path) + ".partial")
+
+
+def final_path(path) -> Path:
+    """The log a path names: ``LOG`` for ``LOG`` and for ``LOG.partial``."""
+    path = Path(path)
+    return path.with_name(path.name[: -len(".partial")]) if path.name.endswith(".partial") else path
+
+
+def _fsync_dir(path: Path):
+    try:
+        fd = os.open(path.parent, os.O_RDONLY)
+    except OSError:
+        return
+    try:
+        os.fsync(fd)
+    except OSError:
+        pass
+    finally:
+        os.close(fd)
+
+
+# ------------------------------------------------------------------ locking
+class RunLogLock:
+    """An exclusive lock on a run log (``fcntl.flock`` on ``LOG.lock``, released when the process ends, even killed).
+
+    A second run on the same log is refused with one line naming the holder's PID.
+    """
+
+    def __init__(self, path):
+        self.log = final_path(path)
+        self.path = Path(str(self.log) + ".lock")
+        self.fd = None
+        try:
+            import fcntl
+        except ImportError:  # pragma: no cover - not POSIX: no lock
+            return
+        for _ in range(5):
+            try:
+                fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o644)
+            except OSError as exc:
+                raise RunLogError(f"{self.path}: cannot create the run log's lock file ({exc.strerror})") from None
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except OSError:
+                try:
+                    pid = os.read(fd, 32).decode(errors="replace").strip() or "unknown"
+                finally:
+                    os.close(fd)
+                raise RunLogError(f"{self.log}: another mtbudget run (PID {pid}) is writing this log; wait for it, "
+                                  "stop it, or choose another --log") from None
+            try:  # the file we locked must still be the one at the path (another run may have removed it)
+                same = os.stat(self.path).st_ino == os.fstat(fd).st_ino
+            except OSError:
+                same = False
+            if same:
+                os.ftruncate(fd, 0)
+                os.write(fd, f"{os.getpid()}\n".encode())
+                self.fd = fd
+                return
+            os.close(fd)
+        raise RunLogError(f"{self.path}: could not take the run log's lock")  # pragma: no cover
+
+    def release(self):
+        if self.fd is not None:
+            try:
+                os.unlink(self.path)
+            except OSError:
+                pass
+            os.close(self.fd)
+            self.fd = None
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.release()
+
+
 # ------------------------------------------------------------------ writing
 class RunLogWriter:
-    """Writes a run log as the run goes: header first, then blocks (flushed and fsynced per chunk), then the end."""
+    """Writes a run log as the run goes: header first, then blocks (flushed and fsynced per chunk), then the end.
 
-    def __init__(self, path, header: dict, config_text: str, force: bool = False, log_components: bool = True):
+    The file is built under ``LOG.partial``: first as ``LOG.resume.tmp`` with
+    the header and the ``copy`` blocks (a resume's verified blocks), fsynced,
+    then renamed over ``LOG.partial`` in one step, so the saved blocks are on
+    disk in one file or the other at every moment.  ``finish`` renames the
+    completed file to ``LOG``.  A write error after the start (a full disk)
+    does not stop the run: ``failed`` says what happened and later writes are
+    skipped; the ``.partial`` keeps every block written before.
+    """
+
+    def __init__(self, path, header: dict, config_text: str, force: bool = False, log_components: bool = True,
+                 copy: list | None = None, histogram: dict | None = None, histogram_every: float = 60.0):
         from mcap.writer import Writer
 
-        self.path = Path(path)
-        if self.path.exists() and not force:
-            raise RunLogError(f"{self.path}: a run log is already there; choose another --log path or pass --force "
-                              "to overwrite it")
+        self.path = final_path(path)
+        self.partial = partial_path(self.path)
+        self.failed: str | None = None
+        self.written: set = set()
+        self.histogram_every = histogram_every
+        self._last_hist = None
+        tmp = Path(str(self.path) + ".resume.tmp")
         try:
-            self.fh = open(self.path, "wb")
+            self.fh = open(tmp, "wb")
         except OSError as exc:
             raise RunLogError(f"{self.path}: cannot write the run log ({exc.strerror})") from None
-        self.log_components = log_components
-        self.w = Writer(self.fh, use_chunking=False, use_statistics=True)
-        self.w.start(profile="", library=f"mtbudget {__version__}")
-        self.ch = {}
-        sids = {name: self.w.register_schema(name=name, encoding="jsonschema", data=json.dumps(s).encode())
-                for name, s in SCHEMAS.items()}
-        for topic, schema in TOPICS.items():
-            self.ch[topic] = self.w.register_channel(topic=topic, message_encoding="json", schema_id=sids[schema])
-        now = time.time_ns()
-        self.w.add_attachment(create_time=now, log_time=now, name="config.toml", media_type="application/toml",
-                              data=config_text.encode())
-        spec = header["spec"]
-        self.w.add_metadata("mtbudget.run", {
-            "format": FORMAT, "mtbudget_version": __version__, "seed": str(spec["seed"]), "trials": str(header["trials"]),
-            "host": socket.gethostname(), "platform": platform.platform(), "start_time": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
-            "plugins": json.dumps(header.get("plugins", []))})
-        self.write("/mtbudget/run", {"format": FORMAT, "mtbudget_version": __version__, **header})
-        self.flush()
+        try:
+            self.log_components = log_components
+            self.w = Writer(self.fh, use_chunking=False, use_statistics=True, enable_data_crcs=True)
+            self.w.start(profile="", library=f"mtbudget {__version__}")
+            self.ch = {}
+            sids = {name: self.w.register_schema(name=name, encoding="jsonschema", data=json.dumps(s).encode())
+                    for name, s in SCHEMAS.items()}
+            for topic, schema in TOPICS.items():
+                self.ch[topic] = self.w.register_channel(topic=topic, message_encoding="json", schema_id=sids[schema])
+            now = time.time_ns()
+            self.w.add_attachment(create_time=now, log_time=now, name="config.toml", media_type="application/toml",
+                                  data=config_text.encode())
+            spec = header["spec"]
+            self.w.add_metadata("mtbudget.run", {
+                "format": FORMAT, "mtbudget_version": __version__, "seed": str(spec["seed"]), "trials": str(header["trials"]),
+                "host": socket.gethostname(), "platform": platform.platform(), "start_time": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
+                "plugins": json.dumps(header.get("plugins", []))})
+            self._write("/mtbudget/run", {"format": FORMAT, "mtbudget_version": __version__, **header})
+            for b in copy or []:
+                self._write("/mtbudget/blocks", b)
+                self.written.add(int(b["block"]))
+            if histogram is not None:
+                self._write("/mtbudget/histogram", histogram)
+            self.fh.flush()
+            os.fsync(self.fh.fileno())
+            os.replace(tmp, self.partial)
+            _fsync_dir(self.partial)
+        except OSError as exc:
+            try:
+                self.fh.close()
+                os.remove(tmp)
+            except OSError:
+                pass
+            raise RunLogError(f"{self.path}: cannot write the run log ({exc.strerror or exc})") from None
+
+    # every write after the start goes through _guard: a write error is recorded, never raised
+    def _guard(self, fn, *args):
+        if self.failed is not None:
+            return
+        try:
+            fn(*args)
+        except OSError as exc:
+            name = errno.errorcode.get(exc.errno, "OSError") if exc.errno else "OSError"
+            self.failed = f"{name}: {exc.strerror or exc}"
+            try:
+                self.fh.close()
+            except OSError:
+                pass
+
+    def _write(self, topic, obj):
+        t = time.time_ns()
+        self.w.add_message(channel_id=self.ch[topic], log_time=t, publish_time=t, data=_with_crc(topic, obj))
 
     def write(self, topic, obj):
-        t = time.time_ns()
-        self.w.add_message(channel_id=self.ch[topic], log_time=t, publish_time=t, data=json.dumps(obj).encode())
+        self._guard(self._write, topic, obj)
 
-    def flush(self):
+    def _flush(self):
         self.fh.flush()
         os.fsync(self.fh.fileno())
 
-    def blocks(self, blocks: list, convergence: dict):
-        """Log merged blocks and the convergence row after them; flushed to disk before returning."""
+    def flush(self):
+        self._guard(self._flush)
+
+    def blocks(self, blocks: list, convergence: dict, acc=None):
+        """Log merged blocks (those not already in the file) and the convergence row after them; flushed to disk.
+
+        ``acc``: the run's Accumulator; when it histograms the per-point components, its histogram is
+        checkpointed (at most every ``histogram_every`` seconds) so a resume can restore it.
+        """
         for b in blocks:
+            if b.block in self.written:
+                continue
             vm = b.vector_moments()
             self.write("/mtbudget/blocks", {
                 "block": b.block, "n": b.n, "scalars": {k: _enc(v) for k, v in b.scalars.items()},
@@ -201,7 +366,13 @@ class RunLogWriter:
                 **({"component_moments": _comoments_enc(vm["components"])} if "components" in vm else {}),
                 **({"components": _enc(b.components.reshape(b.n, -1))}
                    if self.log_components and b.components is not None else {})})
+            self.written.add(b.block)
         self.write("/mtbudget/convergence", convergence)
+        if acc is not None and acc.vector_hist.get("components") is not None:
+            now = time.monotonic()
+            if self._last_hist is None or now - self._last_hist >= self.histogram_every:
+                self.write("/mtbudget/histogram", histogram_state(acc))
+                self._last_hist = now
         self.flush()
 
     def log(self, level: int, message: str):
@@ -223,12 +394,61 @@ class RunLogWriter:
                        enumerate(["x", "y", "z", "error_um"] + (["u_x_um", "u_y_um", "u_z_um"] if u is not None else []))],
             "data": base64.b64encode(pts.tobytes()).decode()})
 
+    def _finish(self):
+        self.w.finish()
+        self._flush()
+        self.fh.close()
+        os.replace(self.partial, self.path)
+        _fsync_dir(self.path)
+
     def finish(self, result_obj: dict | None, complete: bool, trials: int):
+        """The result and end records; a complete run's file is fsynced and renamed from LOG.partial to LOG."""
         if result_obj is not None:
             self.write("/mtbudget/result", result_obj)
-        self.write("/mtbudget/end", {"trials": trials, "complete": complete})
-        self.w.finish()
-        self.fh.close()
+        if complete:
+            self.write("/mtbudget/end", {"trials": trials, "complete": complete})
+            self._guard(self._finish)
+        else:
+            self.close()
+
+    def close(self):
+        """Stop writing, leaving LOG.partial resumable (no end record)."""
+        if self.failed is None:
+            self._guard(self._flush)
+        try:
+            self.fh.close()
+        except OSError:
+            pass
+
+
+def histogram_state(acc) -> dict:
+    """The per-point histogram of a run (ranges, counts) after the blocks merged so far, as a log message."""
+    h = acc.vector_hist["components"]
+    return {"blocks": len(acc.blocks), "trials": int(acc.n), "last_block": int(acc.blocks[-1]) if acc.blocks else -1,
+            "bins": int(h.bins), "low": _enc(h.low), "high": _enc(h.high), "counts": _enc_int(h.counts),
+            "under": _enc_int(h.under), "over": _enc_int(h.over)}
+
+
+def _enc_int(a: np.ndarray) -> dict:
+    a = np.ascontiguousarray(a, dtype="<i8")
+    return {"dtype": "<i8", "shape": list(a.shape), "encoding": "zlib",
+            "data": base64.b64encode(zlib.compress(a.tobytes(), 6)).decode()}
+
+
+def _dec_int(d: dict) -> np.ndarray:
+    if d.get("dtype") != "<i8" or d.get("encoding") != "zlib":
+        raise RunLogError(f"unsupported integer array {d.get('dtype')!r}/{d.get('encoding')!r} in run log")
+    return np.frombuffer(zlib.decompress(base64.b64decode(d["data"])), dtype="<i8").reshape(d["shape"]).copy()
+
+
+def histogram_from_state(state: dict):
+    """(VectorHistogram, trials it holds) from a logged histogram checkpoint."""
+    from .stats import VectorHistogram
+
+    h = VectorHistogram.__new__(VectorHistogram)
+    h.low, h.high, h.bins = _dec(state["low"]), _dec(state["high"]), int(state["bins"])
+    h.counts, h.under, h.over = _dec_int(state["counts"]), _dec_int(state["under"]), _dec_int(state["over"])
+    return h
 
 
 # ------------------------------------------------------------------ reading
@@ -245,10 +465,19 @@ class RunLog:
     logs: list = field(default_factory=list)
     truncated: bool = False
     problem: str | None = None
+    damaged: list = field(default_factory=list)  # one sentence per damaged record: where (byte offset, block) and what
+    histograms: list = field(default_factory=list)  # histogram checkpoints of a run that histograms per-point errors
 
     @property
     def complete(self) -> bool:
-        return bool(self.end and self.end.get("complete")) and not self.truncated
+        return bool(self.end and self.end.get("complete")) and not self.truncated and not self.damaged
+
+    def require_intact(self):
+        """Raise a one-line RunLogError when any record of the log is damaged (its results are not used)."""
+        if self.damaged:
+            more = f" (and {len(self.damaged) - 1} more damaged records)" if len(self.damaged) > 1 else ""
+            raise RunLogError(f"{self.path}: damaged run log: {self.damaged[0]}{more}; its results are not used. "
+                              f"`mtbudget run --resume {final_path(self.path)}` rebuilds it from the verified blocks")
 
     def block_results(self) -> list:
         """Logged blocks as BlockResults: scalars exact, the vector outputs known by their moments.
@@ -266,72 +495,259 @@ class RunLog:
         return out
 
 
+MAGIC = b"\x89MCAP0\r\n"
+_OP = {"header": 0x01, "footer": 0x02, "schema": 0x03, "channel": 0x04, "message": 0x05, "chunk": 0x06,
+       "attachment": 0x09, "metadata": 0x0C, "data_end": 0x0F}
+_SUMMARY_OPS = {0x03, 0x04, 0x07, 0x08, 0x0A, 0x0B, 0x0D, 0x0E}
+
+
+class _Cut(Exception):
+    """The record framing ends early at ``offset`` (a cut file, or a damaged length when the file is whole)."""
+
+    def __init__(self, offset, reason):
+        super().__init__(reason)
+        self.offset = offset
+
+
+def _frames(fh, size: int):
+    """(offset, opcode, raw record bytes) of an MCAP file after its magic, up to and including the footer."""
+    pos = len(MAGIC)
+    while True:
+        head = fh.read(9)
+        if len(head) < 9:
+            raise _Cut(pos, "the file ends inside a record header" if head else "the file ends after a whole record")
+        op, length = struct.unpack("<BQ", head)
+        if length > size - pos - 9:
+            raise _Cut(pos, f"a record of {length} bytes runs past the end of the file")
+        body = fh.read(length)
+        if len(body) < length:
+            raise _Cut(pos, "the file ends inside a record")
+        yield pos, op, head + body
+        pos += 9 + length
+        if op == _OP["footer"]:
+            return
+
+
+def _parse(cls, content: bytes):
+    from mcap.data_stream import ReadDataStream
+
+    return cls.read(ReadDataStream(io.BytesIO(content)))
+
+
 def read_runlog(path) -> RunLog:
-    """Read a run log record by record; a truncated or damaged tail is reported, not raised."""
-    from mcap.exceptions import McapError
-    from mcap.records import Attachment, Channel, Message, Metadata, Schema
-    from mcap.stream_reader import StreamReader
+    """Read a run log record by record, checking every checksum.
+
+    A cut tail (a killed run) is reported as ``truncated``; a damaged record
+    (a checksum that does not match, a message that does not parse, a
+    framing error inside a finished file, blocks missing or repeated) goes
+    into ``damaged`` with its byte offset and block, and is never used.
+    ``LOG`` that does not exist is read from ``LOG.partial`` when that exists.
+    """
+    from mcap.records import Attachment, Channel, Chunk, DataEnd, Footer, Metadata, Schema
+    from mcap.stream_reader import breakup_chunk
 
     path = Path(path)
+    if not path.exists() and partial_path(path).exists():
+        path = partial_path(path)
     if not path.exists():
         raise RunLogError(f"{path}: no such file")
     log = RunLog(path)
     placement = False
     channels, schemas = {}, {}
-    with open(path, "rb") as fh:
+    seen_blocks: dict = {}
+    try:
+        fh = open(path, "rb")
+    except OSError as exc:
+        raise RunLogError(f"{path}: cannot read the run log ({exc.strerror})") from None
+    with fh:
+        size = os.fstat(fh.fileno()).st_size
         head = fh.read(8)
-        if head != b"\x89MCAP0\r\n":
+        if head != MAGIC:
             raise RunLogError(f"{path}: not an MCAP file (bad magic bytes)")
-        fh.seek(0)
-        try:
-            for rec in StreamReader(fh, validate_crcs=True).records:
-                if isinstance(rec, Schema):
-                    schemas[rec.id] = rec
-                elif isinstance(rec, Channel):
-                    channels[rec.id] = rec
-                elif isinstance(rec, Attachment) and rec.name == "config.toml":
-                    log.config_text = rec.data.decode()
-                elif isinstance(rec, Metadata) and rec.name == "mtbudget.run":
-                    log.metadata = dict(rec.metadata)
+        fh.seek(size - 8)
+        finished = size >= 16 and fh.read(8) == MAGIC
+        fh.seek(8)
+        data_crc = zlib.crc32(MAGIC)
+        summary_crc = None  # started after the DataEnd record
+        in_data = True
+        block_msgs = 0
+        legacy = False
+
+        def damage(offset, what):
+            log.damaged.append(f"byte offset {offset}: {what}")
+
+        def message(offset, content):
+            nonlocal block_msgs, legacy
+            if len(content) < 22:
+                return damage(offset, "a message record too short to hold its fields")
+            channel_id = struct.unpack_from("<H", content, 0)[0]
+            data = content[22:]
+            ch = channels.get(channel_id)
+            if ch is None:
+                return damage(offset, f"a message on channel {channel_id}, which no channel record declares")
+            sch = schemas.get(ch.schema_id)
+            if ch.topic not in TOPICS:
+                if sch is not None and sch.name in SCHEMAS:
+                    damage(offset, f"channel {ch.topic!r} carries mtbudget's schema {sch.name} under an unknown topic")
+                return  # other tools' topics are kept and ignored
+            if sch is None or sch.name != TOPICS[ch.topic]:
+                raise RunLogError(f"{path}: topic {ch.topic} has unknown schema {getattr(sch, 'name', None)!r}")
+            is_block = ch.topic == "/mtbudget/blocks"
+            where = f"block message #{block_msgs}" if is_block else f"the {ch.topic} message"
+            block_msgs += is_block
+            try:
+                obj = json.loads(data)
+            except (ValueError, UnicodeDecodeError):
+                return damage(offset, f"{where} is not valid JSON")
+            if not isinstance(obj, dict):
+                return damage(offset, f"{where} is not a JSON object")
+            if "crc32" not in obj:
+                if not (legacy or ch.topic == "/mtbudget/run" and obj.get("format") == LEGACY_FORMAT):
+                    return damage(offset, f"{where} has no checksum")
+                legacy = True  # written by mtbudget before checksums (format mtbudget-runlog/1): read unverified
+            elif obj.pop("crc32") != _body_crc(ch.topic, obj):
+                blk = obj.get("block") if is_block else None
+                label = f"{where} (it says block {blk}, unverified)" if isinstance(blk, int) else where
+                return damage(offset, f"{label} fails its checksum")
+            if ch.topic == "/mtbudget/run":
+                _check_format(path, obj.get("format"))
+                log.header = obj
+            elif is_block:
+                k = obj.get("block")
+                if k in seen_blocks:
+                    if seen_blocks[k] != obj:
+                        damage(offset, f"block {k} is logged twice with different trials")
+                    return
+                seen_blocks[k] = obj
+                log.blocks.append(obj)
+            elif ch.topic == "/mtbudget/convergence":
+                log.convergence.append(obj)
+            elif ch.topic == "/mtbudget/result":
+                log.result = obj
+            elif ch.topic == "/mtbudget/end":
+                log.end = obj
+            elif ch.topic == "/mtbudget/log":
+                log.logs.append(obj)
+            elif ch.topic == "/mtbudget/histogram":
+                log.histograms.append(obj)
+
+        def record(offset, op, content):
+            nonlocal placement
+            if op == _OP["schema"]:
+                s = _parse(Schema, content)
+                schemas.setdefault(s.id, s)
+            elif op == _OP["channel"]:
+                c = _parse(Channel, content)
+                channels.setdefault(c.id, c)
+            elif op == _OP["message"]:
+                message(offset, content)
+            elif op == _OP["attachment"]:
+                a = _parse(Attachment, content)
+                crc = struct.unpack_from("<I", content, len(content) - 4)[0]
+                if crc and crc != zlib.crc32(content[:-4]):
+                    return damage(offset, f"attachment {a.name!r} fails its checksum")
+                if a.name == "config.toml":
+                    try:
+                        log.config_text = a.data.decode()
+                    except UnicodeDecodeError:
+                        damage(offset, "attachment config.toml is not UTF-8")
+            elif op == _OP["metadata"]:
+                m = _parse(Metadata, content)
+                if m.name == "mtbudget.run":
+                    log.metadata = dict(m.metadata)
                     _check_format(path, log.metadata.get("format"))
-                elif isinstance(rec, Metadata) and rec.name == "mtbudget.placement":
+                elif m.name == "mtbudget.placement":
                     placement = True
-                elif isinstance(rec, Message):
-                    ch = channels.get(rec.channel_id)
-                    if ch is None:
-                        continue
-                    sch = schemas.get(ch.schema_id)
-                    if ch.topic in TOPICS and (sch is None or sch.name != TOPICS[ch.topic]):
-                        raise RunLogError(f"{path}: topic {ch.topic} has unknown schema {getattr(sch, 'name', None)!r}")
-                    if ch.topic not in TOPICS:
-                        continue  # other tools' topics are kept and ignored
-                    obj = json.loads(rec.data)
-                    if ch.topic == "/mtbudget/run":
-                        _check_format(path, obj.get("format"))
-                        log.header = obj
-                    elif ch.topic == "/mtbudget/blocks":
-                        log.blocks.append(obj)
-                    elif ch.topic == "/mtbudget/convergence":
-                        log.convergence.append(obj)
-                    elif ch.topic == "/mtbudget/result":
-                        log.result = obj
-                    elif ch.topic == "/mtbudget/end":
-                        log.end = obj
-                    elif ch.topic == "/mtbudget/log":
-                        log.logs.append(obj)
-        except RunLogError:
-            raise
-        except (McapError, struct.error, EOFError, ValueError, json.JSONDecodeError, KeyError) as exc:
-            log.truncated = True
-            log.problem = f"{type(exc).__name__}: {exc}"
+            elif op == _OP["chunk"]:
+                for r in breakup_chunk(_parse(Chunk, content), validate_crc=True):
+                    from mcap.records import Message
+
+                    if isinstance(r, Message):
+                        message(offset, struct.pack("<HIQQ", r.channel_id, r.sequence, r.log_time, r.publish_time)
+                                + r.data)
+                    elif isinstance(r, (Schema, Channel)):
+                        (schemas if isinstance(r, Schema) else channels).setdefault(r.id, r)
+            elif op != _OP["header"]:
+                damage(offset, f"a record with opcode 0x{op:02x}, which mtbudget does not write in a log's data")
+
+        try:
+            for offset, op, raw in _frames(fh, size):
+                content = raw[9:]
+                if in_data and op == _OP["data_end"]:
+                    stated = _parse(DataEnd, content).data_section_crc
+                    if stated and stated != data_crc:
+                        damage(offset, "the data section fails its CRC (a byte changed somewhere before this offset)")
+                    in_data, summary_crc = False, 0
+                    continue
+                if in_data:
+                    data_crc = zlib.crc32(raw, data_crc)
+                    try:
+                        record(offset, op, content)
+                    except RunLogError:
+                        raise
+                    except Exception as exc:  # a record whose fields do not parse
+                        damage(offset, f"a record (opcode 0x{op:02x}) does not parse ({type(exc).__name__})")
+                    continue
+                if op == _OP["footer"]:
+                    f = _parse(Footer, content)
+                    summary_crc = zlib.crc32(raw[:25], summary_crc)
+                    if f.summary_crc and f.summary_crc != summary_crc:
+                        damage(offset, "the summary section fails its CRC")
+                    if fh.read(8) != MAGIC or fh.read(1):
+                        damage(offset + len(raw), "the file does not end with the MCAP magic after its footer")
+                    break
+                summary_crc = zlib.crc32(raw, summary_crc)
+                if op not in _SUMMARY_OPS:
+                    damage(offset, f"a record with opcode 0x{op:02x} in the summary section")
+            else:  # pragma: no cover - _frames returns only after a footer
+                pass
+        except _Cut as cut:
+            if finished:
+                damage(cut.offset, f"{cut} although the file was finished")
+            else:
+                log.truncated = True
+                log.problem = f"the file is cut at byte {cut.offset} of {size}"
     if log.header is None:
         if log.metadata.get("format", "").startswith("mtbudget-placement/") or placement:
             raise RunLogError(f"{path}: a placement study log, not a run log; `mtbudget replay {path}` prints its summary")
+        if log.damaged:
+            log.require_intact()
         raise RunLogError(f"{path}: no run header; the file is not an mtbudget run log or was cut before its first record")
-    if log.end is None:
+    _check_blocks(log)
+    if log.end is None and not log.damaged:
         log.truncated = True
         log.problem = log.problem or "the run did not finish (no end record)"
     return log
+
+
+def _check_blocks(log: RunLog):
+    """Blocks are whole (``block`` trials each, the last may be shorter) and, in a finished log, all there."""
+    size = int(log.header.get("spec", {}).get("block", 0) or 0)
+    good = []
+    for b in log.blocks:
+        try:
+            k, n = int(b["block"]), int(b["n"])
+            ok = 0 <= k and 1 <= n <= size and all(len(v["shape"]) == 1 and v["shape"][0] == n
+                                                  for v in b["scalars"].values())
+        except (KeyError, TypeError, ValueError, AttributeError):
+            ok = False
+        if ok:
+            good.append(b)
+        else:
+            log.damaged.append(f"block {b.get('block')!r}: its fields do not describe a block of at most {size} trials")
+    log.blocks = sorted(good, key=lambda b: b["block"])
+    if log.end is not None:
+        ids = [b["block"] for b in log.blocks]
+        missing = sorted(set(range(max(ids) + 1 if ids else 0)) - set(ids))
+        total = sum(b["n"] for b in log.blocks)
+        if missing:
+            log.damaged.append(f"blocks {', '.join(map(str, missing[:5]))}{' ...' if len(missing) > 5 else ''} "
+                               "are missing from a finished log")
+        elif total != log.end.get("trials") or (log.result is not None and log.result.get("trials") != total):
+            log.damaged.append(f"the blocks hold {total} trials, the end record says {log.end.get('trials')}")
+        short = [b["block"] for b in log.blocks[:-1] if b["n"] != size]
+        if short:
+            log.damaged.append(f"block {short[0]} holds fewer than {size} trials but is not the last")
 
 
 def _check_format(path, fmt):
@@ -364,7 +780,7 @@ def write_placement_log(body: dict, arrays: dict, path: Path, config_text: str |
     from mcap.writer import Writer
 
     with open(path, "wb") as fh:
-        w = Writer(fh, use_chunking=False)
+        w = Writer(fh, use_chunking=False, enable_data_crcs=True)
         w.start(profile="", library=f"mtbudget {__version__}")
         sid = w.register_schema(name="mtbudget.PlacementStudy", encoding="jsonschema",
                                 data=json.dumps(PLACEMENT_SCHEMA).encode())
@@ -387,6 +803,8 @@ def log_kind(path) -> str:
     from mcap.stream_reader import StreamReader
 
     path = Path(path)
+    if not path.exists() and partial_path(path).exists():
+        path = partial_path(path)
     if not path.exists():
         raise RunLogError(f"{path}: no such file")
     with open(path, "rb") as fh:

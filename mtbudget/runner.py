@@ -110,21 +110,23 @@ def make_spec(scenario: Scenario, engine: Engine, settings: RunSettings) -> dict
 
 def run(config: SimulationConfig | Scenario | str | None = None, settings: RunSettings | None = None, *,
         on_chunk=None, resume_blocks: list | None = None, engine: Engine | None = None,
-        host: PluginHost | None = None, **overrides) -> RunResult:
+        host: PluginHost | None = None, resume_histogram: dict | None = None, **overrides) -> RunResult:
     """Run the Monte Carlo of a verification (see :class:`RunSettings`; keyword overrides are settings fields).
 
     on_chunk(blocks, result) is called after each chunk of blocks is merged
     (the run log hooks in here).  resume_blocks: block results already
-    computed (from a log); they are merged first and not recomputed.  The
+    computed (from a log); they are merged first and not recomputed.
+    resume_histogram: a logged histogram checkpoint (runlog.histogram_state) of a run that histograms its
+    per-point errors; it holds the resumed blocks' per-point errors, which the log does not.  The
     whole run uses one BLAS thread (executors.one_blas_thread): the results
     are bit-identical whatever the machine's BLAS threading and executor.
     """
     with one_blas_thread():
         return _run(config, settings, on_chunk=on_chunk, resume_blocks=resume_blocks, engine=engine, host=host,
-                    **overrides)
+                    resume_histogram=resume_histogram, **overrides)
 
 
-def _run(config, settings, *, on_chunk, resume_blocks, engine, host, **overrides) -> RunResult:
+def _run(config, settings, *, on_chunk, resume_blocks, engine, host, resume_histogram=None, **overrides) -> RunResult:
     settings = replace(settings or RunSettings(), **overrides).validate()
     if engine is None:
         scenario = config if isinstance(config, Scenario) else build_scenario(
@@ -135,6 +137,12 @@ def _run(config, settings, *, on_chunk, resume_blocks, engine, host, **overrides
     trials = settings.trials
     keep = settings.keep_samples if settings.keep_samples is not None else (trials is None or int(trials) <= 200_000)
     acc = Accumulator(keep, keep_vector_samples(settings, len(scenario.mesh_rows)))
+    if resume_histogram is not None:
+        from .runlog import histogram_from_state
+
+        if acc.keep_vectors:
+            raise RunLogError("a histogram checkpoint was given to a run that keeps every trial's per-point errors")
+        acc.vector_hist["components"] = histogram_from_state(resume_histogram)
     result = RunResult(spec, 0, settings.coverage, acc, engine.parameter_names, engine.parameter_units,
                        weights=scenario.weights_report(), mesh=scenario.mesh_points, commanded=scenario.commanded,
                        guf=point_lpu(scenario))
@@ -208,73 +216,163 @@ def _record(result: RunResult):
 
 
 # ------------------------------------------------------------------ the run command, logged
+#: settings that change a run's numbers beyond trials, seed, coverage, block and sources; logged so a resume reuses them
+RESUMED_SETTINGS = ("keep_samples", "adaptive_batch", "max_trials", "ndig", "adaptive_outputs", "chunk_blocks")
+
+
 def execute(config=None, settings: RunSettings | None = None, *, log_path=None, resume_path=None, force: bool = False,
-            **overrides) -> RunResult:
-    """Run (or resume) a Monte Carlo study and log it to MCAP; what ``mtbudget run`` does."""
-    with one_blas_thread():
-        return _execute(config, settings, log_path=log_path, resume_path=resume_path, force=force, **overrides)
+            histogram_every: float = 60.0, **overrides) -> RunResult:
+    """Run (or resume) a Monte Carlo study and log it to MCAP; what ``mtbudget run`` does.
 
-
-def _execute(config, settings, *, log_path, resume_path, force, **overrides) -> RunResult:
-    from .report import result_json
-    from .runlog import RunLogWriter, read_runlog
+    The log is written as ``LOG.partial`` and renamed to ``LOG`` when the run
+    completes; a lock (``LOG.lock``) refuses a second run on the same log.
+    ``resume_path`` (``LOG`` or ``LOG.partial``): the verified blocks of the
+    interrupted run are copied into a new file, which replaces ``LOG.partial``
+    only once it is on disk, and the missing blocks are computed; the result
+    is bit-identical to an uninterrupted run.  A write error while logging
+    (a full disk) does not stop the run: ``result.log_problem`` says what
+    happened and ``LOG.partial`` keeps every block written before it.
+    """
+    from .runlog import RunLogLock, final_path
 
     settings = replace(settings or RunSettings(), **overrides)
-    resume_blocks = None
     if resume_path is not None:
-        old = read_runlog(resume_path)
-        if old.complete:
-            raise RunLogError(f"{resume_path}: the run is complete; nothing to resume (use mtbudget replay)")
+        source = final_path(resume_path)
+        target = final_path(log_path) if log_path is not None else source
+    else:
+        source, target = None, final_path(log_path or DEFAULT_LOG)
+    locks = [RunLogLock(target)]
+    try:
+        if source is not None and source.resolve() != target.resolve():
+            locks.append(RunLogLock(source))
+        with one_blas_thread():
+            return _execute(config, settings, source=source, target=target, force=force,
+                            histogram_every=histogram_every)
+    finally:
+        for lock in locks:
+            lock.release()
+
+
+def _saved_run(source: Path):
+    """The interrupted run at ``source``: (base log, verified blocks as logged, notes).
+
+    ``LOG.partial`` is the interrupted run when it exists; the blocks of ``LOG``
+    (a log left by an older mtbudget, or a damaged one) are added when it is
+    the same run.  Damaged records are never used; they are recomputed.
+    """
+    from .runlog import partial_path, read_runlog
+
+    logs, errors = [], []
+    for p in (partial_path(source), source):
+        if p.exists():
+            try:
+                logs.append(read_runlog(p))
+            except RunLogError as exc:
+                errors.append(exc)
+    if not logs:
+        if errors:
+            raise errors[0]
+        raise RunLogError(f"{source}: no such file (nor {partial_path(source).name}); nothing to resume")
+    base = logs[0]
+    if base.complete and base.path == source:
+        raise RunLogError(f"{source}: the run is complete; nothing to resume (use mtbudget replay)")
+    blocks, notes = {}, []
+    for log in logs:
+        if log is not base and log.header.get("spec") != base.header.get("spec"):
+            notes.append(f"{log.path} is another run (its spec differs); not used")
+            continue
+        for b in log.blocks:
+            blocks.setdefault(b["block"], b)
+        for d in log.damaged:
+            notes.append(f"{log.path}: {d}; recomputed")
+    return base, [blocks[k] for k in sorted(blocks)], notes
+
+
+def _execute(config, settings, *, source, target, force, histogram_every) -> RunResult:
+    from .report import result_json
+    from .runlog import RunLogWriter, partial_path
+
+    copy, hist, notes, resumed = None, None, [], None
+    if source is not None:
+        old, copy, notes = _saved_run(source)
         spec = old.header["spec"]
         cfg = parse_config(spec["config"], spec.get("config_path"))
+        kept = {k: (tuple(v) if k == "adaptive_outputs" else v) for k, v in old.header.get("settings", {}).items()
+                if k in RESUMED_SETTINGS}
         settings = replace(settings, trials=old.header["trials"], seed=spec["seed"],
                            coverage=spec.get("coverage", settings.coverage), block=spec["block"],
-                           sources=spec.get("sources"))
+                           sources=spec.get("sources"), **kept)
         config_text = old.config_text or ""
-        resume_blocks = old.block_results()
-        log_path = Path(log_path or resume_path)
-        if log_path.resolve() == Path(resume_path).resolve():
-            partial = Path(str(resume_path) + ".partial")
-            os.replace(resume_path, partial)
-            force = True
+        resumed = old.path
     else:
+        if not force and target.exists():
+            raise RunLogError(f"{target}: a run log is already there; choose another --log path or pass --force "
+                              "to overwrite it")
+        if not force and partial_path(target).exists():
+            raise RunLogError(f"{partial_path(target)}: an interrupted run is there; finish it with "
+                              f"`mtbudget run --resume {target}` or pass --force to start over")
         cfg = config if isinstance(config, SimulationConfig) else load_config(config)
         config_text = cfg.path.read_text() if cfg.path else json.dumps(cfg.source)
-        log_path = Path(log_path or DEFAULT_LOG)
     settings.validate()
     scenario = build_scenario(cfg, sources=settings.sources)
     eng = Engine(scenario, block=settings.block, seed=settings.seed)
     spec = make_spec(scenario, eng, settings)
+    keep_vectors = keep_vector_samples(settings, len(scenario.mesh_rows))
+    if copy is not None and not keep_vectors:
+        # the per-point intervals come from histograms of every trial's per-point errors, which the log does not
+        # hold: restore the last histogram checkpoint and recompute the blocks logged after it
+        states = [h for h in old.histograms if all(k in {b["block"] for b in copy} for k in range(h["blocks"]))]
+        state = max(states, key=lambda h: h["blocks"], default=None)
+        upto = state["blocks"] if state is not None else 0
+        dropped = sum(1 for b in copy if b["block"] >= upto)
+        copy = [b for b in copy if b["block"] < upto]
+        if state is not None:
+            hist = state
+        if dropped:
+            notes.append(f"{dropped} logged blocks after the last histogram checkpoint ({upto} blocks) are recomputed, "
+                         "so that the per-point intervals cover every trial")
     plugins = [{"name": s.plugin, "source": s.name, "package": s.dist_name, "version": s.dist_version}
                for s in eng.sources]
     header = {"spec": spec, "trials": settings.trials, "plugins": plugins, "sources": [s.name for s in eng.sources],
               "outputs": {k: v[0] for k, v in SCALARS.items()}, "parameter_names": eng.parameter_names,
               "parameter_units": eng.parameter_units, "mesh": scenario.mesh_points.tolist(),
-              "mesh_unit": "mm", "commanded": scenario.commanded.tolist(), "weights": scenario.weights_report()}
-    writer = RunLogWriter(log_path, header, config_text, force=force,
-                          log_components=keep_vector_samples(settings, len(scenario.mesh_rows)))
-    if resume_blocks:
-        writer.log(2, f"resumed from {resume_path}: {sum(b.n for b in resume_blocks)} trials in "
-                      f"{len(resume_blocks)} blocks taken from the log")
+              "mesh_unit": "mm", "commanded": scenario.commanded.tolist(), "weights": scenario.weights_report(),
+              "settings": {k: (list(getattr(settings, k)) if k == "adaptive_outputs" else getattr(settings, k))
+                           for k in RESUMED_SETTINGS}}
+    writer = RunLogWriter(target, header, config_text, log_components=keep_vectors, copy=copy, histogram=hist,
+                          histogram_every=histogram_every)
+    if resumed is not None:
+        writer.log(2, f"resumed from {resumed}: {sum(b['n'] for b in copy)} trials in {len(copy)} blocks taken from "
+                      "the log" + ("; the per-point histograms restored from its checkpoint" if hist else ""))
+        for n in notes:
+            writer.log(3, n)
     result = None
     try:
-        result = run(engine=eng, settings=settings, on_chunk=lambda blocks, res: writer.blocks(blocks, res.convergence[-1]),
-                     resume_blocks=resume_blocks)
+        result = run(engine=eng, settings=settings, resume_blocks=_block_results(copy), resume_histogram=hist,
+                     on_chunk=lambda blocks, res: writer.blocks(blocks, res.convergence[-1], res.acc))
         pm, cm = result.acc.moments.get("point_error"), result.acc.moments.get("components")
         if pm is not None:
             writer.points(scenario.mesh_points, np.asarray(pm.mean), None if cm is None else cm.std)
         writer.finish(result_json(result), True, result.trials)
-        if resume_path is not None and Path(str(resume_path) + ".partial").exists():
-            os.remove(str(resume_path) + ".partial")
     except BaseException as exc:
-        try:
-            writer.log(4, f"run stopped: {type(exc).__name__}: {exc}")
-            writer.finish(None, False, result.trials if result else 0)
-        except Exception:
-            pass
+        writer.log(4, f"run stopped: {type(exc).__name__}: {exc}")
+        writer.close()
         raise
-    result.log_path = log_path
+    result.log_path = target
+    result.resume_notes = notes
+    if writer.failed is not None:
+        result.log_problem = (f"the run log could not be written ({writer.failed}); {writer.partial} keeps the blocks "
+                              f"written before; make room and run `mtbudget run --resume {target}` to complete it")
     return result
+
+
+def _block_results(raw: list | None) -> list | None:
+    """Logged (verified) block messages as BlockResults."""
+    if not raw:
+        return None
+    from .runlog import RunLog
+
+    return RunLog(Path("."), blocks=raw).block_results()
 
 
 def replay(path) -> RunResult:
@@ -282,6 +380,7 @@ def replay(path) -> RunResult:
     from .runlog import read_runlog
 
     log = read_runlog(path)
+    log.require_intact()
     h = log.header
     blocks = sorted(log.block_results(), key=lambda b: b.block)
     logged = log.result or {}
@@ -305,6 +404,7 @@ def verify(path, progress: bool = False) -> dict:
     from .runlog import read_runlog
 
     log = read_runlog(path)
+    log.require_intact()
     h = log.header
     notes = []
     installed = {s.name: (s.dist_name, s.dist_version) for s in PluginHost().sources()}

@@ -170,6 +170,20 @@ def _has_unit(value) -> bool:
     return False
 
 
+def is_offset_temperature(q) -> bool:
+    """Whether the quantity ``q`` is on an offset temperature scale (degC, degF) alone: an absolute reading.
+
+    ``"0.1 degC"`` is such a quantity: pint converts it to 273.25 K.  A temperature *difference* is written in
+    K or ``delta_degC``; units in a product (``um/(m*degC)``) are read as differences by :func:`parse_unit`.
+    """
+    return isinstance(q, pint.Quantity) and _offset_alone(q)
+
+
+def is_temperature_difference_unit(q) -> bool:
+    """Whether the quantity ``q`` has a ``delta_*`` unit (``delta_degC``, ``delta_degF``): a temperature difference."""
+    return isinstance(q, pint.Quantity) and any(name.startswith("delta_") for name, _ in q.unit_items())
+
+
 def _offset_alone(q) -> bool:
     """Whether ``q`` is on an offset temperature scale (degC, degF) alone: an absolute reading."""
     items = list(q.unit_items())

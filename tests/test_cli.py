@@ -111,3 +111,17 @@ def test_every_numeric_option_refuses_bad_values_in_one_line(path, option, bad, 
     if res.exit_code != 0:
         assert "Traceback" not in res.output
         assert option in res.output or "Invalid value" in res.output or "error:" in res.output, (args, res.output)
+
+
+def test_run_resume_of_nothing_and_of_a_complete_log_are_one_line(tmp_path):
+    missing = tmp_path / "none.mcap"
+    res = CliRunner().invoke(main, ["run", "--resume", str(missing), "--quiet"])
+    assert res.exit_code == 2 and "nothing to resume" in res.output and len(res.output.strip().splitlines()) == 1
+    log = tmp_path / "done.mcap"
+    small = str(__import__("pathlib").Path(__file__).parent / "data" / "small.toml")
+    res = CliRunner().invoke(main, ["run", small, "--trials", "16", "--block", "8", "--attribution-trials", "0",
+                                    "--log", str(log), "--quiet"])
+    assert res.exit_code == 0, res.output
+    res = CliRunner().invoke(main, ["run", "--resume", str(log), "--quiet"])
+    assert res.exit_code == 2 and "the run is complete" in res.output and len(res.output.strip().splitlines()) == 1
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["done.mcap"]  # no lock, partial or temporary file left

@@ -489,3 +489,60 @@ print(rows["spindle_growth"]["plugin"], rows["spindle_growth"]["group"], rows["s
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
     assert out.returncode == 0, out.stderr
     assert out.stdout.split() == ["spindle", "machine", "tool", "True"]
+
+
+# ------------------------------------------------------------------ temperatures in source options (issue 19)
+class _Thermo(Source):
+    """A test source with a temperature difference (K) and an absolute temperature (degC) among its parameters."""
+
+    name = "thermo_test"
+    distribution = "normal"
+    targets = ("sensor",)
+    parameters = {"u_t": Q_(0.1, "K"), "ambient": Q_(20.0, "degC"), "slope": Q_(1.0, "um/K")}
+
+
+@pytest.mark.parametrize("text, kelvin", [("0.1 delta_degC", 0.1), ("0.25 K", 0.25), ("0.9 delta_degF", 0.5),
+                                          ("250 mK", 0.25)])
+def test_a_temperature_difference_option_reads_difference_units(text, kelvin):
+    src = _Thermo(u_t=text)
+    assert src.value("u_t", "K") == pytest.approx(kelvin, rel=1e-12)  # 1 degF step = 5/9 K, by definition
+
+
+@pytest.mark.parametrize("text, hint", [("0.1 degC", '"0.1 delta_degC"'), ("0.2 degF", '"0.2 delta_degF"')])
+def test_a_temperature_difference_option_refuses_an_offset_scale(text, hint):
+    with pytest.raises(PluginError) as exc:
+        _Thermo(u_t=text)
+    msg = str(exc.value)
+    assert "\n" not in msg and "'u_t'" in msg and hint in msg and "thermo_test" in msg
+
+
+def test_a_product_with_degC_is_a_difference():
+    # um/degC is um per kelvin of difference: 2 um/degC = 2 um/K (pint's as_delta inside a product)
+    assert _Thermo(slope="2 um/degC").value("slope", "um/K") == pytest.approx(2.0, rel=1e-12)
+
+
+def test_an_absolute_temperature_option_refuses_delta_units_and_implausible_values():
+    assert _Thermo(ambient="25 degC").value("ambient", "K") == pytest.approx(298.15, rel=1e-12)
+    assert _Thermo(ambient="77 degF").value("ambient", "K") == pytest.approx(298.15, rel=1e-12)  # (77-32)*5/9 + 273.15
+    with pytest.raises(PluginError, match="is a temperature difference; it is an absolute temperature"):
+        _Thermo(ambient="20 delta_degC")
+    with pytest.raises(PluginError, match="not a plausible absolute temperature"):
+        _Thermo(ambient="20 K")
+
+
+def test_a_config_with_an_offset_temperature_difference_is_one_line(tmp_path):
+    from click.testing import CliRunner
+
+    from mtbudget.cli import main
+
+    small = (Path(__file__).parent / "data" / "small.toml").read_text().replace(
+        'enable = ["tracker_noise",', 'enable = ["temperature_sensor_calibration", "tracker_noise",')
+    assert "temperature_sensor_calibration" in small
+    cfg = tmp_path / "t.toml"
+    cfg.write_text(small + '\n[sources.temperature_sensor_calibration]\nu_calibration = "0.1 degC"\n')
+    res = CliRunner().invoke(main, ["plugins", str(cfg)])
+    assert res.exit_code == 2 and "delta_degC" in res.output and "273.25 K" in res.output, res.output
+    assert len(res.output.strip().splitlines()) == 1 and "Traceback" not in res.output
+    cfg.write_text(small + '\n[sources.temperature_sensor_calibration]\nu_calibration = "0.1 delta_degC"\n')
+    res = CliRunner().invoke(main, ["plugins", str(cfg), "--json"])
+    assert res.exit_code == 0, res.output

@@ -56,7 +56,7 @@ def test_log_contents_and_foxglove_topics(logged):
     assert topics["/mtbudget/points"] == "foxglove.PointCloud"
     assert attachments[0].name == "config.toml" and b"small" in attachments[0].data
     meta = metadata["mtbudget.run"]
-    assert meta["format"] == "mtbudget-runlog/1" and meta["seed"] == "5"
+    assert meta["format"] == "mtbudget-runlog/1.1" and meta["seed"] == "5"
     assert "tracker_noise" in meta["plugins"]
     log = read_runlog(path)
     assert len(log.convergence) >= 1 and {"trials", "mean", "std", "low", "high"} <= set(log.convergence[-1])
@@ -161,3 +161,19 @@ def test_the_log_holds_exactly_the_trials_the_run_used(tmp_path):
     for k in SCALARS:
         assert np.array_equal(again.acc.scalar_samples(k), res.acc.scalar_samples(k)), k
     assert again.points() == res.points()
+
+
+def test_a_log_from_before_checksums_still_reads(tmp_path, monkeypatch):
+    """Format mtbudget-runlog/1 had no crc32 in its messages: read unverified; in a 1.1 log a missing crc32 is damage."""
+    import mtbudget.runlog as runlog
+
+    monkeypatch.setattr(runlog, "_with_crc", lambda topic, obj: json.dumps(obj).encode())
+    monkeypatch.setattr(runlog, "FORMAT", runlog.LEGACY_FORMAT)
+    res = execute(SMALL, trials=20, block=8, attribution_trials=0, log_path=tmp_path / "old.mcap")
+    again = replay(tmp_path / "old.mcap")
+    assert again.complete and np.array_equal(again.acc.scalar_samples("compensation_rms"),
+                                             res.acc.scalar_samples("compensation_rms"))
+    monkeypatch.setattr(runlog, "FORMAT", "mtbudget-runlog/1.1")
+    execute(SMALL, trials=20, block=8, attribution_trials=0, log_path=tmp_path / "new.mcap")
+    with pytest.raises(RunLogError, match="damaged run log: byte offset [0-9]+: the /mtbudget/run message has no checksum"):
+        read_runlog(tmp_path / "new.mcap")

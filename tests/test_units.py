@@ -100,3 +100,14 @@ def test_parse_unit_shares_the_grammar():
 def test_parse_quantity_keeps_absolute_temperatures_and_plain_numbers():
     assert parse_quantity("20 degC").to("K").magnitude == pytest.approx(293.15)
     assert parse_quantity("2").magnitude == 2.0 and parse_quantity("2").unitless
+
+
+def test_offset_scale_and_difference_units_are_told_apart():
+    from mtbudget.units import Q_, is_offset_temperature, is_temperature_difference_unit
+
+    assert is_offset_temperature(Q_(0.1, "degC")) and is_offset_temperature(Q_(0.1, "degF"))
+    assert not any(is_offset_temperature(Q_(0.1, u)) for u in ("K", "delta_degC", "delta_degF", "um/K"))
+    assert is_temperature_difference_unit(Q_(0.1, "delta_degC")) and is_temperature_difference_unit(Q_(1, "delta_degF"))
+    assert not any(is_temperature_difference_unit(Q_(0.1, u)) for u in ("K", "degC", "um"))
+    # why it matters: pint reads "0.1 degC" as an absolute 273.25 K, "0.1 delta_degC" as 0.1 K
+    assert Q_(0.1, "degC").to("K").magnitude == pytest.approx(273.25) and Q_(0.1, "delta_degC").to("K").magnitude == pytest.approx(0.1)
