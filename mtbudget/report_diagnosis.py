@@ -26,6 +26,8 @@ def diagnosis_text(d) -> str:
     b = d.baseline
     out.append(f"  baseline (rigid-body model): chi-square per dof {b['chi2_per_dof']:.3f} ({b['dof']} dof), "
                f"RMS residual {_rms(b)}{_not_converged(b)}")
+    if d.settings.get("thermal_correction"):
+        out.append(f"  {d.settings['thermal_correction']}")
     m = d.mismatch
     um = pretty(m.get("unit", "um"))
     hints = []
@@ -109,6 +111,12 @@ def _unexplained_text(u) -> list:
     for imp in u.get("implausible", []):
         ax = f"[{imp['axis']}]" if imp["axis"] else ""
         out.append(f"    IMPLAUSIBLE {imp['effect']}{ax} would fit, but {imp['reason']}: not a finding")
+    for f in u.get("partial", []):
+        ax = f"[{f['axis']}]" if f["axis"] else ""
+        est, unc = f["estimate"], f["uncertainty"]
+        out.append(f"    PARTIAL {f['effect']}{ax}: explains part of the misfit ({_fmt_value(est['value'])} "
+                   f"+- {_fmt_value(unc['value'], 2)} {pretty(est['unit'])}, k = 1), but the recording stays "
+                   f"unexplained with it: not a finding")
     for n in u.get("notes", []):
         out.append(f"    note: {n}")
     dd = u.get("data_driven")
@@ -350,6 +358,14 @@ def _unexplained_section(doc: _Doc, u: dict):
             need = (U(what), f" of {_q(est)} ± {_q(unc, 2)} (k = 1)") if est else (U(imp["reason"]),)
             rows.append([_label(imp["effect"], imp["axis"]), need, rng, "implausible: not a finding"])
         doc.table(["candidate", "would need", "plausible range", "verdict"], rows)
+    if u.get("partial"):
+        doc.h(3, "Partial: explains part of the misfit, but not a finding")
+        doc.p("Each of these candidates is significant and plausible, but the recording stays unexplained with it: "
+              "what it fits may be physics outside the library that it only resembles.")
+        doc.table(["candidate", "estimate (k = 1)", "χ²/dof with it"],
+                  [[_label(f["effect"], f["axis"]),
+                    f"{_q(f['estimate'])} ± {_q(f['uncertainty'], 2)}", f"{f['after']['chi2_per_dof']:.3f}"]
+                   for f in u["partial"]])
     notes = u.get("notes") or []
     doc.ul([("note: ", U(x)) for x in notes])
     dd = u.get("data_driven")

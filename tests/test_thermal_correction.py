@@ -144,3 +144,18 @@ def test_compensation_of_thermal_x_holds_at_20_degC_only_with_the_correction(tmp
         written = export(table, ex, tmp_path / f"{label}{ex.suffix}")
         within[label] = check_export(table, rec, ex, written)["axes"]["x"].to_dict()["within_2u"]
     assert within["corrected"] == 1.0 and within["raw"] < 0.5
+
+
+def test_diagnosis_of_thermal_x_finds_nothing_left_once_the_stated_expansion_is_corrected(tmp_path):
+    """Without [scales] the diagnosis names the expansion (the truth's 11.5 um/(m K) within 2u); with it stated
+    nothing is left to find, and both say which correction they applied."""
+    from mtbudget.diagnose import diagnose
+
+    raw = diagnose(read_recording(example_recording("thermal_x")))
+    (f,) = raw.findings
+    assert (f.candidate.effect, f.candidate.axis) == ("thermal_expansion", "x")
+    assert abs(f.estimate[0] - 11.5) < 2 * f.uncertainty[0] and f.unit in ("um/(m*K)", "um / m / K", "µm/(m·K)")
+    cor = diagnose(read_recording(with_scales(tmp_path, f'[scales.x]\ncte = "{CTE_STEEL}"')))
+    assert cor.findings == [] and cor.unexplained is None
+    assert raw.settings["thermal_correction"].startswith("no correction")
+    assert cor.settings["thermal_correction"].startswith("scales corrected to 20 degC")
