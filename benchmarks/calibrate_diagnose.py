@@ -1,6 +1,6 @@
 """Calibration of `mtbudget diagnose` on concealed, simulated recordings: the detection table of docs/diagnose.md.
 
-Run:  python benchmarks/calibrate_diagnose.py [--cases 100] [--only new|library|noise]
+Run:  python benchmarks/calibrate_diagnose.py [--cases 100] [--only new|library|noise|families]
 
 Each case: a machine with random geometric errors larger than the effect, a
 tracker at a random pose, drifting and cycling temperatures, the example
@@ -66,7 +66,7 @@ def main():
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--cases", type=int, default=100)
     ap.add_argument("--multiple", type=float, default=2.5)
-    ap.add_argument("--only", choices=("all", "new", "library", "noise"), default="all")
+    ap.add_argument("--only", choices=("all", "new", "library", "noise", "families"), default="all")
     args = ap.parse_args()
     cands = default_host().candidates()
     original = [c for c in cands if c.effect in ORIGINAL]
@@ -79,7 +79,7 @@ def main():
         row("none", n, 20_000, (), cands)
         for nz in NOISE:
             row("none, noise " + ", ".join(f"{k} {v:g}x" for k, v in nz.items()), n, 21_000, (), cands, noise=nz)
-    if args.only in ("all", "new"):
+    if args.only in ("all", "new", "families"):
         row("x error in x*y*z (outside the library)", n, 22_000, (("axis_polynomial", "xyz"),), cands, 4.0)
         for eff in NEW:
             row(f"{label(eff)} against the original library", n, 23_000, (eff,), original, 3.0)
