@@ -63,6 +63,13 @@ class ThermalExpansion(Candidate):
         T = ctx.axis_temperature_column(self.axis)
         if T is None:
             return f"no temperature sensor is attached to the {self.axis} axis"
+        # where recording.toml states the scale's expansion, the baseline corrects it: what is left to find is
+        # the deviation from the stated CTE, plausible as long as the total stays within the physical range
+        sc = getattr(ctx.plan, "scales", {}).get(self.axis)
+        stated = sc.cte * 1e6 if sc else 0.0
+        lo, hi = type(self).plausible["cte"]
+        self.plausible = {"cte": (lo - stated, hi - stated)}
+        self.quantity_names = {"cte": f"a deviation from the stated CTE ({stated:g} um/(m*K))" if sc else "a CTE"}
         return _varies(T, f"the {self.axis}-axis temperature")
 
     def columns(self, ctx):

@@ -159,3 +159,16 @@ def test_diagnosis_of_thermal_x_finds_nothing_left_once_the_stated_expansion_is_
     assert cor.findings == [] and cor.unexplained is None
     assert raw.settings["thermal_correction"].startswith("no correction")
     assert cor.settings["thermal_correction"].startswith("scales corrected to 20 degC")
+
+
+def test_a_wrong_stated_cte_is_found_as_a_deviation_with_a_shifted_plausible_range(tmp_path):
+    """Stating 4 um/(m K) for a scale that expands by 11.5: the diagnosis finds the deviation, +7.5 within 2u,
+    although a stated 25 would make a deviation of -13.5 plausible too (total 11.5 within 0-30)."""
+    from mtbudget.diagnose import diagnose
+
+    for stated in (4.0, 25.0):
+        d = diagnose(read_recording(with_scales(tmp_path / str(stated), f'[scales.x]\ncte = "{stated} um/(m*K)"')))
+        (f,) = d.findings
+        assert (f.candidate.effect, f.candidate.axis) == ("thermal_expansion", "x")
+        assert abs(f.estimate[0] - (11.5 - stated)) < 2 * f.uncertainty[0]
+        assert d.unexplained is None
