@@ -154,15 +154,21 @@ def point_lpu(scenario) -> dict:
     sc = scenario
     meas = sc.truth.predict(sc.theta[None, :], sc.pose)
     res = identify(sc.id_model, meas, sc.noise)
-    F_true = sc.truth.machine_points(sc.theta[None, :])[0][sc.mesh_rows]
-    F_id, J = sc.id_model.machine_points(res.theta, jacobian=True)
-    F_id, J = F_id[0][sc.mesh_rows], J[0][sc.mesh_rows]  # (M0, 3), (M0, 3, p)
+    F_true = sc.evaluate(sc.truth, sc.theta[None, :])[0]
+    F_id, J = sc.evaluate(sc.id_model, res.theta, jacobian=True)
+    F_id, J = F_id[0], J[0]  # (M0, 3), (M0, 3, p): at the mesh points and the measurand's tool
     M0 = len(sc.mesh_rows)
     P = sc.rigid_free
     um = factor("mm", "um")
     y0 = (P @ (F_true - F_id).reshape(-1)).reshape(M0, 3) * um
     Jf = P @ J.reshape(3 * M0, -1)
     cov = Jf @ res.cov_theta[0] @ Jf.T * um**2
+    prior = sc.unidentified_prior()
+    if prior is not None:  # at a tool the verification did not use: the unidentifiable errors' prior, as the MCM draws it
+        N, L = prior
+        _, Jt = sc.evaluate(sc.id_model, np.zeros((1, N.shape[0])), jacobian=True)
+        G = P @ Jt[0].reshape(3 * M0, -1) @ N @ L
+        cov = cov + G @ G.T * um**2
     blocks = np.stack([cov[3 * i:3 * i + 3, 3 * i:3 * i + 3] for i in range(M0)])
     return {"estimate": y0, "cov": blocks}
 

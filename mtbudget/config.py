@@ -112,7 +112,7 @@ class Reader:
 #: [placement] is checked by the placement study and [sources] by the scenario.
 SCHEMA = {
     "": ("format", "name", "description", "machine", "reference_temperature", "seed", "mesh", "plan", "tracker",
-         "machine_tool", "geometric_errors", "sensors", "effects", "placement", "sources", "weights"),
+         "machine_tool", "geometric_errors", "sensors", "effects", "placement", "sources", "weights", "measurand"),
     "mesh": ("x", "y", "z", "step", "step_x", "step_y", "step_z"),
     "plan": ("runs", "tools", "feed", "stop_time", "tool_change_time"),
     "tracker": ("D", "L", "H", "a", "b", "d", "angular", "distance", "distance_per_length"),
@@ -122,6 +122,7 @@ SCHEMA = {
                 "cycle_phase"),
     "effects": ("thermal", "reversal", "drift"),
     "weights": ("angular", "distance", "distance_per_length", "repeatability"),
+    "measurand": ("tool",),
 }
 
 
@@ -193,6 +194,7 @@ class SimulationConfig:
     sensors: list = field(default_factory=list)
     effects: dict = field(default_factory=dict)  # thermal {axis: 1/K}, reversal {axis: mm}, drift (3,) mm/s
     weights: dict | None = None  # [weights]: identification weights stated apart from the physical inputs
+    measurand_tool: list | None = None  # [measurand] tool: where the compensated machine is evaluated (mm)
     source: dict = field(default_factory=dict)  # the raw TOML (for logging)
     path: Path | None = None
 
@@ -307,6 +309,17 @@ def parse_config(data: dict, path=None) -> SimulationConfig:
         tools.append([to_unit(v, "mm", f"{pl.where('tools')}[{i}]") for v in t])
         if max(abs(v) for v in tools[-1]) > MAX_LENGTH:
             raise ConfigError(f"{pl.where('tools')}[{i}]: beyond {MAX_LENGTH:g} mm; not a tool offset")
+    measurand_tool = None
+    if r.has("measurand"):
+        ms = r.sub("measurand")
+        if ms.has("tool"):
+            t = ms.raw("tool")
+            if not (isinstance(t, list) and len(t) == 3):
+                raise ConfigError(f"{ms.where('tool')}: expected [tx, ty, tz], the tool offset at which the compensated "
+                                  "machine is evaluated")
+            measurand_tool = [to_unit(v, "mm", f"{ms.where('tool')}[{i}]") for i, v in enumerate(t)]
+            if max(abs(v) for v in measurand_tool) > MAX_LENGTH:
+                raise ConfigError(f"{ms.where('tool')}: beyond {MAX_LENGTH:g} mm; not a tool offset")
     runs = pl.number("runs", 2, int, low=1)
     if n_mesh * len(tools) * runs > MAX_PLAN_ROWS:
         raise ConfigError(f"{pl.where('runs')}: {n_mesh} mesh points x {len(tools)} tools x {runs} runs is more than "
@@ -432,6 +445,7 @@ def parse_config(data: dict, path=None) -> SimulationConfig:
         pose=pose,
         **physical,
         weights=weights,
+        measurand_tool=measurand_tool,
         max_degree=mt.number("max_degree", 3, int, low=1, high=9),
         geometric=geometric,
         sensors=sensors,

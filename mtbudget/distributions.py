@@ -104,7 +104,10 @@ class Normal(Distribution):
         return Q_(self.sigma, self.units)
 
     def _draw(self, n, rng):
-        return self.mu + self.sigma * rng.standard_normal(n)
+        z = rng.standard_normal(n)  # scaled and shifted in place: the same numbers as mu + sigma * z, one array
+        z *= self.sigma
+        z += self.mu
+        return z
 
     def standard_normal_map(self, z):
         return self.mu + self.sigma * z

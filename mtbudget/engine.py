@@ -14,12 +14,17 @@ from __future__ import annotations
 import numpy as np
 
 from .errors import ConfigError
-from .identify import Strategy, identify
+from .identify import Strategy, identify, scale_vector
 from .outputs import POINT_UNIT, SCALARS, BlockResult
 from .plugins import call
 from .scenario import Scenario, target_shapes
 from .simulate import sample_source, simulate_block
 from .units import factor, shown_unit
+
+
+#: the random stream of the unidentified errors' prior (a measurand at another tool): per (seed, block), so any
+#: block grouping gives the same draws
+UNIDENTIFIED_STREAM = 0x756E6964
 
 
 class Engine:
@@ -36,30 +41,50 @@ class Engine:
         for s in self.sources:  # probe: keys, shapes, dimensions and NaN checked once, before any trial
             sample_source(scenario, s, 2, np.random.default_rng(0), self.shapes)
         self._um = factor("mm", POINT_UNIT)
+        self._options: dict = {}  # strategy source name -> its options, asked once per engine
 
     # ------------------------------------------------------------------ one block
     def simulate(self, block: int, active: list | None = None):
         """The simulated measurements of one block (see :func:`mtbudget.simulate.simulate_block`)."""
-        return simulate_block(self.scenario, block, self.block, self.seed, active, self.shapes)
+        return simulate_block(self.scenario, block, self.block, self.seed, active, self.shapes, self._options)
 
     def run_block(self, block: int, active: list | None = None) -> BlockResult:
         """Trials ``block*B .. (block+1)*B - 1`` with the ``active`` sources (default: all selected)."""
+        return self.run_blocks([block], active)[0]
+
+    def run_blocks(self, blocks: list, active: list | None = None) -> list:
+        """Several blocks at once: each block's results are bit-identical to :meth:`run_block` of that block alone.
+
+        Each block draws its own streams; the blocks' trials are then identified together, one
+        identification call per setting the optimisation-strategy sources chose, with one label per
+        block (:func:`mtbudget.identify.identify` ``groups``): every product that mixes trials is
+        done block by block, so only the fixed cost of each call is shared.
+        """
         sc = self.scenario
         n = self.block
-        meas, theta_true, choices = self.simulate(block, active)
-        F_true = sc.truth.machine_points(theta_true)[:, sc.mesh_rows]
+        blocks = [int(b) for b in blocks]
+        nb = len(blocks)
+        if not nb:
+            return []
+        sims = [self.simulate(b, active) for b in blocks]
+        meas = np.concatenate([s[0] for s in sims]) if nb > 1 else sims[0][0]
+        theta_true = [s[1] for s in sims]
+        label = np.repeat(np.arange(nb), n)
 
         # group trials by the identification settings the optimisation-strategy sources chose
-        options = [(src, call(src, "options", sc.context)) for src, _ in choices]
-        keys = np.zeros(n, int)
-        for (src, c), (_, opts) in zip(choices, options):
+        choices = sims[0][2]
+        options = [(src, self._options_of(src)) for src, _ in choices]
+        keys = np.zeros(nb * n, int)
+        for j, (src, opts) in enumerate(options):
+            c = np.concatenate([s[2][j][1] for s in sims])
             keys = keys * len(opts) + c
         base = sc.id_model
-        out_scalars = {k: np.empty(n) for k in SCALARS}
-        point_err = np.empty((n, len(sc.mesh_rows)))
-        components = np.empty((n, len(sc.mesh_rows), 3))
-        params = np.zeros((n, base.n_params))
-        not_converged = fallbacks = 0
+        rows = sc.mesh_rows
+        F_id = np.empty((nb * n, len(rows), 3))
+        params = np.zeros((nb * n, base.n_params))
+        out_scalars = {k: np.empty(nb * n) for k in SCALARS}
+        not_converged = np.zeros(nb, int)
+        fallbacks = np.zeros(nb, int)
         um = self._um
         for key in np.unique(keys):
             idx = np.flatnonzero(keys == key)
@@ -69,23 +94,16 @@ class Engine:
                 settings.update(opts[rem % len(opts)])
                 rem //= len(opts)
             model, strategy = self._identification_setup(settings)
-            res = identify(model, meas[idx], sc.noise, strategy, chunk=self.block)
-            not_converged += int((~res.converged).sum())
-            fallbacks += int(res.n_fallback)
-            F_id = model.machine_points(res.theta)[:, sc.mesh_rows]
-            D = (F_true[idx] - F_id).reshape(len(idx), -1) @ sc.rigid_free.T
-            comp = D.reshape(len(idx), -1, 3) * um
-            components[idx] = comp
-            e = np.linalg.norm(D.reshape(len(idx), -1, 3), axis=2) * um
-            point_err[idx] = e
-            out_scalars["compensation_rms"][idx] = np.sqrt((e**2).mean(axis=1))
-            out_scalars["compensation_mean"][idx] = e.mean(axis=1)
-            out_scalars["compensation_max"][idx] = e.max(axis=1)
+            res = identify(model, meas[idx], sc.noise, strategy, chunk=n, groups=label[idx])
+            not_converged += np.bincount(label[idx], ~res.converged, minlength=nb).astype(int)
+            if res.fallback is not None:
+                fallbacks += np.bincount(label[idx], res.fallback, minlength=nb).astype(int)
+            F_id[idx] = sc.evaluate(model, res.theta)
             out_scalars["mean_error_after"][idx] = res.mean_error_after * um
             out_scalars["mean_error_before"][idx] = res.mean_error_before * um
             out_scalars["max_residual"][idx] = res.max_residual * um
             out_scalars["chi2_per_dof"][idx] = res.chi2_per_dof
-            scale = np.array([factor(u, shown_unit(u)) for u in model.errors.units])
+            scale = scale_vector(model)  # um per mm, urad per rad: the units parameters are shown in
             if model is base:
                 params[idx] = res.theta * scale
             else:
@@ -93,8 +111,36 @@ class Engine:
                 for j, nm in enumerate(model.errors.names):
                     if nm in names:
                         params[idx, names.index(nm)] = res.theta[:, j] * scale[j]
-        return BlockResult(block, n, out_scalars, point_err, params, not_converged, components=components,
-                           fallbacks=fallbacks)
+        results = []
+        for i, b in enumerate(blocks):
+            sl = slice(i * n, (i + 1) * n)
+            prior = sc.unidentified_prior()
+            if prior is not None:  # at a tool the verification did not use: what it cannot identify, from the prior
+                N, L = prior
+                z = np.random.default_rng(np.random.SeedSequence([self.seed, b, UNIDENTIFIED_STREAM])).standard_normal(
+                    (n, L.shape[0]))
+                # the chain is linear in the parameters to first order: the id model's field at the drawn directions
+                # adds to the truth's (the directions are in its convention, not all in the truth's)
+                F_true = (sc.evaluate(sc.truth, theta_true[i]) + sc.evaluate(sc.id_model, (z @ L.T) @ N.T)
+                          - sc.evaluate(sc.id_model, np.zeros((1, N.shape[0]))))
+            else:
+                F_true = sc.evaluate(sc.truth, theta_true[i])
+            # the compensated field, rigid motions removed: one product per block, the same for any grouping
+            D = (F_true - F_id[sl]).reshape(n, -1) @ sc.rigid_free.T
+            comp = D.reshape(n, -1, 3) * um
+            e = _norm3(D.reshape(n, -1, 3)) * um
+            sc_b = {k: v[sl].copy() for k, v in out_scalars.items()}
+            sc_b["compensation_rms"] = np.sqrt((e**2).mean(axis=1))
+            sc_b["compensation_mean"] = e.mean(axis=1)
+            sc_b["compensation_max"] = e.max(axis=1)
+            results.append(BlockResult(b, n, sc_b, e, params[sl].copy(), int(not_converged[i]), components=comp,
+                                       fallbacks=int(fallbacks[i])))
+        return results
+
+    def _options_of(self, src) -> list:
+        if src.name not in self._options:
+            self._options[src.name] = call(src, "options", self.scenario.context)
+        return self._options[src.name]
 
     def _identification_setup(self, settings: dict):
         model = self.scenario.identification_model(int(settings.get("max_degree", self.scenario.max_degree)))
@@ -114,3 +160,8 @@ class Engine:
     @property
     def parameter_units(self) -> list:
         return [shown_unit(u) for u in self.scenario.id_model.errors.units]
+
+
+def _norm3(x: np.ndarray) -> np.ndarray:
+    """Euclidean length over the last axis of length 3 (elementwise: faster than ``np.linalg.norm`` there)."""
+    return np.sqrt(x[..., 0] * x[..., 0] + x[..., 1] * x[..., 1] + x[..., 2] * x[..., 2])

@@ -36,16 +36,53 @@ def one_blas_thread():
 _WORKER_CACHE: dict = {}
 
 
+#: the distribution a plugin registered in code (``PluginHost(plugins=...)``) is stamped with
+IN_CODE = "(registered in code)"
+
+
 def run_blocks_from_spec(spec_json: str, blocks: list, active: list | None = None) -> list:
     """Worker entry point: run ``blocks`` of the engine described by ``spec_json``."""
     with one_blas_thread():  # the engine built and run with one BLAS thread, as in process: bit-identical
         eng = _WORKER_CACHE.get(spec_json)
         if eng is None:
-            eng = engine_from_spec(json.loads(spec_json))
+            try:
+                eng = engine_from_spec(json.loads(spec_json))
+            except ConfigError as exc:
+                import socket
+
+                raise ConfigError(f"a worker on {socket.gethostname()} could not rebuild the engine: {exc} (workers "
+                                  "rebuild it from the configuration and the plugins installed where they run: "
+                                  "install the same plugins there)", key="executor") from None
             _WORKER_CACHE.clear()
             _WORKER_CACHE[spec_json] = eng
         act = None if active is None else [s for s in eng.sources if s.name in active]
-        return [eng.run_block(b, act) for b in blocks]
+        return eng.run_blocks(blocks, act)
+
+
+def in_order(submit, chunks: list, window: int):
+    """Results of ``submit(chunk)`` in chunk order, with at most ``window`` chunks in flight: memory is bounded by
+    the window, not by the run (a finished chunk is released once it has been handed over)."""
+    from collections import deque
+
+    queue: deque = deque()
+    for ch in chunks:
+        queue.append(submit(ch))
+        if len(queue) > window:
+            yield queue.popleft().result()
+    while queue:
+        yield queue.popleft().result()
+
+
+def check_sources_reach_workers(engine, kind: str) -> None:
+    """Workers rebuild the engine from a JSON spec: by name, from the plugins installed where they run.  A source
+    registered in code exists only in this process, so it cannot reach them: say so before any work is sent."""
+    in_code = [s for s in engine.sources if getattr(s, "dist_name", "") == IN_CODE]
+    if in_code:
+        s = in_code[0]
+        raise ConfigError(f"source {s.name!r} (plugin {s.plugin or '?'}) was registered in code; the {kind} executor's "
+                          "workers rebuild the engine from the configuration and the plugins installed as entry "
+                          "points, where it does not exist: publish it through the 'mtbudget' entry-point group of "
+                          "a package installed on every worker, or run with --executor inline", key="executor")
 
 
 class Executor:
@@ -55,23 +92,32 @@ class Executor:
         if kind not in EXECUTORS:
             raise ConfigError(f"unknown executor {kind!r}; expected one of {', '.join(EXECUTORS)}", key="executor")
         self.engine, self.kind = engine, kind
+        if kind != "inline":
+            check_sources_reach_workers(engine, kind)
         self.spec_json = json.dumps(spec, sort_keys=True, default=str)
         self.pool = self.client = self.cluster = None
+        self.n_workers = 1
         if kind == "process":
             from concurrent.futures import ProcessPoolExecutor
 
             self.pool = ProcessPoolExecutor(max_workers=workers or 2)
+            self.n_workers = workers or 2
         elif kind == "dask":
             try:
                 from dask.distributed import Client, LocalCluster
             except ImportError:
                 raise ConfigError("the dask executor needs the optional extra: pip install 'mtbudget[dask]'") from None
             if address:
-                self.client = Client(address)
-            else:
-                self.cluster = LocalCluster(n_workers=workers or 2, threads_per_worker=1, processes=False,
+                try:
+                    self.client = Client(address, timeout="10s")
+                except (OSError, TimeoutError) as exc:
+                    raise ConfigError(f"no Dask scheduler answers at {address!r} ({type(exc).__name__}: {exc})",
+                                      key="address") from None
+            else:  # worker processes, one thread each: numpy's small operations hold the GIL, threads would queue
+                self.cluster = LocalCluster(n_workers=workers or 2, threads_per_worker=1, processes=True,
                                             dashboard_address=None)
                 self.client = Client(self.cluster)
+            self.n_workers = max(1, sum(self.client.nthreads().values()))
 
     def map(self, chunks: list, active_names: list | None = None):
         """Yield the block results of each chunk, in chunk order."""
@@ -79,17 +125,15 @@ class Executor:
             act = None if active_names is None else [s for s in self.engine.sources if s.name in active_names]
             for ch in chunks:
                 with one_blas_thread():
-                    results = [self.engine.run_block(b, act) for b in ch]
+                    results = self.engine.run_blocks(ch, act)
                 yield results
         elif self.kind == "process":
-            futs = [self.pool.submit(run_blocks_from_spec, self.spec_json, ch, active_names) for ch in chunks]
-            for f in futs:
-                yield f.result()
+            yield from in_order(lambda ch: self.pool.submit(run_blocks_from_spec, self.spec_json, ch, active_names),
+                                 chunks, 2 * self.n_workers + 2)
         else:
-            futs = self.client.map(run_blocks_from_spec, [self.spec_json] * len(chunks), chunks,
-                                   [active_names] * len(chunks), pure=False)
-            for f in futs:
-                yield f.result()
+            yield from in_order(lambda ch: self.client.submit(run_blocks_from_spec, self.spec_json, ch, active_names,
+                                                               pure=False),
+                                 chunks, 2 * self.n_workers + 2)
 
     def close(self):
         if self.pool:

@@ -33,8 +33,10 @@ Solvers (``Strategy.solver``):
   identifiable directions.  The whitened residuals are exact at every
   iterate (the exact chain, each trial's own whitener), and so is the rigid
   part of the gradient; the iteration matrix is one normal matrix per chunk
-  of trials, factorised once, built from the plan's Jacobian at the nominal
-  (cached per model and phase) and the chunk's mean information matrix
+  of trials (per label, when the caller passes ``groups``: a trial's result
+  then depends on its label's trials only, bit for bit), factorised once,
+  built from the plan's Jacobian at the nominal (cached per model and phase)
+  and the chunk's (label's) mean information matrix
   (machine frame).  Stage 1 iterates with the nominal Jacobian; because the
   fixed point of such chord iterations sits where the *nominal* Jacobian is
   orthogonal to the weighted residual (about 1e-5 mm from the least-squares
@@ -61,7 +63,7 @@ import numpy as np
 
 from . import tracker as lt
 from .errors import IdentificationError
-from .machine import AXES, AXIS_INDEX, skew, skew_basis
+from .machine import AXES, AXIS_INDEX, chain, skew, skew_basis
 from .model import MeasurementModel
 from .units import factor, shown_unit
 
@@ -257,9 +259,16 @@ class Identification:
 #: the scaled parameter units: lengths in um, angles in urad (on a 1 m lever both are um of effect)
 
 
+_SCALES: dict = {}
+
+
 def scale_vector(model: MeasurementModel) -> np.ndarray:
     """um per mm and urad per rad: parameters in comparable effect units."""
-    return np.array([factor(u, shown_unit(u)) for u in model.errors.units])
+    units = tuple(model.errors.units)
+    for u in units:
+        if u not in _SCALES:
+            _SCALES[u] = factor(u, shown_unit(u))
+    return np.array([_SCALES[u] for u in units])
 
 
 #: scale of the pose (D, L, H in mm; a, b, d in rad), as :func:`scale_vector`
@@ -451,6 +460,7 @@ def identify(
     pose0: np.ndarray | None = None,
     fixed: dict | None = None,
     chunk: int | None = None,
+    groups: np.ndarray | None = None,
 ) -> Identification:
     """Identify pose and geometric errors for one or N trials.
 
@@ -463,6 +473,11 @@ def identify(
     chunk: trials solved together (default: about 8 MB of Jacobian per chunk, which
     keeps the working set in cache; larger chunks are slower, not faster).  The chord
     solver shares one factorisation per chunk.
+
+    groups: (N,) labels, chord solver only: the trials of a label share an iteration matrix, and a
+    trial's result depends on the trials of its own label only, bit for bit, as if each label were
+    identified alone (the engine passes one label per block; ``chunk`` is then ignored, the labels
+    are the chunks).
 
     The result says which solver ran (``solver``) and, for the chord solver, which
     trials it handed to Gauss-Newton (``fallback``, ``n_fallback``).
@@ -508,7 +523,23 @@ def identify(
         chunk = max(16, int(8e6 // (M * 3 * max(p, 1) * 8)))
     chord = strategy.solver == "chord"
     parts = []
-    for lo in range(0, N, chunk):
+    if groups is not None:
+        groups = np.asarray(groups)
+        if groups.shape != (N,):
+            raise IdentificationError(f"groups must hold one label per trial ({N}), got shape {groups.shape}")
+        if chord:
+            parts.append(_identify_chunk_chord(model, meas, noise, strategy, theta0.copy(),
+                                               None if pose0 is None else pose0.copy(), fixed, phases, cache,
+                                               labels=groups))
+        else:  # Gauss-Newton treats every trial alone: the labels are the chunks
+            for k in np.unique(groups):
+                idx = np.flatnonzero(groups == k)
+                parts.append(_identify_chunk(model, meas[idx], noise, strategy, theta0[idx].copy(),
+                                             None if pose0 is None else pose0[idx].copy(), _rows(fixed, idx, N),
+                                             phases))
+            order = np.argsort(np.concatenate([np.flatnonzero(groups == k) for k in np.unique(groups)]), kind="stable")
+            parts = [_reorder(parts, order)]
+    for lo in range(0, N if groups is None else 0, chunk):
         sl = slice(lo, min(N, lo + chunk))
         args = (model, meas[sl], noise, strategy, theta0[sl].copy(), None if pose0 is None else pose0[sl].copy(),
                 _rows(fixed, sl, N), phases)
@@ -526,6 +557,16 @@ def identify(
     else:
         res._at_solution.update(design=cat("design"), cov_theta=cat("cov_theta"), cov_pose=cat("cov_pose"))
     return res
+
+
+def _reorder(parts: list, order: np.ndarray) -> dict:
+    """The chunk results ``parts`` concatenated and put back in the trials' order."""
+    out = dict(parts[0])
+    for key, v in parts[0].items():
+        if isinstance(v, np.ndarray) and v.ndim and key not in ("dof",):
+            out[key] = np.concatenate([q[key] for q in parts], axis=0)[order]
+    out["iterations"] = max(q["iterations"] for q in parts)
+    return out
 
 
 def _weights(model, meas, noise, strategy):
@@ -639,34 +680,86 @@ def _rigid_columns(P: np.ndarray, c0: np.ndarray) -> np.ndarray:
     return G / POSE_SCALE
 
 
-def _identify_chunk_chord(model, meas, noise, strategy, theta, pose0, fixed, phases, cache):
-    """The chord solver on one chunk of trials (see the module docstring); falls back to Gauss-Newton per trial."""
+class _Labels:
+    """Which trials share an iteration matrix, and the row positions of each label among any subset of trials.
+
+    Everything that mixes trials in a BLAS product (the iteration matrices, products over the trial axis) is
+    done label by label, on the same rows as if the label were identified alone: a trial's result then depends
+    on the trials of its own label only, bit for bit (the engine identifies several blocks in one call, one
+    label per block, and promises the numbers of each block alone).
+    """
+
+    def __init__(self, labels: np.ndarray | None, N: int):
+        self.of = np.zeros(N, np.intp) if labels is None else np.unique(np.asarray(labels), return_inverse=True)[1]
+        self.n = int(self.of.max()) + 1 if N else 0
+
+    def split(self, rows: np.ndarray):
+        """[(label, positions in ``rows``)] of the labels present among ``rows``."""
+        lab = self.of[rows]
+        if self.n == 1:
+            return [(0, slice(None))]
+        return [(k, np.flatnonzero(lab == k)) for k in np.unique(lab)]
+
+
+def _as_slices(parts, n):
+    """The label positions as contiguous slices (None when a label's positions are not contiguous)."""
+    out = []
+    for _, pos in parts:
+        if isinstance(pos, slice):
+            out.append(slice(0, n))
+            continue
+        if len(pos) and pos[-1] - pos[0] + 1 != len(pos):
+            return None
+        out.append(slice(int(pos[0]), int(pos[-1]) + 1) if len(pos) else slice(0, 0))
+    return out
+
+
+def _per_label(parts, rows, fn, width):
+    """Rows of ``fn(label, positions)`` (each (len(positions), width)) gathered in the order of ``rows``."""
+    if len(parts) == 1:
+        return fn(*parts[0])
+    out = np.empty((len(rows), width))
+    for k, pos in parts:
+        out[pos] = fn(k, pos)
+    return out
+
+
+def _identify_chunk_chord(model, meas, noise, strategy, theta, pose0, fixed, phases, cache, labels=None):
+    """The chord solver on one chunk of trials (see the module docstring); falls back to Gauss-Newton per trial.
+
+    labels: (N,) the trials that share an iteration matrix (default: all of them), see :class:`_Labels`."""
     N, M = meas.shape[:2]
     p = model.n_params
     sv = scale_vector(model)
+    lab = _Labels(labels, N)
     Wh = _weights(model, meas, noise, strategy)
-    WL = np.swapaxes(Wh, -1, -2) @ Wh  # information matrix of each point, tracker frame: C^-1
+    WL = _gram33(Wh)  # information matrix of each point, tracker frame: C^-1 = Wh^T Wh
     tol = min(strategy.xtol, strategy.chord_tol)
     refresh = max(tol, _REFRESH_STEP)
     theta_start = theta.copy()
 
-    # the iteration matrices: the plan's nominal Jacobians with the chunk's mean information (machine frame)
+    # the iteration matrices: the plan's nominal Jacobians with each label's mean information (machine frame)
     Q_last = phases[-1][2]
     P0, _ = _nominal(model, cache, Q_last)
     c0 = P0.mean(axis=0)
     P_nom = np.broadcast_to(model.machine_points(np.zeros((1, p)), fixed) if fixed else P0, (N, M, 3))
     pose_k = lt.register(P_nom, meas)
     Rk = lt.rotation(pose_k[:, 3], pose_k[:, 4], pose_k[:, 5])
-    # mean over the chunk of R C^-1 R^T (two batched products rather than N M small ones)
+    # mean over the label of R C^-1 R^T (two batched products rather than N M small ones)
     X = (WL.reshape(N, 3 * M, 3) @ np.swapaxes(Rk, 1, 2)).reshape(N, M, 3, 3)  # C^-1 R^T
     X = (Rk @ X.transpose(0, 2, 1, 3).reshape(N, 3, 3 * M)).reshape(N, 3, M, 3)  # R C^-1 R^T, axes (n, i, m, l)
-    W_bar = X.mean(axis=0).transpose(1, 0, 2)
+    all_rows = np.arange(N)
+    W_bars = {k: (X[pos] if lab.n > 1 else X).mean(axis=0).transpose(1, 0, 2) for k, pos in lab.split(all_rows)}
     G0 = _rigid_columns(P0, c0)
 
     def matrix(J):
         K = G0 if J is None else np.concatenate([G0, -J], axis=2)
-        KW = np.einsum("mij,mjb->mib", W_bar, K)
-        return _spd_inverse(K.reshape(3 * M, -1).T @ KW.reshape(3 * M, -1))
+        K2 = K.reshape(3 * M, -1)
+        out = {}
+        for k, W_bar in W_bars.items():
+            KW = np.einsum("mij,mjb->mib", W_bar, K)
+            out[k] = _spd_inverse(K2.T @ KW.reshape(3 * M, -1))
+        return out
 
     state = {"R": Rk.copy(), "T": pose_k[:, :3].copy(), "theta": theta}
     bad = np.zeros(N, bool)
@@ -674,11 +767,11 @@ def _identify_chunk_chord(model, meas, noise, strategy, theta, pose0, fixed, pha
 
     # the weighted pose-only fit of the nominal points (Eq. 27 "before"); its gradient is exact, so is its minimum
     nom = {"R": Rk.copy(), "T": pose_k[:, :3].copy(), "theta": np.zeros((N, p))}
-    ok, it = _chord(nom, np.arange(N), lambda th, rows: P_nom[rows], meas, WL, matrix(None), None, None, c0, tol,
-                    strategy)
+    ok, it = _chord(nom, all_rows, lambda th, rows: P_nom[rows], meas, WL, matrix(None), None, None, c0, tol,
+                    strategy, lab)
     bad |= ~ok
     iters += it
-    initial_error = np.einsum("nij,nmj->nmi", nom["R"], meas) + nom["T"][:, None] - P_nom
+    initial_error = _apply(nom["R"], meas) + nom["T"][:, None] - P_nom
 
     # the start of the identification: the given pose, else the pose-only fit (theta0 = 0) or a Kabsch registration
     if pose0 is not None:
@@ -704,7 +797,8 @@ def _identify_chunk_chord(model, meas, noise, strategy, theta, pose0, fixed, pha
         Hinv = matrix(J0)
         todo = np.flatnonzero(~bad)
         # stage 1: the nominal Jacobian (earlier phases only give the next one its start)
-        ok, it = _chord(state, todo, evaluate, meas, WL, Hinv, J0, Qs, c0, refresh, strategy, predict=True)
+        ok, it = _chord(state, todo, evaluate, meas, WL, Hinv, J0.reshape(3 * M, -1), Qs, c0, refresh, strategy, lab,
+                        predict=True)
         bad[todo[~ok]] = True
         iters += it
         if k < len(phases) - 1:
@@ -713,8 +807,19 @@ def _identify_chunk_chord(model, meas, noise, strategy, theta, pose0, fixed, pha
         todo = np.flatnonzero(~bad)
         if todo.size:
             theta_c = state["theta"][todo].copy()
-            P_c, J_c = model.machine_points(theta_c, _rows(fixed, todo, N), jacobian=True, project=Qs)
-            ok, it = _chord(state, todo, evaluate, meas, WL, Hinv, J_c, Qs, c0, tol, strategy, first=P_c)
+            P_c = np.empty((len(todo), M, 3))
+            J_c = np.empty((len(todo), M, 3, Qs.shape[1]))
+            parts = lab.split(todo)
+            slices = _as_slices(parts, len(todo))
+            if slices is not None and not fixed:  # one evaluation, the product that mixes trials label by label
+                P_c, J_c = chain(model.config, model.errors, theta_c, model.inputs, jacobian=True, B=model.B,
+                                 project=Qs, row_groups=slices)
+            else:
+                for _, pos in parts:  # the Jacobian's product mixes trials: label by label
+                    P_c[pos], J_c[pos] = model.machine_points(theta_c[pos], _rows(fixed, todo[pos], N),
+                                                              jacobian=True, project=Qs)
+            J_c = np.ascontiguousarray(J_c).reshape(len(todo), 3 * M, Qs.shape[1])  # trial-major, once
+            ok, it = _chord(state, todo, evaluate, meas, WL, Hinv, J_c, Qs, c0, tol, strategy, lab, first=P_c)
             iters += it
             # what stage 1's nominal Jacobian left (b1) against the distance it was used over: stage 2's own bias
             # is about b1 * (b1 / distance) (it used a Jacobian b1 away from the minimum)
@@ -730,73 +835,116 @@ def _identify_chunk_chord(model, meas, noise, strategy, theta, pose0, fixed, pha
     angles = angles0 + (angles - angles0 + np.pi) % (2 * np.pi) - np.pi  # the branch nearest the start
     pose = np.concatenate([T, angles], axis=1)
     P_W = evaluate(theta, slice(None))
-    res = meas - lt.to_tracker(P_W, pose)
-    w = np.einsum("nmij,nmj->nmi", Wh, res)
     Rm = lt.rotation(pose[:, 3], pose[:, 4], pose[:, 5])
+    res = meas - _apply_transposed(Rm, P_W - pose[:, None, :3])  # R^T (P_W - T): lt.to_tracker
+    w = _apply(Wh, res)
     out = {
-        "theta": theta, "pose": pose, "residual": res, "residual_machine": np.einsum("nij,nmj->nmi", Rm, res),
+        "theta": theta, "pose": pose, "residual": res, "residual_machine": _apply(Rm, res),
         "chi2": (w**2).sum(axis=(1, 2)), "dof": 3 * M - (6 + Q_last.shape[1]), "initial_error": initial_error,
         "converged": ~bad, "iterations": iters, "whitened": w, "whitener": Wh, "fallback": bad.copy(),
     }
-    if bad.any():  # the reference path, from the same start, for the trials the chord could not finish
-        idx = np.flatnonzero(bad)
-        gn = _identify_chunk(model, meas[idx], noise, strategy, theta_start[idx], None if pose0 is None else pose0[idx],
-                             _rows(fixed, idx, N), phases, with_covariance=False)
-        for key in ("theta", "pose", "residual", "residual_machine", "chi2", "initial_error", "converged", "whitened"):
-            out[key][idx] = gn[key]
-        out["iterations"] += gn["iterations"]
+    if bad.any():  # the reference path, from the same start, for the trials the chord could not finish (per label)
+        for _, pos in lab.split(np.flatnonzero(bad)):
+            idx = np.flatnonzero(bad)[pos]
+            gn = _identify_chunk(model, meas[idx], noise, strategy, theta_start[idx],
+                                 None if pose0 is None else pose0[idx], _rows(fixed, idx, N), phases,
+                                 with_covariance=False)
+            for key in ("theta", "pose", "residual", "residual_machine", "chi2", "initial_error", "converged",
+                        "whitened"):
+                out[key][idx] = gn[key]
+            out["iterations"] += gn["iterations"]
     return out
 
 
-def _chord(state, rows, evaluate, meas, WL, Hinv, J, Qs, c0, tol, strategy, first=None, predict=False):
+def _apply(A, x):
+    """A x for stacks of 3 x 3 matrices A (..., 3, 3) or (N, M, 3, 3) and points x (N, M, 3): elementwise."""
+    if A.ndim == 3:  # one matrix per trial
+        A = A[:, None]
+    out = np.empty(np.broadcast_shapes(A.shape[:-1], x.shape))
+    for i in range(3):
+        out[..., i] = A[..., i, 0] * x[..., 0] + A[..., i, 1] * x[..., 1] + A[..., i, 2] * x[..., 2]
+    return out
+
+
+def _apply_transposed(A, x):
+    """A^T x, as :func:`_apply`."""
+    return _apply(np.swapaxes(A, -1, -2), x)
+
+
+def _gram33(Wh):
+    """Wh^T Wh for stacks of 3 x 3 matrices, elementwise."""
+    out = np.empty(Wh.shape)
+    for i in range(3):
+        for j in range(i, 3):
+            out[..., i, j] = Wh[..., 0, i] * Wh[..., 0, j] + Wh[..., 1, i] * Wh[..., 1, j] + Wh[..., 2, i] * Wh[..., 2, j]
+            if j != i:
+                out[..., j, i] = out[..., i, j]
+    return out
+
+
+def _chord(state, rows, evaluate, meas, WL, Hinv, J, Qs, c0, tol, strategy, lab, first=None, predict=False):
     """Chord iterations for the trials ``rows`` (updated in place in ``state``: R, T, theta).
 
     evaluate(theta, rows) -> machine points (n, M, 3); WL (N, M, 3, 3) each point's information matrix
-    (tracker frame); Hinv the shared inverse normal matrix; J the geometric Jacobian along the scaled
-    directions Qs, shared (M, 3, r) or per trial (n, M, 3, r) (None: the pose alone); first: the
-    machine points at the start, when already known; predict: also stop when the next step, predicted
-    from the contraction of the last two, is below ``tol``.  Returns (converged per row, iterations).
+    (tracker frame); Hinv the shared inverse normal matrix of each label; J the geometric Jacobian along the
+    scaled directions Qs, shared (3M, r) or per trial (n, 3M, r) (None: the pose alone); lab the labels
+    (:class:`_Labels`); first: the machine points at the start, when already known; predict: also stop when
+    the next step, predicted from the contraction of the last two, is below ``tol``.  Returns (converged
+    per row, iterations).
     """
     n = len(rows)
     ok = np.zeros(n, bool)
+    if not n:
+        return ok, 0
     live = np.arange(n)  # positions in rows still iterating
     prev = np.full(n, np.inf)
     it = 0
-    per_trial = J is not None and J.ndim == 4
+    per_trial = J is not None and J.ndim == 3  # (n, 3M, r): each trial's own Jacobian
+    inv_ps = 1.0 / POSE_SCALE
+    meas_r, WL_r = meas[rows], WL[rows]
+    M = meas.shape[1]
+    ones = np.ones((1, M))
+    # every product below is per trial (stacked matrices of a fixed shape) or per label: see _Labels
     for it in range(1, strategy.chord_iter + 1):
+        part = live.size < n
         r = rows[live]
+        nr = len(r)
+        parts = lab.split(r)
         R, T = state["R"][r], state["T"][r]
         P_W = first[live] if (first is not None and it == 1) else evaluate(state["theta"][r], r)
-        r_lt = meas[r] - (P_W - T[:, None]) @ R  # R^T (P_W - T), tracker frame
-        W = WL[r]
-        u = W[..., 0] * r_lt[..., 0, None] + W[..., 1] * r_lt[..., 1, None] + W[..., 2] * r_lt[..., 2, None]
+        W = WL_r[live] if part else WL_r
+        rl = (meas_r[live] if part else meas_r) - (P_W - T[:, None]) @ R  # x - R^T (P_W - T), tracker frame
+        u = np.empty((nr, M, 3))  # C^-1 r, each point's information matrix (symmetric) times its residual
+        for i in range(3):
+            u[..., i] = W[..., i, 0] * rl[..., 0] + W[..., i, 1] * rl[..., 1] + W[..., i, 2] * rl[..., 2]
         v = u @ np.swapaxes(R, 1, 2)  # the weighted residual in the machine frame: R C^-1 R^T (x_W - P_W)
-        a = P_W - c0
-        torque = np.stack([(a[..., 1] * v[..., 2] - a[..., 2] * v[..., 1]).sum(axis=1),
-                           (a[..., 2] * v[..., 0] - a[..., 0] * v[..., 2]).sum(axis=1),
-                           (a[..., 0] * v[..., 1] - a[..., 1] * v[..., 0]).sum(axis=1)], axis=1)
-        g = [v.sum(axis=1) / POSE_SCALE[:3], torque / POSE_SCALE[3:]]
+        S = np.swapaxes(P_W - c0, 1, 2) @ v  # sum over the points of (P_W - c0) v^T: its antisymmetric part is the torque
+        G = np.empty((nr, 6 + (0 if J is None else J.shape[-1])))
+        G[:, :3] = (ones @ v)[:, 0] * inv_ps[:3]
+        G[:, 3] = (S[:, 1, 2] - S[:, 2, 1]) * inv_ps[3]
+        G[:, 4] = (S[:, 2, 0] - S[:, 0, 2]) * inv_ps[4]
+        G[:, 5] = (S[:, 0, 1] - S[:, 1, 0]) * inv_ps[5]
         if J is not None:
-            Jr = J[live] if per_trial and live.size < n else J
-            m3 = 3 * P_W.shape[1]
+            m3 = 3 * M
+            V = v.reshape(nr, m3)
             if per_trial:
-                g.append(-(v.reshape(len(r), 1, m3) @ Jr.reshape(len(r), m3, Jr.shape[-1]))[:, 0])
+                G[:, 6:] = -(V[:, None, :] @ (J[live] if part else J))[:, 0]
             else:
-                g.append(-(v.reshape(len(r), m3) @ Jr.reshape(m3, Jr.shape[-1])))
-        g = np.concatenate(g, axis=1)
-        z = -(g @ Hinv)
+                G[:, 6:] = -_per_label(parts, r, lambda k, pos: V[pos] @ J, J.shape[1])
+        z = -_per_label(parts, r, lambda k, pos: G[pos] @ Hinv[k], G.shape[1])
         step = np.abs(z).max(axis=1)
-        cost = (r_lt * u).sum(axis=(1, 2))
+        cost = (rl.reshape(nr, 1, 3 * M) @ u.reshape(nr, 3 * M, 1))[:, 0, 0]
         # the step, applied
-        Rot = _rotation(z[:, 3:6] / POSE_SCALE[3:])
+        Rot = _rotation(z[:, 3:6] * inv_ps[3:])
         state["R"][r] = Rot @ R
-        state["T"][r] = np.einsum("nij,nj->ni", Rot, T - c0) + c0 + z[:, :3] / POSE_SCALE[:3]
+        state["T"][r] = (Rot @ (T - c0)[:, :, None])[:, :, 0] + c0 + z[:, :3] * inv_ps[:3]
         if J is not None:
-            state["theta"][r] += z[:, 6:] @ Qs.T
+            zg = z[:, 6:]
+            state["theta"][r] += _per_label(parts, r, lambda k, pos: zg[pos] @ Qs.T, Qs.shape[0])
         # the contraction is judged in the energy norm of the step, |z|_H = sqrt(z^T H z) = sqrt(-g.z) (the
         # decrease of the cost the step predicts): there the chord contracts monotonically, while the largest
         # component may first grow along poorly determined combinations (pose rotation against the geometry)
-        energy = np.sqrt(np.maximum(-(g * z).sum(axis=1), 0.0))
+        energy = np.sqrt(np.maximum(-(G * z).sum(axis=1), 0.0))
         rate = np.where(np.isfinite(prev[live]), energy / prev[live], np.inf)  # no rate before the second step
         done = (step < tol) | (energy**2 <= strategy.ftol * cost)
         if predict:  # the next step, predicted from the contraction, is below the tolerance

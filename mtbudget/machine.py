@@ -351,8 +351,13 @@ def _axis_terms(model: ErrorModel, theta: np.ndarray, B: np.ndarray):
 
 
 def _squareness(model: ErrorModel, theta: np.ndarray):
-    names = model.names
-    return {s: (theta[:, names.index(s)][:, None] if s in names else 0.0) for s in SQUARENESS}
+    cached = model.__dict__.get("_sq_cache")
+    if cached is None or cached[0] is not model.params:
+        names = [p.name for p in model.params]
+        cached = (model.params, {s: names.index(s) for s in SQUARENESS if s in names})
+        model.__dict__["_sq_cache"] = cached
+    where = cached[1]
+    return {s: (theta[:, where[s], None] if s in where else 0.0) for s in SQUARENESS}
 
 
 def chain(
@@ -365,6 +370,7 @@ def chain(
     jacobian: bool = False,
     B: np.ndarray | None = None,
     project: np.ndarray | None = None,
+    row_groups: list | None = None,
 ):
     """Tool point in the workpiece frame for N parameter vectors.
 
@@ -372,7 +378,308 @@ def chain(
     also dP_W/dtheta (N, M, 3, p), exact for the Eq. 6 small-angle chain
     (``exact=False``).  With ``project`` (p, r) the Jacobian is returned
     already multiplied by it, (N, M, 3, r), without forming the full one.
+    row_groups: slices of the trials; the one product of the Jacobian that
+    mixes trials (BLAS rounds a row differently with the number of rows) is
+    then done slice by slice, so each slice gets the bits it would get alone.
+
+    The small-angle chain is evaluated component by component on (N, M)
+    arrays (``R v = v + eps x v``, the closed-form inverse of Eq. 6 applied
+    as ``(u - eps x u + eps (eps . u)) / (1 + |eps|^2)``), never through
+    3 x 3 matrices per point: the same numbers as :func:`chain_reference`
+    to round-off, several times faster.
     """
+    if exact:
+        return chain_reference(config, model, theta, inputs, exact=True, jacobian=jacobian, B=B, project=project)
+    theta = np.atleast_2d(np.asarray(theta, float))
+    N, M = theta.shape[0], inputs.nominal.shape[0]
+    if B is None:
+        B = model.basis(inputs.nominal)
+    terms = _axis_components(model, theta, B)
+    sq = _squareness(model, theta)
+    t, peff = {}, {}
+    for a in AXES:
+        p = inputs.effective(a)  # (1, M) or (N, M)
+        peff[a] = p
+        s = float(config.side(a))
+        d = [None, None, None]
+        d[AXIS_INDEX[a]] = p if s > 0 else -p
+        if a == "y" and "sxy" in model_names(model):
+            d[0] = (p * sq["sxy"]) * -s
+        elif a == "z":
+            if "sxz" in model_names(model):
+                d[0] = (p * sq["sxz"]) * -s
+            if "syz" in model_names(model):
+                d[1] = (p * sq["syz"]) * -s
+        delta = terms[a][0]
+        t[a] = [d[c] if delta[c] is None else (delta[c] if d[c] is None else d[c] + delta[c]) for c in range(3)]
+    # tool side: P = A_1(A_2(...A_n(T))), A(v) = v + eps x v + t
+    tool = np.asarray(inputs.tool, float)
+    v = [tool[:, 0], tool[:, 1], tool[:, 2]]
+    v_in = {}
+    for a in reversed(config.tool):
+        v_in[a] = v
+        e = terms[a][1]
+        if e is not None:
+            v = _add(v, _cross(e, v))
+        v = _add(v, t[a])
+    # workpiece side: P_W = B_m^-1(...B_1^-1(P)), B^-1(w) = R^-1 (w - t)
+    w = v
+    w_out = {}
+    for a in config.workpiece:
+        u = _sub(w, t[a])
+        e = terms[a][1]
+        if e is None:
+            w = u
+        else:
+            c = _cross(e, u)
+            dot = e[0] * u[0] + e[1] * u[1] + e[2] * u[2]
+            den = 1.0 + (e[0] * e[0] + e[1] * e[1] + e[2] * e[2])
+            w = [(u[k] - c[k] + e[k] * dot) / den for k in range(3)]
+        w_out[a] = w
+    out = np.empty((N, M, 3))
+    for k in range(3):
+        out[:, :, k] = w[k]
+    if not jacobian:
+        return out
+    return out, _jacobian(config, model, terms, t, peff, v_in, w_out, B, project, N, M, row_groups)
+
+
+def model_names(model: ErrorModel) -> frozenset:
+    """The parameter names of ``model`` as a set (cached on the model with its parameter list)."""
+    cached = model.__dict__.get("_names_cache")
+    if cached is None or cached[0] is not model.params:
+        cached = (model.params, frozenset(p.name for p in model.params))
+        model.__dict__["_names_cache"] = cached
+    return cached[1]
+
+
+def _cross(e, v):
+    """e x v for 3-lists of arrays (e entries may be None: zero)."""
+    e0, e1, e2 = (0.0 if x is None else x for x in e)
+    return [e1 * v[2] - e2 * v[1], e2 * v[0] - e0 * v[2], e0 * v[1] - e1 * v[0]]
+
+
+def _add(a, b):
+    return [x if y is None else y if x is None else x + y for x, y in zip(a, b)]
+
+
+def _sub(a, b):
+    return [x if y is None else -y if x is None else x - y for x, y in zip(a, b)]
+
+
+def _component_groups(model: ErrorModel):
+    """[(axis, 0 for d / 1 for e, component, parameter slice)] of the modelled component errors (cached)."""
+    cached = model.__dict__.get("_component_cache")
+    if cached is None or cached[0] is not model.params:
+        groups = [(err[3], 0 if err[0] == "d" else 1, AXIS_INDEX[err[1]], idx) for err, idx in _groups(model).items()]
+        cached = (model.params, groups)
+        model.__dict__["_component_cache"] = cached
+    return cached[1]
+
+
+def _axis_layout(model: ErrorModel, B: np.ndarray):
+    """Per axis: the Legendre values of every order used (M, K) and where each parameter goes in the
+    (component error, order) coefficient table of that axis; cached per model and basis."""
+    cache = model.__dict__.setdefault("_axis_layout_cache", {})
+    key = (id(model.params), B.shape, B.tobytes())
+    hit = cache.get(key)
+    if hit is not None:
+        return hit
+    if len(cache) > 8:
+        cache.clear()
+    layout = {}
+    for axis in AXES:
+        groups = [(kind, comp, idx) for ax, kind, comp, idx in _component_groups(model) if ax == axis]
+        if not groups:
+            continue
+        orders = sorted({model.params[j].order for *_, idx in groups for j in range(idx.start, idx.stop)})
+        cols = {}  # order -> a column of B holding its values at the points (the same for every component)
+        for *_, idx in groups:
+            for j in range(idx.start, idx.stop):
+                cols.setdefault(model.params[j].order, j)
+        L = np.ascontiguousarray(np.stack([B[:, cols[o]] for o in orders]))  # (K, M)
+        K = len(orders)
+        src, dst = [], []
+        for g, (kind, comp, idx) in enumerate(groups):
+            for j in range(idx.start, idx.stop):
+                src.append(j)
+                dst.append(g * K + orders.index(model.params[j].order))
+        layout[axis] = ([(kind, comp) for kind, comp, _ in groups], L, np.array(src), np.array(dst))
+    cache[key] = layout
+    return layout
+
+
+def _axis_components(model: ErrorModel, theta: np.ndarray, B: np.ndarray) -> dict:
+    """axis -> (delta, eps): 3-lists of (N, M) arrays (None where the model has no such error; eps None if none).
+
+    Per axis one BLAS product, (N x component errors, orders <= 4) x (orders, M): every component error of an
+    axis is a combination of the same Legendre polynomials of that axis' position.  A trial's values must not
+    depend on the other trials evaluated with it (the engine identifies several blocks together and promises
+    the numbers of each block alone): OpenBLAS gives every row the same bits for any number of rows >= 2 at
+    an inner dimension <= 4, but a single row goes through gemv, which rounds differently; a single trial is
+    therefore evaluated as two (``tests/test_scaleout.py`` checks the invariance).  Beyond 4 orders the terms
+    are summed elementwise, in order.
+    """
+    out = {a: ([None, None, None], [None, None, None]) for a in AXES}
+    N = theta.shape[0]
+    single = N == 1
+    th = np.concatenate([theta, theta]) if single else theta
+    n = th.shape[0]
+    for axis, (kc, L, src, dst) in _axis_layout(model, B).items():
+        K = L.shape[0]
+        coef = np.zeros((n, len(kc) * K))
+        coef[:, dst] = th[:, src]
+        coef = coef.reshape(n * len(kc), K)
+        if K <= 4:
+            vals = coef @ L
+        else:
+            vals = coef[:, :1] * L[0]
+            for k in range(1, K):
+                vals = vals + coef[:, k:k + 1] * L[k]
+        vals = vals.reshape(n, len(kc), L.shape[1])
+        for g, (kind, comp) in enumerate(kc):
+            out[axis][kind][comp] = vals[:1, g] if single else vals[:, g]
+    return {a: (d, None if all(x is None for x in e) else [0.0 if x is None else x for x in e])
+            for a, (d, e) in out.items()}
+
+
+def _full(x, N, M):
+    return np.broadcast_to(np.zeros(()) if x is None else x, (N, M))
+
+
+def _mm33(A, Bm):
+    """A @ Bm for stacks of 3 x 3 matrices (..., 3, 3), by broadcasting (no per-matrix BLAS call)."""
+    return A[..., :, 0, None] * Bm[..., None, 0, :] + A[..., :, 1, None] * Bm[..., None, 1, :] \
+        + A[..., :, 2, None] * Bm[..., None, 2, :]
+
+
+def _stack3(v, N, M):
+    out = np.empty((N, M, 3))
+    for k in range(3):
+        out[:, :, k] = 0.0 if v[k] is None else v[k]
+    return out
+
+
+def _skew_stack(v, N, M):
+    """[v]x (N, M, 3, 3) from a 3-list of arrays."""
+    S = np.zeros((N, M, 3, 3))
+    v0, v1, v2 = (_full(x, N, M) for x in v)
+    S[..., 0, 1], S[..., 0, 2] = -v2, v1
+    S[..., 1, 0], S[..., 1, 2] = v2, -v0
+    S[..., 2, 0], S[..., 2, 1] = -v1, v0
+    return S
+
+
+def _rows_cross(G, v, sign):
+    """sign * G [v]x for (N, M, 3, 3) G and a 3-list v of arrays: row i of G [v]x is (row i of G) x v."""
+    v0, v1, v2 = (x[..., None] for x in v)
+    out = np.empty(np.broadcast_shapes(G.shape, np.shape(v0)[:-1] + (3, 3)))
+    out[..., 0] = G[..., 1] * v2 - G[..., 2] * v1
+    out[..., 1] = G[..., 2] * v0 - G[..., 0] * v2
+    out[..., 2] = G[..., 0] * v1 - G[..., 1] * v0
+    if sign < 0:
+        np.negative(out, out=out)
+    return out
+
+
+def _jacobian(config, model, terms, t, peff, v_in, w_out, B, project, N, M, row_groups=None):
+    """dP_W/dtheta (N, M, 3, p or r) of the small-angle chain, from the chain's intermediate points."""
+    eye = np.eye(3)
+    R, Rinv = {}, {}
+    for a in AXES:
+        e = terms[a][1]
+        R[a] = Rinv[a] = None
+        if e is None:
+            continue
+        if a in config.tool:
+            if a != config.tool[-1]:  # the last tool axis' rotation multiplies nothing the Jacobian needs
+                R[a] = _skew_stack(e, N, M) + eye
+        else:
+            E = np.stack([_full(x, N, M) for x in e], axis=-1)
+            Ri = E[..., :, None] * E[..., None, :] - _skew_stack(e, N, M)
+            Ri += eye
+            Rinv[a] = Ri / (1.0 + (E * E).sum(-1))[..., None, None]
+
+    def mul(A, Bm):  # matrix product where None stands for the identity
+        return Bm if A is None else A if Bm is None else _mm33(A, Bm)
+
+    MW = None
+    suffix = {}
+    for a in reversed(config.workpiece):
+        suffix[a] = MW
+        MW = mul(MW, Rinv[a])
+    dT, dE = {}, {}
+    Qp = None
+    ident = np.broadcast_to(eye, (N, M, 3, 3))
+    for j, a in enumerate(config.tool):
+        G = mul(MW, Qp)
+        G = ident if G is None else G
+        dT[a] = G
+        dE[a] = _rows_cross(G, v_in[a], -1.0)
+        if j < len(config.tool) - 1:
+            Qp = mul(Qp, R[a])
+    for a in config.workpiece:
+        G = mul(suffix[a], Rinv[a])
+        G = ident if G is None else G
+        dT[a] = -G
+        dE[a] = _rows_cross(G, w_out[a], 1.0)
+    s = config.side
+    names = model_names(model)
+    groups = _component_groups(model)
+    n_cols = len(groups) + sum(n in names for n in SQUARENESS)
+    Hm = np.empty((M, N, 3, n_cols))  # point-major, so that one batched product over the points forms J
+    k = 0
+    while k < len(groups):
+        axis, kind, comp, _ = groups[k]
+        src = (dT if kind == 0 else dE)[axis]
+        if comp == 0 and k + 2 < len(groups) and [g[:3] for g in groups[k:k + 3]] == [(axis, kind, c) for c in range(3)]:
+            Hm[..., k:k + 3] = src.transpose(1, 0, 2, 3)  # the three columns of one axis' errors at once
+            k += 3
+        else:
+            Hm[..., k] = src[..., comp].transpose(1, 0, 2)
+            k += 1
+    for name, axis, c in (("sxy", "y", 0), ("sxz", "z", 0), ("syz", "z", 1)):
+        if name in names:
+            Hm[..., k] = (dT[axis][..., c] * (-s(axis) * peff[axis])[..., None]).transpose(1, 0, 2)
+            k += 1
+    C = _projected_basis_map(model, B, project)
+    if row_groups is None:
+        return (Hm.reshape(M, 3 * N, n_cols) @ C).reshape(M, N, 3, C.shape[-1]).transpose(1, 0, 2, 3)
+    J = np.empty((M, N, 3, C.shape[-1]))
+    for sl in row_groups:
+        h = Hm[:, sl]
+        J[:, sl] = (h.reshape(M, 3 * h.shape[1], n_cols) @ C).reshape(M, h.shape[1], 3, C.shape[-1])
+    return J.transpose(1, 0, 2, 3)
+
+
+def _projected_basis_map(model: ErrorModel, B: np.ndarray, project: np.ndarray | None) -> np.ndarray:
+    """``_basis_map(model, B) @ project`` (M, g, r), cached per model, basis and projection (it depends on no trial)."""
+    cache = model.__dict__.setdefault("_basis_map_cache", {})
+    key = (id(model.params), B.shape, B.tobytes(), None if project is None else (project.shape, project.tobytes()))
+    C = cache.get(key)
+    if C is None:
+        if len(cache) > 16:
+            cache.clear()
+        C = _basis_map(model, B)
+        if project is not None:
+            C = C @ project
+        C.flags.writeable = False
+        cache[key] = C
+    return C
+
+
+def chain_reference(
+    config: Configuration,
+    model: ErrorModel,
+    theta: np.ndarray,
+    inputs: ChainInputs,
+    *,
+    exact: bool = False,
+    jacobian: bool = False,
+    B: np.ndarray | None = None,
+    project: np.ndarray | None = None,
+):
+    """:func:`chain` written with a 3 x 3 matrix per point and axis (the reference; also the exact rotation)."""
     theta = np.atleast_2d(np.asarray(theta, float))
     N, M = theta.shape[0], inputs.nominal.shape[0]
     if B is None:

@@ -33,7 +33,9 @@ def result_json(res: RunResult) -> dict:
     pts = res.points()
     out["validation"] = None
     if pts is not None:
-        out["measurand"] = MEASURAND
+        out["measurand"] = measurand_text(res)
+        if (res.spec or {}).get("measurand"):
+            out["measurand_tool"] = res.spec["measurand"]
         out["points"] = pts
         out["points_summary"] = points_summary(pts)
         out["validation"] = out["points_summary"].get("clause8")
@@ -47,6 +49,29 @@ def result_json(res: RunResult) -> dict:
 MEASURAND = ("error of the compensated machine at each mesh point, per machine axis (x, y, z), at the verification's "
              "tool offset, given this verification: true minus identified error field, rigid-body part removed "
              "(docs/measurand.md)")
+
+
+def measurand_text(res) -> str:
+    """The measurand of this run in one sentence: which tool offset, and what the verification leaves unidentified
+    there ([measurand] tool; docs/measurand.md)."""
+    m = (res.spec or {}).get("measurand")
+    if not m:
+        return MEASURAND
+    tool = ", ".join(f"{v:g}" for v in m["tool"])
+    if m.get("verification_tool", True):
+        where = f"at the verification's tool offset ({tool}) mm"
+    else:
+        where = f"at the tool offset ({tool}) mm, which the verification did not use"
+    text = (f"error of the compensated machine at each mesh point, per machine axis (x, y, z), {where}, given this "
+            "verification: true minus identified error field, rigid-body part removed (docs/measurand.md)")
+    un = m.get("unidentified") or []
+    if un:
+        names = "; ".join(" + ".join(f"{c['weight']:+.2f} {c['iso']}" for c in u["combination"]) for u in un)
+        text += (f". WARNING: {len(un)} combination(s) of geometric errors that this verification cannot identify act "
+                 f"at this tool ({names}); their part is covered only by the prior of the generation functions, not "
+                 "by the measurement. A second tool length or a lateral tool offset in the verification would identify "
+                 "them")
+    return text
 
 
 def points_summary(pts: list) -> dict:
@@ -87,7 +112,7 @@ def point_lines(res: RunResult) -> list:
     half = np.array([[(h - lo) / 2 for lo, h in zip(p["interval"]["low"], p["interval"]["high"])] for p in pts]) \
         if "interval" in pts[0] else None
     nd = decimals_for(min(sm["u_min"]))
-    lines = [f"Measurand: {MEASURAND}.",
+    lines = [f"Measurand: {measurand_text(res)}.",
              f"  {len(pts)} points; standard uncertainty u per axis (k = 1), {u}:      x        y        z"]
     lines.append("    RMS of u over the mesh                          " + "".join(f"{x:9.{nd}f}" for x in sm["u_rms_over_mesh"]))
     lines.append("    smallest u                                      " + "".join(f"{x:9.{nd}f}" for x in sm["u_min"]))
@@ -267,6 +292,14 @@ def _span(v, sep=" to ") -> str:
     return md_escape(str(v))
 
 
+def _statement_tool(res, cfg) -> str:
+    m = (res.spec or {}).get("measurand")
+    if m:
+        return "(" + ", ".join(f"{v:g} mm" for v in m["tool"]) + ")" + (
+            "" if m.get("verification_tool", True) else " ([measurand] tool, not a tool of the verification)")
+    return _span((cfg.get("plan", {}).get("tools") or [["0 mm"] * 3])[0], ", ")
+
+
 def provenance_lines(res: RunResult) -> list:
     """Where the numbers come from: configuration, machine, mesh, tracker, sources, seed, versions, date."""
     import hashlib
@@ -285,7 +318,7 @@ def provenance_lines(res: RunResult) -> list:
              f"| machine | {cfg.get('machine', 'XFYZ')} |",
              f"| mesh | x {_span(mesh.get('x'))}, y {_span(mesh.get('y'))}, z {_span(mesh.get('z'))}, "
              f"step {_span(mesh.get('step', '-'))} |",
-             f"| tool offset of the statement | {_span((cfg.get('plan', {}).get('tools') or [['0 mm'] * 3])[0], ', ')} |",
+             f"| tool offset of the statement | {_statement_tool(res, cfg)} |",
              f"| tracker pose | D {tr.get('D')}, L {tr.get('L')}, H {tr.get('H')}, a {tr.get('a')}, b {tr.get('b')}, d {tr.get('d')} |",
              f"| sources drawn | {', '.join(res.spec.get('sources') or []) or 'none'} |",
              f"| trials, seed, coverage | {res.trials}, {res.spec.get('seed')}, {percent(res.coverage)} |",
@@ -304,7 +337,7 @@ CAPTIONS = {
     "distributions": "Distributions over the simulated verifications of the volume summaries, with their coverage intervals",
     "contributions": "Share of each source in the variance of the per-point errors, coloured by the paper's four groups",
     "convergence": "Convergence of compensation_rms and of its standard deviation with the number of trials",
-    "residual_vs_U": "Residual of the compensated machine at the recording's points per axis, with its expanded "
+    "residual_vs_U": "Fit residual (measured - identified model) at the recording's points per axis, with its expanded "
                      "uncertainty U (k = 2)",
 }
 
@@ -421,7 +454,7 @@ def compensation_figure(table, folder) -> Path | None:
         ax.set_xlabel(f"{a} commanded [mm]")
         ax.set_ylabel(f"residual along {a} [µm]")
         ax.legend(fontsize=6)
-    fig.suptitle("compensated machine at the recording's points: residual and its U (k = 2)")
+    fig.suptitle("fit residual at the recording's points (measured - identified model) and its U (k = 2)")
     fig.tight_layout()
     path = Path(folder) / "residual_vs_U.png"
     fig.savefig(path, dpi=100)
@@ -465,7 +498,8 @@ def run_report(res: RunResult, folder, tolerance_um: float | None = None, charac
     md = ["# mtbudget uncertainty statement", ""]
     if not res.complete:
         md += ["**INCOMPLETE run: partial results.**", ""]
-    md += ["## Measurand", "", MEASURAND[0].upper() + MEASURAND[1:] + ".", ""]
+    mt = measurand_text(res)
+    md += ["## Measurand", "", md_escape(mt[0].upper() + mt[1:]) + ".", ""]
     md += provenance_lines(res)
     pts = data.get("points")
     if pts and "interval" not in pts[0]:

@@ -56,7 +56,9 @@ class Scenario:
     mesh_rows: np.ndarray  # plan rows of the mesh (first run, first tool)
     mesh_points: np.ndarray  # (M0, 3) nominal tool points of those rows, machine frame (mm)
     rigid_free: np.ndarray  # (3 M0, 3 M0) projector that removes what the tracker pose absorbs
+    measurand_tool: np.ndarray | None = None  # (3,) mm: [measurand] tool, when not the verification's first tool
     _id_models: dict = field(default_factory=dict, repr=False)
+    _eval_models: dict = field(default_factory=dict, repr=False)
 
     @property
     def max_degree(self) -> int:
@@ -76,8 +78,73 @@ class Scenario:
 
     @property
     def tool(self) -> np.ndarray:
-        """(3,) the tool offset at which the compensated machine is evaluated (the verification's first tool, mm)."""
-        return self.plan.tool[self.mesh_rows[0]]
+        """(3,) the tool offset at which the compensated machine is evaluated, mm: [measurand] tool, else the
+        verification's first tool."""
+        return self.plan.tool[self.mesh_rows[0]] if self.measurand_tool is None else self.measurand_tool
+
+    def evaluate(self, model: MeasurementModel, theta, jacobian: bool = False):
+        """Tool points of ``model`` with parameters ``theta`` at the mesh points and the measurand's tool: (N, M0, 3)
+        (and the Jacobian (N, M0, 3, p)).  At the verification's own tool these are the plan's mesh rows; at
+        another tool the same error functions evaluated there (the verification's ranges and basis)."""
+        if self.measurand_tool is None:
+            out = model.machine_points(theta, jacobian=jacobian)
+            return (out[0][:, self.mesh_rows], out[1][:, self.mesh_rows]) if jacobian else out[:, self.mesh_rows]
+        key = id(model)
+        if key not in self._eval_models:
+            self._eval_models[key] = (model, MeasurementModel(model.config, model.errors,
+                                                              _tool_plan(self.commanded, self.measurand_tool)))
+        return self._eval_models[key][1].machine_points(theta, jacobian=jacobian)
+
+    def unidentified_prior(self):
+        """At a tool the verification did not use: (N, L), the directions of the identification model's parameters
+        (unscaled, (p_id, k)) that the verification cannot identify and the Cholesky factor of their prior covariance
+        from the generation functions; ``id_model`` evaluated at ``N @ L @ z`` (z standard normal) is their part of the
+        true field, drawn afresh in every trial.  None at the verification's tool or without a prior."""
+        if self.measurand_tool is None or "coefficients" in self.config.geometric:
+            return None
+        if "_prior" not in self._eval_models:
+            from .identify import analyse, scale_vector
+
+            model = self.id_model
+            Nz = analyse(model).null_space  # (p_id, k), scaled parameters (um, urad)
+            if Nz.size == 0:
+                self._eval_models["_prior"] = None
+                return None
+            scale = scale_vector(model)
+            sd = np.array([prior_std(self.config, p) for p in model.errors.params]) * scale
+            C = Nz.T @ (sd[:, None] ** 2 * Nz)
+            L = np.linalg.cholesky(C + 1e-12 * np.trace(C) * np.eye(len(C)))
+            self._eval_models["_prior"] = (Nz / scale[:, None], L)
+        return self._eval_models["_prior"]
+
+    def unidentified_at_tool(self, threshold_um: float = 0.01) -> list:
+        """The combinations of geometric errors this verification cannot identify that still move the compensated
+        machine at the measurand's tool (rigid part removed): each with its ISO 230-1 names and its largest effect
+        over the mesh per unit of the combination (1 um or 1 urad of each unit-weight direction).  The Monte Carlo
+        covers them through the truth's prior (the generation functions); nothing in the verification corrects
+        them.  Empty at the verification's own tool, where they do not show by definition."""
+        from .identify import analyse, scale_vector
+        from .model import iso_parameter
+        from .units import factor
+
+        model = self.id_model
+        ident = analyse(model)
+        if ident.null_space.size == 0:
+            return []
+        _, J = self.evaluate(model, np.zeros((1, model.n_params)), jacobian=True)
+        J = J[0].reshape(-1, model.n_params)
+        scale = scale_vector(model)
+        out = []
+        for combo, k in zip(ident.combinations(), range(ident.null_space.shape[1])):
+            v = np.zeros(model.n_params)
+            for n, w in combo:
+                v[model.errors.names.index(n)] = w
+            d = (self.rigid_free @ (J @ (v / scale))).reshape(-1, 3) * factor("mm", "um")
+            big = float(np.abs(d).max())
+            if big > threshold_um:
+                out.append({"combination": [{"parameter": n, "iso": iso_parameter(n), "weight": w} for n, w in combo],
+                            "largest_effect": {"value": big, "unit": "um per um or urad of the combination"}})
+        return out
 
     @property
     def id_model(self) -> MeasurementModel:
@@ -98,9 +165,15 @@ class Scenario:
         return out
 
 
-def truth_model(config: SimulationConfig, plan: Plan) -> MeasurementModel:
-    """Error model used to *simulate*: free straightness convention (P1 terms allowed)."""
-    return MeasurementModel.for_plan(config.machine, plan, max_degree=config.max_degree, straightness_convention="free")
+#: sources that need the truth one Legendre degree richer than the identification model (model-form error)
+RICHER_TRUTH = ("model_form",)
+
+
+def truth_model(config: SimulationConfig, plan: Plan, richer: bool = False) -> MeasurementModel:
+    """Error model used to *simulate*: free straightness convention (P1 terms allowed); one degree above the
+    identification's when a model-form source draws the terms the identification cannot represent."""
+    return MeasurementModel.for_plan(config.machine, plan, max_degree=config.max_degree + int(richer),
+                                     straightness_convention="free")
 
 
 def machine_parameters(config: SimulationConfig, model: MeasurementModel) -> np.ndarray:
@@ -111,12 +184,22 @@ def machine_parameters(config: SimulationConfig, model: MeasurementModel) -> np.
     rng = np.random.default_rng(g.get("seed", 1))
     theta = np.zeros(model.n_params)
     for j, p in enumerate(model.errors.params):
-        if p.is_squareness:
-            theta[j] = rng.normal(0.0, g["squareness"])
-        else:
-            stds = g["translational"] if p.unit == "mm" else g["angular"]
-            theta[j] = rng.normal(0.0, stds[min(p.order, len(stds)) - 1])
+        if p.order > config.max_degree:  # the model-form terms: drawn by their source, not part of this machine
+            continue
+        theta[j] = rng.normal(0.0, prior_std(config, p))
     return theta
+
+
+def prior_std(config: SimulationConfig, param) -> float | None:
+    """The generation functions' standard deviation of one geometric parameter (mm or rad); None when the
+    configuration states explicit coefficients (no prior)."""
+    g = config.geometric
+    if "coefficients" in g:
+        return None
+    if param.is_squareness:
+        return g["squareness"]
+    stds = g["translational"] if param.unit == "mm" else g["angular"]
+    return stds[min(param.order, len(stds)) - 1]
 
 
 def _rigid_projector(P: np.ndarray) -> np.ndarray:
@@ -253,7 +336,7 @@ def build_scenario(config: SimulationConfig, host: PluginHost | None = None, sou
     srcs, drawn = select_sources(config, host, sources)
     rng = np.random.default_rng(np.random.SeedSequence(config.seed))  # the plan and sensor readings of the study
     plan = config.plan(rng)
-    truth = truth_model(config, plan)
+    truth = truth_model(config, plan, richer=any(s.name in RICHER_TRUTH for s in srcs))
     theta = machine_parameters(config, truth)
     pose = np.asarray(config.pose, float)
     stated = {name: drawn[key] for name, key in WEIGHT_KEYS.items()}
@@ -265,8 +348,20 @@ def build_scenario(config: SimulationConfig, host: PluginHost | None = None, sou
     first = (plan.run == plan.run.min()) & np.all(plan.tool == plan.tool[0], axis=1)
     mesh_rows = np.flatnonzero(first)
     mesh_points = truth.machine_points(np.zeros(truth.n_params))[0][mesh_rows]
+    tool = None
+    if config.measurand_tool is not None and not np.allclose(config.measurand_tool, plan.tool[mesh_rows[0]]):
+        tool = np.asarray(config.measurand_tool, float)
+        at_tool = MeasurementModel(truth.config, truth.errors, _tool_plan(plan.nominal[mesh_rows], tool))
+        mesh_points = at_tool.machine_points(np.zeros(truth.n_params))[0]
     return Scenario(config, plan, truth, theta, pose, noise, drawn, srcs, context, mesh_rows, mesh_points,
-                    _rigid_projector(mesh_points))
+                    _rigid_projector(mesh_points), tool)
+
+
+def _tool_plan(commanded: np.ndarray, tool: np.ndarray) -> Plan:
+    """A plan of the mesh points at one tool offset: where the compensated machine is evaluated."""
+    M0 = len(commanded)
+    return Plan(np.arange(M0), np.ones(M0, int), np.zeros(M0), np.asarray(commanded, float), np.ones((M0, 3)),
+                np.tile(np.asarray(tool, float), (M0, 1)))
 
 
 def _read_only(a: np.ndarray) -> np.ndarray:

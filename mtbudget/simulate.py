@@ -16,15 +16,16 @@ from __future__ import annotations
 import zlib
 
 import numpy as np
+import pint
 
-from .contracts import Source, check_sample
+from .contracts import TARGETS, Source, check_sample
 from .errors import PluginError
 from .machine import COMPONENT_ERRORS
 from .model import from_targets
 from .plugins import call
 from .recording import Recording
 from .scenario import Scenario, target_shapes
-from .units import display
+from .units import display, ureg
 
 
 def stream(seed: int, block: int, source: Source) -> np.random.Generator:
@@ -33,12 +34,51 @@ def stream(seed: int, block: int, source: Source) -> np.random.Generator:
     return np.random.default_rng(np.random.SeedSequence(int(seed), spawn_key=key))
 
 
-def sample_source(scenario: Scenario, src: Source, n: int, rng: np.random.Generator, shapes: dict | None = None) -> dict:
-    """``n`` trials of one source as internal float arrays, checked (keys, shapes, units, NaN, strategy indices)."""
+#: target key -> its internal unit (a sample already in it needs no conversion)
+_INTERNAL: dict = {}
+
+
+def _internal_units(key: str):
+    units = _INTERNAL.get(key)
+    if units is None:
+        unit = TARGETS[key][0]
+        units = _INTERNAL[key] = ureg.Unit(unit) if unit else ureg.dimensionless
+    return units
+
+
+def _as_internal(src: Source, raw, n: int, shapes: dict) -> dict | None:
+    """The sample as float arrays when every value is a Quantity already in its target's internal unit, of the
+    right shape and finite (the common case: nothing to convert); None when anything needs
+    :func:`mtbudget.contracts.check_sample`, which converts or says what is wrong."""
+    if not isinstance(raw, dict):
+        return None
+    out = {}
+    for key, q in raw.items():
+        if key not in src.targets or not isinstance(q, pint.Quantity) or q.units != _internal_units(key):
+            return None
+        arr = np.asarray(q.magnitude, dtype=float)
+        if arr.shape != (n,) + shapes[key] or not np.isfinite(arr).all():
+            return None
+        out[key] = arr
+    return out
+
+
+def sample_source(scenario: Scenario, src: Source, n: int, rng: np.random.Generator, shapes: dict | None = None,
+                  options: dict | None = None) -> dict:
+    """``n`` trials of one source as internal float arrays, checked (keys, shapes, units, NaN, strategy indices).
+
+    options: a cache of each strategy source's options (source name -> list), filled on first use."""
     raw = call(src, "sample", n, rng, scenario.context)
-    arrays = check_sample(src, raw, n, shapes or target_shapes(scenario))
+    shapes = shapes or target_shapes(scenario)
+    arrays = _as_internal(src, raw, n, shapes)
+    if arrays is None:
+        arrays = check_sample(src, raw, n, shapes)
     if "strategy" in arrays:
-        k = len(call(src, "options", scenario.context))
+        if options is None or src.name not in options:
+            opts = call(src, "options", scenario.context)
+            if options is not None:
+                options[src.name] = opts
+        k = len(options[src.name] if options is not None else opts)
         s = arrays["strategy"]
         if np.any((s != np.round(s)) | (s < 0) | (s >= k)):
             raise PluginError(f"'strategy' must hold option indices 0..{k - 1}", src.plugin, src.name,
@@ -47,19 +87,19 @@ def sample_source(scenario: Scenario, src: Source, n: int, rng: np.random.Genera
 
 
 def simulate_block(scenario: Scenario, block: int, n: int, seed: int, active: list | None = None,
-                   shapes: dict | None = None):
+                   shapes: dict | None = None, options: dict | None = None):
     """The simulated measurements of one block of ``n`` trials.
 
     Returns (measured tracker points (n, M, 3), true parameters (n, p),
     strategy choices [(source, option index per trial)]) for the ``active``
-    sources (default: all the scenario's sources).
+    sources (default: all the scenario's sources).  options: see :func:`sample_source`.
     """
     active = scenario.sources if active is None else active
     shapes = shapes or target_shapes(scenario)
     targets: dict = {}
     choices = []
     for src in active:
-        arr = sample_source(scenario, src, n, stream(seed, block, src), shapes)
+        arr = sample_source(scenario, src, n, stream(seed, block, src), shapes, options)
         for k, v in arr.items():
             if k == "strategy":
                 choices.append((src, v.astype(int)))

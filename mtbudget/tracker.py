@@ -56,14 +56,14 @@ def to_tracker(P_W: np.ndarray, pose: np.ndarray) -> np.ndarray:
     """Points (N, M, 3) in the workpiece frame to the tracker frame, pose (N, 6)."""
     pose = np.atleast_2d(pose)
     R = rotation(pose[:, 3], pose[:, 4], pose[:, 5])
-    return np.einsum("nij,nmi->nmj", R, P_W - pose[:, None, :3])
+    return (P_W - pose[:, None, :3]) @ R  # R^T (P - T) for every point: one small product per trial
 
 
 def to_machine(P_LT: np.ndarray, pose: np.ndarray) -> np.ndarray:
     """Inverse of :func:`to_tracker`."""
     pose = np.atleast_2d(pose)
     R = rotation(pose[:, 3], pose[:, 4], pose[:, 5])
-    return np.einsum("nij,nmj->nmi", R, P_LT) + pose[:, None, :3]
+    return P_LT @ np.swapaxes(R, 1, 2) + pose[:, None, :3]
 
 
 def pose_jacobian(P_W: np.ndarray, pose: np.ndarray) -> np.ndarray:
@@ -106,13 +106,54 @@ def spherical_jacobian(P_LT: np.ndarray) -> np.ndarray:
     return J
 
 
+def _norm3(P: np.ndarray) -> np.ndarray:
+    """|P| over the last axis of length 3: the sum of squares in order, as ``np.linalg.norm`` (the same bits), without
+    its general-purpose overhead."""
+    x, y, z = P[..., 0], P[..., 1], P[..., 2]
+    return np.sqrt(x * x + y * y + z * z)
+
+
 def covariance(P_LT: np.ndarray, angular, distance, distance_per_length, angular_elevation=None) -> np.ndarray:
     """Cartesian covariance (..., 3, 3) of a tracker point (the paper's Eq. 23, exact), internal units.
 
     angular: rad, the standard uncertainty of the azimuth (and of the
     elevation unless ``angular_elevation`` is given); distance: mm;
     distance_per_length: mm/mm (u_r = distance + distance_per_length * r).
+
+    ``J diag(u_r^2, u_az^2, u_el^2) J^T`` with the columns of the spherical Jacobian written as
+    u_r along the beam e_r, r cos(el) u_az along e_az = (-sin az, cos az, 0) and r u_el along
+    e_el = (-sin el cos az, -sin el sin az, cos el): the six distinct entries, elementwise (the
+    directions from the coordinates, no trigonometry).  :func:`covariance_reference` is the
+    matrix product itself.
     """
+    P = np.asarray(P_LT, float)
+    x, y, z = P[..., 0], P[..., 1], P[..., 2]
+    rho = np.hypot(x, y)  # r cos(el)
+    r = np.hypot(rho, z)
+    with np.errstate(invalid="ignore", divide="ignore"):  # on the axes the angles of spherical() are 0
+        ca = np.where(rho > 0, x / rho, 1.0)
+        sa = np.where(rho > 0, y / rho, 0.0)
+        ce = np.where(r > 0, rho / r, 1.0)
+        se = np.where(r > 0, z / r, 0.0)
+    ur = np.asarray(distance) + np.asarray(distance_per_length) * r
+    ue = angular if angular_elevation is None else angular_elevation
+    A = ur * ur  # along the beam
+    Bv = (np.asarray(angular) * rho) ** 2  # along e_az
+    Cv = (np.asarray(ue) * r) ** 2  # along e_el
+    rx, ry = ce * ca, ce * sa  # e_r = (rx, ry, se)
+    ex, ey = se * ca, se * sa  # e_el = (-ex, -ey, ce)
+    C = np.empty(np.broadcast_shapes(r.shape, np.shape(A), np.shape(Bv), np.shape(Cv)) + (3, 3))
+    C[..., 0, 0] = A * rx * rx + Bv * sa * sa + Cv * ex * ex
+    C[..., 1, 1] = A * ry * ry + Bv * ca * ca + Cv * ey * ey
+    C[..., 2, 2] = A * se * se + Cv * ce * ce
+    C[..., 0, 1] = C[..., 1, 0] = A * rx * ry - Bv * sa * ca + Cv * ex * ey
+    C[..., 0, 2] = C[..., 2, 0] = A * rx * se - Cv * ex * ce
+    C[..., 1, 2] = C[..., 2, 1] = A * ry * se - Cv * ey * ce
+    return C
+
+
+def covariance_reference(P_LT: np.ndarray, angular, distance, distance_per_length, angular_elevation=None) -> np.ndarray:
+    """:func:`covariance` as the matrix product ``J S J^T`` with :func:`spherical_jacobian` (the reference)."""
     r = np.linalg.norm(P_LT, axis=-1)
     ur = np.asarray(distance) + np.asarray(distance_per_length) * r
     ua = np.broadcast_to(np.asarray(angular, float), r.shape)
@@ -128,7 +169,7 @@ def point_uncertainty(P_LT: np.ndarray, angular, distance, distance_per_length, 
     The trace of J S J^T is u_r^2 + (r cos(el) u_az)^2 + (r u_el)^2, since the
     columns of the spherical Jacobian have lengths 1, r cos(el) and r.
     """
-    r = np.linalg.norm(P_LT, axis=-1)
+    r = _norm3(P_LT)
     rho = np.hypot(P_LT[..., 0], P_LT[..., 1])  # r cos(el)
     ur = np.asarray(distance) + np.asarray(distance_per_length) * r
     ue = angular if angular_elevation is None else angular_elevation

@@ -164,3 +164,50 @@ def test_iso230_convention_drops_linear_straightness_only():
     assert "dy(x)[P1]" not in names and "dy(x)[P2]" in names
     assert "dx(x)[P1]" in names and "ex(x)[P1]" in names
     assert {"sxy", "sxz", "syz"} <= set(names)
+
+
+def test_the_componentwise_chain_equals_the_matrix_chain_for_every_configuration():
+    """machine.chain (component arithmetic) against machine.chain_reference (a 3 x 3 matrix per point), with
+    offsets, scales, projections and models that leave errors out; and the Jacobian against central differences."""
+    from mtbudget.machine import ALL_CONFIGURATIONS, ChainInputs, chain, chain_reference
+
+    rng = np.random.default_rng(3)
+    M = 30
+    nom, tool = rng.uniform(-300, 300, (M, 3)), rng.uniform(-100, 100, (M, 3))
+    for code in ALL_CONFIGURATIONS:
+        cfg = Configuration.parse(code)
+        for conv in ("iso230", "free"):
+            em = ErrorModel.default(nom, 3, straightness_convention=conv, tool_axis=cfg.tool[-1] if cfg.tool else None)
+            th = rng.standard_normal((3, len(em.params))) * 1e-4
+            inp = ChainInputs(nom, tool, offset={"x": rng.standard_normal((3, M)) * 1e-3},
+                              scale={"z": rng.standard_normal((1, M)) * 1e-5})
+            proj = rng.standard_normal((len(em.params), 5))
+            P, J = chain(cfg, em, th, inp, jacobian=True, project=proj)
+            Pr, Jr = chain_reference(cfg, em, th, inp, jacobian=True, project=proj)
+            assert np.abs(P - Pr).max() < 1e-11  # mm, on points ~500 mm from the origin: round-off
+            assert np.abs(J - Jr).max() < 1e-10
+            h = 1e-6  # the chain is a low-degree polynomial in theta: central differences are exact to ~1e-9
+            d = rng.standard_normal(len(em.params))
+            fd = (chain(cfg, em, th + h * d, inp) - chain(cfg, em, th - h * d, inp)) / (2 * h)
+            full = chain(cfg, em, th, inp, jacobian=True)[1]
+            assert np.abs(fd - full @ d).max() < 1e-6
+    em = ErrorModel(ranges={a: (-300, 300) for a in "xyz"}, degrees={"dx(x)": 2, "ey(z)": 1}, squareness=False)
+    cfg = Configuration.parse("XFYZ")
+    th = rng.standard_normal((2, len(em.params))) * 1e-4
+    for a, b in zip(chain(cfg, em, th, ChainInputs(nom, tool), jacobian=True),
+                    chain_reference(cfg, em, th, ChainInputs(nom, tool), jacobian=True)):
+        assert np.abs(a - b).max() < 1e-11
+
+
+def test_a_trials_chain_does_not_depend_on_the_trials_evaluated_with_it():
+    from mtbudget.machine import ChainInputs, chain
+
+    rng = np.random.default_rng(8)
+    nom = rng.uniform(-300, 300, (40, 3))
+    em = ErrorModel.default(nom, 3, tool_axis="z")
+    cfg = Configuration.parse("XFYZ")
+    th = rng.standard_normal((37, len(em.params))) * 1e-4
+    inp = ChainInputs(nom, rng.uniform(-100, 100, (40, 3)))
+    all_rows = chain(cfg, em, th, inp)
+    for lo, hi in ((0, 1), (5, 6), (3, 5), (2, 9), (10, 37)):
+        assert np.array_equal(chain(cfg, em, th[lo:hi], inp), all_rows[lo:hi])

@@ -99,3 +99,20 @@ def test_smr_offset_is_perpendicular_to_the_beam(rng):
     d = lt.smr_offset(pts, lat)
     assert np.allclose(np.einsum("ij,ij->i", d, pts), 0.0, atol=1e-9)
     assert np.allclose(np.linalg.norm(d, axis=1), np.linalg.norm(lat, axis=1))
+
+
+def test_covariance_written_entry_by_entry_equals_the_jacobian_product():
+    """tracker.covariance (six entries from the coordinates) against covariance_reference (J S J^T with the
+    spherical Jacobian), anywhere around the tracker, including straight up and straight down."""
+    from mtbudget.tracker import covariance, covariance_reference
+
+    rng = np.random.default_rng(5)
+    P = rng.uniform(-4000, 4000, (50, 40, 3))
+    P[0, 0], P[0, 1] = [0.0, 0.0, 1500.0], [0.0, 0.0, -20.0]
+    for ue in (None, 3e-5):
+        a = covariance(P, 2e-5, 4e-3, 8e-7, ue)
+        b = covariance_reference(P, 2e-5, 4e-3, 8e-7, ue)
+        assert np.abs(a - b).max() <= 1e-14 * np.abs(b).max()
+        assert np.array_equal(a, np.swapaxes(a, -1, -2))
+    one = covariance(P[3, 7], 2e-5, 4e-3, 8e-7)
+    assert one.shape == (3, 3) and np.allclose(one, covariance_reference(P[3, 7], 2e-5, 4e-3, 8e-7), rtol=1e-13)

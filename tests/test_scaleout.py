@@ -1,0 +1,137 @@
+"""Scale-out: several blocks identified together, worker processes, an existing Dask scheduler, in-code sources.
+
+The promise (docs/architecture.md, docs/performance.md): a block's numbers depend on the seed, the block and
+the sources only, never on which blocks are computed with it or where.
+"""
+
+import types
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from mtbudget.config import load_config
+from mtbudget.contracts import Group, Source
+from mtbudget.engine import Engine
+from mtbudget.errors import ConfigError
+from mtbudget.executors import one_blas_thread
+from mtbudget.hookspecs import hookimpl
+from mtbudget.outputs import SCALARS
+from mtbudget.plugins import PluginHost
+from mtbudget.runner import run
+from mtbudget.scenario import build_scenario
+from mtbudget.units import Q_
+
+SMALL = Path(__file__).parent / "data" / "small.toml"
+
+
+@pytest.fixture(scope="module")
+def small():
+    return load_config(SMALL)
+
+
+def same_block(a, b):
+    return (a.block == b.block and a.n == b.n and a.not_converged == b.not_converged and a.fallbacks == b.fallbacks
+            and all(np.array_equal(a.scalars[k], b.scalars[k]) for k in SCALARS)
+            and np.array_equal(a.point_error, b.point_error) and np.array_equal(a.parameters, b.parameters)
+            and np.array_equal(a.components, b.components))
+
+
+@pytest.mark.parametrize("block", [1, 3, 16])
+def test_blocks_identified_together_equal_each_block_alone(small, block):
+    # block 1: every identification group holds one trial (BLAS's single-row path); 3: odd row counts
+    eng = Engine(build_scenario(small), block=block, seed=11)
+    with one_blas_thread():
+        alone = {b: eng.run_block(b) for b in range(6)}
+        for group in ([0, 1, 2, 3, 4, 5], [5, 2], [3], [1, 4, 0]):
+            for r in eng.run_blocks(group):
+                assert same_block(r, alone[r.block]), (group, r.block)
+
+
+def test_blocks_together_also_with_a_source_subset_and_the_default_configuration():
+    sc = build_scenario(load_config())
+    eng = Engine(sc, block=8, seed=5)
+    act = [s for s in eng.sources if s.name in ("tracker_noise", "phase_sequence", "repeatability")]
+    with one_blas_thread():
+        together = eng.run_blocks([2, 0, 1], act)
+        for r in together:
+            assert same_block(r, eng.run_block(r.block, act))
+    # and the subset really is a different run (common random numbers, not the same numbers)
+    assert not np.array_equal(together[0].point_error, eng.run_block(2).point_error)
+
+
+def test_a_multiprocess_dask_cluster_at_an_address_gives_the_numbers_of_the_inline_run(small):
+    distributed = pytest.importorskip("dask.distributed", reason="the dask extra is not installed")
+    inline = run(small, trials=48, block=16, attribution_trials=16)
+    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None) as cl:
+        remote = run(small, trials=48, block=16, attribution_trials=16, executor="dask", address=cl.scheduler_address)
+    for k in SCALARS:
+        assert np.array_equal(inline.acc.scalar_samples(k), remote.acc.scalar_samples(k)), k
+    assert np.array_equal(inline.acc.moments["point_error"].mean, remote.acc.moments["point_error"].mean)
+    for name, row in inline.budget.items():
+        assert row == remote.budget[name], name
+
+
+class InCode(Source):
+    """A source that exists only in the process that registered it."""
+
+    name = "in_code_offset"
+    group = Group.MEASUREMENT_SYSTEM
+    distribution = "normal"
+    targets = ("tracker_offset",)
+    parameters = {"u": Q_(1.0, "um")}
+
+    def sample(self, n, rng, ctx):
+        return {"tracker_offset": Q_(rng.normal(0, self.value("u", "mm"), (n, ctx.n_points, 3)), "mm")}
+
+
+def _in_code_host():
+    mod = types.ModuleType("in_code_plugin")
+    mod.mtbudget_register_sources = hookimpl(lambda register: register(InCode()))
+    return PluginHost(plugins=(mod,))
+
+
+def test_a_source_registered_in_code_runs_inline(small):
+    res = run(small, trials=16, block=16, attribution_trials=0, host=_in_code_host(),
+              sources=["tracker_noise", "in_code_offset"])
+    assert res.spec["sources"] == ["tracker_noise", "in_code_offset"]
+
+
+@pytest.mark.parametrize("executor", ["process", "dask"])
+def test_a_source_registered_in_code_cannot_reach_workers_and_says_so(small, executor):
+    if executor == "dask":
+        pytest.importorskip("dask.distributed", reason="the dask extra is not installed")
+    with pytest.raises(ConfigError, match=r"source 'in_code_offset' .*registered in code.*--executor inline"):
+        run(small, trials=16, block=16, attribution_trials=0, host=_in_code_host(), executor=executor,
+            sources=["tracker_noise", "in_code_offset"])
+
+
+@pytest.mark.slow  # waits for the 10 s connection timeout
+def test_an_address_where_no_scheduler_answers_is_one_clear_error(small):
+    pytest.importorskip("dask.distributed", reason="the dask extra is not installed")
+    with pytest.raises(ConfigError, match="no Dask scheduler answers at 'tcp://127.0.0.1:9'"):
+        run(small, trials=16, block=16, attribution_trials=0, executor="dask", address="tcp://127.0.0.1:9")
+
+
+def test_workers_get_a_bounded_window_of_chunks_and_results_come_back_in_order():
+    from concurrent.futures import Future
+
+    from mtbudget.executors import in_order
+
+    outstanding, most = [], [0]
+
+    def submit(ch):
+        f = Future()
+        f.set_result(ch * 10)
+        outstanding.append(f)
+        most[0] = max(most[0], sum(not getattr(g, "_taken", False) for g in outstanding))
+        return f
+
+    out = []
+    for r in in_order(submit, list(range(50)), window=4):
+        out.append(r)
+        for g in outstanding:  # what has been handed over is no longer held by the executor
+            if g.result() == r:
+                g._taken = True
+    assert out == [c * 10 for c in range(50)]
+    assert most[0] == 5  # the window plus the one being handed over, never the whole run
