@@ -167,7 +167,8 @@ def identify(recording, example, as_json, max_degree, strategy):
 @click.option("--example", type=click.Choice(["null", "thermal_x", "reversal_y", "tracker_drift"]),
               help="Use a bundled example recording instead of a folder.")
 @click.option("--format", "fmt", required=True,
-              help="Exporter: neutral-csv, neutral-json, linuxcnc, beckhoff-lsec, or one a plugin registers.")
+              help="Exporter: neutral-csv, neutral-json, linuxcnc, beckhoff-lsec, siemens-840d, heidenhain-tnc, or one a "
+                   "plugin registers (`mtbudget plugins` lists them; docs/compensation.md gives each convention).")
 @click.option("--out", "out", required=True, type=click.Path(dir_okay=False, path_type=Path),
               help="File to write; a per-axis format writes FILE_x, FILE_y, FILE_z with the same suffix.")
 @click.option("--step", default="50 mm", show_default=True, help="Grid step of the tables along every axis.")
@@ -295,7 +296,9 @@ def plugins_cmd(config, as_json):
 @click.option("--executor", type=click.Choice(["inline", "process", "dask"]), default="inline", show_default=True,
               help="Where trials run: this process, a local process pool, or a Dask cluster (extra 'dask').")
 @click.option("--workers", type=click.IntRange(min=1), default=None, help="Workers of the process pool or local Dask cluster.")
-@click.option("--address", default=None, help="Address of an existing Dask scheduler (with --executor dask).")
+@click.option("--address", default=None,
+              help="Address of an existing Dask scheduler with --executor dask, e.g. tcp://host:8786 (worked example: "
+                   "docs/performance.md); results are bit-identical to an inline run.")
 @click.option("--attribution-trials", type=click.IntRange(min=0), default=512, show_default=True,
               help="Trials per source for the budget (one source at a time); 0 skips the budget.")
 @click.option("--log", "log_path", type=click.Path(dir_okay=False, path_type=Path), default=None,

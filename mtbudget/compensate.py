@@ -195,9 +195,12 @@ class CrossTable:
 class ResidualAxis:
     """The compensated machine at the recording's points, one axis: residual against its stated U (k = 2).
 
-    residual = measured - identified model (machine frame, um): what a verification of the compensated machine
-    would show at these points.  U = 2 u(residual), u from the recording's stated tracker noise and
-    repeatability net of the part the fit absorbs, u^2 = diag(R L (I - H_ii) L^T R^T), H the hat matrix."""
+    residual = measured - identified model (machine frame, um): the fit residual at the recording's own points,
+    the error the identified model leaves there, measurement noise included.  U = 2 u(residual), u from the
+    recording's stated tracker noise and repeatability net of the part the fit absorbs,
+    u^2 = diag(R L (I - H_ii) L^T R^T), H the hat matrix.  It is not the reading of a new verification of the
+    compensated machine (whose noise is fresh: C (I + H)), nor the machine after the exported tables, which
+    carry the error functions on the reference lines only (that is what ``--check`` tests)."""
 
     axis: str
     positions: np.ndarray  # (M,) mm, commanded position along this axis
@@ -754,7 +757,7 @@ def read_siemens(paths) -> dict:
     cross = {}
     for t, d in sorted(cec.items()):
         pos, v = points(d, "")
-        a, b = (_SIEMENS_AXES[d[k].strip("\"'")] for k in ("_INPUT_AXIS", "_OUTPUT_AXIS"))
+        a, b = (_SIEMENS_AXES[d[k].strip("\"'() ")] for k in ("_INPUT_AXIS", "_OUTPUT_AXIS"))  # =(AX1) or =AX1
         direction = int(d.get("_DIRECTION", "0"))
         if a == b:
             base = out.setdefault(a, [pos, np.zeros(len(pos)), np.zeros(len(pos))])
@@ -918,6 +921,15 @@ def _truth_frame(table, config, terr, theta_t) -> dict:
     return {k: (lines[k][0], lines[k][1] - conv[k][1]) for k in lines}
 
 
+def _present_effect(v) -> bool:
+    """Whether a truth.json effect is there: a non-empty mapping, or an array/number with a non-zero entry."""
+    if v is None:
+        return False
+    if isinstance(v, dict):
+        return any(_present_effect(x) for x in v.values())
+    return bool(np.any(np.asarray(v, dtype=float) != 0))
+
+
 def check_export(table: CompensationTable, rec, exporter, written: list) -> dict:
     """Apply the exported tables (read back independently) to the simulated machine of ``truth.json``.
 
@@ -945,7 +957,7 @@ def check_export(table: CompensationTable, rec, exporter, written: list) -> dict
     cross_tables = tables.pop("cross", {})
     truth_lines = None
     out = {"format": exporter.name, "files": [str(p) for p in written], "axes": {}, "cross": {},
-           "ignored": [k for k in ("thermal", "drift") if effects.get(k)]}
+           "ignored": [k for k in ("thermal", "drift") if _present_effect(effects.get(k))]}
     for (a, b), (pos_tab, trim) in cross_tables.items():
         c = table.cross.get(f"E{b.upper()}{a.upper()}")
         if c is None:
@@ -1029,7 +1041,7 @@ def residual_lines(table: CompensationTable) -> list:
     """The compensated machine at the recording's points: residual against U (k = 2), per axis (text)."""
     if not table.residual:
         return []
-    lines = ["compensated machine at the recording's points: residual = measured - identified model (machine frame), "
+    lines = ["fit residual at the recording's points: residual = measured - identified model (machine frame), "
              "against U = 2 u of that residual (k = 2, about 95 % for a normal; u from the stated tracker noise and "
              "repeatability, net of the fitted part); um:"]
     for a, r in table.residual.items():
@@ -1046,7 +1058,8 @@ def table_text(table: CompensationTable, written: list, exporter, check: dict | 
              f"{idn['chi2_per_dof']:.3f}, {idn['points']} points, grid step {table.step:g} mm",
              f"  format {exporter.name}: {exporter.description}",
              *[f"  wrote {p}" for p in written],
-             "", "positioning tables (um, k = 1; zero at the first grid point; forward = approach in +):"]
+             "", ("positioning tables (um, k = 1; zero at the first grid point; forward = approach in +; "
+                  "reversal B as ISO 230-2: mean up minus mean down, -1 x the lost motion diagnose reports):")]
     for a, t in table.axes.items():
         ref = ", ".join(f"{b} = {v:g} mm" for b, v in t.reference.items())
         lines.append(f"  {a.upper()}: {len(t.positions)} entries {t.positions[0]:g}..{t.positions[-1]:g} mm on the line "

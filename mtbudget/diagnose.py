@@ -531,6 +531,11 @@ def _diagnose(rec, candidates, alpha, max_set, confound_margin, max_degree, gate
             unexplained["notes"].append(f"{len(findings)} candidate(s) would explain part of the misfit "
                                         "(unexplained.partial); none is reported as a finding")
             findings, final, res_after = [], _quality(base), None
+            # `where` then describes the baseline's residuals, as `final` does; what the partial effects leave
+            # is kept beside it
+            unexplained["where_after_partial"] = unexplained["where"]
+            w0 = locate(ctx, base.residual_machine[0], base.whitened[0])
+            unexplained["where"] = {k: w0[k] for k in unexplained["where"]}
         if data_driven and gate["p_value"] is not None:
             X_final = np.concatenate([lin.Q0] + [usable[i][1] for i in chosen], axis=1)
             splits = 20

@@ -172,7 +172,9 @@ class Siemens840d(Exporter):
         head = [f"; mtbudget: compensation of recording {table.recording!r} ({table.machine}); values in mm",
                 "; value = measured error (actual - nominal, tool relative to workpiece): a positive value moves the "
                 "axis in the negative direction",
-                "; machine axes AX1, AX2, AX3 = X, Y, Z: rename them to your configuration"]
+                "; machine axes AX1, AX2, AX3 = X, Y, Z: rename them to your configuration",
+                "; VERIFY THE SIGN ON THE MACHINE before use: load one small test value and check the direction the axis "
+                "moves (the sag table sign is not documented in a source mtbudget could check, docs/compensation.md)"]
         lines = ["%_N_AX_EEC_INI", *head,
                  "; LEC: mean bidirectional positioning deviation on each axis' reference line, zero at MIN",
                  "CHANDATA(1)"]
@@ -202,7 +204,7 @@ class Siemens840d(Exporter):
             step = _equidistant(pos, f"table {k}")
             lines.append(f"; table {k}: {what}; set MD18342 $MN_MM_CEC_MAX_POINTS[{k}] >= {len(pos)}")
             lines += [f"$AN_CEC[{k},{i}]={v * 1e-3:.6f}" for i, v in enumerate(val)]
-            lines += [f"$AN_CEC_INPUT_AXIS[{k}]={_SIEMENS_AXIS[a]}", f"$AN_CEC_OUTPUT_AXIS[{k}]={_SIEMENS_AXIS[b]}",
+            lines += [f"$AN_CEC_INPUT_AXIS[{k}]=({_SIEMENS_AXIS[a]})", f"$AN_CEC_OUTPUT_AXIS[{k}]=({_SIEMENS_AXIS[b]})",
                       f"$AN_CEC_STEP[{k}]={step:.6f}", f"$AN_CEC_MIN[{k}]={pos[0]:.6f}", f"$AN_CEC_MAX[{k}]={pos[-1]:.6f}",
                       f"$AN_CEC_DIRECTION[{k}]={direction}", f"$AN_CEC_MULT_BY_TABLE[{k}]=0", f"$AN_CEC_IS_MODULO[{k}]=0"]
         lines.append("M17")

@@ -67,6 +67,7 @@ class ThermalExpansion(Candidate):
         # the deviation from the stated CTE, plausible as long as the total stays within the physical range
         sc = getattr(ctx.plan, "scales", {}).get(self.axis)
         stated = sc.cte * 1e6 if sc else 0.0
+        self.fixed_point = sc.fixed_point if sc else 0.0  # mm: the deviation expands the scale about it too
         lo, hi = type(self).plausible["cte"]
         self.plausible = {"cte": (lo - stated, hi - stated)}
         self.quantity_names = {"cte": f"a deviation from the stated CTE ({stated:g} um/(m*K))" if sc else "a CTE"}
@@ -74,11 +75,15 @@ class ThermalExpansion(Candidate):
 
     def columns(self, ctx):
         T = ctx.axis_temperature_column(self.axis) - ctx.recording.reference_temperature
-        p = ctx.plan.nominal[:, AXIS_INDEX[self.axis]]
+        p = ctx.plan.nominal[:, AXIS_INDEX[self.axis]] - getattr(self, "fixed_point", 0.0)
         return (p * T)[:, None, None] * _e(self.axis)[None, :, None]
 
     def perturbation(self, ctx, beta):
-        return thermal_scale(ctx.plan, {self.axis: float(beta[0])}, ctx.recording.reference_temperature)
+        out = thermal_scale(ctx.plan, {self.axis: float(beta[0])}, ctx.recording.reference_temperature)
+        x0 = getattr(self, "fixed_point", 0.0)
+        if x0 and f"axis_scale.{self.axis}" in out:  # about the scale's fixed point: x0 + (p - x0)(1 + s)
+            out[f"axis_offset.{self.axis}"] = -x0 * out[f"axis_scale.{self.axis}"]
+        return out
 
 
 class Reversal(Candidate):
@@ -86,11 +91,12 @@ class Reversal(Candidate):
     parameters = {"B": "um"}
     #: lost motion is positive; a servo overshoot can make it slightly negative
     plausible = {"B": (-20.0, 100.0)}
-    quantity_names = {"B": "a reversal B"}
+    quantity_names = {"B": "a lost motion B"}
 
     def __init__(self, axis):
         super().__init__(axis)
-        self.description = f"lost motion of the {axis} axis: approaching from either side it stops B/2 short of the target"
+        self.description = (f"lost motion of the {axis} axis: approaching from either side it stops B/2 short of the "
+                            f"target (B > 0; the ISO 230-2 reversal value, mean up minus mean down, is -B)")
 
     def requires(self, ctx):
         d = ctx.plan.direction[:, AXIS_INDEX[self.axis]]

@@ -39,7 +39,7 @@ def test_simulate_then_identify(tmp_path):
     assert "chi-square per dof" in res.output
     res = CliRunner().invoke(main, ["identify", str(out), "--json"])
     assert res.exit_code == 0, res.output
-    data = json.loads(res.output)
+    data = json.loads(res.stdout)
     assert 0.8 < data["chi2_per_dof"] < 1.25
     assert {p["unit"] for p in data["parameters"]} == {"um", "urad"}
 
@@ -60,7 +60,7 @@ def test_python_dash_m_entry_point():
 def test_plugins_lists_sources_by_group_with_units_and_origin():
     res = CliRunner().invoke(main, ["plugins", "--json"])
     assert res.exit_code == 0, res.output
-    data = json.loads(res.output)
+    data = json.loads(res.stdout)
     src = {s["name"]: s for s in data["sources"]}
     assert src["tracker_noise"]["group"] == "measurement system"
     p = src["tracker_noise"]["parameters"]["angular_mean"]

@@ -321,7 +321,7 @@ def test_compensate_command(tmp_path):
     assert len((tmp_path / "m_x.comp").read_text().splitlines()) == 5  # 800..1200 every 100 mm
     res = CliRunner().invoke(main, ["compensate", "--example", "null", "--format", "neutral-json", "--out",
                                     str(tmp_path / "t.json"), "--json"])
-    body = json.loads(res.output)
+    body = json.loads(res.stdout)
     assert body["positioning"]["z"]["positions_mm"] == [200, 250, 300, 350, 400]
     assert body["iso230_2"]["y"]["model"]["figures"]["E"] > 0
 
@@ -350,3 +350,12 @@ def test_check_needs_a_truth(tmp_path):
     assert len(res.output.strip().splitlines()) == 1
     with pytest.raises(CompensationError):
         find_exporter("nope")
+
+
+def test_check_on_a_recording_whose_truth_has_a_drift_array(tmp_path):
+    """truth.json of tracker_drift holds the drift as a vector: --check runs and says it was not applied."""
+    rec = read_recording(example_recording("tracker_drift"))
+    table = build_table(rec, 50.0)
+    ex = find_exporter("neutral-csv")
+    check = check_export(table, rec, ex, export(table, ex, tmp_path / f"t{ex.suffix}"))
+    assert check["ignored"] == ["drift"]

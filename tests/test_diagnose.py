@@ -63,7 +63,7 @@ def test_same_findings_in_inch_minutes_and_fahrenheit(tmp_path, candidates):
 def test_json_contract_is_one_object():
     res = CliRunner().invoke(main, ["diagnose", "--example", "thermal_x", "--json"])
     assert res.exit_code == 0, res.output
-    d = json.loads(res.output)
+    d = json.loads(res.stdout)
     assert set(d) >= {"recording", "baseline", "mismatch", "findings", "final"}
     assert d["recording"] == "thermal_x"
     f = d["findings"][0]

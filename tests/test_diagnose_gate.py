@@ -39,7 +39,7 @@ def original_library(candidates):
 def test_json_has_noise_and_unexplained():
     res = CliRunner().invoke(main, ["diagnose", "--example", "null", "--json"])
     assert res.exit_code == 0, res.output
-    d = json.loads(res.output)
+    d = json.loads(res.stdout)
     assert d["unexplained"] is None
     n = d["noise"]
     assert n["used"] == "stated" and n["replicates"] is True

@@ -112,7 +112,9 @@ def test_siemens_tables_read_back_against_the_model(tmp_path, reversal):
     seen = {}
     for t in tables:
         i = (str(t),)
-        a, b = names[sag[("AN_CEC_INPUT_AXIS", i)]], names[sag[("AN_CEC_OUTPUT_AXIS", i)]]
+        # the K3 manual's examples write the axis in brackets: $AN_CEC_INPUT_AXIS[0]=(AX2)
+        assert sag[("AN_CEC_INPUT_AXIS", i)].startswith("(") and sag[("AN_CEC_OUTPUT_AXIS", i)].endswith(")")
+        a, b = names[sag[("AN_CEC_INPUT_AXIS", i)].strip("()")], names[sag[("AN_CEC_OUTPUT_AXIS", i)].strip("()")]
         direction = int(sag[("AN_CEC_DIRECTION", i)])
         assert sag[("AN_CEC_IS_MODULO", i)] == "0" and sag[("AN_CEC_MULT_BY_TABLE", i)] == "0"
         pos, val = siemens_table(sag, "AN_CEC", i)

@@ -180,7 +180,7 @@ def test_every_json_unit_parses_and_is_spelled_one_way(unexplained, misstated):
     for example in ("thermal_x", "tracker_drift", "reversal_y"):
         res = CliRunner().invoke(main, ["diagnose", "--example", example, "--json"])
         assert res.exit_code == 0, res.output
-        docs.append(json.loads(res.output))
+        docs.append(json.loads(res.stdout))
     rec, lib, _ = unexplained
     docs += [_json(diagnose(rec, lib)), _json(misstated[0])]
     spelling = {}

@@ -135,7 +135,7 @@ def test_replay_reads_a_placement_log_and_refuses_to_verify_it(tmp_path):
     log = tmp_path / "placement.mcap"
     r = CliRunner().invoke(main, ["replay", str(log), "--json"])
     assert r.exit_code == 0, r.output
-    body = json.loads(r.output)
+    body = json.loads(r.stdout)
     on_disk = json.loads((tmp_path / "placement.json").read_text())
     assert body["directions"]["Y"]["max_error_um"] == on_disk["directions"]["Y"]["max_error_um"]
     r = CliRunner().invoke(main, ["replay", str(log), "--verify"])
@@ -177,3 +177,23 @@ def test_a_log_from_before_checksums_still_reads(tmp_path, monkeypatch):
     execute(SMALL, trials=20, block=8, attribution_trials=0, log_path=tmp_path / "new.mcap")
     with pytest.raises(RunLogError, match="damaged run log: byte offset [0-9]+: the /mtbudget/run message has no checksum"):
         read_runlog(tmp_path / "new.mcap")
+
+
+def test_a_resume_written_to_another_path_never_overwrites_another_runs_log(tmp_path):
+    """--resume A --log B, with B a finished log of another run: refused unless --force (B unchanged)."""
+    from mtbudget.runlog import partial_path
+
+    A, B = tmp_path / "a.mcap", tmp_path / "b.mcap"
+    execute(SMALL, trials=16, block=8, attribution_trials=4, log_path=B, progress=False, seed=7)
+    before = B.read_bytes()
+    execute(SMALL, trials=24, block=8, attribution_trials=4, log_path=A, progress=False, seed=1)
+    data = A.read_bytes()
+    A.unlink()
+    partial_path(A).write_bytes(data[: len(data) // 2])
+    with pytest.raises(RunLogError, match="already there"):
+        execute(SMALL, resume_path=A, log_path=B, progress=False)
+    assert B.read_bytes() == before
+    partial_path(B).write_bytes(b"")  # another run's interrupted log at the target: refused too
+    B.unlink()
+    with pytest.raises(RunLogError, match="interrupted run is there"):
+        execute(SMALL, resume_path=A, log_path=B, progress=False)

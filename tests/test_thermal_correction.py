@@ -172,3 +172,27 @@ def test_a_wrong_stated_cte_is_found_as_a_deviation_with_a_shifted_plausible_ran
         assert (f.candidate.effect, f.candidate.axis) == ("thermal_expansion", "x")
         assert abs(f.estimate[0] - (11.5 - stated)) < 2 * f.uncertainty[0]
         assert d.unexplained is None
+
+
+def test_the_cte_deviation_expands_about_the_stated_fixed_point(tmp_path):
+    """thermal_x with its commanded X shifted by -800 mm: its truth now expands about x = -800 mm.  Stated with that
+    fixed point but a CTE 4 um/(m K) low, the deviation is found about it (within 2u of 4) and the recording is then
+    explained; a deviation taken about the axis zero would leave an offset drift of 800 mm x 4 um/(m K) x dT."""
+    from mtbudget.diagnose import diagnose
+
+    folder = with_scales(tmp_path, '[scales.x]\ncte = "7.5 um/(m*K)"\nfixed_point = "-800 mm"')
+    # the truth expands about the axis zero; stating the zero at -800 mm in shifted coordinates is the same point
+    csv = (folder / "points.csv").read_text().splitlines()
+    head = csv[0].split(",")
+    ix = head.index("x [mm]")
+    rows = [csv[0]]
+    for line in csv[1:]:
+        c = line.split(",")
+        c[ix] = f"{float(c[ix]) - 800.0:.6f}"
+        rows.append(",".join(c))
+    (folder / "points.csv").write_text("\n".join(rows) + "\n")
+    d = diagnose(read_recording(folder))
+    (f,) = d.findings
+    assert (f.candidate.effect, f.candidate.axis) == ("thermal_expansion", "x")
+    assert abs(f.estimate[0] - 4.0) < 2 * f.uncertainty[0]
+    assert d.unexplained is None and d.final["chi2_per_dof"] < 1.1
