@@ -189,6 +189,16 @@ def conformance(res: RunResult, tolerance_um: float, characteristic: str = "comp
     """
     if characteristic not in CHARACTERISTICS:
         raise ValueError(f"characteristic must be one of {CHARACTERISTICS}")
+    out = _conformance(res, tolerance_um, characteristic)
+    in_use = bool(((res.spec or {}).get("measurand") or {}).get("in_use"))
+    out["refers_to"] = ("the compensated machine in use (repeatability, reversal and thermal residual included)"
+                        if in_use else "the compensated machine as the verification sees it (not its use: add the "
+                                       "source in_use for a tolerance on positioning in use)")
+    out["statement"] += f" The decision refers to {out['refers_to']}."
+    return out
+
+
+def _conformance(res: RunResult, tolerance_um: float, characteristic: str) -> dict:
     p = res.coverage
     T = tolerance_um
     if characteristic == "max":

@@ -57,6 +57,8 @@ TARGETS = {
     "spherical_noise.range": ("mm", ("M",)),
     "spherical_noise.angles": ("rad", ("M", 2)),
     "strategy": ("", ()),  # index into Source.options(context), optimisation-strategy sources
+    # the machine in use (machine frame): added to the measurand only, never to the verification's measurements
+    "in_use_offset": ("mm", ("M", 3)),
 }
 
 

@@ -125,6 +125,8 @@ class Engine:
                           - sc.evaluate(sc.id_model, np.zeros((1, N.shape[0]))))
             else:
                 F_true = sc.evaluate(sc.truth, theta_true[i])
+            if sims[i].in_use is not None:  # the machine in use: its own errors at the mesh points, measurand only
+                F_true = F_true + sims[i].in_use[:, rows]
             # the compensated field, rigid motions removed: one product per block, the same for any grouping
             D = (F_true - F_id[sl]).reshape(n, -1) @ sc.rigid_free.T
             comp = D.reshape(n, -1, 3) * um

@@ -62,7 +62,10 @@ def measurand_text(res) -> str:
         where = f"at the verification's tool offset ({tool}) mm"
     else:
         where = f"at the tool offset ({tool}) mm, which the verification did not use"
-    text = (f"error of the compensated machine at each mesh point, per machine axis (x, y, z), {where}, given this "
+    machine = ("error of the compensated machine in use (its repeatability, its reversal from either side and the "
+               "residual of its thermal compensation added: source in_use)" if m.get("in_use") else
+               "error of the compensated machine")
+    text = (f"{machine} at each mesh point, per machine axis (x, y, z), {where}, given this "
             "verification: true minus identified error field, rigid-body part removed (docs/measurand.md)")
     un = m.get("unidentified") or []
     if un:

@@ -109,6 +109,7 @@ def make_spec(scenario: Scenario, engine: Engine, settings: RunSettings) -> dict
             "block": int(engine.block), "sources": [s.name for s in engine.sources], "coverage": float(settings.coverage),
             "measurand": {"tool": [float(v) for v in scenario.tool], "tool_unit": "mm",
                           "verification_tool": not other_tool,
+                          "in_use": any(s.name == "in_use" for s in engine.sources),
                           "unidentified": scenario.unidentified_at_tool() if other_tool else []}}
 
 

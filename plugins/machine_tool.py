@@ -314,6 +314,44 @@ class AxisCouplingEffect(Source):
 EFFECTS = (ThermalExpansionEffect, ReversalEffect, AxisCouplingEffect)
 
 
+
+class InUse(Source):
+    """The compensated machine *in use*, not only as the verification saw it (issue 14): at every point, per axis,
+    its repeatability, its reversal from an unknown approach direction, and the residual of its thermal
+    compensation at a workshop temperature other than 20 degC.  Added to the measurand only (the verification's
+    measurements do not see the machine's later use), so a tolerance on positioning in use compares like with like.
+
+    repeatability: normal, standard deviation R (the machine's, [machine_tool] repeatability);
+    reversal: +-B/2 with the direction of approach random per point and axis, B ~ rectangular [0, B_max] per trial
+    and axis; thermal: (CTE - nominal) x (T_use - 20 degC) x position, the CTE error normal (u_cte), T_use - 20 degC
+    rectangular within +-temperature_range, one per trial.
+    """
+
+    name = "in_use"
+    group = Group.MACHINE_TOOL
+    distribution = "normal + rectangular reversal + CTE error x rectangular temperature"
+    targets = ("in_use_offset",)
+    parameters = {"R": Q_(1.5, "um"), "B_max": Q_(3.0, "um"), "u_cte": Q_(0.577, "um/(m*K)"),
+                  "temperature_range": Q_(2.0, "K")}
+    links = {"R": "machine_tool.repeatability"}
+    nonnegative = ("R", "B_max", "u_cte", "temperature_range")
+    #: it changes the measurand (the machine in use): off unless enabled (docs/measurand.md, "In use")
+    opt_in = True
+
+    def standard_uncertainty(self):
+        return self.parameters["R"].to("um")
+
+    def sample(self, n, rng, ctx):
+        M = ctx.n_points
+        R = self.parameters["R"].to("mm").magnitude
+        B = rng.uniform(0.0, self.parameters["B_max"].to("mm").magnitude, (n, 1, 3))
+        side = rng.choice((-1.0, 1.0), (n, M, 3))
+        dcte = rng.standard_normal((n, 1, 3)) * self.parameters["u_cte"].to("1/K").magnitude
+        dT = rng.uniform(-1.0, 1.0, (n, 1, 1)) * self.parameters["temperature_range"].to("K").magnitude
+        pos = np.asarray(ctx.plan.nominal, float)[None]  # (1, M, 3) mm, about the axis zero
+        off = rng.standard_normal((n, M, 3)) * R - side * B / 2.0 + dcte * dT * pos
+        return {"in_use_offset": Q_(off, "mm")}
+
 SOURCES = (TemperatureSensorCalibration, CTEUncertainty, EnvironmentalVariation, TemperatureDrift, Backlash,
            Repeatability, ControlError, GeometricErrorUncertainty) + EFFECTS
 
@@ -418,7 +456,7 @@ class AxisPolynomialEffect(Source):
         return {"point_offset": Q_(np.tile(disp, (n, 1, 1)), _MM)}
 
 
-SOURCES = SOURCES + (SpindleGrowthEffect, ColumnTiltEffect, ToolLengthErrorEffect, AxisPolynomialEffect)
+SOURCES = SOURCES + (SpindleGrowthEffect, ColumnTiltEffect, ToolLengthErrorEffect, AxisPolynomialEffect, InUse)
 
 
 @hookimpl
