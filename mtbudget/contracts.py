@@ -175,8 +175,16 @@ class Source:
         return None
 
     def value(self, key: str, unit: str) -> float:
-        """A parameter as a float in ``unit``."""
-        return float(self.parameters[key].to(unit).magnitude)
+        """A parameter as a float in ``unit``, remembered per parameter object: sources are sampled once per block,
+        and a unit conversion costs more than drawing a block's numbers (a parameter that ``configure`` replaces
+        is converted anew)."""
+        q = self.parameters[key]
+        cache = self.__dict__.setdefault("_value_cache", {})
+        hit = cache.get((key, unit))
+        if hit is None or hit[0] is not q:
+            hit = (q, float(q.to(unit).magnitude))
+            cache[(key, unit)] = hit
+        return hit[1]
 
     def sample(self, n: int, rng: np.random.Generator, context: Context) -> dict:
         """Perturbations for ``n`` trials: {target key: Quantity array of shape (n, *shape)}."""

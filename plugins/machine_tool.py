@@ -13,17 +13,6 @@ from mtbudget.units import Q_, ureg
 _MM, _RAD, _ONE = ureg.Unit("mm"), ureg.Unit("rad"), ureg.Unit("")  # built once: Q_(x, "mm") parses the unit on every call
 
 
-def _value(src, key: str, unit: str) -> float:
-    """``src.value(key, unit)``, remembered per parameter object: sources are sampled once per block, and a unit
-    conversion costs more than drawing a block's numbers (a parameter replaced by ``configure`` is converted anew)."""
-    q = src.parameters[key]
-    cache = src.__dict__.setdefault("_value_cache", {})
-    hit = cache.get((key, unit))
-    if hit is None or hit[0] is not q:
-        hit = (q, src.value(key, unit))
-        cache[(key, unit)] = hit
-    return hit[1]
-
 
 AXES = ("x", "y", "z")
 
@@ -51,8 +40,8 @@ class TemperatureSensorCalibration(Source):
         return (self.parameters["u_calibration"] / self.parameters["k"]).to("K")
 
     def sample(self, n, rng, ctx):
-        u = _value(self, "u_calibration", "K") / float(self.parameters["k"].magnitude)
-        cte = _value(self, "cte", "1/K")
+        u = self.value("u_calibration", "K") / float(self.parameters["k"].magnitude)
+        cte = self.value("cte", "1/K")
         out = {}
         for a in AXES:
             dT = rng.normal(0.0, u, (n, 1))
@@ -77,7 +66,7 @@ class CTEUncertainty(Source):
     nonnegative = ("fraction", "floor")
 
     def width(self) -> float:
-        return max(float(self.parameters["fraction"].magnitude) * _value(self, "cte", "1/K"), _value(self, "floor", "1/K"))
+        return max(float(self.parameters["fraction"].magnitude) * self.value("cte", "1/K"), self.value("floor", "1/K"))
 
     def standard_uncertainty(self):
         return Q_(self.width() / (2 * math.sqrt(3)), "1/K").to("um/(m*K)")
@@ -108,7 +97,7 @@ class EnvironmentalVariation(Source):
         return (self.parameters["E_VE"] / (2 * math.sqrt(3))).to("um")
 
     def sample(self, n, rng, ctx):
-        e = _value(self, "E_VE", "mm")
+        e = self.value("E_VE", "mm")
         t = ctx.plan.time
         frac = t / t[-1] if t[-1] > 0 else np.zeros_like(t)
         end = rng.uniform(-e / 2, e / 2, (n, 1, 3))
@@ -135,7 +124,7 @@ class TemperatureDrift(Source):
         return self.parameters["rate"]
 
     def sample(self, n, rng, ctx):
-        rate, cte = _value(self, "rate", "K/s"), _value(self, "cte", "1/K")
+        rate, cte = self.value("rate", "K/s"), self.value("cte", "1/K")
         t = ctx.plan.time[None, :]
         return {f"axis_scale.{a}": Q_(cte * rng.normal(0.0, rate, (n, 1)) * t, _ONE) for a in AXES}
 
@@ -154,7 +143,7 @@ class Backlash(Source):
         return (self.parameters["B_max"] / math.sqrt(12)).to("um")
 
     def sample(self, n, rng, ctx):
-        bmax = _value(self, "B_max", "mm")
+        bmax = self.value("B_max", "mm")
         return {f"axis_offset.{a}": Q_(-ctx.plan.direction[None, :, i] * rng.uniform(0, bmax, (n, 1)) / 2, _MM)
                 for i, a in enumerate(AXES)}
 
@@ -168,7 +157,7 @@ class _PerPointNormal(Source):
         return self.parameters[self.key].to("um")
 
     def sample(self, n, rng, ctx):
-        u = _value(self, self.key, "mm")
+        u = self.value(self.key, "mm")
         return {f"axis_offset.{a}": Q_(rng.normal(0.0, u, (n, ctx.n_points)), _MM) for a in AXES}
 
 
@@ -230,8 +219,8 @@ class GeometricErrorUncertainty(Source):
         p = len(ctx.theta)
         z = self._draw(rng, (n, p))
         mm, rad = ctx.parameter_mask("mm"), ctx.parameter_mask("rad")
-        return {"geometry.translational": Q_(z * mm * _value(self, "translational", "mm"), _MM),
-                "geometry.angular": Q_(z * rad * _value(self, "angular", "rad"), _RAD)}
+        return {"geometry.translational": Q_(z * mm * self.value("translational", "mm"), _MM),
+                "geometry.angular": Q_(z * rad * self.value("angular", "rad"), _RAD)}
 
 
 # ----------------------------------------------------------------------------- simulated physics (opt-in)
@@ -253,7 +242,7 @@ class ThermalExpansionEffect(Source):
     def sample(self, n, rng, ctx):
         out = {}
         for a in AXES:
-            cte = _value(self, f"cte_{a}", "1/K")
+            cte = self.value(f"cte_{a}", "1/K")
             if cte:
                 dT = ctx.plan.axis_temperature(a, ctx.reference_temperature) - ctx.reference_temperature
                 out[f"axis_scale.{a}"] = Q_(np.tile(cte * dT, (n, 1)), _ONE)
@@ -273,7 +262,7 @@ class ReversalEffect(Source):
     def sample(self, n, rng, ctx):
         out = {}
         for i, a in enumerate(AXES):
-            B = _value(self, f"B_{a}", "mm")
+            B = self.value(f"B_{a}", "mm")
             if B:
                 out[f"axis_offset.{a}"] = Q_(np.tile(-0.5 * B * ctx.plan.direction[:, i], (n, 1)), _MM)
         return out
@@ -298,7 +287,7 @@ class AxisCouplingEffect(Source):
         nominal = ctx.plan.nominal
         disp = np.zeros((len(nominal), 3))
         for pair in ("xy", "xz", "yz"):
-            amp = _value(self, pair, "mm")
+            amp = self.value(pair, "mm")
             if not amp:
                 continue
             u = []
@@ -382,8 +371,8 @@ class SpindleGrowthEffect(Source):
         tool = np.asarray(ctx.plan.tool, float)
         length = np.linalg.norm(tool, axis=1)
         along = np.where(length[:, None] > 0, tool / np.maximum(length, 1e-12)[:, None], [0.0, 0.0, -1.0])
-        amount = _value(self, "growth", "mm/K") * _sensor_change(ctx, self.parameters["sensor"])
-        amount = amount + _value(self, "rate", "mm/s") * (ctx.plan.time - ctx.plan.time[0])
+        amount = self.value("growth", "mm/K") * _sensor_change(ctx, self.parameters["sensor"])
+        amount = amount + self.value("rate", "mm/s") * (ctx.plan.time - ctx.plan.time[0])
         return {"point_offset": Q_(np.tile(amount[:, None] * along, (n, 1, 1)), _MM)}
 
 
@@ -402,8 +391,8 @@ class ColumnTiltEffect(Source):
         dT = _sensor_change(ctx, self.parameters["sensor"])
         height = ctx.plan.nominal[:, 2] + ctx.plan.tool[:, 2]
         disp = np.zeros((ctx.n_points, 3))
-        disp[:, 0] = _value(self, "tilt_x", "rad/K") * dT * height
-        disp[:, 1] = _value(self, "tilt_y", "rad/K") * dT * height
+        disp[:, 0] = self.value("tilt_x", "rad/K") * dT * height
+        disp[:, 1] = self.value("tilt_y", "rad/K") * dT * height
         return {"point_offset": Q_(np.tile(disp, (n, 1, 1)), _MM)}
 
 
@@ -428,7 +417,7 @@ class ToolLengthErrorEffect(Source):
         disp = np.zeros((ctx.n_points, 3))
         if 0 <= k < len(seen) and np.linalg.norm(seen[k]) > 0:
             mine = np.all(np.isclose(tool, seen[k]), axis=1)
-            disp[mine] = _value(self, "error", "mm") * seen[k] / np.linalg.norm(seen[k])
+            disp[mine] = self.value("error", "mm") * seen[k] / np.linalg.norm(seen[k])
         return {"point_offset": Q_(np.tile(disp, (n, 1, 1)), _MM)}
 
 
@@ -452,7 +441,7 @@ class AxisPolynomialEffect(Source):
             u = 2.0 * (p - p.min()) / span - 1.0 if span > 0 else np.zeros_like(p)
             f = f * u**power
         disp = np.zeros((ctx.n_points, 3))
-        disp[:, AXES.index(self.parameters["direction"].strip().lower())] = _value(self, "amplitude", "mm") * f
+        disp[:, AXES.index(self.parameters["direction"].strip().lower())] = self.value("amplitude", "mm") * f
         return {"point_offset": Q_(np.tile(disp, (n, 1, 1)), _MM)}
 
 

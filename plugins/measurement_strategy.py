@@ -11,17 +11,6 @@ from mtbudget.units import Q_, ureg
 _MM, _RAD, _ONE = ureg.Unit("mm"), ureg.Unit("rad"), ureg.Unit("")  # built once: Q_(x, "mm") parses the unit on every call
 
 
-def _value(src, key: str, unit: str) -> float:
-    """``src.value(key, unit)``, remembered per parameter object: sources are sampled once per block, and a unit
-    conversion costs more than drawing a block's numbers (a parameter replaced by ``configure`` is converted anew)."""
-    q = src.parameters[key]
-    cache = src.__dict__.setdefault("_value_cache", {})
-    hit = cache.get((key, unit))
-    if hit is None or hit[0] is not q:
-        hit = (q, src.value(key, unit))
-        cache[(key, unit)] = hit
-    return hit[1]
-
 
 class Registration(Source):
     """Uncertainty of the tracker pose (Eq. 25-26): random terms on T_LT and on the Euler angles.
@@ -44,8 +33,8 @@ class Registration(Source):
         return self.parameters["u_position"]
 
     def sample(self, n, rng, ctx):
-        return {"pose.position": Q_(rng.normal(0.0, _value(self, "u_position", "mm"), (n, 3)), _MM),
-                "pose.orientation": Q_(rng.normal(0.0, _value(self, "u_orientation", "rad"), (n, 3)), _RAD)}
+        return {"pose.position": Q_(rng.normal(0.0, self.value("u_position", "mm"), (n, 3)), _MM),
+                "pose.orientation": Q_(rng.normal(0.0, self.value("u_orientation", "rad"), (n, 3)), _RAD)}
 
 
 class Multilateration(Source):
@@ -91,7 +80,7 @@ class Multilateration(Source):
         nominal = ctx.plan.nominal + ctx.plan.tool
         c = 0.5 * (nominal.min(0) + nominal.max(0))
         ang = 2 * np.pi * np.arange(k) / k + 0.3
-        R, h = _value(self, "radius", "mm"), _value(self, "height", "mm")
+        R, h = self.value("radius", "mm"), self.value("height", "mm")
         return np.column_stack([c[0] + R * np.cos(ang), c[1] + R * np.sin(ang), np.full(k, c[2] + h)])
 
     def sample(self, n, rng, ctx):
@@ -100,12 +89,12 @@ class Multilateration(Source):
         d = P[None, :, :] - S[:, None, :]  # (K, M, 3)
         r = np.linalg.norm(d, axis=2)
         E = np.transpose(d / r[..., None], (1, 0, 2))  # (M, K, 3): unit vectors station -> point
-        ur = (_value(self, "distance", "mm") + _value(self, "distance_per_length", "") * r).T  # (M, K)
+        ur = (self.value("distance", "mm") + self.value("distance_per_length", "") * r).T  # (M, K)
         W = 1.0 / ur**2
         N = np.einsum("mki,mk,mkj->mij", E, W, E)
         G = np.linalg.solve(N, np.transpose(E * W[..., None], (0, 2, 1)))  # (M, 3, K)
         eps = rng.standard_normal((n, ur.shape[0], ur.shape[1])) * ur[None]  # range noise (n, M, K)
-        ds = rng.normal(0.0, _value(self, "u_station", "mm"), (n, S.shape[0], 3))  # station errors, fixed per trial
+        ds = rng.normal(0.0, self.value("u_station", "mm"), (n, S.shape[0], 3))  # station errors, fixed per trial
         # a station displaced by ds changes each measured range by -e . ds
         eps = eps - np.einsum("mki,nki->nmk", E, ds)
         return {"point_offset": Q_(np.einsum("mik,nmk->nmi", G, eps), _MM)}

@@ -12,17 +12,6 @@ from mtbudget.units import Q_, ureg
 _MM, _RAD, _ONE = ureg.Unit("mm"), ureg.Unit("rad"), ureg.Unit("")  # built once: Q_(x, "mm") parses the unit on every call
 
 
-def _value(src, key: str, unit: str) -> float:
-    """``src.value(key, unit)``, remembered per parameter object: sources are sampled once per block, and a unit
-    conversion costs more than drawing a block's numbers (a parameter replaced by ``configure`` is converted anew)."""
-    q = src.parameters[key]
-    cache = src.__dict__.setdefault("_value_cache", {})
-    hit = cache.get((key, unit))
-    if hit is None or hit[0] is not q:
-        hit = (q, src.value(key, unit))
-        cache[(key, unit)] = hit
-    return hit[1]
-
 
 class TrackerNoise(Source):
     """Range and angle noise of the tracker (Eq. 23-24).
@@ -48,8 +37,8 @@ class TrackerNoise(Source):
 
     def sample(self, n, rng, ctx):
         r = np.linalg.norm(ctx.nominal_tracker_points, axis=1)
-        ur = _value(self, "distance", "mm") + _value(self, "distance_per_length", "") * r
-        ua = np.abs(rng.normal(_value(self, "angular_mean", "rad"), _value(self, "angular_sd", "rad"), (n, 1, 2)))
+        ur = self.value("distance", "mm") + self.value("distance_per_length", "") * r
+        ua = np.abs(rng.normal(self.value("angular_mean", "rad"), self.value("angular_sd", "rad"), (n, 1, 2)))
         return {"spherical_noise.range": Q_(rng.standard_normal((n, ctx.n_points)) * ur[None, :], _MM),
                 "spherical_noise.angles": Q_(rng.standard_normal((n, ctx.n_points, 2)) * ua, _RAD)}
 
@@ -68,7 +57,7 @@ class SMRCentring(Source):
         return self.parameters["u_SMR"]
 
     def sample(self, n, rng, ctx):
-        lateral = rng.normal(0.0, _value(self, "u_SMR", "mm"), (n, ctx.n_points, 2))
+        lateral = rng.normal(0.0, self.value("u_SMR", "mm"), (n, ctx.n_points, 2))
         # the beam's azimuth and elevation directions at the nominal points (the same in every trial): once
         pts = ctx.nominal_tracker_points
         hit = self.__dict__.get("_directions")
@@ -93,7 +82,7 @@ class SoftwarePointUncertainty(Source):
         return self.parameters["u_MS"]
 
     def sample(self, n, rng, ctx):
-        return {"tracker_offset": Q_(rng.normal(0.0, _value(self, "u_MS", "mm"), (n, ctx.n_points, 3)), _MM)}
+        return {"tracker_offset": Q_(rng.normal(0.0, self.value("u_MS", "mm"), (n, ctx.n_points, 3)), _MM)}
 
 
 # ----------------------------------------------------------------------------- simulated physics (opt-in)
@@ -108,7 +97,7 @@ class TrackerDriftEffect(Source):
     opt_in = True
 
     def sample(self, n, rng, ctx):
-        v = np.array([_value(self, f"v_{a}", "mm/s") for a in "xyz"])
+        v = np.array([self.value(f"v_{a}", "mm/s") for a in "xyz"])
         return {"point_offset": Q_(np.tile(ctx.plan.time[:, None] * v[None, :], (n, 1, 1)), _MM)}
 
 
@@ -123,7 +112,7 @@ class TrackerRangeOffsetEffect(Source):
     opt_in = True
 
     def sample(self, n, rng, ctx):
-        return {"spherical_noise.range": Q_(np.full((n, ctx.n_points), _value(self, "offset", "mm")), _MM)}
+        return {"spherical_noise.range": Q_(np.full((n, ctx.n_points), self.value("offset", "mm")), _MM)}
 
 
 class AirTemperatureDriftEffect(Source):
@@ -146,7 +135,7 @@ class AirTemperatureDriftEffect(Source):
         disp = np.zeros((ctx.n_points, 3))
         if cols:
             T = np.mean([ctx.plan.temperature[c] for c in cols], axis=0)
-            disp[:, 2] = _value(self, "sensitivity", "mm/K") * (T - T[0])
+            disp[:, 2] = self.value("sensitivity", "mm/K") * (T - T[0])
         return {"point_offset": Q_(np.tile(disp, (n, 1, 1)), _MM)}
 
 

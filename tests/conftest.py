@@ -29,3 +29,21 @@ def one_blas_thread():
 
     with threadpool_limits(limits=1, user_api="blas"):
         yield
+
+
+@pytest.fixture(scope="session")
+def null():
+    """The null example and its compensation table (50 mm grid): (recording, table)."""
+    from mtbudget.compensate import build_table
+
+    rec = read_recording(example_recording("null"))
+    return rec, build_table(rec, 50.0)
+
+
+@pytest.fixture(scope="session")
+def reversal():
+    """The reversal_y example and its compensation table (50 mm grid): (recording, table)."""
+    from mtbudget.compensate import build_table
+
+    rec = read_recording(example_recording("reversal_y"))
+    return rec, build_table(rec, 50.0)

@@ -31,18 +31,6 @@ from mtbudget.plugins import PluginHost
 from mtbudget.recording import read_recording
 
 
-@pytest.fixture(scope="module")
-def null():
-    rec = read_recording(example_recording("null"))
-    return rec, build_table(rec, 50.0)
-
-
-@pytest.fixture(scope="module")
-def reversal():
-    rec = read_recording(example_recording("reversal_y"))
-    return rec, build_table(rec, 50.0)
-
-
 # ----------------------------------------------------------------------------- the hook
 class Plain(Exporter):
     name = "plain"

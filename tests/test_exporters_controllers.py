@@ -22,18 +22,6 @@ from mtbudget.recording import read_recording
 AXES = "xyz"
 
 
-@pytest.fixture(scope="module")
-def null():
-    rec = read_recording(example_recording("null"))
-    return rec, build_table(rec, 50.0)
-
-
-@pytest.fixture(scope="module")
-def reversal():
-    rec = read_recording(example_recording("reversal_y"))
-    return rec, build_table(rec, 50.0)
-
-
 # ----------------------------------------------------------------------------- the model, evaluated here
 def model_lines(table):
     """(axis, direction) -> deviation (um) of the identified model on each table's line, relative to the first
