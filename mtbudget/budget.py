@@ -155,6 +155,8 @@ def point_lpu(scenario) -> dict:
     meas = sc.truth.predict(sc.theta[None, :], sc.pose)
     res = identify(sc.id_model, meas, sc.noise)
     F_true = sc.evaluate(sc.truth, sc.theta[None, :])[0]
+    if sc.null_bias is not None:
+        F_true = F_true - sc.null_bias
     F_id, J = sc.evaluate(sc.id_model, res.theta, jacobian=True)
     F_id, J = F_id[0], J[0]  # (M0, 3), (M0, 3, p): at the mesh points and the measurand's tool
     M0 = len(sc.mesh_rows)
@@ -163,11 +165,9 @@ def point_lpu(scenario) -> dict:
     y0 = (P @ (F_true - F_id).reshape(-1)).reshape(M0, 3) * um
     Jf = P @ J.reshape(3 * M0, -1)
     cov = Jf @ res.cov_theta[0] @ Jf.T * um**2
-    prior = sc.unidentified_prior()
-    if prior is not None:  # at a tool the verification did not use: the unidentifiable errors' prior, as the MCM draws it
-        N, L = prior
-        _, Jt = sc.evaluate(sc.id_model, np.zeros((1, N.shape[0])), jacobian=True)
-        G = P @ Jt[0].reshape(3 * M0, -1) @ N @ L
+    m = sc.context.measurand
+    if m is not None:  # at a tool the verification did not use: the unidentifiable errors' prior, as the MCM draws it
+        G = P @ m["unidentified_field"][:, sc.mesh_rows].reshape(m["unidentified_field"].shape[0], -1).T
         cov = cov + G @ G.T * um**2
     blocks = np.stack([cov[3 * i:3 * i + 3, 3 * i:3 * i + 3] for i in range(M0)])
     return {"estimate": y0, "cov": blocks}

@@ -36,7 +36,7 @@ def main():
 
     \b
     Start with:
-      mtbudget study all --out paper-study   the paper's studies on the built-in default (a few minutes)
+      mtbudget study all --out paper-study   the paper's studies on the built-in default (about 10 s)
       mtbudget run --trials 1000             Monte Carlo uncertainty and budget of the built-in verification
       mtbudget report mtbudget-run.mcap      a Markdown and HTML report of that run
       mtbudget simulate --out sim            one simulated verification written as a recording
@@ -170,7 +170,9 @@ def identify(recording, example, as_json, max_degree, strategy):
               help="Exporter: neutral-csv, neutral-json, linuxcnc, beckhoff-lsec, siemens-840d, heidenhain-tnc, or one a "
                    "plugin registers (`mtbudget plugins` lists them; docs/compensation.md gives each convention).")
 @click.option("--out", "out", required=True, type=click.Path(dir_okay=False, path_type=Path),
-              help="File to write; a per-axis format writes FILE_x, FILE_y, FILE_z with the same suffix.")
+              help="File to write (its folder is created); a format of several files writes FILE_x, FILE_y, FILE_z "
+                   "(LinuxCNC, Beckhoff), FILE_eec and FILE_cec (Siemens) or one .COM per axis and a .CMA (Heidenhain), "
+                   "with the same suffix.")
 @click.option("--step", default="50 mm", show_default=True, help="Grid step of the tables along every axis.")
 @click.option("--check", is_flag=True,
               help="Read the written tables back and apply them to the simulated machine of the recording's truth.json.")
@@ -501,6 +503,10 @@ def report(runlog, out, tolerance, characteristic):
     res = do_replay(runlog)
     note(f"writing the report and its figures into {out}/ ...")
     paths = run_report(res, out, tol, characteristic)
+    if tol is not None:  # the decision on the console too, not only below the report's tables
+        from .budget import conformance
+
+        click.echo("decision (ISO 14253-1): " + conformance(res, tol, characteristic)["statement"])
     click.echo(f"wrote {paths['markdown']} and {paths['html']}" + ("" if res.complete else " (INCOMPLETE run)"))
 
 

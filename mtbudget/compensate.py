@@ -636,8 +636,10 @@ def export(table: CompensationTable, exporter, path) -> list:
                     f"--step {table.step:g} mm gives {len(t.positions)} entries on axis {a.upper()}; format "
                     f"{exporter.name!r} accepts at most {exporter.max_entries} per axis: use a larger --step")
     path = Path(path)
-    if path.parent and not path.parent.exists():
-        raise CompensationError(f"--out: folder {str(path.parent)!r} does not exist")
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)  # as report, diagnose --report and simulate do
+    except OSError as exc:
+        raise CompensationError(f"--out: cannot create folder {str(path.parent)!r} ({exc.strerror})") from None
     written = call(exporter, "write", table, path)
     return [Path(p) for p in (written or [])]
 

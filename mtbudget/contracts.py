@@ -57,8 +57,9 @@ TARGETS = {
     "spherical_noise.range": ("mm", ("M",)),
     "spherical_noise.angles": ("rad", ("M", 2)),
     "strategy": ("", ()),  # index into Source.options(context), optimisation-strategy sources
-    # the machine in use (machine frame): added to the measurand only, never to the verification's measurements
-    "in_use_offset": ("mm", ("M", 3)),
+    # added to the compensated machine's error only, never to the verification's measurements (machine frame): the
+    # machine in use, what the verification cannot identify at another tool
+    "measurand_offset": ("mm", ("M", 3)),
 }
 
 
@@ -80,6 +81,9 @@ class Context:
     theta: np.ndarray
     reference_temperature: float
     config: object = None
+    #: at a [measurand] tool the verification did not use: {"unidentified_field": (k, M, 3) mm}, the field at the mesh
+    #: rows of each unit draw of the error combinations it cannot identify (their prior); None otherwise
+    measurand: dict | None = None
 
     @property
     def n_points(self) -> int:

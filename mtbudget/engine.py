@@ -22,11 +22,6 @@ from .simulate import sample_source, simulate_block
 from .units import factor, shown_unit
 
 
-#: the random stream of the unidentified errors' prior (a measurand at another tool): per (seed, block), so any
-#: block grouping gives the same draws
-UNIDENTIFIED_STREAM = 0x756E6964
-
-
 class Engine:
     """Monte Carlo of a verification: build once from a scenario, run blocks."""
 
@@ -114,18 +109,10 @@ class Engine:
         results = []
         for i, b in enumerate(blocks):
             sl = slice(i * n, (i + 1) * n)
-            prior = sc.unidentified_prior()
-            if prior is not None:  # at a tool the verification did not use: what it cannot identify, from the prior
-                N, L = prior
-                z = np.random.default_rng(np.random.SeedSequence([self.seed, b, UNIDENTIFIED_STREAM])).standard_normal(
-                    (n, L.shape[0]))
-                # the chain is linear in the parameters to first order: the id model's field at the drawn directions
-                # adds to the truth's (the directions are in its convention, not all in the truth's)
-                F_true = (sc.evaluate(sc.truth, theta_true[i]) + sc.evaluate(sc.id_model, (z @ L.T) @ N.T)
-                          - sc.evaluate(sc.id_model, np.zeros((1, N.shape[0]))))
-            else:
-                F_true = sc.evaluate(sc.truth, theta_true[i])
-            if sims[i].in_use is not None:  # the machine in use: its own errors at the mesh points, measurand only
+            F_true = sc.evaluate(sc.truth, theta_true[i])
+            if sc.null_bias is not None:  # the truth's own unidentifiable part at this tool: its prior is drawn instead
+                F_true = F_true - sc.null_bias
+            if sims[i].in_use is not None:  # measurand_offset: the machine in use, the unidentified part at the tool
                 F_true = F_true + sims[i].in_use[:, rows]
             # the compensated field, rigid motions removed: one product per block, the same for any grouping
             D = (F_true - F_id[sl]).reshape(n, -1) @ sc.rigid_free.T

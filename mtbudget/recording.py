@@ -281,6 +281,20 @@ def _uncertainty(table: dict, key: str, path) -> float:
     return value
 
 
+def _no_misspelt_keys(table: dict, known, prefix: str, path):
+    """Keys mtbudget does not read are kept (``Recording.extra``), but one that resembles a key it reads is
+    a typo that would silently change the result (``reference_temprature``): an error naming both."""
+    import difflib
+
+    for k in table:
+        if k in known or not isinstance(k, str):
+            continue
+        close = difflib.get_close_matches(k, list(known), n=1, cutoff=0.8)
+        if close:
+            raise RecordingError(f"unknown key {k!r:.40}; did you mean {close[0]!r}? (keys that resemble none mtbudget "
+                                 "reads are kept and ignored)", path, key=prefix + k)
+
+
 def _sensors(meta, path) -> list:
     raw = meta.get("sensors", [])
     if not isinstance(raw, list) or not all(isinstance(s, dict) for s in raw):
@@ -388,6 +402,9 @@ def read_recording(folder, *, max_rows: int = MAX_ROWS, max_columns: int = MAX_C
     version = FORMATS.index(fmt) + 1
     tr = _table(meta, "tracker", toml_path)
     mt = _table(meta, "machine_tool", toml_path)
+    _no_misspelt_keys(meta, KNOWN_KEYS, "", toml_path)
+    _no_misspelt_keys(tr, ("angular", "distance", "distance_per_length"), "tracker.", toml_path)
+    _no_misspelt_keys(mt, ("repeatability",), "machine_tool.", toml_path)
     angular = _uncertainty(tr, "tracker.angular", toml_path)
     distance = _uncertainty(tr, "tracker.distance", toml_path)
     dpl = _uncertainty(tr, "tracker.distance_per_length", toml_path)

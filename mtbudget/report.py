@@ -69,11 +69,14 @@ def measurand_text(res) -> str:
             "verification: true minus identified error field, rigid-body part removed (docs/measurand.md)")
     un = m.get("unidentified") or []
     if un:
-        names = "; ".join(" + ".join(f"{c['weight']:+.2f} {c['iso']}" for c in u["combination"]) for u in un)
+        by: dict = {}
+        for u in un:
+            by.setdefault(u.get("identified_by", "a second tool length or a lateral tool offset"), []).append(
+                " + ".join(f"{c['weight']:+.2f} {c['iso']}" for c in u["combination"]))
+        names = "; ".join(f"{', '.join(v)}, which {k} would identify" for k, v in by.items())
         text += (f". WARNING: {len(un)} combination(s) of geometric errors that this verification cannot identify act "
-                 f"at this tool ({names}); their part is covered only by the prior of the generation functions, not "
-                 "by the measurement. A second tool length or a lateral tool offset in the verification would identify "
-                 "them")
+                 f"at this tool: {names}. Their part is covered only by the prior of the generation functions "
+                 "(source unidentified_at_tool), not by the measurement")
     return text
 
 
@@ -130,7 +133,9 @@ def point_lines(res: RunResult) -> list:
     if "clause8" in sm:
         c = sm["clause8"]
         lines.append(f"  GUF vs MCM per point and axis (JCGM 101 clause 8, 2 significant digits): {c['passed']} of {c['of']} "
-                     f"validated; {c['note']}; with few trials the MCM intervals themselves are not stable to that tolerance")
+                     f"validated; {c['note']}; with few trials the MCM intervals themselves are not stable to that "
+                     f"tolerance: for a statement to sign, run `mtbudget run --trials 0` (adaptive, JCGM 101 7.9) and "
+                     f"quote u and the intervals once they are validated")
     lines.append("  every point and axis: mtbudget run --json (\"points\"), or the report's table")
     return lines
 

@@ -327,8 +327,8 @@ def _execute(config, settings, *, source, target, force, histogram_every) -> Run
             # a resume written to another path: what is there belongs to another run and is never overwritten
             _refuse_existing(target, force)
     else:
+        cfg = config if isinstance(config, SimulationConfig) else load_config(config)  # a bad config is said first
         _refuse_existing(target, force)
-        cfg = config if isinstance(config, SimulationConfig) else load_config(config)
         config_text = cfg.path.read_text() if cfg.path else json.dumps(cfg.source)
     settings.validate()
     scenario = build_scenario(cfg, sources=settings.sources)

@@ -57,6 +57,7 @@ class Scenario:
     mesh_points: np.ndarray  # (M0, 3) nominal tool points of those rows, machine frame (mm)
     rigid_free: np.ndarray  # (3 M0, 3 M0) projector that removes what the tracker pose absorbs
     measurand_tool: np.ndarray | None = None  # (3,) mm: [measurand] tool, when not the verification's first tool
+    null_bias: np.ndarray | None = None  # (M0, 3) mm: the truth's own unidentifiable part there (replaced by its prior)
     _id_models: dict = field(default_factory=dict, repr=False)
     _eval_models: dict = field(default_factory=dict, repr=False)
 
@@ -142,8 +143,14 @@ class Scenario:
             d = (self.rigid_free @ (J @ (v / scale))).reshape(-1, 3) * factor("mm", "um")
             big = float(np.abs(d).max())
             if big > threshold_um:
-                out.append({"combination": [{"parameter": n, "iso": iso_parameter(n), "weight": w} for n, w in combo],
-                            "largest_effect": {"value": big, "unit": "um per um or urad of the combination"}})
+                iso = [iso_parameter(n) for n, _ in combo]
+                about = {x[1] for x in iso if x[0] == "E" and x[1] in "ABC" and not x[2:3].isdigit()}
+                axis = "xyz"["ABC".index(next(iter(about)))] if len(about) == 1 else None
+                out.append({"combination": [{"parameter": n, "iso": i, "weight": w} for (n, w), i in zip(combo, iso)],
+                            "largest_effect": {"value": big, "unit": "um per um or urad of the combination"},
+                            "identified_by": (f"a tool offset across the {axis} direction (rotations about {axis} do "
+                                              f"not move a tool on the {axis} axis)" if axis else
+                                              "a second tool length or a lateral tool offset")})
         return out
 
     @property
@@ -353,8 +360,42 @@ def build_scenario(config: SimulationConfig, host: PluginHost | None = None, sou
         tool = np.asarray(config.measurand_tool, float)
         at_tool = MeasurementModel(truth.config, truth.errors, _tool_plan(plan.nominal[mesh_rows], tool))
         mesh_points = at_tool.machine_points(np.zeros(truth.n_params))[0]
-    return Scenario(config, plan, truth, theta, pose, noise, drawn, srcs, context, mesh_rows, mesh_points,
-                    _rigid_projector(mesh_points), tool)
+    sc = Scenario(config, plan, truth, theta, pose, noise, drawn, srcs, context, mesh_rows, mesh_points,
+                  _rigid_projector(mesh_points), tool)
+    if tool is not None:
+        _unidentified_source(sc, host)
+    return sc
+
+
+def _unidentified_source(sc: Scenario, host: PluginHost):
+    """At a tool the verification did not use: the field of each unit draw of what it cannot identify (prior of the
+    generation functions) goes to the sources' context, the source ``unidentified_at_tool`` draws it (its own
+    budget row), and the truth's own unidentifiable part at that tool is taken out (``null_bias``) so it is not
+    counted twice, once as a bias and once as an uncertainty."""
+    from .identify import scale_vector
+
+    prior = sc.unidentified_prior()
+    if prior is None:
+        return
+    N, L = prior  # (p_id, k) unscaled, (k, k)
+    model = sc.id_model
+    zero = sc.evaluate(model, np.zeros((1, model.n_params)))[0]
+    per_unit = sc.evaluate(model, (N @ L).T) - zero[None]  # (k, M0, 3): first order in the parameters
+    field = np.zeros((L.shape[0], len(sc.plan), 3))
+    field[:, sc.mesh_rows] = per_unit
+    sc.context.measurand = {"unidentified_field": _read_only(field)}
+    scale = scale_vector(model)
+    names = sc.truth.errors.names
+    theta_id = np.array([sc.theta[names.index(n)] if n in names else 0.0 for n in model.errors.names])
+    Nz = N * scale[:, None]  # orthonormal, scaled parameters
+    c = Nz.T @ (theta_id * scale)
+    sc.null_bias = sc.evaluate(model, (N @ c)[None])[0] - zero
+    settings = sc.config.source.get("sources", {}) if isinstance(sc.config.source, dict) else {}
+    if "unidentified_at_tool" not in settings.get("disable", []) and all(s.name != "unidentified_at_tool"
+                                                                          for s in sc.sources):
+        available = {s.name: s for s in host.sources()}
+        if "unidentified_at_tool" in available:
+            sc.sources = list(sc.sources) + [available["unidentified_at_tool"]]
 
 
 def _tool_plan(commanded: np.ndarray, tool: np.ndarray) -> Plan:

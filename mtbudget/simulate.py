@@ -105,19 +105,20 @@ def simulate_block(scenario: Scenario, block: int, n: int, seed: int, active: li
                 choices.append((src, v.astype(int)))
             else:
                 targets[k] = targets[k] + v if k in targets else v
-    in_use = targets.pop("in_use_offset", None)
+    offset = targets.pop("measurand_offset", None)
     pert = from_targets(targets)
     truth = scenario.truth
     theta_true = scenario.theta[None, :] + pert.pop("geometry", 0.0)
     theta_true = np.broadcast_to(theta_true, (n, truth.n_params))
     out = SimulatedBlock((truth.predict(theta_true, scenario.pose, pert), theta_true, choices))
-    out.in_use = None if in_use is None else np.broadcast_to(in_use, (n, len(scenario.plan), 3))
+    out.in_use = None if offset is None else np.broadcast_to(offset, (n, len(scenario.plan), 3))
     return out
 
 
 class SimulatedBlock(tuple):
-    """(measured tracker points, true parameters, strategy choices) of one block; ``in_use``: (n, M, 3) mm, the
-    machine-in-use offsets that sources add to the measurand only (None without such a source)."""
+    """(measured tracker points, true parameters, strategy choices) of one block; ``in_use``: (n, M, 3) mm, what
+    sources add to the measurand only (``measurand_offset``: the machine in use, what the verification cannot
+    identify at another tool); None without such a source."""
 
     in_use = None
 

@@ -216,8 +216,12 @@ class GeometricErrorUncertainty(Source):
         return rng.standard_normal(size)
 
     def sample(self, n, rng, ctx):
-        p = len(ctx.theta)
-        z = self._draw(rng, (n, p))
+        # the machine's own parameters only, in their order: a richer truth (model_form's next-degree terms) draws
+        # the same numbers for them, and its extra terms are model_form's to draw
+        base = np.array([p.order <= ctx.config.max_degree for p in ctx.model.errors.params]) if ctx.config is not None \
+            else np.ones(len(ctx.theta), bool)
+        z = np.zeros((n, len(ctx.theta)))
+        z[:, base] = self._draw(rng, (n, int(base.sum())))
         mm, rad = ctx.parameter_mask("mm"), ctx.parameter_mask("rad")
         return {"geometry.translational": Q_(z * mm * self.value("translational", "mm"), _MM),
                 "geometry.angular": Q_(z * rad * self.value("angular", "rad"), _RAD)}
@@ -304,6 +308,27 @@ EFFECTS = (ThermalExpansionEffect, ReversalEffect, AxisCouplingEffect)
 
 
 
+class UnidentifiedAtTool(Source):
+    """At a tool the verification did not use ([measurand] tool): the combinations of geometric errors it cannot
+    identify that act there, drawn from the prior of the generation functions (their covariance on the null
+    directions of the identification).  Switched on by [measurand] tool (docs/measurand.md, "At another tool");
+    the truth's own part along those directions is taken out, so it is counted once."""
+
+    name = "unidentified_at_tool"
+    group = Group.MACHINE_TOOL
+    distribution = "normal: the generation functions' prior on what the verification cannot identify"
+    targets = ("measurand_offset",)
+    parameters = {}
+    opt_in = True
+
+    def sample(self, n, rng, ctx):
+        field = (ctx.measurand or {}).get("unidentified_field")
+        if field is None:  # at the verification's own tool nothing it cannot identify shows
+            return {"measurand_offset": Q_(np.zeros((n, ctx.n_points, 3)), "mm")}
+        z = rng.standard_normal((n, field.shape[0]))
+        return {"measurand_offset": Q_(np.tensordot(z, field, axes=1), "mm")}
+
+
 class InUse(Source):
     """The compensated machine *in use*, not only as the verification saw it (issue 14): at every point, per axis,
     its repeatability, its reversal from an unknown approach direction, and the residual of its thermal
@@ -319,7 +344,7 @@ class InUse(Source):
     name = "in_use"
     group = Group.MACHINE_TOOL
     distribution = "normal + rectangular reversal + CTE error x rectangular temperature"
-    targets = ("in_use_offset",)
+    targets = ("measurand_offset",)
     parameters = {"R": Q_(1.5, "um"), "B_max": Q_(3.0, "um"), "u_cte": Q_(0.577, "um/(m*K)"),
                   "temperature_range": Q_(2.0, "K")}
     links = {"R": "machine_tool.repeatability"}
@@ -339,7 +364,7 @@ class InUse(Source):
         dT = rng.uniform(-1.0, 1.0, (n, 1, 1)) * self.parameters["temperature_range"].to("K").magnitude
         pos = np.asarray(ctx.plan.nominal, float)[None]  # (1, M, 3) mm, about the axis zero
         off = rng.standard_normal((n, M, 3)) * R - side * B / 2.0 + dcte * dT * pos
-        return {"in_use_offset": Q_(off, "mm")}
+        return {"measurand_offset": Q_(off, "mm")}
 
 SOURCES = (TemperatureSensorCalibration, CTEUncertainty, EnvironmentalVariation, TemperatureDrift, Backlash,
            Repeatability, ControlError, GeometricErrorUncertainty) + EFFECTS
@@ -445,7 +470,7 @@ class AxisPolynomialEffect(Source):
         return {"point_offset": Q_(np.tile(disp, (n, 1, 1)), _MM)}
 
 
-SOURCES = SOURCES + (SpindleGrowthEffect, ColumnTiltEffect, ToolLengthErrorEffect, AxisPolynomialEffect, InUse)
+SOURCES = SOURCES + (SpindleGrowthEffect, ColumnTiltEffect, ToolLengthErrorEffect, AxisPolynomialEffect, InUse, UnidentifiedAtTool)
 
 
 @hookimpl

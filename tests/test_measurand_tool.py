@@ -108,18 +108,40 @@ def test_the_unidentified_part_is_drawn_from_the_prior_and_the_guf_agrees(tmp_pa
     from mtbudget.engine import Engine
 
     sc = build_scenario(config(tmp_path, tool=(300.0, 0.0, -150.0), coefficients=False), sources=[])
-    assert sc.unidentified_prior() is not None
+    assert sc.unidentified_prior() is not None and sc.null_bias is not None
     eng = Engine(sc, block=256, seed=11)
     comp = np.concatenate([eng.run_block(b).components for b in range(4)])  # (1024, M0, 3) um
     u_mc = comp.std(axis=0)
     # the GUF's prior part: its covariance with the prior less the one without (the stated noise, which this MCM
     # does not draw: no source)
+    assert [s.name for s in sc.sources] == ["unidentified_at_tool"]  # switched on by [measurand] tool, its own row
     with_prior = point_lpu(sc)["cov"]
-    sc.unidentified_prior = lambda: None
+    measurand, sc.context.measurand = sc.context.measurand, None
     u_guf = np.sqrt(np.einsum("mii->mi", with_prior - point_lpu(sc)["cov"]))
+    sc.context.measurand = measurand
     big = u_guf > 0.2 * u_guf.max()
     assert big.sum() >= 10
     ratio = u_mc[big] / u_guf[big]
     assert abs(np.median(ratio) - 1) < 0.05 and np.all(np.abs(ratio - 1) < 0.15)  # 1024 draws: sd of u ~2.2 %
     # at the verification's own tool the prior is not drawn: nothing there depends on it
     assert build_scenario(config(tmp_path, coefficients=False, name="v.toml"), sources=[]).unidentified_prior() is None
+
+
+def test_the_budget_at_another_tool_gives_the_unidentified_part_its_own_row(tmp_path):
+    """The prior is a source of its own: the other sources' one-at-a-time contributions stay what they are at
+    the verification's tool (their rows do not carry it), and the truth's own unidentifiable part is not also
+    left as a bias."""
+    from mtbudget.runner import run
+
+    def rows(tool, name):
+        res = run(config(tmp_path, tool=tool, coefficients=False, name=name), trials=64, attribution_trials=64)
+        return {r["source"]: np.asarray(r["u_rms_over_mesh"]) for r in res.budget["points"]["rows"]}, res
+
+    at_tool, res = rows((300.0, 0.0, -150.0), "lateral.toml")
+    own, _ = rows(None, "own.toml")
+    assert "unidentified_at_tool" in at_tool and "unidentified_at_tool" not in own
+    assert at_tool["unidentified_at_tool"].max() > 1.0  # um
+    assert at_tool["cte_uncertainty"].max() < 0.2 and own["cte_uncertainty"].max() < 0.2
+    mean = np.array([p["mean"]["value"] for p in res.points()])
+    u = np.array([p["u"]["value"] for p in res.points()])
+    assert np.abs(mean).max() < 2.0 * u.max()

@@ -196,3 +196,23 @@ def test_the_cte_deviation_expands_about_the_stated_fixed_point(tmp_path):
     assert (f.candidate.effect, f.candidate.axis) == ("thermal_expansion", "x")
     assert abs(f.estimate[0] - 4.0) < 2 * f.uncertainty[0]
     assert d.unexplained is None and d.final["chi2_per_dof"] < 1.1
+
+
+@pytest.mark.parametrize("line, key, close", [('reference_temprature = "23 degC"', "reference_temprature",
+                                               "reference_temperature"),
+                                              ('scale = 3', "scale", "scales")])
+def test_a_misspelt_top_level_key_is_an_error_not_silently_ignored(tmp_path, line, key, close):
+    folder = with_scales(tmp_path, "")
+    toml = (folder / "recording.toml").read_text()
+    (folder / "recording.toml").write_text(line + "\n" + toml)
+    with pytest.raises(RecordingError) as e:
+        read_recording(folder)
+    assert f"unknown key {key!r}; did you mean {close!r}" in str(e.value) and "recording.toml" in str(e.value)
+
+
+def test_a_misspelt_tracker_key_names_the_typo(tmp_path):
+    folder = with_scales(tmp_path, "")
+    toml = (folder / "recording.toml").read_text().replace("angular =", "angualr =")
+    (folder / "recording.toml").write_text(toml)
+    with pytest.raises(RecordingError, match="tracker.angualr: unknown key 'angualr'; did you mean 'angular'"):
+        read_recording(folder)
