@@ -392,8 +392,8 @@ def replay(runlog, verify, as_json):
                    "candidate stations per test")
         for k, d in body["directions"].items():
             e = d["max_error_um"]
-            click.echo(f"  {k} direction: maximum u_p over the mesh at the best station, mean {e['mean']:.1f} um, "
-                       f"std {e['std']:.1f} um, 5-95 % [{e['p05']:.1f}, {e['p95']:.1f}] um")
+            click.echo(f"  {k} direction: maximum u_p over the mesh at the best station, mean {e['mean']:.1f} µm, "
+                       f"std {e['std']:.1f} µm, 5-95 % [{e['p05']:.1f}, {e['p95']:.1f}] µm")
         click.echo(f"  {red['better']} is better by {red['reduction']:.0%}")
         return
     if verify:
@@ -537,7 +537,7 @@ def _placement(config, tests, out, quiet):
     md = placement_report(res, summary, out)
     red = res["reduction"]
     click.echo(f"placement: {res['settings']['tests']} tests per direction in {res['seconds']:.0f} s; mean maximum error "
-               f"{red['mean_better_um']:.1f} um ({red['better']} direction) vs {red['mean_worse_um']:.1f} um "
+               f"{red['mean_better_um']:.1f} µm ({red['better']} direction) vs {red['mean_worse_um']:.1f} µm "
                f"({red['worse']}): {red['reduction']:.0%} lower (paper: about 30 %)")
     click.echo(f"  report: {md} and {md.with_suffix('.html')}, log: {out / 'placement.mcap'}")
 
@@ -566,11 +566,11 @@ def _verification(config, trials, out, quiet, attribution_trials):
     click.echo(budget_text(res))
     ec = summ["eq27_compensated_um"]
     click.echo(f"\nfinal mean volumetric error (Eq. 27), read as the compensated machine's error per verification: "
-               f"mean {ec['mean']:.2f} um, sigma {ec['sigma']:.2f} um, mean + 2 sigma {ec['mean_plus_2sigma']:.2f} um; "
-               f"largest point error below {ec['max_p95']:.1f} um in 95 % of the verifications (paper: 13.77, 5.02, "
-               f"23.81 um, about 50 um)")
-    click.echo(f"  read as the fit residual: mean {fm['mean']:.2f} um, sigma {fm['sigma']:.2f} um, 95 % below "
-               f"{fm['p95']:.2f} um, largest residual {summ['max_residual_um']['max']:.1f} um "
+               f"mean {ec['mean']:.2f} µm, sigma {ec['sigma']:.2f} µm, mean + 2 sigma {ec['mean_plus_2sigma']:.2f} µm; "
+               f"largest point error below {ec['max_p95']:.1f} µm in 95 % of the verifications (paper: 13.77, 5.02, "
+               f"23.81 µm, about 50 µm)")
+    click.echo(f"  read as the fit residual: mean {fm['mean']:.2f} µm, sigma {fm['sigma']:.2f} µm, 95 % below "
+               f"{fm['p95']:.2f} µm, largest residual {summ['max_residual_um']['max']:.1f} µm "
                f"(every reading: the side-by-side tables of `study all`, docs/paper-reproduction.md)")
     click.echo(f"  report: {out / 'report' / 'report.html'}; figures: {', '.join(p.name for p in figs.values())}")
 

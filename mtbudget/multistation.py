@@ -452,13 +452,13 @@ def summary_text(rec: Recording, res: MultiIdentification) -> list[str]:
         vals, us = res.station_values(st.id)
         chi2, m = res.station_chi2[st.id]
         if st.kind == "xyz":
-            pos = ", ".join(f"{v:.4f} ± {u * 1e3:.2f} um" for v, u in zip(vals[:3], us[:3]))
-            ang = ", ".join(f"{v:.6f} rad ± {u * 1e6:.2f} urad" for v, u in zip(vals[3:], us[3:]))
-            out.append(f"    station {st.id} (xyz)   D, L, H = {pos} (mm); a, b, d = {ang};  chi2 {chi2:.1f} over {m}")
+            pos = ", ".join(f"{v:.4f} mm (u {u * 1e3:.2f} µm)" for v, u in zip(vals[:3], us[:3]))
+            ang = ", ".join(f"{v:.6f} rad (u {u * 1e6:.2f} µrad)" for v, u in zip(vals[3:], us[3:]))
+            out.append(f"    station {st.id} (xyz)   D, L, H = {pos}; a, b, d = {ang};  chi2 {chi2:.1f} over {m}")
         else:
-            pos = ", ".join(f"{v:.4f} ± {u * 1e3:.2f} um" for v, u in zip(vals[:3], us[:3]))
-            out.append(f"    station {st.id} (range) S = {pos} (mm); dead path {vals[3]:.4f} mm ± {us[3] * 1e3:.2f} "
-                       f"um;  chi2 {chi2:.1f} over {m}")
+            pos = ", ".join(f"{v:.4f} mm (u {u * 1e3:.2f} µm)" for v, u in zip(vals[:3], us[:3]))
+            out.append(f"    station {st.id} (range) S = {pos}; dead path {vals[3]:.4f} mm (u {us[3] * 1e3:.2f} µm);"
+                       f"  chi2 {chi2:.1f} over {m}")
     out.append("  datum (the six rigid freedoms of the whole):")
     for g in res.gauge:
         out.append(f"    {g['freedom']}: fixed by {g['fixed_by']}")

@@ -49,7 +49,7 @@ def placement_figures(res: dict, folder: Path) -> dict:
     fig, ax = plt.subplots(figsize=(8, 4.5))
     for name, d in res["directions"].items():
         err = d["max_error_um"]
-        ax.hist(err, bins=80, density=True, alpha=0.5, label=f"{name} direction (mean {err.mean():.1f} um)")
+        ax.hist(err, bins=80, density=True, alpha=0.5, label=f"{name} direction (mean {err.mean():.1f} µm)")
         best = res["fits"][name][0]
         xs = np.linspace(err.min(), err.max(), 300)
         ax.plot(xs, getattr(stats, best["distribution"])(*best["parameters"]).pdf(xs), lw=1.5,
@@ -72,14 +72,14 @@ def placement_report(res: dict, j: dict, folder: Path) -> Path:
     lines = ["# Tracker placement study (paper Figs. 9-11)", "",
              f"{j['settings']['tests']} Monte Carlo tests per direction, {j['settings']['candidates']} candidate stations per "
              f"test; u_theta, u_phi ~ N({j['settings']['angular_mean_urad']:g}, {j['settings']['angular_sd_urad']:g}) urad, "
-             f"u_d = {j['settings']['distance_um']:g} um + {j['settings']['distance_per_length_um_per_m']:g} um/m.", "",
+             f"u_d = {j['settings']['distance_um']:g} µm + {j['settings']['distance_per_length_um_per_m']:g} µm/m.", "",
              "| direction | tests | mean max error [um] | std | 5 % | 95 % | best fit |", "| --- | --- | --- | --- | --- | --- | --- |"]
     for k, d in j["directions"].items():
         e = d["max_error_um"]
         lines.append(f"| {k} | {d['tests']} | {e['mean']:.1f} | {e['std']:.1f} | {e['p05']:.1f} | {e['p95']:.1f} | "
                      f"{j['fits'][k][0]['distribution']} (KS {j['fits'][k][0]['ks_distance']:.3f}) |")
     lines += ["", f"The {red['better']} direction reduces the mean maximum error by {red['reduction']:.0%} against the "
-              f"{red['worse']} direction ({red['mean_better_um']:.1f} vs {red['mean_worse_um']:.1f} um); the paper reports "
+              f"{red['worse']} direction ({red['mean_better_um']:.1f} vs {red['mean_worse_um']:.1f} µm); the paper reports "
               "about 30 %.", ""]
     lines += [f"![{STUDY_CAPTIONS.get(k, k)}]({p.name})" for k, p in figs.items()]
     (folder / "placement.md").write_text("\n".join(lines) + "\n")
@@ -132,7 +132,7 @@ def verification_figures(res, init: np.ndarray, final: np.ndarray, mesh_pts: np.
     ax.hist(y, bins=50, density=True, color="#7aa6c2", label="MCM")
     mu, sd = y.mean(), y.std(ddof=1)
     xs = np.linspace(y.min(), y.max(), 200)
-    ax.plot(xs, stats.norm.pdf(xs, mu, sd), "r", label=f"normal fit: mean {mu:.2f} um, sigma {sd:.2f} um")
+    ax.plot(xs, stats.norm.pdf(xs, mu, sd), "r", label=f"normal fit: mean {mu:.2f} µm, sigma {sd:.2f} µm")
     ax.set_xlabel("final mean volumetric error, Eq. 27 [um]")
     ax.legend(fontsize=8)
     fig.tight_layout()
@@ -164,7 +164,7 @@ def readings_lines(r: dict) -> list:
          "simulated values over the tests (a standard deviation, k = 1), not an uncertainty statement.", ""]
     p = r["placement"]
     L += [f"### Figs. 9-11, tracker placement: maximum u_p (Eq. 24, k = 1) over the mesh at the best station of "
-          f"each test, um; {p['tests']} tests per direction per row",
+          f"each test, µm; {p['tests']} tests per direction per row",
           "", "| reading: directions, Eq. 23 theta | Y mean | Y sigma | Y max | X mean | X sigma | X max | "
           "reduction X vs Y | Y max - X max | matches (of 4) |", "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |",
           "| paper | 60-80 | | | 40-60 | | | about 30 % | about 30 | |"]
@@ -175,7 +175,7 @@ def readings_lines(r: dict) -> list:
                  f"{_pct(row['reduction'])} | {row['max_difference']:.1f} | {row['matches']} |")
     L += ["", "The maxima grow with the number of tests (the paper ran 100 000 per direction).", ""]
     q = r["eq23"]
-    L += [f"### Eq. 23-24 at the paper's station: u_p (k = 1) over the {q['points']} mesh points, um",
+    L += [f"### Eq. 23-24 at the paper's station: u_p (k = 1) over the {q['points']} mesh points, µm",
           "", "| theta of Eq. 23 | min | mean | sigma over the points | max | matches (of 1) |",
           "| --- | --- | --- | --- | --- | --- |", "| paper | | | | about 50 (its Fig. 10 station, like the final maximum) | |"]
     for name, row in q["readings"].items():
@@ -185,7 +185,7 @@ def readings_lines(r: dict) -> list:
     L += ["", f"Eq. 23 keeps the variances only: the exact covariance at this station has a largest |correlation| "
           f"between Cartesian components of {c['min']:.2f}-{c['max']:.2f} per point (tracker frame).", ""]
     i = r["initial"]
-    L += [f"### Fig. 13, initial errors (pose-only fit), {i['trials']} verifications, um",
+    L += [f"### Fig. 13, initial errors (pose-only fit), {i['trials']} verifications, µm",
           "", "| | geometry: mean over the points of mean error vector length | its max | noise: mean 3-D RMS scatter per point | "
           "median ratio geometry/noise | points where geometry > noise | matches (of 1) |",
           "| --- | --- | --- | --- | --- | --- | --- |", "| paper | | | | | all (geometric errors greater than the noise) | |",
@@ -203,8 +203,8 @@ def readings_lines(r: dict) -> list:
         L += ["", "A final row matches once for each column below the initial row, and once if the distance and y "
               "are its two smallest. initial and compensated: machine frame; residual: tracker frame.", ""]
     e27 = r["eq27"]
-    L += [f"### Figs. 14-15, Eq. 27 after compensation: {e27['trials']} verifications, um (initial Eq. 27: "
-          f"{e27['initial_mean_um']:.1f} um)", "",
+    L += [f"### Figs. 14-15, Eq. 27 after compensation: {e27['trials']} verifications, µm (initial Eq. 27: "
+          f"{e27['initial_mean_um']:.1f} µm)", "",
           "| reading | mean | sigma | mean + 2 sigma | max, 95 % of tests below | max of all | final / initial | "
           "matches (of 5) |", "| --- | --- | --- | --- | --- | --- | --- | --- |",
           "| paper | 13.77 | 5.02 | 23.81 | about 50 (a few tests) | | greatly minimized (< 0.5) | |"]
@@ -217,7 +217,7 @@ def readings_lines(r: dict) -> list:
     s = r.get("sensitivity")
     if s:
         L += [f"### Sensitivity: one change at a time from the configured readings ({s['tests']} placement tests per "
-              f"direction, {s['trials']} verifications per row), um",
+              f"direction, {s['trials']} verifications per row), µm",
               "", "| change | Fig. 11 Y mean | X mean | reduction | Eq. 27 mean | sigma | max, 95 % of tests below |",
               "| --- | --- | --- | --- | --- | --- | --- |",
               "| paper | 60-80 | 40-60 | about 30 % | 13.77 | 5.02 | about 50 |"]
