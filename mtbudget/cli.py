@@ -179,7 +179,10 @@ def identify(recording, example, as_json, max_degree, strategy):
 @click.option("--max-degree", type=click.IntRange(min=1, max=9), default=3, show_default=True,
               help="Legendre degree of each error function.")
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object (the table, ISO 230-2 figures, the check).")
-def compensate(recording, example, fmt, out, step, check, max_degree, as_json):
+@click.option("--report", "report_dir", type=click.Path(file_okay=False, path_type=Path), default=None,
+              help="Also write compensation.md and a self-contained compensation.html into this folder: the tables, "
+                   "ISO 230-2 figures, the fit residual against U (k = 2) with its figure, and the check.")
+def compensate(recording, example, fmt, out, step, check, max_degree, as_json, report_dir):
     """Identify a recording and write its compensation tables for a controller.
 
     RECORDING is a folder with recording.toml and points.csv. The geometric
@@ -195,6 +198,7 @@ def compensate(recording, example, fmt, out, step, check, max_degree, as_json):
     """
     from .compensate import (build_table, check_export, check_json, export, find_exporter, parse_step,
                              table_text)
+    from .progress import note
     from .config import example_recording
     from .recording import read_recording
 
@@ -206,6 +210,11 @@ def compensate(recording, example, fmt, out, step, check, max_degree, as_json):
     table = build_table(rec, step_mm, max_degree=max_degree)
     written = export(table, exporter, out)
     result = check_export(table, rec, exporter, written) if check else None
+    if report_dir is not None:
+        from .report import compensation_report
+
+        paths = compensation_report(table, report_dir, check_json(result) if result is not None else None)
+        note(f"report: {paths['markdown']} and {paths['html']}", not as_json)
     if as_json:
         body = {**table.to_dict(), "written": [str(p) for p in written], "format_name": exporter.name}
         if result is not None:

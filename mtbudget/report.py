@@ -351,11 +351,15 @@ CAPTIONS = {
 
 
 def md_escape(text: str) -> str:
-    """A user string (a recording or configuration name) safe inside Markdown: no markup, no HTML."""
+    """A user string (a recording or configuration name) safe inside Markdown, mid-line: no markup, no HTML.
+
+    Escaped: HTML's ``&`` and ``<``, and what makes markup mid-line (emphasis, code, links and images through
+    ``[``, table cells, mathtext ``$``); parentheses, ``#``, ``+`` and quotes stay as they are, readable in
+    the plain Markdown (they only act at a line start or after ``]``, which is escaped)."""
     import html
 
-    out = html.escape(str(text), quote=True)
-    for ch in "\\`*_[]{}()#+!|$":
+    out = html.escape(str(text), quote=False)
+    for ch in "\\`*_[]|$":
         out = out.replace(ch, "\\" + ch)
     return out
 
@@ -425,7 +429,7 @@ def compensation_lines(table: dict) -> list:
     axes = res.get("axes") or {}
     if not axes:
         return []
-    md = ["", "## Compensated machine: residual against its uncertainty", "",
+    md = ["", "## Fit residual at the recording's points against its uncertainty", "",
           f"Recording {md_escape(table.get('recording', '-'))}: {md_escape(res['what'])}. Values in µm.", "",
           "| axis | points | RMS residual | max \\|residual\\| | median U (k = 2) | max \\|residual\\|/U | within U | expected |",
           "| --- | --- | --- | --- | --- | --- | --- | --- |"]

@@ -347,3 +347,12 @@ def test_check_on_a_recording_whose_truth_has_a_drift_array(tmp_path):
     ex = find_exporter("neutral-csv")
     check = check_export(table, rec, ex, export(table, ex, tmp_path / f"t{ex.suffix}"))
     assert check["ignored"] == ["drift"]
+
+
+def test_compensate_writes_its_report_with_the_residual_against_U_and_the_check(tmp_path):
+    res = CliRunner().invoke(main, ["compensate", "--example", "null", "--format", "linuxcnc", "--out",
+                                    str(tmp_path / "t" / "t.comp"), "--check", "--report", str(tmp_path / "rep")])
+    assert res.exit_code == 0, res.output
+    md = (tmp_path / "rep" / "compensation.md").read_text()
+    assert "Fit residual at the recording's points" in md and "U (k = 2)" in md and "Round trip" in md
+    assert (tmp_path / "rep" / "compensation.html").is_file() and (tmp_path / "rep" / "residual_vs_U.png").is_file()

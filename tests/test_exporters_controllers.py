@@ -281,7 +281,7 @@ def test_compensation_report_writes_markdown_html_and_figure(tmp_path, null):
     _, table = null
     out = compensation_report(table, tmp_path)
     md = out["markdown"].read_text()
-    assert "residual against its uncertainty" in md and "U (k = 2)" in md
+    assert "against its uncertainty" in md and "U (k = 2)" in md
     for a in "XYZ":
         assert re.search(rf"^\| {a} \| 300 \|", md, flags=re.M)
     assert out["figure"].is_file() and "data:image/png;base64" in out["html"].read_text()
