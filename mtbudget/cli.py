@@ -627,13 +627,17 @@ def _readings(config, out, quiet, trials):
     from .progress import note
     from .report_study import readings_report, readings_text
     from .scenario import build_scenario
-    from .study import paper_readings
+    from .study import paper_readings, readings_verdict
 
     note("every reading of the paper's figures side by side ...", not quiet)
     r = paper_readings(build_scenario(load_config(config)), trials=trials)  # the run's own verifications
     md = readings_report(r, out)
+    verdict = readings_verdict(r)
+    with open(md, "a", encoding="utf-8") as fh:
+        fh.write("\n" + verdict + "\n")
     click.echo("\n" + readings_text(r))
     click.echo(f"  tables: {md} and {md.with_suffix('.json')}")
+    click.echo("\n" + verdict)
 
 
 if __name__ == "__main__":  # pragma: no cover

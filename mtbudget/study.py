@@ -459,6 +459,40 @@ def matches(value: float, key: str) -> bool:
     return abs(value - ref) <= MATCH_TOLERANCE * abs(ref)
 
 
+def readings_verdict(r: dict) -> str:
+    """One line: how many of the paper's numbers the default readings reproduce (within MATCH_TOLERANCE), naming
+    each that is not reproduced with its value beside the paper's (``r`` from :func:`paper_readings`)."""
+    ch = r["chosen"]
+    pl = r["placement"]["rows"][f"{ch['directions']}, {ch['eq23']}"]
+    e27 = r["eq27"]["rows"][f"{ch['eq27']}, per test"]
+    checks = [("Fig. 9 Y mean max error", pl["Y_mean"], "fig11_Y_um", "um"),
+              ("Fig. 10 X mean max error", pl["X_mean"], "fig11_X_um", "um"),
+              ("Fig. 11 reduction", pl["reduction"], "reduction", "%"),
+              ("Figs. 9-10 difference of the maxima", pl["max_difference"], "max_difference_um", "um"),
+              ("Eq. 24 largest u_p at the station", r["eq23"]["readings"][ch["eq23"]]["max"], "station_up_max_um", "um"),
+              ("Fig. 13 share of geometry-dominated points", r["initial"]["share_geometry_dominated"],
+               "geometry_dominated", "%"),
+              ("Eq. 27 mean", e27["mean"], "eq27_mean_um", "um"), ("Eq. 27 sigma", e27["sigma"], "eq27_sigma_um", "um"),
+              ("Eq. 27 mean + 2 sigma", e27["bound"], "eq27_bound_um", "um"),
+              ("Eq. 27 largest error in 95 % of tests", e27["max_p95"], "eq27_max_um", "um"),
+              ("Eq. 27 final / initial", e27["reduction"], "eq27_reduction", "%")]
+
+    def show(v, unit):
+        return f"{100 * v:.0f} %" if unit == "%" else f"{v:.3g} µm"
+
+    def paper(key, unit):
+        ref = PAPER[key][0]
+        if isinstance(ref, tuple):
+            return " to ".join(show(x, unit) for x in ref).replace(" µm to", " to").replace(" % to", " to")
+        return show(ref, unit)
+
+    missed = [f"{name} {show(v, unit)} (paper {paper(key, unit)})" for name, v, key, unit in checks
+              if not matches(v, key)]
+    text = (f"Verdict: the default readings reproduce {len(checks) - len(missed)} of {len(checks)} of the paper's numbers "
+            f"within {100 * MATCH_TOLERANCE:g} %")
+    return text + ("; not reproduced: " + "; ".join(missed) + "." if missed else ".")
+
+
 def station_points(scenario: Scenario) -> np.ndarray:
     """(M, 3) the mesh points at the verification's tool, in the frame of the configured tracker (mm)."""
     return lt.to_tracker(scenario.mesh_points[None], scenario.pose)[0]

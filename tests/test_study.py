@@ -236,3 +236,21 @@ def test_normality_table_against_scipy_and_a_planted_answer():
     assert all(row[c] < t["rows"]["initial (Fig. 12)"][c] for c in "xyz")
     assert row["distance"] > max(row["x"], row["y"], row["z"])
     assert t["samples"] == N * M
+
+
+def test_the_verdict_counts_and_names_what_the_paper_numbers_do_not_match():
+    """A made-up set of readings, checked by hand against the paper's literal numbers and the 15 % rule."""
+    from mtbudget.study import readings_verdict
+
+    r = {"chosen": {"directions": "machine", "eq23": "polar", "eq27": "compensated"},
+         "placement": {"rows": {"machine, polar": {"Y_mean": 70.0, "X_mean": 50.0, "reduction": 0.29,
+                                                   "max_difference": 10.0}}},  # 60-80, 40-60, ~30 %: ok; ~30 um: no
+         "eq23": {"readings": {"polar": {"max": 48.0}}},  # ~50 um: ok
+         "initial": {"share_geometry_dominated": 0.5},  # 90-100 %: no (0.5 < 0.9 x 0.85)
+         "eq27": {"rows": {"compensated, per test": {"mean": 13.0, "sigma": 2.0, "bound": 23.0, "max_p95": 48.0,
+                                                      "reduction": 0.2}}}}  # 13.77 ok, 5.02 no, 23.81 ok, ~50 ok, <0.5 ok
+    v = readings_verdict(r)
+    assert "reproduce 8 of 11" in v
+    assert "Figs. 9-10 difference of the maxima 10 µm (paper 30 µm)" in v and "Eq. 27 sigma 2 µm (paper 5.02 µm)" in v
+    assert "Fig. 13 share of geometry-dominated points 50 % (paper 90 to 100 %)" in v
+    assert "Eq. 27 mean" not in v.split("not reproduced")[1]
