@@ -261,7 +261,7 @@ def parse_config(data: dict, path=None) -> SimulationConfig:
     if fmt != CONFIG_FORMAT:
         raise ConfigError(f"{r.where('format')}: expected \"{CONFIG_FORMAT}\", got {fmt!r}")
     r.check_keys(SCHEMA[""], "a configuration")
-    for table in ("mesh", "plan", "tracker", "machine_tool", "geometric_errors", "effects", "weights"):
+    for table in [t for t in SCHEMA if t not in ("", "sensors")]:  # every table the schema lists, checked here
         if r.has(table):
             r.sub(table).check_keys(SCHEMA[table], f"[{table}]")
     sens = data.get("sensors", [])

@@ -145,3 +145,10 @@ def test_the_budget_at_another_tool_gives_the_unidentified_part_its_own_row(tmp_
     mean = np.array([p["mean"]["value"] for p in res.points()])
     u = np.array([p["u"]["value"] for p in res.points()])
     assert np.abs(mean).max() < 2.0 * u.max()
+
+
+def test_a_misspelt_measurand_key_is_an_error(tmp_path):
+    p = tmp_path / "c.toml"
+    p.write_text(SMALL.read_text() + '\n[measurand]\ntol = ["0 mm", "0 mm", "-300 mm"]\n')
+    with pytest.raises(ConfigError, match="unknown key; did you mean 'tool'"):
+        load_config(p)
