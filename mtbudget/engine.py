@@ -112,8 +112,8 @@ class Engine:
             F_true = sc.evaluate(sc.truth, theta_true[i])
             if sc.null_bias is not None:  # the truth's own unidentifiable part at this tool: its prior is drawn instead
                 F_true = F_true - sc.null_bias
-            if sims[i].in_use is not None:  # measurand_offset: the machine in use, the unidentified part at the tool
-                F_true = F_true + sims[i].in_use[:, rows]
+            if sims[i].measurand_offset is not None:  # the machine in use, the unidentified part at the tool
+                F_true = F_true + sims[i].measurand_offset[:, rows]
             # the compensated field, rigid motions removed: one product per block, the same for any grouping
             D = (F_true - F_id[sl]).reshape(n, -1) @ sc.rigid_free.T
             comp = D.reshape(n, -1, 3) * um

@@ -59,7 +59,7 @@ class Scenario:
     measurand_tool: np.ndarray | None = None  # (3,) mm: [measurand] tool, when not the verification's first tool
     null_bias: np.ndarray | None = None  # (M0, 3) mm: the truth's own unidentifiable part there (replaced by its prior)
     _id_models: dict = field(default_factory=dict, repr=False)
-    _eval_models: dict = field(default_factory=dict, repr=False)
+    _cache: dict = field(default_factory=dict, repr=False)  # models at the measurand's tool, identifiability, prior
 
     @property
     def max_degree(self) -> int:
@@ -90,11 +90,19 @@ class Scenario:
         if self.measurand_tool is None:
             out = model.machine_points(theta, jacobian=jacobian)
             return (out[0][:, self.mesh_rows], out[1][:, self.mesh_rows]) if jacobian else out[:, self.mesh_rows]
-        key = id(model)
-        if key not in self._eval_models:
-            self._eval_models[key] = (model, MeasurementModel(model.config, model.errors,
-                                                              _tool_plan(self.commanded, self.measurand_tool)))
-        return self._eval_models[key][1].machine_points(theta, jacobian=jacobian)
+        key = ("at tool", id(model))
+        if key not in self._cache:  # the model is kept beside its copy so that its id is not reused
+            self._cache[key] = (model, MeasurementModel(model.config, model.errors,
+                                                        _tool_plan(self.commanded, self.measurand_tool)))
+        return self._cache[key][1].machine_points(theta, jacobian=jacobian)
+
+    def identifiability(self):
+        """What the verification can identify (:func:`mtbudget.identify.analyse` of ``id_model``), computed once."""
+        if "identifiability" not in self._cache:
+            from .identify import analyse
+
+            self._cache["identifiability"] = analyse(self.id_model)
+        return self._cache["identifiability"]
 
     def unidentified_prior(self):
         """At a tool the verification did not use: (N, L), the directions of the identification model's parameters
@@ -103,20 +111,20 @@ class Scenario:
         true field, drawn afresh in every trial.  None at the verification's tool or without a prior."""
         if self.measurand_tool is None or "coefficients" in self.config.geometric:
             return None
-        if "_prior" not in self._eval_models:
-            from .identify import analyse, scale_vector
+        if "prior" not in self._cache:
+            from .identify import scale_vector
 
             model = self.id_model
-            Nz = analyse(model).null_space  # (p_id, k), scaled parameters (um, urad)
+            Nz = self.identifiability().null_space  # (p_id, k), scaled parameters (um, urad)
             if Nz.size == 0:
-                self._eval_models["_prior"] = None
+                self._cache["prior"] = None
                 return None
             scale = scale_vector(model)
             sd = np.array([prior_std(self.config, p) for p in model.errors.params]) * scale
             C = Nz.T @ (sd[:, None] ** 2 * Nz)
             L = np.linalg.cholesky(C + 1e-12 * np.trace(C) * np.eye(len(C)))
-            self._eval_models["_prior"] = (Nz / scale[:, None], L)
-        return self._eval_models["_prior"]
+            self._cache["prior"] = (Nz / scale[:, None], L)
+        return self._cache["prior"]
 
     def unidentified_at_tool(self, threshold_um: float = 0.01) -> list:
         """The combinations of geometric errors this verification cannot identify that still move the compensated
@@ -124,19 +132,19 @@ class Scenario:
         over the mesh per unit of the combination (1 um or 1 urad of each unit-weight direction).  The Monte Carlo
         covers them through the truth's prior (the generation functions); nothing in the verification corrects
         them.  Empty at the verification's own tool, where they do not show by definition."""
-        from .identify import analyse, scale_vector
+        from .identify import scale_vector
         from .model import iso_parameter
         from .units import factor
 
         model = self.id_model
-        ident = analyse(model)
+        ident = self.identifiability()
         if ident.null_space.size == 0:
             return []
         _, J = self.evaluate(model, np.zeros((1, model.n_params)), jacobian=True)
         J = J[0].reshape(-1, model.n_params)
         scale = scale_vector(model)
         out = []
-        for combo, k in zip(ident.combinations(), range(ident.null_space.shape[1])):
+        for combo in ident.combinations():
             v = np.zeros(model.n_params)
             for n, w in combo:
                 v[model.errors.names.index(n)] = w

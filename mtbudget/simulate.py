@@ -111,16 +111,16 @@ def simulate_block(scenario: Scenario, block: int, n: int, seed: int, active: li
     theta_true = scenario.theta[None, :] + pert.pop("geometry", 0.0)
     theta_true = np.broadcast_to(theta_true, (n, truth.n_params))
     out = SimulatedBlock((truth.predict(theta_true, scenario.pose, pert), theta_true, choices))
-    out.in_use = None if offset is None else np.broadcast_to(offset, (n, len(scenario.plan), 3))
+    out.measurand_offset = None if offset is None else np.broadcast_to(offset, (n, len(scenario.plan), 3))
     return out
 
 
 class SimulatedBlock(tuple):
-    """(measured tracker points, true parameters, strategy choices) of one block; ``in_use``: (n, M, 3) mm, what
-    sources add to the measurand only (``measurand_offset``: the machine in use, what the verification cannot
-    identify at another tool); None without such a source."""
+    """(measured tracker points, true parameters, strategy choices) of one block; ``measurand_offset``: (n, M, 3) mm,
+    what sources add to the measurand only (the machine in use, what the verification cannot identify at another
+    tool); None without such a source."""
 
-    in_use = None
+    measurand_offset = None
 
 
 def simulate_recording(scenario: Scenario, seed: int | None = None, trial: int = 0, block: int = 64):

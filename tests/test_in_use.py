@@ -38,4 +38,4 @@ def test_the_verifications_measurements_do_not_see_the_machine_in_use(tmp_path):
     with_it = Engine(scenario(tmp_path, ["tracker_noise", "in_use"]), block=16, seed=4).simulate(0)
     without = Engine(scenario(tmp_path, ["tracker_noise"]), block=16, seed=4).simulate(0)
     np.testing.assert_array_equal(with_it[0], without[0])
-    assert with_it.in_use is not None and without.in_use is None
+    assert with_it.measurand_offset is not None and without.measurand_offset is None
