@@ -932,6 +932,16 @@ def _present_effect(v) -> bool:
     return bool(np.any(np.asarray(v, dtype=float) != 0))
 
 
+def _check_line(config, terr, axis: str, t: AxisTable, grid: np.ndarray, component: int):
+    """Where --check looks along ``axis``'s reference line: the grid points and midway between them, their tool
+    points and tools, and the error-free machine's ``component`` there (mm)."""
+    pts = np.sort(np.concatenate([grid, 0.5 * (grid[1:] + grid[:-1])]))
+    lp = line_points(axis, pts, t.reference)
+    tool = np.broadcast_to(t.tool, lp.shape).copy()
+    nominal = chain(config, terr, np.zeros((1, len(terr.params))), ChainInputs(lp, tool))[0, :, component]
+    return pts, lp, tool, nominal
+
+
 def check_export(table: CompensationTable, rec, exporter, written: list) -> dict:
     """Apply the exported tables (read back independently) to the simulated machine of ``truth.json``.
 
@@ -966,11 +976,8 @@ def check_export(table: CompensationTable, rec, exporter, written: list) -> dict
             continue
         t = table.axes[a]
         g = c.positions
-        pts = np.sort(np.concatenate([g, 0.5 * (g[1:] + g[:-1])]))
-        lp = line_points(a, pts, t.reference)
-        tool = np.broadcast_to(t.tool, lp.shape).copy()
         kb = AXIS_INDEX[b]
-        nominal = chain(config, terr, np.zeros((1, len(terr.params))), ChainInputs(lp, tool))[0, :, kb]
+        pts, lp, tool, nominal = _check_line(config, terr, a, t, g, kb)
         rows = []
         for comp in (np.zeros(len(pts)), interpolate(pos_tab, trim, pts)):
             P = chain(config, terr, theta_t[None], ChainInputs(lp, tool, offset={b: comp[None, :]}))
@@ -994,11 +1001,8 @@ def check_export(table: CompensationTable, rec, exporter, written: list) -> dict
             raise CompensationError(f"--check: the files written by {exporter.name!r} hold no table for axis {a.upper()}")
         pos_tab, trim_f, trim_r = tables[a]
         g = t.positions
-        pts = np.sort(np.concatenate([g, 0.5 * (g[1:] + g[:-1])]))
-        lp = line_points(a, pts, t.reference)
-        tool = np.broadcast_to(t.tool, lp.shape).copy()
         k = AXIS_INDEX[a]
-        nominal = chain(config, terr, np.zeros((1, len(terr.params))), ChainInputs(lp, tool))[0, :, k]
+        pts, lp, tool, nominal = _check_line(config, terr, a, t, g, k)
         B_true = float(reversal.get(a, 0.0))
         before, after = np.zeros((2, len(pts))), np.zeros((2, len(pts)))
         for row, d, trim in ((0, 1.0, trim_f), (1, -1.0, trim_r)):
