@@ -16,7 +16,7 @@ import numpy as np
 from . import tracker as lt
 from .errors import ConfigError
 from .machine import AXES, AXIS_INDEX, ChainInputs, Configuration, ErrorModel, chain, parse_error_name
-from .plan import Plan
+from .plan import Plan, Scale
 
 # ----------------------------------------------------------------------------- ISO 230-1 names (the one map)
 #: internal rotation letter -> ISO 230-1 rotation letter (A, B, C about X, Y, Z)
@@ -135,10 +135,11 @@ class MeasurementModel:
         return C + (np.asarray(repeatability) ** 2)[..., None, None] * np.eye(3)
 
 
-def thermal_scale(plan: Plan, cte: dict, reference: float) -> dict:
-    """``axis_scale`` perturbations of a thermal expansion ``{axis: CTE (1/K)}``."""
-    return {f"axis_scale.{a}": (c * (plan.axis_temperature(a, reference) - reference))[None, :]
-            for a, c in cte.items() if c}
+def thermal_scale(plan: Plan, cte: dict, reference: float, fixed_point: dict | None = None) -> dict:
+    """``axis_scale`` (and ``axis_offset``) perturbations of a thermal expansion ``{axis: CTE (1/K)}`` about each
+    axis' ``fixed_point`` (mm, default the axis zero): :meth:`Plan.expansion`, one trial."""
+    scales = {a: Scale(c, (fixed_point or {}).get(a, 0.0)) for a, c in cte.items() if c}
+    return {k: v[None, :] for k, v in plan.expansion(scales, reference).items()}
 
 
 def reversal_offset(plan: Plan, reversal: dict) -> dict:

@@ -89,16 +89,19 @@ class Plan:
         )
 
     def nominal_expansion(self, reference: float = T20) -> dict:
-        """The known expansion of the stated scales as fixed model inputs (``identify(..., fixed=...)``).
+        """The known expansion of the stated scales as fixed model inputs (``identify(..., fixed=...)``): applied in
+        the identification, the geometric errors it returns are those of the machine at the reference temperature.
+        Empty when no scale is stated (no correction).  See :meth:`expansion`."""
+        return self.expansion(self.scales, reference)
 
-        For each axis with a :class:`Scale`: ``axis_scale.<a>`` = cte (T_a - T_ref) and
-        ``axis_offset.<a>`` = -fixed_point s / (1 + s), so that the chain's effective position
-        ``(p + offset) (1 + scale)`` is ``fixed_point + (p - fixed_point) (1 + s)``.  Applied in the
-        identification, the geometric errors it returns are those of the machine at the reference
-        temperature.  Empty when no scale is stated (no correction).
+    def expansion(self, scales: dict, reference: float = T20) -> dict:
+        """Model inputs of scales ``{axis: Scale}`` expanding with their axis temperature: (M,) arrays.
+
+        ``axis_scale.<a>`` = cte (T_a - T_ref) and ``axis_offset.<a>`` = -fixed_point s / (1 + s), so that the
+        chain's effective position ``(p + offset) (1 + scale)`` is ``fixed_point + (p - fixed_point) (1 + s)``.
         """
         out = {}
-        for axis, sc in sorted(self.scales.items()):
+        for axis, sc in sorted(scales.items()):
             s = sc.cte * (self.axis_temperature(axis, reference) - reference)
             out[f"axis_scale.{axis}"] = s
             if sc.fixed_point:

@@ -79,11 +79,8 @@ class ThermalExpansion(Candidate):
         return (p * T)[:, None, None] * _e(self.axis)[None, :, None]
 
     def perturbation(self, ctx, beta):
-        out = thermal_scale(ctx.plan, {self.axis: float(beta[0])}, ctx.recording.reference_temperature)
-        x0 = getattr(self, "fixed_point", 0.0)
-        if x0 and f"axis_scale.{self.axis}" in out:  # about the scale's fixed point: x0 + (p - x0)(1 + s)
-            out[f"axis_offset.{self.axis}"] = -x0 * out[f"axis_scale.{self.axis}"]
-        return out
+        return thermal_scale(ctx.plan, {self.axis: float(beta[0])}, ctx.recording.reference_temperature,
+                             {self.axis: getattr(self, "fixed_point", 0.0)})  # about the scale's fixed point
 
 
 class Reversal(Candidate):
