@@ -320,7 +320,10 @@ def test_format2_round_trip(written):
     for a, b in zip(back.stations, rec.stations):
         assert (a.id, a.kind) == (b.id, b.kind) and (a.angular is None) == (b.angular is None)
         for key in ("angular", "distance", "distance_per_length"):
-            assert getattr(a, key) == pytest.approx(getattr(b, key), rel=1e-9)
+            if getattr(b, key) is None:  # not stated for this station (pytest >= 9.2 refuses approx(None))
+                assert getattr(a, key) is None, key
+            else:
+                assert getattr(a, key) == pytest.approx(getattr(b, key), rel=1e-9)
     assert np.array_equal(back.station, rec.station)
     assert np.array_equal(np.isnan(back.lt), np.isnan(rec.lt)) and np.array_equal(np.isnan(back.lt_range), np.isnan(rec.lt_range))
     assert np.nanmax(np.abs(back.lt - rec.lt)) <= 0.5e-6 + 1e-9
