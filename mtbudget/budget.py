@@ -152,19 +152,28 @@ def point_lpu(scenario) -> dict:
     from .units import factor
 
     sc = scenario
-    meas = sc.truth.predict(sc.theta[None, :], sc.pose)
-    res = identify(sc.id_model, meas, sc.noise)
+    if sc.stations:  # [[stations]]: the noise-free measurements of every station, identified over all of them
+        from .multistation import identify_stations
+        from .simulate import measure_stations
+
+        xyz, ranges = measure_stations(sc, sc.truth.machine_points(sc.theta[None, :]), {})
+        ms = identify_stations(sc.id_model, sc.stations, sc.row_station, xyz[0], ranges[0], sc.noise.repeatability)
+        p = sc.id_model.n_params
+        theta, cov_theta = ms.x[None, :p], ms.cov[:p, :p]
+    else:
+        res = identify(sc.id_model, sc.truth.predict(sc.theta[None, :], sc.pose), sc.noise)
+        theta, cov_theta = res.theta, res.cov_theta[0]
     F_true = sc.evaluate(sc.truth, sc.theta[None, :])[0]
     if sc.null_bias is not None:
         F_true = F_true - sc.null_bias
-    F_id, J = sc.evaluate(sc.id_model, res.theta, jacobian=True)
+    F_id, J = sc.evaluate(sc.id_model, theta, jacobian=True)
     F_id, J = F_id[0], J[0]  # (M0, 3), (M0, 3, p): at the mesh points and the measurand's tool
     M0 = len(sc.mesh_rows)
     P = sc.rigid_free
     um = factor("mm", "um")
     y0 = (P @ (F_true - F_id).reshape(-1)).reshape(M0, 3) * um
     Jf = P @ J.reshape(3 * M0, -1)
-    cov = Jf @ res.cov_theta[0] @ Jf.T * um**2
+    cov = Jf @ cov_theta @ Jf.T * um**2
     m = sc.context.measurand
     if m is not None:  # at a tool the verification did not use: the unidentifiable errors' prior, as the MCM draws it
         G = P @ m["unidentified_field"][:, sc.mesh_rows].reshape(m["unidentified_field"].shape[0], -1).T

@@ -46,6 +46,15 @@ def default_config_path() -> Path:
     return Path(str(resources.files("mtbudget") / "data" / DEFAULT_CONFIG))
 
 
+def bundled_config(name: str) -> Path:
+    """Path of a bundled configuration: paper_xfyz (the default), four_stations (the paper's machine from four
+    stations)."""
+    p = Path(str(resources.files("mtbudget") / "data" / f"{name}.toml"))
+    if not p.is_file():
+        raise ConfigError(f"no bundled configuration {name!r}")
+    return p
+
+
 def example_recording(name: str) -> Path:
     """Path of a bundled example recording (null, thermal_x, reversal_y, tracker_drift, four_stations)."""
     p = Path(str(resources.files("mtbudget") / "data" / "recordings" / name))
@@ -112,7 +121,8 @@ class Reader:
 #: [placement] is checked by the placement study and [sources] by the scenario.
 SCHEMA = {
     "": ("format", "name", "description", "machine", "reference_temperature", "seed", "mesh", "plan", "tracker",
-         "machine_tool", "geometric_errors", "sensors", "effects", "placement", "sources", "weights", "measurand"),
+         "machine_tool", "geometric_errors", "sensors", "effects", "placement", "sources", "weights", "measurand",
+         "stations"),
     "mesh": ("x", "y", "z", "step", "step_x", "step_y", "step_z"),
     "plan": ("runs", "tools", "feed", "stop_time", "tool_change_time"),
     "tracker": ("D", "L", "H", "a", "b", "d", "angular", "distance", "distance_per_length"),
@@ -123,7 +133,12 @@ SCHEMA = {
     "effects": ("thermal", "reversal", "drift"),
     "weights": ("angular", "distance", "distance_per_length", "repeatability"),
     "measurand": ("tool",),
+    "stations": ("kind", "D", "L", "H", "a", "b", "d", "position", "dead_path", "description"),
 }
+#: the tables that are arrays of tables ([[sensors]], [[stations]]): checked entry by entry
+ARRAY_TABLES = ("sensors", "stations")
+#: at most this many stations in one verification (each adds 6 or 4 unknowns and a pass over the plan)
+MAX_STATIONS = 12
 
 
 def to_unit(text, unit: str, where: str = "value", *, absolute_temperature: bool = False) -> float:
@@ -195,6 +210,7 @@ class SimulationConfig:
     effects: dict = field(default_factory=dict)  # thermal {axis: 1/K}, reversal {axis: mm}, drift (3,) mm/s
     weights: dict | None = None  # [weights]: identification weights stated apart from the physical inputs
     measurand_tool: list | None = None  # [measurand] tool: where the compensated machine is evaluated (mm)
+    stations: list = field(default_factory=list)  # [StationSpec]: [[stations]]; empty: one tracker at [tracker]'s pose
     source: dict = field(default_factory=dict)  # the raw TOML (for logging)
     path: Path | None = None
 
@@ -213,7 +229,9 @@ class SimulationConfig:
     def plan(self, rng: np.random.Generator | None = None) -> Plan:
         """Build the plan (mesh, passes, timing) and its sensor readings."""
         pts = mesh(self.mesh_ranges, self.mesh_step)
-        plan = build_plan(pts, self.tools, self.runs, self.feed, self.stop_time, self.tool_change_time)
+        # several stations measure the plan one after the other: station k's runs are k*runs+1 .. (k+1)*runs
+        runs = self.runs * max(1, len(self.stations))
+        plan = build_plan(pts, self.tools, runs, self.feed, self.stop_time, self.tool_change_time)
         rng = rng or np.random.default_rng(self.seed)
         plan.sensors = [s.sensor for s in self.sensors]
         if not plan.time[-1] <= MAX_TIME:
@@ -228,6 +246,78 @@ class SimulationConfig:
                                   f"({bad - 273.15:.6g} degC), not a plausible absolute temperature ({lo:g} K to "
                                   f"{hi:g} K); check start, rate, noise and cycle_amplitude")
         return plan
+
+
+#: the pose keys of [tracker] and of an xyz station: D, L, H (mm) and the Euler angles a, b, d (rad)
+POSE_KEYS = ("D", "L", "H", "a", "b", "d")
+
+
+@dataclass
+class StationSpec:
+    """One station of a simulated verification ([[stations]]): a laser tracker (``xyz``) at its pose, or a tracking
+    interferometer (``range``) at its position with a dead path.  Every station measures the whole plan, one after
+    the other; all of them have the [tracker] uncertainties (a range station only the distance ones)."""
+
+    kind: str  # "xyz" or "range"
+    pose: np.ndarray | None  # (6,) D, L, H (mm), a, b, d (rad) of an xyz station
+    position: np.ndarray | None  # (3,) mm, machine frame, of a range station
+    dead_path: float = 0.0  # mm, a range station's offset (identified with its position)
+    description: str = ""
+
+    @property
+    def tracker_pose(self) -> np.ndarray:
+        """A pose that puts the station at its place: its own (xyz), or its position with no rotation (range: the
+        frame in which the norm of a point is its range)."""
+        return self.pose if self.kind == "xyz" else np.concatenate([self.position, np.zeros(3)])
+
+
+def _pose(tr: "Reader") -> np.ndarray:
+    pose = np.array([tr.quantity(k, "mm") for k in "DLH"] + [tr.quantity(k, "rad") for k in "abd"])
+    if np.any(np.abs(pose[:3]) > MAX_LENGTH):
+        raise ConfigError(f"{tr.where('DLH'[int(np.argmax(np.abs(pose[:3])))])}: beyond {MAX_LENGTH:g} mm")
+    return pose
+
+
+def _stations(raw: list, path) -> list:
+    """The [[stations]] tables (keys already checked against the schema)."""
+    if len(raw) > MAX_STATIONS:
+        raise ConfigError(f"{path}: stations: {len(raw)} [[stations]]; at most {MAX_STATIONS}")
+    out = []
+    for i, s in enumerate(raw):
+        sr = Reader(s, path, f"stations[{i}].")
+        kind = s.get("kind")
+        if kind not in ("xyz", "range"):
+            raise ConfigError(f"{sr.where('kind')}: expected \"xyz\" (a laser tracker: range and two angles) or "
+                              f"\"range\" (a tracking interferometer: range only), got {kind!r:.60}")
+        desc = s.get("description", "")
+        if not isinstance(desc, str):
+            raise ConfigError(f"{sr.where('description')}: expected a string")
+        if kind == "xyz":
+            extra = [k for k in ("position", "dead_path") if k in s]
+            if extra:
+                raise ConfigError(f"{sr.where(extra[0])}: an xyz station states its pose (D, L, H, a, b, d), not "
+                                  f"{extra[0]}")
+            out.append(StationSpec("xyz", _pose(sr), None, 0.0, desc))
+            continue
+        extra = [k for k in POSE_KEYS if k in s]
+        if extra:
+            raise ConfigError(f"{sr.where(extra[0])}: a range station states its position [x, y, z] and dead_path, not "
+                              "a pose (it measures no angle)")
+        v = s.get("position")
+        if not (isinstance(v, list) and len(v) == 3):
+            raise ConfigError(f"{sr.where('position')}: expected [x, y, z], the station's position in the machine frame, "
+                              "e.g. [\"1500 mm\", \"-800 mm\", \"900 mm\"]")
+        pos = np.array([to_unit(x, "mm", f"{sr.where('position')}[{j}]") for j, x in enumerate(v)])
+        if np.any(np.abs(pos) > MAX_LENGTH):
+            raise ConfigError(f"{sr.where('position')}: beyond {MAX_LENGTH:g} mm")
+        dead = sr.quantity("dead_path", "mm", "0 mm")
+        if abs(dead) > MAX_LENGTH:
+            raise ConfigError(f"{sr.where('dead_path')}: beyond {MAX_LENGTH:g} mm")
+        out.append(StationSpec("range", None, pos, dead, desc))
+    if out and all(st.kind == "range" for st in out) and len(out) < 3:
+        raise ConfigError(f"{path}: stations: {len(out)} range station(s) cannot locate a point in space; state at "
+                          "least three range stations (four to calibrate their positions too), or an xyz station")
+    return out
 
 
 def load_config(path=None) -> SimulationConfig:
@@ -261,14 +351,15 @@ def parse_config(data: dict, path=None) -> SimulationConfig:
     if fmt != CONFIG_FORMAT:
         raise ConfigError(f"{r.where('format')}: expected \"{CONFIG_FORMAT}\", got {fmt!r}")
     r.check_keys(SCHEMA[""], "a configuration")
-    for table in [t for t in SCHEMA if t not in ("", "sensors")]:  # every table the schema lists, checked here
+    for table in [t for t in SCHEMA if t and t not in ARRAY_TABLES]:  # every table the schema lists, checked here
         if r.has(table):
             r.sub(table).check_keys(SCHEMA[table], f"[{table}]")
-    sens = data.get("sensors", [])
-    if not isinstance(sens, list) or not all(isinstance(x, dict) for x in sens):
-        raise ConfigError(f"{r.where('sensors')}: expected [[sensors]] tables")
-    for i, x in enumerate(sens):
-        Reader(x, path, f"sensors[{i}].").check_keys(SCHEMA["sensors"], "[[sensors]]")
+    for table in ARRAY_TABLES:
+        entries = data.get(table, [])
+        if not isinstance(entries, list) or not all(isinstance(x, dict) for x in entries):
+            raise ConfigError(f"{r.where(table)}: expected [[{table}]] tables")
+        for i, x in enumerate(entries):
+            Reader(x, path, f"{table}[{i}].").check_keys(SCHEMA[table], f"[[{table}]]")
     for name in ("name", "description", "machine"):
         if r.has(name) and not isinstance(r.raw(name), str):
             raise ConfigError(f"{r.where(name)}: expected a string, got {r.raw(name)!r}")
@@ -330,9 +421,18 @@ def parse_config(data: dict, path=None) -> SimulationConfig:
         if (low is None and not plan_times[key] > 0) or (low is not None and plan_times[key] < low):
             raise ConfigError(f"{pl.where(key)}: must be {'positive' if low is None else 'zero or positive'}")
     tr = r.sub("tracker", required=True)
-    pose = np.array([tr.quantity(k, "mm") for k in "DLH"] + [tr.quantity(k, "rad") for k in "abd"])
-    if np.any(np.abs(pose[:3]) > MAX_LENGTH):
-        raise ConfigError(f"{tr.where('DLH'[int(np.argmax(np.abs(pose[:3])))])}: beyond {MAX_LENGTH:g} mm")
+    stations = _stations(data.get("stations", []), path)
+    if stations:
+        stated = [k for k in POSE_KEYS if tr.has(k)]
+        if stated:
+            raise ConfigError(f"{tr.where(stated[0])}: with [[stations]], each station states its own pose; [tracker] "
+                              "keeps only the uncertainties (angular, distance, distance_per_length)")
+        pose = stations[0].tracker_pose
+    else:
+        pose = _pose(tr)
+    if runs * len(stations or [None]) * n_mesh * len(tools) > MAX_PLAN_ROWS:
+        raise ConfigError(f"{r.where('stations')}: {len(stations)} stations x {n_mesh} mesh points x {len(tools)} tools x "
+                          f"{runs} runs is more than {MAX_PLAN_ROWS} measured points")
     mt = r.sub("machine_tool")
     ge = r.sub("geometric_errors")
     geometric: dict = {"seed": ge.number("seed", 1, int, low=0)}
@@ -446,6 +546,7 @@ def parse_config(data: dict, path=None) -> SimulationConfig:
         **physical,
         weights=weights,
         measurand_tool=measurand_tool,
+        stations=stations,
         max_degree=mt.number("max_degree", 3, int, low=1, high=9),
         geometric=geometric,
         sensors=sensors,

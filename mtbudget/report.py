@@ -53,8 +53,21 @@ MEASURAND = ("error of the compensated machine at each mesh point, per machine a
 
 def measurand_text(res) -> str:
     """The measurand of this run in one sentence: which tool offset, and what the verification leaves unidentified
-    there ([measurand] tool; docs/measurand.md)."""
-    m = (res.spec or {}).get("measurand")
+    there ([measurand] tool; docs/measurand.md), and from which stations ([[stations]])."""
+    return _measurand_at_tool((res.spec or {}).get("measurand")) + _stations_clause(res.spec or {})
+
+
+def _stations_clause(spec: dict) -> str:
+    stations = (spec.get("config") or {}).get("stations") or []
+    if not stations:
+        return ""
+    kinds = ", ".join(str(st.get("kind")) for st in stations)
+    return (f"; verified from {len(stations)} station(s) ({kinds}) measuring the plan one after the other, every "
+            "station's pose (xyz) or position and dead path (range) identified with the errors (Gauss-Newton over all "
+            "stations: the optimisation strategy's phases and tolerance do not apply)")
+
+
+def _measurand_at_tool(m: dict | None) -> str:
     if not m:
         return MEASURAND
     tool = ", ".join(f"{v:g}" for v in m["tool"])

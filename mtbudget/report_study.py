@@ -238,3 +238,92 @@ def readings_report(r: dict, folder: Path) -> Path:
     (folder / "readings.md").write_text("# The paper's figures, every reading\n\n" + readings_text(r) + "\n")
     (folder / "readings.json").write_text(json.dumps(r, indent=1, default=float))
     return folder / "readings.md"
+
+
+def stations_lines(r: dict) -> list:
+    """The comparison of study.stations_comparison as text: per axis, u over the mesh for each variant, their ratio,
+    and the budget's groups."""
+    one, many = r["variants"][0], r["variants"][-1]
+    lines = [f"Measurand: {r['measurand']}.",
+             f"Standard uncertainty u per axis (k = 1), µm, from {one['trials']} Monte Carlo trials per variant "
+             "(same machine, same seed):", "",
+             f"  (a u from {one['trials']} trials is itself known to about {1 / np.sqrt(2 * (one['trials'] - 1)):.0%} "
+             "relative, k = 1: a ratio of two to about "
+             f"{np.sqrt(2) / np.sqrt(2 * (one['trials'] - 1)):.0%}; more trials with --trials)",
+             "  " + "; ".join(f"{v['label']}: {v['kinds']}" for v in r["variants"]), "",
+             f"  {'':<52}{'x':>8}{'y':>8}{'z':>8}"]
+    for v in r["variants"]:
+        sm = v["summary"]
+        lines.append(f"  {v['label'] + ': RMS of u over the mesh':<52}" + "".join(f"{x:8.2f}" for x in sm["u_rms_over_mesh"]))
+        lines.append(f"  {v['label'] + ': largest u':<52}" + "".join(f"{x:8.2f}" for x in sm["u_max"]))
+    lines.append(f"  {'ratio ' + many['label'] + ' / ' + one['label'] + ', median over points':<52}"
+                 + "".join(f"{x:8.2f}" for x in r["ratio_median"]))
+    lines.append(f"  {'ratio, largest over points':<52}" + "".join(f"{x:8.2f}" for x in r["ratio_max"]))
+    lines.append("")
+    for v in r["variants"]:
+        c = v["compensation_rms"]
+        extra = f"; {v['not_converged']} trial(s) did not converge" if v["not_converged"] else ""
+        lines.append(f"  {v['label']}: RMS over the mesh of the compensated machine's error (a trial's measurand "
+                     f"summary) mean {c['mean']:.2f} µm, standard deviation {c['std']:.2f} µm (k = 1){extra}")
+        if v.get("budget_groups"):
+            shares = ", ".join(f"{g['group']} {g['share']:.0%}" for g in v["budget_groups"] if g["share"] > 0.005)
+            lines.append(f"    budget of the per-point variance by group: {shares}")
+    return lines
+
+
+def stations_figure(r: dict, folder: Path) -> Path:
+    """u per point and axis, one station against several: one panel per axis, points in plan order."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    folder.mkdir(parents=True, exist_ok=True)
+    fig, axes = plt.subplots(3, 1, figsize=(9, 7), sharex=True)
+    for a, ax in enumerate(axes):
+        for v in r["variants"]:
+            u = np.asarray(v["u"])
+            ax.plot(np.arange(len(u)), u[:, a], marker="o", ms=3, lw=1, label=v["label"])
+        ax.set_ylabel(f"u({'xyz'[a]}) [µm], k = 1")
+        ax.grid(alpha=0.3)
+    axes[0].legend(fontsize=8)
+    axes[-1].set_xlabel("mesh point (plan order)")
+    fig.suptitle("Standard uncertainty of the compensated machine's error per point and axis: one station vs several")
+    fig.tight_layout()
+    p = folder / "stations_u.png"
+    fig.savefig(p, dpi=100)
+    plt.close(fig)
+    return p
+
+
+def stations_report(r: dict, folder: Path) -> Path:
+    """stations.md, stations.html, stations.json and the figure in ``folder``."""
+    p = stations_figure(r, folder)
+    lines = ["# One station or several: the per-point uncertainty of the compensated machine", "",
+             f"Measurand: {r['measurand']}. Every u is a standard uncertainty (k = 1) in µm, from "
+             f"{r['variants'][0]['trials']} Monte Carlo trials per variant, the same machine and the same seed.", "",
+             "| verified from | RMS of u over the mesh (x, y, z) | largest u (x, y, z) | compensation RMS, mean and "
+             "standard deviation | budget of the per-point variance by group |", "| --- | --- | --- | --- | --- |"]
+    for v in r["variants"]:
+        sm, c = v["summary"], v["compensation_rms"]
+        groups = ", ".join(f"{g['group']} {g['share']:.0%}" for g in v.get("budget_groups") or [] if g["share"] > 0.005)
+        lines.append(f"| {v['label']} ({v['kinds']}) | {', '.join(f'{x:.2f}' for x in sm['u_rms_over_mesh'])} | "
+                     f"{', '.join(f'{x:.2f}' for x in sm['u_max'])} | {c['mean']:.2f}, {c['std']:.2f} | "
+                     f"{groups or 'not computed (attribution trials 0)'} |")
+    lines += ["", f"Ratio of u, {r['variants'][-1]['label']} over {r['variants'][0]['label']}: median over the points "
+              f"{', '.join(f'{x:.2f}' for x in r['ratio_median'])} (x, y, z), largest "
+              f"{', '.join(f'{x:.2f}' for x in r['ratio_max'])}."]
+    lines += ["", "| point | nominal x, y, z [mm] | " + " | ".join(f"u {v['label']} [µm] (x, y, z)" for v in r["variants"])
+              + " |", "| --- | --- | " + " | ".join("---" for _ in r["variants"]) + " |"]
+    for i, nom in enumerate(r["commanded"]):
+        cells = [", ".join(f"{x:.2f}" for x in np.asarray(v["u"])[i]) for v in r["variants"]]
+        lines.append(f"| {i} | {', '.join(f'{x:g}' for x in nom)} | " + " | ".join(cells) + " |")
+    lines += ["", f"![u per point and axis, one station vs several]({p.name})"]
+    (folder / "stations.md").write_text("\n".join(lines) + "\n")
+    write_html(lines, folder, folder / "stations.html", "mtbudget: one station or several")
+    (folder / "stations.json").write_text(json.dumps(r, indent=1, default=_jsonable))
+    return folder / "stations.md"
+
+
+def _jsonable(x):
+    return x.tolist() if isinstance(x, np.ndarray) else float(x)

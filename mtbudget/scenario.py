@@ -29,6 +29,7 @@ from .config import PHYSICAL_INPUTS, WEIGHT_KEYS, SimulationConfig
 from .contracts import Context, TARGETS
 from .errors import ConfigError, PluginError
 from .identify import Noise
+from . import tracker as lt
 from .model import MeasurementModel
 from .plan import Plan
 from .plugins import PluginHost, call, default_host
@@ -36,6 +37,12 @@ from .units import Q_, to_internal
 
 #: keys of the [sources] table that are not source names
 SOURCE_TABLE_KEYS = ("enable", "disable", "add")
+
+#: sources that were retired, with where their physics lives now: a [sources] disable list may still name them (it
+#: asks for nothing); enable, add or a [sources.NAME] table is an error that says where to go
+RETIRED_SOURCES = {"multilateration": "multilateration is simulated from the stations themselves since issue 20 (the "
+                                      "linearised surrogate source is retired): state [[stations]] with kind = \"range\" "
+                                      "(docs/configuration.md, docs/user-guide.md \"Several stations\")"}
 
 #: the [effects] shorthand: effect table -> (source, parameter of each axis)
 EFFECT_SOURCES = {"thermal": ("thermal_expansion", "cte_{}", "1/K"), "reversal": ("reversal", "B_{}", "mm"),
@@ -57,6 +64,12 @@ class Scenario:
     mesh_points: np.ndarray  # (M0, 3) nominal tool points of those rows, machine frame (mm)
     rigid_free: np.ndarray  # (3 M0, 3 M0) projector that removes what the tracker pose absorbs
     measurand_tool: np.ndarray | None = None  # (3,) mm: [measurand] tool, when not the verification's first tool
+    #: [[stations]]: the stations as the identification knows them (:class:`mtbudget.recording.Station`, ids 1..K,
+    #: the stated uncertainties), their true places (config.StationSpec) and the station of every plan row; None for
+    #: the single tracker of [tracker]
+    stations: list | None = None
+    station_specs: list | None = None
+    row_station: np.ndarray | None = None
     null_bias: np.ndarray | None = None  # (M0, 3) mm: the truth's own unidentifiable part there (replaced by its prior)
     _id_models: dict = field(default_factory=dict, repr=False)
     _cache: dict = field(default_factory=dict, repr=False)  # models at the measurand's tool, identifiability, prior
@@ -253,7 +266,9 @@ def select_sources(config: SimulationConfig, host: PluginHost, names: list | Non
     available = {s.name: s for s in host.sources()}
 
     def check_name(n, where):
-        if n not in available:
+        if n in RETIRED_SOURCES and where != "sources.disable":
+            raise ConfigError(f"{config.where(where)}: {RETIRED_SOURCES[n]}")
+        if n not in available and not (n in RETIRED_SOURCES and where == "sources.disable"):
             close = difflib.get_close_matches(n, list(available), n=1)
             hint = f"; did you mean {close[0]!r}?" if close else f"; available: {', '.join(sorted(available))}"
             raise ConfigError(f"{config.where(where)}: unknown source {n!r}{hint}")
@@ -358,7 +373,16 @@ def build_scenario(config: SimulationConfig, host: PluginHost | None = None, sou
     if config.weights is not None:
         stated.update(config.weights)
     noise = Noise(**stated)
-    nominal = truth.predict(np.zeros(truth.n_params), pose)[0]
+    stations = specs = row_station = None
+    if config.stations:
+        stations, specs, row_station = _stations(config, plan, noise)
+        P0 = truth.machine_points(np.zeros(truth.n_params))[0]
+        nominal = np.empty_like(P0)
+        for st, spec in zip(stations, specs):
+            rows = row_station == st.id
+            nominal[rows] = lt.to_tracker(P0[rows][None], spec.tracker_pose)[0]
+    else:
+        nominal = truth.predict(np.zeros(truth.n_params), pose)[0]
     context = Context(plan, truth, _read_only(nominal), _read_only(theta), config.reference_temperature, config)
     first = (plan.run == plan.run.min()) & np.all(plan.tool == plan.tool[0], axis=1)
     mesh_rows = np.flatnonzero(first)
@@ -369,10 +393,23 @@ def build_scenario(config: SimulationConfig, host: PluginHost | None = None, sou
         at_tool = MeasurementModel(truth.config, truth.errors, _tool_plan(plan.nominal[mesh_rows], tool))
         mesh_points = at_tool.machine_points(np.zeros(truth.n_params))[0]
     sc = Scenario(config, plan, truth, theta, pose, noise, drawn, srcs, context, mesh_rows, mesh_points,
-                  _rigid_projector(mesh_points), tool)
+                  _rigid_projector(mesh_points), tool, stations, specs, row_station)
     if tool is not None:
         _unidentified_source(sc, host)
     return sc
+
+
+def _stations(config: SimulationConfig, plan: Plan, noise: Noise):
+    """[[stations]] as the identification states them (ids 1..K, the stated uncertainties of the weights), their
+    true places, and the station of every plan row (station k measures runs (k-1)*runs+1 .. k*runs)."""
+    from .recording import Station
+
+    stations = [Station(k + 1, spec.kind, noise.angular if spec.kind == "xyz" else None, noise.distance,
+                        noise.distance_per_length, spec.description) for k, spec in enumerate(config.stations)]
+    row_station = (plan.run - 1) // config.runs + 1
+    row_station = row_station.astype(np.int64)
+    row_station.setflags(write=False)
+    return stations, list(config.stations), row_station
 
 
 def _unidentified_source(sc: Scenario, host: PluginHost):

@@ -18,6 +18,7 @@ import zlib
 import numpy as np
 import pint
 
+from . import tracker as lt
 from .contracts import TARGETS, Source, check_sample
 from .errors import PluginError
 from .machine import COMPONENT_ERRORS
@@ -110,9 +111,43 @@ def simulate_block(scenario: Scenario, block: int, n: int, seed: int, active: li
     truth = scenario.truth
     theta_true = scenario.theta[None, :] + pert.pop("geometry", 0.0)
     theta_true = np.broadcast_to(theta_true, (n, truth.n_params))
-    out = SimulatedBlock((truth.predict(theta_true, scenario.pose, pert), theta_true, choices))
+    if scenario.stations:
+        meas, ranges = measure_stations(scenario, truth.machine_points(theta_true, pert), pert)
+    else:
+        meas, ranges = truth.predict(theta_true, scenario.pose, pert), None
+    out = SimulatedBlock((meas, theta_true, choices))
     out.measurand_offset = None if offset is None else np.broadcast_to(offset, (n, len(scenario.plan), 3))
+    out.ranges = ranges
     return out
+
+
+def measure_stations(scenario: Scenario, P_W: np.ndarray, pert: dict):
+    """What each station of [[stations]] measures of the machine points P_W (n, M, 3): an xyz station the point in
+    its own frame (pose, spherical noise and offsets as one tracker, :meth:`mtbudget.model.MeasurementModel.predict`),
+    a range station its distance plus the dead path.  The sources' tracker-frame perturbations (spherical noise,
+    ``tracker_offset``) act on each row in its own station's frame; for a range station that frame is its position
+    with no rotation, so the range noise adds to the range and an offset moves it by its component along the beam.
+
+    Returns (xyz (n, M, 3) mm, NaN on range rows; ranges (n, M) mm, NaN on xyz rows).
+    """
+    n, M = P_W.shape[:2]
+    xyz = np.full((n, M, 3), np.nan)
+    ranges = np.full((n, M), np.nan)
+    dpose = np.broadcast_to(pert.get("pose", np.zeros(6)), (n, 6))
+    noise = pert.get("spherical_noise")
+    offset = pert.get("tracker_offset")
+    for st, spec in zip(scenario.stations, scenario.station_specs):
+        rows = np.flatnonzero(scenario.row_station == st.id)
+        P = lt.to_tracker(P_W[:, rows], spec.tracker_pose[None] + dpose)
+        if noise is not None:
+            P = lt.add_spherical_noise(P, np.broadcast_to(noise, (n, M, 3))[:, rows])
+        if offset is not None:
+            P = P + np.broadcast_to(offset, (n, M, 3))[:, rows]
+        if st.kind == "xyz":
+            xyz[:, rows] = P
+        else:
+            ranges[:, rows] = np.sqrt((P * P).sum(axis=-1)) + spec.dead_path
+    return xyz, ranges
 
 
 class SimulatedBlock(tuple):
@@ -121,6 +156,7 @@ class SimulatedBlock(tuple):
     tool); None without such a source."""
 
     measurand_offset = None
+    ranges = None  # (n, M) mm: the ranges of the range stations of [[stations]] (NaN on xyz rows); None without
 
 
 def simulate_recording(scenario: Scenario, seed: int | None = None, trial: int = 0, block: int = 64):
@@ -128,13 +164,17 @@ def simulate_recording(scenario: Scenario, seed: int | None = None, trial: int =
     cfg = scenario.config
     seed = cfg.seed if seed is None else int(seed)
     b, i = divmod(int(trial), int(block))
-    meas, _, _ = simulate_block(scenario, b, block, seed)
+    sim = simulate_block(scenario, b, block, seed)
     noise = scenario.noise
+    several = {}
+    if scenario.stations:  # format 2: the station of every row, each station's stated uncertainties, the ranges
+        several = {"station": np.array(scenario.row_station), "stations": list(scenario.stations),
+                   "lt_range": sim.ranges[i].copy(), "format_version": 2}
     rec = Recording(
-        name=cfg.name, machine=cfg.machine, plan=scenario.plan, lt=meas[i].copy(), angular=noise.angular,
+        name=cfg.name, machine=cfg.machine, plan=scenario.plan, lt=sim[0][i].copy(), angular=noise.angular,
         distance=noise.distance, distance_per_length=noise.distance_per_length, repeatability=noise.repeatability,
         reference_temperature=cfg.reference_temperature,
-        description=cfg.description or f"simulated by mtbudget (seed {seed}, trial {trial})",
+        description=cfg.description or f"simulated by mtbudget (seed {seed}, trial {trial})", **several,
     )
     return rec, truth_dict(scenario, seed, trial)
 
@@ -158,7 +198,8 @@ def truth_dict(scenario: Scenario, seed: int, trial: int) -> dict:
             "thermal": "axis -> CTE in um/(m K): the axis scale reads the nominal position p but moves to p * (1 + CTE * (T_axis - 20 degC)), about the axis zero",
             "reversal": "axis -> full reversal value B in um: approaching from either side the axis stops B/2 short of the target",
             "drift": "apparent velocity of the measured points in the machine frame, um/h, from the start of the test",
-            "tracker_pose": "D, L, H in mm and Euler angles a, b, d in rad of the tracker frame in the machine frame (the paper's Eq. 21-22)",
+            "tracker_pose": "D, L, H in mm and Euler angles a, b, d in rad of the tracker frame in the machine frame (the paper's Eq. 21-22); with several stations, the first's",
+            "stations": "with several stations: each xyz station's pose as tracker_pose, each range station's position (mm, machine frame) and dead path (mm)",
         },
         "simulation": {"seed": int(seed), "trial": int(trial)},
         "effects": {
@@ -169,6 +210,10 @@ def truth_dict(scenario: Scenario, seed: int, trial: int) -> dict:
         "sources": {s.name: {k: (f"{v:~P}" if hasattr(v, "units") else str(v)) for k, v in s.parameters.items()}
                     for s in scenario.sources},
         "tracker_pose": dict(zip("DLHabd", map(float, scenario.pose))),
+        **({"stations": [{"id": st.id, "kind": st.kind, "description": st.description,
+                          **({"pose": dict(zip("DLHabd", map(float, spec.pose)))} if st.kind == "xyz" else
+                             {"position_mm": [float(v) for v in spec.position], "dead_path_mm": float(spec.dead_path)})}
+                         for st, spec in zip(scenario.stations, scenario.station_specs)]} if scenario.stations else {}),
         "noise": {"angular_urad": display(scenario.noise.angular, "rad", "urad"),
                   "dist_um": display(scenario.noise.distance, "mm", "um"),
                   "dist_ppm": display(scenario.noise.distance_per_length, "", "ppm"),

@@ -711,6 +711,59 @@ def sensitivity_table(scenario: Scenario, trials: int, tests: int, seed: int, ch
                     "the weighting acts on the verification only)"}
 
 
+def station_variants(config) -> list:
+    """The verification of ``config`` ([[stations]]) from its first station alone and from all its stations: the same
+    machine (the same generation functions and seed), the same plan per station, the same sources.  Returns
+    [(label, SimulationConfig)]."""
+    from dataclasses import replace
+
+    if len(config.stations) < 2:
+        raise ConfigError(f"{config.where('stations')}: the comparison needs at least two [[stations]] (it runs the "
+                          f"first alone and all of them); this configuration has {len(config.stations)}")
+    out = []
+    for k in (1, len(config.stations)):
+        src = dict(config.source)
+        src["stations"] = list(config.source.get("stations", []))[:k]
+        out.append((f"{k} station{'s' if k > 1 else ''}", replace(config, stations=config.stations[:k], source=src)))
+    return out
+
+
+def stations_comparison(config, trials: int = 256, attribution_trials: int = 64, seed: int | None = None,
+                        progress: bool = False) -> dict:
+    """The per-point uncertainty of the compensated machine verified from one station and from several, side by
+    side (issue 20; the paper's Section 2.2.3 leaves it open): each variant of :func:`station_variants` is one
+    Monte Carlo run of the engine (same seed), with its budget when ``attribution_trials`` > 0.  Per point and axis:
+    u (k = 1) of each variant and their ratio; per variant the volume summaries and the budget by group."""
+    from .report import points_summary
+    from .runner import run
+
+    variants = []
+    for label, cfg in station_variants(config):
+        if progress:
+            from .progress import note
+
+            note(f"verification from {label}: {trials} trials ...", True)
+        res = run(cfg, trials=trials, attribution_trials=attribution_trials, seed=seed, progress=progress)
+        pts = res.points()
+        u = np.array([p["u"]["value"] for p in pts])
+        pb = (res.budget or {}).get("points") or {}
+        out = res.outputs()["compensation_rms"]
+        variants.append({"label": label, "kinds": ", ".join(st.kind for st in cfg.stations),
+                         "stations": [{"kind": st.kind, "description": st.description}
+                                                      for st in cfg.stations],
+                         "trials": res.acc.n, "u": u, "summary": points_summary(pts),
+                         "compensation_rms": {"mean": out["mean"], "std": out["std"], "unit": out["unit"]},
+                         "not_converged": res.not_converged,
+                         "budget_groups": pb.get("groups"), "budget_rows": pb.get("rows")})
+    one, many = variants[0]["u"], variants[-1]["u"]
+    return {"measurand": "error of the compensated machine at each mesh point, per machine axis, at the "
+                         "verification's tool, rigid-body part removed (docs/measurand.md); u is the standard "
+                         "uncertainty (k = 1) from the Monte Carlo",
+            "unit": "um", "commanded": [p["nominal"]["value"] for p in pts], "variants": variants,
+            "ratio": many / one, "ratio_median": np.median(many / one, axis=0).tolist(),
+            "ratio_max": (many / one).max(axis=0).tolist()}
+
+
 def main(argv: list | None = None) -> int:
     """``python -m mtbudget.study [CONFIG]``: the side-by-side tables alone (what ``study all`` ends with)."""
     import sys

@@ -87,7 +87,7 @@ def test_environment_switches(monkeypatch, caplog):
     assert "tracker_noise" not in {s.name for s in PluginHost().sources()}
     monkeypatch.delenv("MTBUDGET_DISABLE_PLUGINS")
     monkeypatch.setenv("MTBUDGET_PLUGINS", "measurement_strategy")
-    assert {s.name for s in PluginHost().sources()} == {"registration", "multilateration"}
+    assert {s.name for s in PluginHost().sources()} == {"registration"}
     assert not caplog.records
     # a misspelled name is not silently ignored
     monkeypatch.setenv("MTBUDGET_PLUGINS", "measurment_strategy")
@@ -546,3 +546,20 @@ def test_a_config_with_an_offset_temperature_difference_is_one_line(tmp_path):
     cfg.write_text(small + '\n[sources.temperature_sensor_calibration]\nu_calibration = "0.1 delta_degC"\n')
     res = CliRunner().invoke(main, ["plugins", str(cfg), "--json"])
     assert res.exit_code == 0, res.output
+
+
+def test_sources_that_model_one_thing_twice_cannot_both_be_enabled():
+    """Source.excludes: a plugin's alternative model of what a built-in draws refuses to run beside it, in one line
+    naming both (the built-in `tracker_noise` here)."""
+    from mtbudget.errors import ConfigError
+    from mtbudget.scenario import select_sources
+
+    class OtherNoise(Good):
+        name = "other_noise"
+        excludes = ("tracker_noise",)
+
+    host = PluginHost(plugins=(plugin("alt", lambda register: register(OtherNoise())),))
+    cfg = load_config(SMALL)
+    with pytest.raises(ConfigError, match="'other_noise' and 'tracker_noise' model the same thing"):
+        select_sources(cfg, host, ["tracker_noise", "other_noise"])
+    assert [s.name for s in select_sources(cfg, host, ["other_noise"])[0]] == ["other_noise"]

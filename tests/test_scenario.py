@@ -141,7 +141,11 @@ def test_misstated_weights_are_an_explicit_reported_choice():
     (lambda r: r.setdefault("effects", {}).setdefault("thermal", {}).update(x="10 um/(m*K)")
      or r["sources"].update(thermal_expansion={"cte_x": "10 um/(m*K)"}), "stated twice, in \\[effects\\] and"),
     (lambda r: r["sources"].update(reversal={"B_x": "5 um"}), "'reversal' is configured but not enabled"),
-    (lambda r: r["sources"].update(enable=["tracker_noise", "multilateration"]), "cannot both be enabled"),
+    (lambda r: r["sources"].update(enable=["tracker_noise", "multilateration"]),
+     "sources.enable: multilateration is simulated from the stations themselves .*\\[\\[stations\\]\\]"),
+    (lambda r: r["sources"].update(multilateration={"stations": "4"}), "sources.multilateration: multilateration is"),
+    (lambda r: r["sources"].update(disable=["multilateration"]) or r["sources"].update(enable=["tracker_nosie"]),
+     "did you mean 'tracker_noise'"),
     (lambda r: r["sources"].update(enable=["tracker_nosie"]), "unknown source 'tracker_nosie'; did you mean 'tracker_noise'"),
     (lambda r: r["sources"].update(control_error={"C": "-1.5 um"}, enable=["control_error"]),
      "sources.control_error: parameter 'C' must not be negative"),
