@@ -65,6 +65,7 @@ def attribution(engine, result: RunResult, n: int, *, ex_kind="inline", workers=
     finally:
         ex.close()
         bar.close()
+    systematic = systematic_sources(engine)
     tables = {}
     for o, (unit, _) in SCALARS.items():
         basis = "mean_square" if o in MEAN_SQUARE_OUTPUTS else "variance"
@@ -82,6 +83,7 @@ def attribution(engine, result: RunResult, n: int, *, ex_kind="inline", workers=
                                       "unit": f"{unit}/({ux.units:~})" if unit else f"1/({ux.units:~})"}
             if leave_one_out:
                 row["loo"] = V - loo[s.name][o][basis]
+            row.update(systematic.get(s.name, {}))
             rows.append(row)
         groups: dict = {}
         for r in rows:
@@ -103,11 +105,25 @@ def attribution(engine, result: RunResult, n: int, *, ex_kind="inline", workers=
                         "share": groups.get(g.value, 0.0) / V if V > 0 else 0.0} for g in Group],
         }
     if "components" in total:
-        tables["points"] = point_budget(engine, total, per_source)
+        tables["points"] = point_budget(engine, total, per_source, systematic)
     return tables
 
 
-def point_budget(engine, total: dict, per_source: dict) -> dict:
+def systematic_sources(engine) -> dict:
+    """{source name: {"systematic": "model form", "bounded": one sentence}} for the sources that declare a kind of
+    systematic effect (``Source.systematic``, for example the model-form sources: the machine richer than the
+    identification's model) and say how its size was bounded (``Source.bounded(context)``)."""
+    out = {}
+    ctx = engine.scenario.context
+    for s in engine.sources:
+        kind = getattr(s, "systematic", None)
+        if kind:
+            out[s.name] = {"systematic": str(kind),
+                           "bounded": str(call(s, "bounded", ctx)) if hasattr(s, "bounded") else ""}
+    return out
+
+
+def point_budget(engine, total: dict, per_source: dict, systematic: dict | None = None) -> dict:
     """Per source, its variance contribution to each component at each point, summarised over the volume.
 
     Each source alone on the same trials (common random numbers): u_i at a
@@ -115,8 +131,12 @@ def point_budget(engine, total: dict, per_source: dict) -> dict:
     source i active.  Summaries: the RMS over the mesh of u_i per axis, u_i
     at the worst point (the largest total u), and the share of the total
     variance summed over points and axes.  No sensitivity coefficient: a
-    source perturbs many inputs at once, so none is defined.
+    source perturbs many inputs at once, so none is defined.  A systematic
+    source (:func:`systematic_sources`) carries its kind and the sentence on
+    how it was bounded, and "systematic" sums each kind: its share, its u
+    (root sum of squares of its sources' u) and its sources.
     """
+    systematic = systematic_sources(engine) if systematic is None else systematic
     V = total["components"]  # (M0, 3)
     worst = int(np.argmax(V.sum(axis=1)))
     Vsum = float(V.sum())
@@ -127,12 +147,24 @@ def point_budget(engine, total: dict, per_source: dict) -> dict:
                "u_rms_over_mesh": np.sqrt(v.mean(axis=0)).tolist(), "u_at_worst_point": np.sqrt(v[worst]).tolist(),
                "share": float(v.sum()) / Vsum if Vsum > 0 else 0.0}
         groups[row["group"]] = groups.get(row["group"], 0.0) + float(v.sum())
+        row.update(systematic.get(s.name, {}))
         rows.append(row)
     inter = Vsum - sum(float(per_source[s.name]["components"].sum()) for s in engine.sources)
+    kinds: dict = {}
+    for s in engine.sources:
+        if s.name in systematic:
+            kinds.setdefault(systematic[s.name]["systematic"], []).append(s.name)
+    summary = []
+    for kind, names in kinds.items():
+        v = sum(per_source[n]["components"] for n in names)
+        summary.append({"systematic": kind, "sources": names, "share": float(v.sum()) / Vsum if Vsum > 0 else 0.0,
+                        "u_rms_over_mesh": np.sqrt(v.mean(axis=0)).tolist(), "u_at_worst_point": np.sqrt(v[worst]).tolist(),
+                        "bounded": {n: systematic[n]["bounded"] for n in names}})
     return {"unit": "um", "axes": ["x", "y", "z"], "worst_point": worst,
             "total": {"u_rms_over_mesh": np.sqrt(V.mean(axis=0)).tolist(), "u_at_worst_point": np.sqrt(V[worst]).tolist()},
             "rows": rows, "interaction_share": inter / Vsum if Vsum > 0 else 0.0,
-            "groups": [{"group": g.value, "share": groups.get(g.value, 0.0) / Vsum if Vsum > 0 else 0.0} for g in Group]}
+            "groups": [{"group": g.value, "share": groups.get(g.value, 0.0) / Vsum if Vsum > 0 else 0.0} for g in Group],
+            "systematic": summary}
 
 
 def point_lpu(scenario) -> dict:

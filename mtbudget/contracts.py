@@ -121,6 +121,10 @@ class Source:
     #: temperature parameters that are absolute temperatures (a default in degC or degF alone is one too);
     #: every other temperature parameter is a difference, which refuses "0.1 degC" (pint: 273.25 K)
     absolute_temperatures: tuple = ()
+    #: a systematic effect of unknown size the source draws (for example "model form": the machine richer than the
+    #: identification's model); the budget labels its rows and sums each kind.  Such a source also says how its size
+    #: was bounded, in one sentence for the plan at hand: ``bounded(context) -> str``
+    systematic: str = ""
 
     # stamped by the plugin host
     plugin: str = ""

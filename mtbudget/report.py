@@ -183,6 +183,10 @@ def budget_text(res: RunResult) -> str:
         lines.append(f"  {'interaction (not additive)':<32} {'':<22} {'':>34} {pb['interaction_share']:7.1%}")
         lines.append(f"  {'total':<32} {'':<22} {_vec(pb['total']['u_rms_over_mesh'], 2):>34} {1:7.1%}")
         lines.append("  by group: " + ", ".join(f"{g['group']} {g['share']:.1%}" for g in pb["groups"]))
+        for k in pb.get("systematic", []):
+            lines.append(f"  systematic, {k['systematic']} ({', '.join(k['sources'])}): {_vec(k['u_rms_over_mesh'], 2)} "
+                         f"RMS over the mesh, {k['share']:.1%}; how each was bounded:")
+            lines += [f"    {name}: {sentence}" for name, sentence in k["bounded"].items()]
     lines.append("")
     lines.append("Volume summaries and the paper's figures, per verification (the spread is over simulated verifications;")
     lines.append("it is not the uncertainty of a point):")
@@ -572,6 +576,10 @@ def run_report(res: RunResult, folder, tolerance_um: float | None = None, charac
         md.append(f"| interaction | | | | {pb['interaction_share']:.1%} |")
         md.append(f"| **total** | | {_vec(pb['total']['u_rms_over_mesh'], 2)} | {_vec(pb['total']['u_at_worst_point'], 2)} | 100 % |")
         md += ["", "| group | share |", "| --- | --- |"] + [f"| {g['group']} | {g['share']:.1%} |" for g in pb["groups"]]
+        for k in pb.get("systematic", []):
+            md += ["", f"Systematic, {k['systematic']} ({', '.join(k['sources'])}): u_i RMS over the mesh "
+                       f"{_vec(k['u_rms_over_mesh'], 2)} {pretty(pb['unit'])}, {k['share']:.1%} of the variance. "
+                       "How each was bounded:", ""] + [f"* `{n}`: {md_escape(t)}" for n, t in k["bounded"].items()]
     v = data.get("validation")
     if v:
         md += ["", "## GUF vs MCM (JCGM 101 clause 8), per point and axis", "",

@@ -272,6 +272,23 @@ class ReversalEffect(Source):
         return out
 
 
+#: a pair of axes -> (index of each, index of the third axis, along which their coupling acts): ``xy`` is a z error
+#: that depends on x and y together (axis_coupling here, model_form_coupling in plugins/optimisation_strategy.py)
+COUPLING_PAIRS = {"xy": (0, 1, 2), "xz": (0, 2, 1), "yz": (1, 2, 0)}
+
+
+def axis_unit_positions(nominal) -> np.ndarray:
+    """(M, 3) each axis position of ``nominal`` (M, 3, mm) scaled to [-1, 1] over the plan's own range of that axis
+    (0 for an axis that does not move): the variable of the coupling shapes of :data:`COUPLING_PAIRS`."""
+    nominal = np.asarray(nominal, float)
+    u = np.zeros(nominal.shape)
+    for i in range(3):
+        lo, hi = nominal[:, i].min(), nominal[:, i].max()
+        if hi > lo:
+            u[:, i] = (nominal[:, i] - 0.5 * (lo + hi)) / (0.5 * (hi - lo))
+    return u
+
+
 class AxisCouplingEffect(Source):
     """Simulated error along the third axis that grows with the product of two axis positions.
 
@@ -289,18 +306,13 @@ class AxisCouplingEffect(Source):
 
     def sample(self, n, rng, ctx):
         nominal = ctx.plan.nominal
+        u = axis_unit_positions(nominal)
         disp = np.zeros((len(nominal), 3))
-        for pair in ("xy", "xz", "yz"):
+        for pair, (a, b, third) in COUPLING_PAIRS.items():
             amp = self.value(pair, "mm")
             if not amp:
                 continue
-            u = []
-            for a in pair:
-                i = AXES.index(a)
-                lo, hi = nominal[:, i].min(), nominal[:, i].max()
-                u.append((nominal[:, i] - 0.5 * (lo + hi)) / (0.5 * (hi - lo)) if hi > lo else np.zeros(len(nominal)))
-            third = ({"x", "y", "z"} - set(pair)).pop()
-            disp[:, AXES.index(third)] += amp * u[0] * u[1]
+            disp[:, third] += amp * u[:, a] * u[:, b]
         return {"point_offset": Q_(np.tile(disp, (n, 1, 1)), _MM)}
 
 
