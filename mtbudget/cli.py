@@ -528,6 +528,7 @@ def study():
       mtbudget study placement --tests 100000       paper Figs. 9-11
       mtbudget study verification --trials 1000     paper Figs. 12-15 with the full budget
       mtbudget study stations                       one station or four, side by side (not in the paper)
+      mtbudget study station-placement              where to put 1-4 stations (not in the paper)
     """
 
 
@@ -650,6 +651,48 @@ def study_stations(config, trials, attribution_trials, seed, out, quiet):
     r = stations_comparison(cfg, trials=trials, attribution_trials=attribution_trials, seed=seed, progress=not quiet)
     md = stations_report(r, out)
     click.echo("\n".join(stations_lines(r)))
+    click.echo(f"  report: {md} and {md.with_suffix('.html')}, data: {md.with_suffix('.json')}")
+
+
+@study.command("station-placement")
+@click.argument("config", required=False, type=click.Path(dir_okay=False, path_type=Path))
+@click.option("--stations", "k_max", type=click.IntRange(min=1, max=6), default=4, show_default=True,
+              help="Largest number of stations in a set (every set of 1 .. this many is ranked).")
+@click.option("--candidates", type=click.IntRange(min=1, max=24), default=12, show_default=True,
+              help="Candidate stations, evenly on a circle around the mesh.")
+@click.option("--kind", type=click.Choice(["xyz", "range"]), default="xyz", show_default=True,
+              help="Laser trackers (xyz) or tracking interferometers (range).")
+@click.option("--radius", default="2.5 m", show_default=True, help="Radius of the circle, from the mesh centre.")
+@click.option("--height", default="0.5 m", show_default=True, help="Height of the circle above the mesh centre.")
+@click.option("--out", type=click.Path(file_okay=False, path_type=Path), default=Path("station-placement"),
+              show_default=True)
+@click.option("--quiet", is_flag=True, help="No progress bars.")
+def study_station_placement(config, k_max, candidates, kind, radius, height, out, quiet):
+    """Where to put several stations: the set that minimises the per-point uncertainty of the compensated machine.
+
+    Candidate stations stand evenly on a horizontal circle around the mesh (--radius, --height); every set of 1 to
+    --stations of them is ranked by its largest u (k = 1) over the mesh points and axes, from the identification
+    covariance over all the set's stations (their poses, or positions and dead paths, identified with the errors)
+    with the stated tracker noise and repeatability of CONFIG (default: the built-in paper configuration). A chosen
+    set then goes into [[stations]] for the full Monte Carlo (`mtbudget run`, `mtbudget study stations`).
+    """
+    from .config import load_config
+    from .errors import ConfigError
+    from .report_study import station_placement_lines, station_placement_report
+    from .scenario import build_scenario
+    from .study import ring_candidates, station_placement
+    from .units import to_internal
+
+    if candidates < k_max:
+        raise click.BadParameter(f"{candidates} candidates cannot make a set of {k_max}", param_hint="--candidates")
+    r_mm = to_internal(radius, "mm", where="--radius", error=ConfigError)
+    h_mm = to_internal(height, "mm", where="--height", error=ConfigError)
+    if not 0 < r_mm <= 1e5 or abs(h_mm) > 1e5:
+        raise click.BadParameter("radius must be positive and both at most 100 m", param_hint="--radius/--height")
+    sc = build_scenario(load_config(config))
+    r = station_placement(sc, ring_candidates(sc, candidates, kind, r_mm, h_mm), k_max, progress=not quiet)
+    md = station_placement_report(r, out)
+    click.echo("\n".join(station_placement_lines(r)))
     click.echo(f"  report: {md} and {md.with_suffix('.html')}, data: {md.with_suffix('.json')}")
 
 

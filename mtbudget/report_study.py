@@ -327,3 +327,90 @@ def stations_report(r: dict, folder: Path) -> Path:
 
 def _jsonable(x):
     return x.tolist() if isinstance(x, np.ndarray) else float(x)
+
+
+def station_placement_lines(r: dict) -> list:
+    """The station placement study (study.station_placement) as text."""
+    c = r["candidates"]
+    lines = [f"Measurand: {r['measurand']}.",
+             f"  {len(c)} candidate {c[0]['kind']} stations; every set of 1 to {r['per_k'][-1]['stations']} ranked by its "
+             f"largest u (µm, k = 1) over the mesh points and axes ({r['seconds']:.1f} s):", "",
+             f"  {'stations':>8} {'sets':>6} {'best':>8} {'median':>8} {'worst':>8}   best set (candidate numbers), RMS of u "
+             "over the mesh (x, y, z)"]
+    for k in r["per_k"]:
+        if not k["identifying"]:
+            lines.append(f"  {k['stations']:>8} {k['sets']:>6}   no set of {k['stations']} identifies what all the "
+                         "candidates together identify")
+            continue
+        note = "" if k["identifying"] == k["sets"] else f"   ({k['sets'] - k['identifying']} sets identify too little)"
+        lines.append(f"  {k['stations']:>8} {k['sets']:>6} {k['best_max_u']:8.2f} {k['median_max_u']:8.2f} "
+                     f"{k['worst_max_u']:8.2f}   {', '.join(str(i) for i in k['best'])}: "
+                     f"({', '.join(f'{x:.2f}' for x in k['best_rms_u'])}){note}")
+    lines += ["", "  candidates (x, y, z in mm, machine frame):"]
+    lines += [f"    {i}: {', '.join(f'{v:.0f}' for v in cd['place'][:3])}" for i, cd in enumerate(c)]
+    lines += ["  (GUF from the stated noise: the Monte Carlo of a chosen set, `mtbudget run` with its [[stations]], adds "
+              "the other sources)"]
+    return lines
+
+
+def station_placement_figure(r: dict, folder: Path) -> Path:
+    """Top view: the candidates, the mesh, and the best set for each number of stations."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    folder.mkdir(parents=True, exist_ok=True)
+    cand = np.array([cd["place"][:3] for cd in r["candidates"]])
+    mesh = np.asarray(r["mesh_points"])
+    n = len(r["per_k"])
+    fig, axes = plt.subplots(1, n, figsize=(3.6 * n, 3.8), squeeze=False)
+    for ax, k in zip(axes[0], r["per_k"]):
+        if not k["identifying"]:
+            ax.set_title(f"{k['stations']} station(s): none identifies enough", fontsize=9)
+            ax.scatter(cand[:, 0], cand[:, 1], s=18, facecolors="none", edgecolors="k")
+            continue
+        ax.scatter(mesh[:, 0], mesh[:, 1], s=6, c="grey", label="mesh")
+        ax.scatter(cand[:, 0], cand[:, 1], s=18, facecolors="none", edgecolors="k", label="candidates")
+        b = cand[k["best"]]
+        ax.scatter(b[:, 0], b[:, 1], s=60, c="C3", marker="^", label="best set")
+        for i, p in zip(k["best"], b):
+            ax.annotate(str(i), p[:2], textcoords="offset points", xytext=(4, 4), fontsize=8)
+        ax.set_title(f"{k['stations']} station(s): largest u {k['best_max_u']:.1f} µm", fontsize=9)
+        ax.set_xlabel("x [mm]")
+        ax.set_aspect("equal")
+    axes[0][0].set_ylabel("y [mm]")
+    shown = [ax for ax, k in zip(axes[0], r["per_k"]) if k["identifying"]]
+    if shown:
+        shown[0].legend(fontsize=7, loc="best")
+    fig.suptitle("Best set of stations per number of stations (top view; u: k = 1, largest over points and axes)")
+    fig.tight_layout()
+    p = folder / "station_placement.png"
+    fig.savefig(p, dpi=100)
+    plt.close(fig)
+    return p
+
+
+def station_placement_report(r: dict, folder: Path) -> Path:
+    """station_placement.md, .html, .json and the figure in ``folder``."""
+    p = station_placement_figure(r, folder)
+    c = r["candidates"]
+    lines = ["# Where to put several stations", "",
+             f"Measurand: {r['measurand']}. Every set of 1 to {r['per_k'][-1]['stations']} of {len(c)} candidate "
+             f"{c[0]['kind']} stations, ranked by its largest u (µm, k = 1) over the mesh points and axes.", "",
+             "| stations | sets | best | median | worst | best set | RMS of u over the mesh (x, y, z) |",
+             "| --- | --- | --- | --- | --- | --- | --- |"]
+    for k in r["per_k"]:
+        if not k["identifying"]:
+            lines.append(f"| {k['stations']} | {k['sets']} | - | - | - | no set identifies enough | |")
+            continue
+        lines.append(f"| {k['stations']} | {k['sets']} | {k['best_max_u']:.2f} | {k['median_max_u']:.2f} | "
+                     f"{k['worst_max_u']:.2f} | {', '.join(str(i) for i in k['best'])} | "
+                     f"{', '.join(f'{x:.2f}' for x in k['best_rms_u'])} |")
+    lines += ["", "| candidate | x, y, z [mm] |", "| --- | --- |"]
+    lines += [f"| {i} | {', '.join(f'{v:.0f}' for v in cd['place'][:3])} |" for i, cd in enumerate(c)]
+    lines += ["", f"![Best set of stations per number of stations]({p.name})"]
+    (folder / "station_placement.md").write_text("\n".join(lines) + "\n")
+    write_html(lines, folder, folder / "station_placement.html", "mtbudget: where to put several stations")
+    (folder / "station_placement.json").write_text(json.dumps(r, indent=1, default=_jsonable))
+    return folder / "station_placement.md"

@@ -764,6 +764,131 @@ def stations_comparison(config, trials: int = 256, attribution_trials: int = 64,
             "ratio_max": (many / one).max(axis=0).tolist()}
 
 
+def station_information(scenario: Scenario, stations: list) -> tuple[np.ndarray, np.ndarray]:
+    """What each candidate station tells the identification about the machine: the reduced information matrix of the
+    identification model's parameters (scaled: um, urad) from that station measuring the whole plan, its own unknowns
+    (an xyz station's pose, a range station's position and dead path) eliminated (Schur complement).  Stations'
+    own unknowns are separate, so the information of a set of stations is the sum of its members' (the
+    identification over all of them at once, :func:`mtbudget.multistation.identify_stations`, linearised at the
+    noise-free verification).
+
+    stations: [(kind, place)] with place a pose (6,) for "xyz" or a position (3,) for "range", mm and rad.
+    Returns (R (K, p, p), the field Jacobian with the rigid part removed (3 M0, p), scaled)."""
+    from .identify import scale_vector, whitener
+
+    sc = scenario
+    model = sc.id_model
+    rows = np.flatnonzero(sc.row_station == sc.stations[0].id) if sc.stations else np.arange(len(sc.plan))
+    P, J = model.machine_points(np.zeros((1, model.n_params)), jacobian=True)
+    sv = scale_vector(model)
+    P, J = P[0][rows], J[0][rows] / sv  # (M, 3), (M, 3, p) per um / urad
+    noise = sc.noise
+    out = []
+    for kind, place in stations:
+        place = np.asarray(place, float)
+        if kind == "xyz":
+            R = lt.rotation(*place[3:])
+            P_LT = (P - place[:3]) @ R
+            C = lt.covariance(P_LT, noise.angular, noise.distance, noise.distance_per_length)
+            W = whitener(C + noise.repeatability**2 * np.eye(3))  # (M, 3, 3)
+            A_t = np.einsum("mij,jk,mkp->mip", W, R.T, J).reshape(-1, J.shape[-1])
+            A_s = np.einsum("mij,mjk->mik", W, lt.pose_jacobian(P[None], place[None])[0]).reshape(-1, 6)
+        elif kind == "range":
+            d = P - place[:3]
+            r = np.sqrt((d * d).sum(axis=1))
+            u = d / r[:, None]
+            w = 1.0 / np.sqrt((noise.distance + noise.distance_per_length * r) ** 2 + noise.repeatability**2)
+            A_t = w[:, None] * np.einsum("mi,mip->mp", u, J)
+            A_s = w[:, None] * np.column_stack([-u, np.ones(len(r))])
+        else:
+            raise ConfigError(f"unknown station kind {kind!r}; expected 'xyz' or 'range'")
+        Ntt, Nts, Nss = A_t.T @ A_t, A_t.T @ A_s, A_s.T @ A_s
+        out.append(Ntt - Nts @ np.linalg.solve(Nss, Nts.T))
+    _, Jf = sc.evaluate(model, np.zeros((1, model.n_params)), jacobian=True)
+    Jf = sc.rigid_free @ (Jf[0].reshape(-1, model.n_params) / sv)
+    return np.array(out), Jf
+
+
+#: an eigenvalue of the information below this fraction of the largest one of all candidates together is a
+#: direction the identification does not see (relative to the parameters in um and urad)
+RANK_TOL = 1e-9
+
+
+def set_uncertainty(info: np.ndarray, Jf: np.ndarray, rank_tol: float = RANK_TOL) -> np.ndarray:
+    """u (M0, 3) of the compensated machine's error per point and axis (mm: the field Jacobian's unit, parameters
+    scaled) from the summed information ``info`` (p, p) of a set of stations: the parameters' covariance is its
+    pseudo-inverse on the directions the set identifies (what it cannot see is held, as the identification holds
+    it, and does not show at the verification's tool)."""
+    lam, V = np.linalg.eigh(info)
+    keep = lam > rank_tol * lam.max()
+    G = Jf @ V[:, keep]
+    return np.sqrt((G * G / lam[keep]).sum(axis=1)).reshape(-1, 3)
+
+
+def ring_candidates(scenario: Scenario, n: int, kind: str, radius: float, height: float) -> list:
+    """``n`` candidate stations evenly around the mesh centre at ``radius`` (mm) from it: xyz stations on a horizontal
+    circle ``height`` (mm) above the centre, upright (a = b = 0) and facing it; range stations alternately ``height``
+    above and below it (ranges from one plane cannot resolve the direction across it)."""
+    c = scenario.mesh_points.mean(axis=0)
+    out = []
+    for k in range(n):
+        phi = 2 * np.pi * k / n
+        h = height if kind == "xyz" or k % 2 == 0 else -height
+        pos = c + np.array([radius * np.cos(phi), radius * np.sin(phi), h])
+        out.append((kind, np.concatenate([pos, [0.0, 0.0, phi + np.pi]]) if kind == "xyz" else pos))
+    return out
+
+
+def station_placement(scenario: Scenario, candidates: list, k_max: int = 4, progress: bool = False) -> dict:
+    """Which set of stations minimises the per-point uncertainty of the compensated machine (issue 20): every subset
+    of 1 .. ``k_max`` of the ``candidates`` ([(kind, place)], see :func:`station_information`), ranked by the largest u
+    over the mesh points and axes (k = 1), from the identification's covariance linearised at the noise-free
+    verification (the GUF of docs/measurand.md: the stated tracker noise and repeatability; what else the Monte
+    Carlo draws is not in it).  Returns per k the best and worst set and the spread over all sets."""
+    from itertools import combinations
+
+    if not 1 <= k_max <= len(candidates):
+        raise ConfigError(f"the number of stations must be between 1 and the {len(candidates)} candidates, got {k_max}",
+                          key="--stations")
+    t0 = time.perf_counter()
+    info, Jf = station_information(scenario, candidates)
+    um = factor("mm", "um")
+    # what every candidate together identifies: a set that sees less (a lone range station) identifies too little
+    lam_all = np.linalg.eigvalsh(info.sum(axis=0))
+    tol = RANK_TOL * lam_all.max()
+    full = int(np.count_nonzero(lam_all > tol))
+    per_k = []
+    for k in range(1, k_max + 1):
+        sets = list(combinations(range(len(candidates)), k))
+        worst_u = np.full(len(sets), np.inf)
+        rms_u = np.full((len(sets), 3), np.inf)
+        bar = progress_bar(len(sets), f"sets of {k} station(s)", "set", progress)
+        for i, idx in enumerate(sets):
+            N = info[list(idx)].sum(axis=0)
+            if np.count_nonzero(np.linalg.eigvalsh(N) > tol) == full:
+                u = set_uncertainty(N, Jf, tol / np.linalg.eigvalsh(N).max()) * um
+                worst_u[i] = u.max()
+                rms_u[i] = np.sqrt((u**2).mean(axis=0))
+            bar.update(1)
+        bar.close()
+        ok = np.isfinite(worst_u)
+        row = {"stations": k, "sets": len(sets), "identifying": int(ok.sum())}
+        if ok.any():
+            best = int(np.argmin(worst_u))
+            worst = int(np.argmax(np.where(ok, worst_u, -np.inf)))
+            row.update({"best": list(sets[best]), "best_max_u": float(worst_u[best]), "best_rms_u": rms_u[best].tolist(),
+                        "worst": list(sets[worst]), "worst_max_u": float(worst_u[worst]),
+                        "median_max_u": float(np.median(worst_u[ok])),
+                        "best_u": set_uncertainty(info[list(sets[best])].sum(axis=0), Jf,
+                                                  tol / np.linalg.eigvalsh(info[list(sets[best])].sum(axis=0)).max()) * um})
+        per_k.append(row)
+    return {"measurand": "largest standard uncertainty (k = 1) over the mesh points and axes of the compensated "
+                         "machine's error (docs/measurand.md), GUF: the identification covariance from the stated "
+                         "tracker noise and repeatability, linearised at the noise-free verification",
+            "unit": "um", "candidates": [{"kind": kd, "place": np.asarray(pl, float).tolist()} for kd, pl in candidates],
+            "per_k": per_k, "seconds": time.perf_counter() - t0, "mesh_points": scenario.mesh_points}
+
+
 def main(argv: list | None = None) -> int:
     """``python -m mtbudget.study [CONFIG]``: the side-by-side tables alone (what ``study all`` ends with)."""
     import sys

@@ -217,3 +217,81 @@ def test_four_stations_monte_carlo_matches_the_propagated_identification_covaria
 
     g1 = np.sqrt(np.diagonal(point_lpu(build_scenario(parse_config(one)))["cov"], axis1=1, axis2=2))
     assert np.median(g[:, 1] / g1[:, 1]) < 0.5
+
+
+# ----------------------------------------------------------------------------- where to put several stations
+def test_station_information_summed_is_the_joint_identification():
+    """The placement study's u of a set (each station's reduced information, summed: Schur complements) equals the
+    GUF of the identification over all the set's stations at once (budget.point_lpu through identify_stations, the
+    full joint covariance), for the bundled four stations and for the first alone."""
+    from mtbudget.budget import point_lpu
+    from mtbudget.study import set_uncertainty, station_information
+
+    cfg = load_config(FOUR)
+    sc = build_scenario(cfg)
+    cands = [(s.kind, s.pose if s.kind == "xyz" else s.position) for s in cfg.stations]
+    info, Jf = station_information(sc, cands)
+    for k in (1, 4):
+        d = four()
+        d["stations"] = d["stations"][:k]
+        g = np.sqrt(np.diagonal(point_lpu(build_scenario(parse_config(d)))["cov"], axis1=1, axis2=2))
+        u = set_uncertainty(info[:k].sum(axis=0), Jf) * 1e3  # um
+        np.testing.assert_allclose(u, g, rtol=5e-3)  # linearised at the nominal vs at the noise-free solution
+
+
+def test_station_placement_ranks_sets_and_more_stations_never_hurt():
+    from mtbudget.study import ring_candidates, set_uncertainty, station_information, station_placement
+
+    sc = build_scenario(load_config(PAPER))
+    cands = ring_candidates(sc, 6, "xyz", 2500.0, 500.0)
+    r = station_placement(sc, cands, k_max=3)
+    best = [k["best_max_u"] for k in r["per_k"]]
+    assert all(k["best_max_u"] <= k["median_max_u"] <= k["worst_max_u"] for k in r["per_k"])
+    assert best[0] > best[1] > best[2]
+    assert [k["sets"] for k in r["per_k"]] == [6, 15, 20]
+    # information only adds: a station added to any set lowers u at every point and axis
+    info, Jf = station_information(sc, cands)
+    rng = np.random.default_rng(5)
+    for _ in range(5):
+        a = list(rng.choice(6, 2, replace=False))
+        extra = [i for i in range(6) if i not in a][0]
+        u2 = set_uncertainty(info[a].sum(axis=0), Jf)
+        u3 = set_uncertainty(info[a + [extra]].sum(axis=0), Jf)
+        assert np.all(u3 <= u2 * (1 + 1e-9))
+
+
+def test_range_stations_too_few_to_identify_are_said_so():
+    from mtbudget.study import ring_candidates, station_placement
+
+    sc = build_scenario(load_config(PAPER))
+    r = station_placement(sc, ring_candidates(sc, 6, "range", 2500.0, 500.0), k_max=4)
+    assert r["per_k"][0]["identifying"] == 0 and "best_max_u" not in r["per_k"][0]
+    assert r["per_k"][3]["identifying"] > 0 and np.isfinite(r["per_k"][3]["best_max_u"])
+
+
+@pytest.mark.parametrize("args, text", [
+    (["--radius", "2 kg"], "--radius"),
+    (["--stations", "5", "--candidates", "4"], "--candidates"),
+])
+def test_station_placement_options_are_checked(args, text, tmp_path):
+    from click.testing import CliRunner
+
+    from mtbudget.cli import main
+
+    res = CliRunner().invoke(main, ["study", "station-placement", "--quiet", "--out", str(tmp_path)] + args)
+    assert res.exit_code != 0 and text in res.output and "Traceback" not in res.output
+
+
+def test_station_placement_command_writes_its_report(tmp_path):
+    from click.testing import CliRunner
+
+    from mtbudget.cli import main
+
+    res = CliRunner().invoke(main, ["study", "station-placement", "--stations", "2", "--candidates", "5", "--quiet",
+                                    "--out", str(tmp_path)])
+    assert res.exit_code == 0, res.output
+    assert "k = 1" in res.output and "µm" in res.output
+    data = json.loads((tmp_path / "station_placement.json").read_text())
+    assert [k["sets"] for k in data["per_k"]] == [5, 10]
+    assert (tmp_path / "station_placement.png").stat().st_size > 1000
+    assert "<table" in (tmp_path / "station_placement.html").read_text()
