@@ -288,12 +288,19 @@ def stations_figure(r: dict, folder: Path) -> Path:
         ax.grid(alpha=0.3)
     axes[0].legend(fontsize=8)
     axes[-1].set_xlabel("mesh point (plan order)")
-    fig.suptitle("Standard uncertainty of the compensated machine's error per point and axis: one station vs several")
+    return _save(fig, "Standard uncertainty of the compensated machine's error per point and axis: one station vs "
+                      "several", folder / "stations_u.png")
+
+
+def _save(fig, title: str, path: Path) -> Path:
+    """Title, lay out, write (100 dpi) and close a figure of a study report."""
+    import matplotlib.pyplot as plt
+
+    fig.suptitle(title)
     fig.tight_layout()
-    p = folder / "stations_u.png"
-    fig.savefig(p, dpi=100)
+    fig.savefig(path, dpi=100)
     plt.close(fig)
-    return p
+    return path
 
 
 def stations_report(r: dict, folder: Path) -> Path:
@@ -383,12 +390,8 @@ def station_placement_figure(r: dict, folder: Path) -> Path:
     shown = [ax for ax, k in zip(axes[0], r["per_k"]) if k["identifying"]]
     if shown:
         shown[0].legend(fontsize=7, loc="best")
-    fig.suptitle("Best set of stations per number of stations (top view; u: k = 1, largest over points and axes)")
-    fig.tight_layout()
-    p = folder / "station_placement.png"
-    fig.savefig(p, dpi=100)
-    plt.close(fig)
-    return p
+    return _save(fig, "Best set of stations per number of stations (top view; u: k = 1, largest over points and "
+                      "axes)", folder / "station_placement.png")
 
 
 def station_placement_report(r: dict, folder: Path) -> Path:
