@@ -532,6 +532,23 @@ def study():
     """
 
 
+#: what each study writes first into its --out folder: a folder holding one already is not overwritten silently
+STUDY_FILES = {"placement": "placement.mcap", "verification": "verification.mcap", "readings": "readings.md",
+               "stations": "stations.json", "station-placement": "station_placement.json"}
+
+
+def _fresh_out(out: Path, studies: tuple, force: bool):
+    """Refuse to overwrite a previous study in ``out`` unless --force (as `run` refuses to overwrite a log)."""
+    if force:
+        return
+    for study in studies:
+        if (out / STUDY_FILES[study]).exists():
+            from .errors import MtbudgetError
+
+            raise MtbudgetError(f"{out / STUDY_FILES[study]}: a {study} study is already there; choose another --out "
+                                "or pass --force to replace it")
+
+
 def _placement(config, tests, out, quiet):
     from .config import load_config
     from .report_study import placement_report
@@ -590,9 +607,11 @@ def _verification(config, trials, out, quiet, attribution_trials):
 @click.argument("config", required=False, type=click.Path(dir_okay=False, path_type=Path))
 @click.option("--tests", type=click.IntRange(min=1), default=None, help="Monte Carlo tests per direction (default: the config's, 100000).")
 @click.option("--out", type=click.Path(file_okay=False, path_type=Path), default=Path("paper-study"), show_default=True)
+@click.option("--force", is_flag=True, help="Replace a previous study in --out.")
 @click.option("--quiet", is_flag=True, help="No progress bar.")
-def study_placement(config, tests, out, quiet):
+def study_placement(config, tests, out, quiet, force):
     """Tracker placement (paper Figs. 9-11): best station and maximum error per test, along X and along Y."""
+    _fresh_out(out, ("placement",), force)
     _placement(config, tests, out, quiet)
 
 
@@ -602,9 +621,11 @@ def study_placement(config, tests, out, quiet):
 @click.option("--attribution-trials", type=click.IntRange(min=0), default=256, show_default=True,
               help="Trials per source for the budget (0 skips it).")
 @click.option("--out", type=click.Path(file_okay=False, path_type=Path), default=Path("paper-study"), show_default=True)
+@click.option("--force", is_flag=True, help="Replace a previous study in --out.")
 @click.option("--quiet", is_flag=True, help="No progress bar.")
-def study_verification(config, trials, attribution_trials, out, quiet):
+def study_verification(config, trials, attribution_trials, out, quiet, force):
     """1000 verifications from the chosen station (paper Figs. 12-15), with the budget by group."""
+    _fresh_out(out, ("verification",), force)
     _verification(config, trials, out, quiet, attribution_trials)
 
 
@@ -615,9 +636,11 @@ def study_verification(config, trials, attribution_trials, out, quiet):
 @click.option("--attribution-trials", type=click.IntRange(min=0), default=256, show_default=True,
               help="Trials per source for the budget (0 skips it).")
 @click.option("--out", type=click.Path(file_okay=False, path_type=Path), default=Path("paper-study"), show_default=True)
+@click.option("--force", is_flag=True, help="Replace a previous study in --out.")
 @click.option("--quiet", is_flag=True, help="No progress bars.")
-def study_all(config, tests, trials, attribution_trials, out, quiet):
+def study_all(config, tests, trials, attribution_trials, out, quiet, force):
     """Both studies of the paper, on the built-in paper configuration unless CONFIG is given."""
+    _fresh_out(out, ("placement", "verification", "readings"), force)
     _placement(config, tests, out, quiet)
     _verification(config, trials, out, quiet, attribution_trials)
     _readings(config, out, quiet, trials)
@@ -632,8 +655,9 @@ def study_all(config, tests, trials, attribution_trials, out, quiet):
 @click.option("--seed", type=click.IntRange(min=0), default=None, help="Seed of both runs (default: the config's seed).")
 @click.option("--out", type=click.Path(file_okay=False, path_type=Path), default=Path("stations-study"),
               show_default=True)
+@click.option("--force", is_flag=True, help="Replace a previous study in --out.")
 @click.option("--quiet", is_flag=True, help="No progress bars.")
-def study_stations(config, trials, attribution_trials, seed, out, quiet):
+def study_stations(config, trials, attribution_trials, seed, out, quiet, force):
     """One station or several: the per-point uncertainty of the compensated machine, side by side.
 
     CONFIG states its stations in [[stations]] (default: the bundled example, the paper's machine from two laser
@@ -643,6 +667,7 @@ def study_stations(config, trials, attribution_trials, seed, out, quiet):
     stations.md, .html and .json with a figure to --out. Several stations identify one trial at a time: about
     0.1-0.2 s per trial on this machine.
     """
+    _fresh_out(out, ("stations",), force)
     from .config import bundled_config, load_config
     from .report_study import stations_lines, stations_report
     from .study import stations_comparison
@@ -666,8 +691,9 @@ def study_stations(config, trials, attribution_trials, seed, out, quiet):
 @click.option("--height", default="0.5 m", show_default=True, help="Height of the circle above the mesh centre.")
 @click.option("--out", type=click.Path(file_okay=False, path_type=Path), default=Path("station-placement"),
               show_default=True)
+@click.option("--force", is_flag=True, help="Replace a previous study in --out.")
 @click.option("--quiet", is_flag=True, help="No progress bars.")
-def study_station_placement(config, k_max, candidates, kind, radius, height, out, quiet):
+def study_station_placement(config, k_max, candidates, kind, radius, height, out, quiet, force):
     """Where to put several stations: the set that minimises the per-point uncertainty of the compensated machine.
 
     Candidate stations stand evenly on a horizontal circle around the mesh (--radius, --height); every set of 1 to
@@ -676,6 +702,7 @@ def study_station_placement(config, k_max, candidates, kind, radius, height, out
     with the stated tracker noise and repeatability of CONFIG (default: the built-in paper configuration). A chosen
     set then goes into [[stations]] for the full Monte Carlo (`mtbudget run`, `mtbudget study stations`).
     """
+    _fresh_out(out, ("station-placement",), force)
     from .config import load_config
     from .errors import ConfigError
     from .report_study import station_placement_lines, station_placement_report

@@ -295,3 +295,19 @@ def test_station_placement_command_writes_its_report(tmp_path):
     assert [k["sets"] for k in data["per_k"]] == [5, 10]
     assert (tmp_path / "station_placement.png").stat().st_size > 1000
     assert "<table" in (tmp_path / "station_placement.html").read_text()
+
+
+def test_a_study_never_replaces_a_previous_one_silently(tmp_path):
+    """As `run` refuses to overwrite a log: a second study into the same --out is one line unless --force."""
+    from click.testing import CliRunner
+
+    from mtbudget.cli import main
+
+    args = ["study", "station-placement", "--stations", "1", "--candidates", "2", "--quiet", "--out", str(tmp_path)]
+    assert CliRunner().invoke(main, args).exit_code == 0
+    before = (tmp_path / "station_placement.json").read_bytes()
+    res = CliRunner().invoke(main, args + ["--candidates", "3"])
+    assert res.exit_code == 2 and "already there" in res.output and "--force" in res.output
+    assert (tmp_path / "station_placement.json").read_bytes() == before
+    res = CliRunner().invoke(main, args + ["--candidates", "3", "--force"])
+    assert res.exit_code == 0 and (tmp_path / "station_placement.json").read_bytes() != before
