@@ -428,7 +428,7 @@ def replay(runlog, verify, as_json):
 
 @main.command("diagnose")
 @click.argument("recording", required=False, type=click.Path(file_okay=False, path_type=Path))
-@click.option("--example", type=click.Choice(["null", "thermal_x", "reversal_y", "tracker_drift"]),
+@click.option("--example", type=click.Choice(["null", "thermal_x", "reversal_y", "tracker_drift", "four_stations"]),
               help="Diagnose a bundled example recording.")
 @click.option("--json", "as_json", is_flag=True, help="Print exactly one JSON object on stdout.")
 @click.option("--report", "report_dir", type=click.Path(file_okay=False, path_type=Path), default=None,
@@ -463,7 +463,7 @@ def diagnose_cmd(recording, example, as_json, report_dir, alpha, max_degree, qui
     if recording is None and example is None:
         raise click.UsageError("give a RECORDING folder or --example NAME")
     folder = example_recording(example) if example else recording
-    rec = read_recording(folder)
+    rec = read_recording(folder, several_stations=True)  # several stations: every station identified together
     d = diagnose(rec, alpha=alpha, max_degree=max_degree, progress=not quiet)
     if report_dir is not None:
         from .report_diagnosis import diagnosis_report

@@ -33,6 +33,14 @@ Method (docs/diagnose.md has the reasoning and the calibration):
 5. **After.** The chosen effects are put into the model at their estimates
    and the recording is identified again: chi-square and RMS before and after.
 
+Several stations (docs/diagnose.md, "Several stations"): the baseline is
+:func:`mtbudget.multistation.identify_stations` over all stations at once, and
+:func:`mtbudget.multistation.linearise` gives its whitened design and residuals and
+the per-row maps of a displacement to whitened residuals (3 per xyz row, 1 per
+range row); selection, gate and data-driven search run on them unchanged.  The
+findings are refitted by taking them out of the measurements; the residuals are
+also located by station.
+
 Noise and the fit gate (docs/diagnose.md, "Noise and the fit gate"):
 
 * **Noise is estimated.**  The three variance components (tracker range,
@@ -121,11 +129,13 @@ class _Fit:
 class _Linear:
     """Exact nested least squares in the whitened space around the baseline solution."""
 
-    def __init__(self, A0: np.ndarray, w: np.ndarray):
+    def __init__(self, A0: np.ndarray, w: np.ndarray, rowpt: np.ndarray | None = None):
         self.Q0, _ = np.linalg.qr(A0)
         self.w = w
         self.chi2_0 = float(w @ w)
         self.n, self.p0 = A0.shape
+        #: the plan row of every whitened residual (one station: three per point, in order)
+        self.rowpt = np.repeat(np.arange(self.n // 3), 3) if rowpt is None else np.asarray(rowpt)
 
     def project(self, C: np.ndarray) -> np.ndarray:
         return C - self.Q0 @ (self.Q0.T @ C)
@@ -194,19 +204,28 @@ def _whitened(C: np.ndarray, frame: str, ctx: DiagnosisContext, Wh: np.ndarray) 
 
 
 # --------------------------------------------------------------------- locate
-def locate(ctx: DiagnosisContext, residual_machine: np.ndarray, whitened: np.ndarray) -> dict:
-    """Where the baseline residuals are structured (machine frame, um)."""
+def locate(ctx: DiagnosisContext, residual_machine: np.ndarray, whitened: np.ndarray, stations=None) -> dict:
+    """Where the baseline residuals are structured (machine frame, um).
+
+    whitened: (M, 3) for one station; for several, (n_res,) the whitened residuals with ``stations`` a
+    :class:`_Stations` (the plan row of each, the stations, and each row's size and residuals per row):
+    the summaries then count a range row as one residual, and ``by_station`` is added."""
     plan = ctx.plan
     r = display(residual_machine, "mm", "um")
     out: dict = {"unit": "um"}
-    chi_pt = (whitened**2).sum(axis=1)
     n = len(plan)
+    if stations is None:
+        chi_pt = (whitened**2).sum(axis=1)
+        per_row = np.full(n, 3)
+    else:
+        chi_pt = np.bincount(stations.row, weights=whitened**2, minlength=n)
+        per_row = stations.per_row
     # by run
     runs = {}
     for k in np.unique(plan.run):
         m = plan.run == k
         runs[int(k)] = {"points": int(m.sum()), "rms": float(np.sqrt((r[m] ** 2).sum(1).mean())),
-                        "mean": r[m].mean(0).round(3).tolist(), "chi2_per_point": float(chi_pt[m].mean() / 3)}
+                        "mean": r[m].mean(0).round(3).tolist(), "chi2_per_point": _per_residual(chi_pt, per_row, m)}
     out["by_run"] = runs
     # by tool (reflector holder)
     tools = {}
@@ -216,7 +235,7 @@ def locate(ctx: DiagnosisContext, residual_machine: np.ndarray, whitened: np.nda
         m = np.all(t_rows == t_rows[j], axis=1)
         tools[k] = {"tool": display(plan.tool[j], "mm", "mm").round(3).tolist(), "tool_unit": "mm", "points": int(m.sum()),
                     "rms": float(np.sqrt((r[m] ** 2).sum(1).mean())), "mean": r[m].mean(0).round(3).tolist(),
-                    "chi2_per_point": float(chi_pt[m].mean() / 3)}
+                    "chi2_per_point": _per_residual(chi_pt, per_row, m)}
     out["by_tool"] = tools
     # by time: slope of each component (um/h) with its standard error
     t = display(plan.time, "s", "h")
@@ -261,6 +280,36 @@ def locate(ctx: DiagnosisContext, residual_machine: np.ndarray, whitened: np.nda
     worst = np.argsort(-chi_pt)[:5]
     out["worst_points"] = [{"row": int(k), "point": int(plan.point[k]), "run": int(plan.run[k]),
                             "residual": r[k].round(3).tolist(), "chi2": float(chi_pt[k])} for k in worst]
+    if stations is not None:
+        sid = stations.row_station
+        for w in out["worst_points"]:
+            w["station"] = int(sid[w["row"]])
+        out["by_station"] = _by_station(stations, chi_pt, residual_machine)
+    return out
+
+
+def _per_residual(chi_pt, per_row, m) -> float:
+    """Chi-square per whitened residual of the rows ``m`` (three per xyz row, one per range row)."""
+    return float(chi_pt[m].sum() / max(per_row[m].sum(), 1))
+
+
+def _by_station(stations, chi_pt, residual_machine) -> dict:
+    """Residual summaries per station, in um: RMS and mean along the beam (what a range offset of the station
+    would shift), the mean residual in the station's own frame (xyz) and the chi-square per residual."""
+    out = {}
+    r_st = np.einsum("mji,mj->mi", stations.rotation, residual_machine)  # R^T r: into each row's station frame
+    for st in stations.stations:
+        m = stations.row_station == st.id
+        along = (r_st[m] * stations.beam[m]).sum(axis=1)
+        um = display(along, "mm", "um")
+        entry = {"kind": st.kind, "rows": int(m.sum()),
+                 "rms": float(display(np.sqrt(np.mean(stations.size[m] ** 2)), "mm", "um")),
+                 "mean_along_beam": float(um.mean()),
+                 "mean_along_beam_stderr": float(um.std(ddof=1) / math.sqrt(len(um))) if len(um) > 1 else None,
+                 "chi2_per_residual": _per_residual(chi_pt, stations.per_row, m)}
+        if st.kind == "xyz":
+            entry["mean_station_frame"] = display(r_st[m].mean(0), "mm", "um").round(3).tolist()
+        out[int(st.id)] = entry
     return out
 
 
@@ -321,6 +370,10 @@ def diagnose(rec: Recording, candidates: list | None = None, *, alpha: float = 0
              data_driven: bool = True, progress: bool = False) -> Diagnosis:
     """Diagnose a recording (see the module docstring).
 
+    A recording of several stations (format 2: several xyz stations, or range stations; read with
+    ``read_recording(folder, several_stations=True)``) is diagnosed over all of them at once: the baseline is
+    :func:`mtbudget.multistation.identify_stations` (docs/diagnose.md, "Several stations").
+
     progress: a bar on stderr naming the running step (baseline fit, candidate columns, noise estimate,
     candidate scan, refit with the findings, fit gate, data-driven search); silent by default, and never on
     stdout, so ``--json`` stays one object.
@@ -330,10 +383,144 @@ def diagnose(rec: Recording, candidates: list | None = None, *, alpha: float = 0
     if candidates is None:
         candidates = (host or default_host()).candidates()
     steps = Steps(5 + len(candidates), f"diagnose {rec.name}", progress)
+    run = _diagnose_stations if rec.several_stations else _diagnose
     try:
-        return _diagnose(rec, candidates, alpha, max_set, confound_margin, max_degree, gate_alpha, data_driven, steps)
+        return run(rec, candidates, alpha, max_set, confound_margin, max_degree, gate_alpha, data_driven, steps)
     finally:
         steps.close()
+
+
+def _candidate_columns(candidates, ctx, lin0, whiten, steps):
+    """Every candidate's whitened columns, or why it is skipped or not testable: (skipped, untestable, usable)."""
+    skipped, untestable, usable = [], [], []
+    for c in candidates:
+        steps.begin(f"candidate columns: {c.label}")
+        steps.done()
+        _check_declaration(c)
+        reason = _call(c, "requires", ctx)
+        if reason is not None and not isinstance(reason, str):
+            _fail(c, f"must return None or a reason (str), got {type(reason).__name__}", "requires")
+        if reason:
+            skipped.append({"effect": c.effect, "axis": c.axis, "reason": reason})
+            continue
+        raw = _columns(c, ctx)
+        col = whiten(raw, c.frame)
+        left = np.linalg.norm(lin0.project(col), axis=0) / np.maximum(np.linalg.norm(col, axis=0), 1e-300)
+        if left.max() < ABSORBED:
+            untestable.append({"effect": c.effect, "axis": c.axis,
+                               "reason": "the baseline geometric errors absorb it completely with this plan "
+                                         f"(what is left of it: {left.max():.1e})"})
+            continue
+        # a column the baseline absorbs (almost) completely carries no information: it is left out of the fit
+        # (its parameter stays 0), or a noise-driven, physically absurd value would enter the refit
+        raw = raw.copy()
+        raw[:, :, left < ABSORBED] = 0.0
+        col = col.copy()
+        col[:, left < ABSORBED] = 0.0
+        usable.append((c, col, raw))
+    return skipped, untestable, usable
+
+
+class _Selector:
+    """Nested fits of candidate sets on one whitened linear model: F-tests, BIC, plausibility, cancellation."""
+
+    def __init__(self, lin, usable):
+        self.lin, self.usable = lin, usable
+
+    def fit(self, idx):
+        return self.lin.fit([self.usable[i][1] for i in idx])
+
+    @staticmethod
+    def ftest(chi_small, chi_big, k, dof_big):
+        if k <= 0 or dof_big <= 0:
+            return 0.0, 1.0
+        F = max(chi_small - chi_big, 0.0) / k / (chi_big / dof_big)
+        return F, float(stats.f.sf(F, k, dof_big))
+
+    def kcols(self, idx):
+        return sum(self.usable[i][1].shape[1] for i in idx)
+
+    def bic(self, idx, f):
+        return f.chi2 + self.kcols(idx) * math.log(self.lin.n)
+
+    def members(self, idx, f):
+        """(beta, cov) of each member of the set ``idx`` in the joint fit ``f`` (cov inflated by chi2/dof > 1)."""
+        dof = self.lin.dof0 - self.kcols(idx)
+        scale = max(f.chi2 / dof, 1.0) if dof > 0 else 1.0
+        out, o = [], 0
+        for i in idx:
+            k = self.usable[i][1].shape[1]
+            out.append((f.beta[o:o + k], f.cov[o:o + k, o:o + k] * scale))
+            o += k
+        return out
+
+    def implausible(self, i, beta, cov):
+        why = _call(self.usable[i][0], "implausible", beta, cov)
+        if why is not None and not isinstance(why, str):
+            _fail(self.usable[i][0], f"must return None or a sentence (str), got {type(why).__name__}", "implausible")
+        return why
+
+    def cancelling(self, idx, f):
+        """Members that are large and cancel each other: the sum of their sizes far beyond the size of their sum."""
+        if len(idx) < 2:
+            return False
+        parts, o = [], 0
+        for i in idx:
+            k = self.usable[i][1].shape[1]
+            parts.append(self.lin.project(self.usable[i][1]) @ f.beta[o:o + k])
+            o += k
+        return sum(np.linalg.norm(x) for x in parts) > CANCEL * max(np.linalg.norm(sum(parts)), 1e-300)
+
+    def scan(self, level, max_set):
+        """Each candidate alone (F-test at ``level``), then all subsets up to ``max_set`` of the significant ones
+        by BIC, each member significant given the others and plausible, the members not cancelling each other.
+
+        Returns (considered, chosen, implausible_alone)."""
+        lin, usable = self.lin, self.usable
+        considered, single_sig, implausible_alone = [], [], {}
+        for i, (c, col, _) in enumerate(usable):
+            f = self.fit([i])
+            k = col.shape[1]
+            F, p = self.ftest(lin.chi2_0, f.chi2, k, lin.dof0 - k)
+            why = self.implausible(i, *self.members([i], f)[0]) if p < level else None
+            considered.append({"effect": c.effect, "axis": c.axis, "delta_chi2": lin.chi2_0 - f.chi2, "F": F,
+                               "p_value": p, "significant": p < level, "implausible": why})
+            if p < level:
+                single_sig.append(i)
+                if why:
+                    implausible_alone[i] = why
+        best, best_bic = (), self.bic((), self.fit(()))
+        for size in range(1, min(max_set, len(single_sig)) + 1):
+            for idx in itertools.combinations(single_sig, size):
+                f = self.fit(list(idx))
+                b = self.bic(idx, f)
+                if b >= best_bic:
+                    continue
+                ok = True
+                for j, (beta, cov) in zip(idx, self.members(idx, f)):
+                    rest = [i for i in idx if i != j]
+                    f_rest = self.fit(rest)
+                    dof = lin.dof0 - self.kcols(idx)
+                    _, p = self.ftest(f_rest.chi2, f.chi2, usable[j][1].shape[1], dof)
+                    if p >= level or self.implausible(j, beta, cov):
+                        ok = False
+                        break
+                if ok and not self.cancelling(idx, f):
+                    best, best_bic = idx, b
+        return considered, list(best), implausible_alone
+
+
+def _unexplained(gate, est, where, sel, implausible_alone, chosen, notes) -> dict:
+    usable = sel.usable
+    return {
+        "chi2_per_dof": gate["chi2_per_dof"], "dof": gate["dof"], "p_value": gate["p_value"], "test": gate["test"],
+        "noise_used": est["used"], "lack_of_fit": gate.get("lack_of_fit"),
+        "where": {k: where[k] for k in ("by_run", "by_tool", "by_time", "by_direction", "by_position",
+                                        "by_temperature", "worst_points", "by_station") if k in where},
+        "implausible": [_implausible_entry(usable[i][0], why, *_present(usable[i][0], *sel.members([i], sel.fit([i]))[0]))
+                        for i, why in implausible_alone.items() if i not in chosen],
+        "notes": notes, "data_driven": None,
+    }
 
 
 def _diagnose(rec, candidates, alpha, max_set, confound_margin, max_degree, gate_alpha, data_driven, steps):
@@ -355,32 +542,8 @@ def _diagnose(rec, candidates, alpha, max_set, confound_margin, max_degree, gate
 
     mismatch = locate(ctx, base.residual_machine[0], base.whitened[0])
     steps.done()
-    skipped, untestable, usable = [], [], []
-    for c in candidates:
-        steps.begin(f"candidate columns: {c.label}")
-        steps.done()
-        _check_declaration(c)
-        reason = _call(c, "requires", ctx)
-        if reason is not None and not isinstance(reason, str):
-            _fail(c, f"must return None or a reason (str), got {type(reason).__name__}", "requires")
-        if reason:
-            skipped.append({"effect": c.effect, "axis": c.axis, "reason": reason})
-            continue
-        raw = _columns(c, ctx)
-        col = _whitened(raw, c.frame, ctx, Wh)
-        left = np.linalg.norm(lin0.project(col), axis=0) / np.maximum(np.linalg.norm(col, axis=0), 1e-300)
-        if left.max() < ABSORBED:
-            untestable.append({"effect": c.effect, "axis": c.axis,
-                               "reason": "the baseline geometric errors absorb it completely with this plan "
-                                         f"(what is left of it: {left.max():.1e})"})
-            continue
-        # a column the baseline absorbs (almost) completely carries no information: it is left out of the fit
-        # (its parameter stays 0), or a noise-driven, physically absurd value would enter the refit
-        raw = raw.copy()
-        raw[:, :, left < ABSORBED] = 0.0
-        col = col.copy()
-        col[:, left < ABSORBED] = 0.0
-        usable.append((c, col, raw))
+    skipped, untestable, usable = _candidate_columns(candidates, ctx, lin0,
+                                                     lambda raw, frame: _whitened(raw, frame, ctx, Wh), steps)
 
     # the noise: estimated from the data, used for selection and the gate when the stated one does not match
     steps.begin("noise estimate (REML)")
@@ -399,91 +562,13 @@ def _diagnose(rec, candidates, alpha, max_set, confound_margin, max_degree, gate
         lin = lin0
     steps.done()
     steps.begin(f"candidate scan ({len(usable)} candidates, sets up to {max_set})")
-    n_obs = lin.n
     K = max(len(usable), 1)
     level = alpha / K  # Bonferroni over the candidates tested
-
-    def fit(idx):
-        return lin.fit([usable[i][1] for i in idx])
-
-    def ftest(chi_small, chi_big, k, dof_big):
-        if k <= 0 or dof_big <= 0:
-            return 0.0, 1.0
-        F = max(chi_small - chi_big, 0.0) / k / (chi_big / dof_big)
-        return F, float(stats.f.sf(F, k, dof_big))
-
-    def kcols(idx):
-        return sum(usable[i][1].shape[1] for i in idx)
-
-    def bic(idx, f):
-        return f.chi2 + kcols(idx) * math.log(n_obs)
-
-    def members(idx, f):
-        """(beta, cov) of each member of the set ``idx`` in the joint fit ``f`` (cov inflated by chi2/dof > 1)."""
-        dof = lin.dof0 - kcols(idx)
-        scale = max(f.chi2 / dof, 1.0) if dof > 0 else 1.0
-        out, o = [], 0
-        for i in idx:
-            k = usable[i][1].shape[1]
-            out.append((f.beta[o:o + k], f.cov[o:o + k, o:o + k] * scale))
-            o += k
-        return out
-
-    def implausible(i, beta, cov):
-        why = _call(usable[i][0], "implausible", beta, cov)
-        if why is not None and not isinstance(why, str):
-            _fail(usable[i][0], f"must return None or a sentence (str), got {type(why).__name__}", "implausible")
-        return why
-
-    def cancelling(idx, f):
-        """Members that are large and cancel each other: the sum of their sizes far beyond the size of their sum."""
-        if len(idx) < 2:
-            return False
-        parts, o = [], 0
-        for i in idx:
-            k = usable[i][1].shape[1]
-            parts.append(lin.project(usable[i][1]) @ f.beta[o:o + k])
-            o += k
-        return sum(np.linalg.norm(x) for x in parts) > CANCEL * max(np.linalg.norm(sum(parts)), 1e-300)
-
-    considered = []
-    single_sig = []
-    implausible_alone = {}
-    for i, (c, col, _) in enumerate(usable):
-        f = fit([i])
-        k = col.shape[1]
-        F, p = ftest(lin.chi2_0, f.chi2, k, lin.dof0 - k)
-        why = implausible(i, *members([i], f)[0]) if p < level else None
-        considered.append({"effect": c.effect, "axis": c.axis, "delta_chi2": lin.chi2_0 - f.chi2, "F": F, "p_value": p,
-                           "significant": p < level, "implausible": why})
-        if p < level:
-            single_sig.append(i)
-            if why:
-                implausible_alone[i] = why
-    # candidate sets: all subsets up to max_set of the individually significant ones, chosen by BIC,
-    # each member significant given the others and plausible, the members not cancelling each other
-    best, best_bic = (), bic((), fit(()))
-    for size in range(1, min(max_set, len(single_sig)) + 1):
-        for idx in itertools.combinations(single_sig, size):
-            f = fit(list(idx))
-            b = bic(idx, f)
-            if b >= best_bic:
-                continue
-            ok = True
-            for j, (beta, cov) in zip(idx, members(idx, f)):
-                rest = [i for i in idx if i != j]
-                f_rest = fit(rest)
-                dof = lin.dof0 - kcols(idx)
-                _, p = ftest(f_rest.chi2, f.chi2, usable[j][1].shape[1], dof)
-                if p >= level or implausible(j, beta, cov):
-                    ok = False
-                    break
-            if ok and not cancelling(idx, f):
-                best, best_bic = idx, b
-    chosen = list(best)
+    sel = _Selector(lin, usable)
+    considered, chosen, implausible_alone = sel.scan(level, max_set)
     steps.done()
     steps.begin(f"refit with the findings ({len(chosen)})")
-    findings, f_all = _findings(chosen, usable, lin, fit, ftest, bic, kcols, K, alpha, confound_margin, ctx)
+    findings, f_all = _findings(chosen, sel, K, alpha, confound_margin, ctx)
     # refit the full model with the effects in it at their estimates: "after" each finding (cumulative)
     offsets = np.cumsum([0] + [usable[i][1].shape[1] for i in chosen])
     pert_parts, after, res = [], [], base
@@ -501,39 +586,24 @@ def _diagnose(rec, candidates, alpha, max_set, confound_margin, max_degree, gate
                      f"(chi-square per dof {float(res.chi2_per_dof[0]):.3f} vs {float(base.chi2_per_dof[0]):.3f}); "
                      "none is reported")
         chosen, findings, after, pert_parts, res = [], [], [], [], base
-        f_all = fit([])
+        f_all = sel.fit([])
     final = after[-1] if after else _quality(base)
     res_after = res.residual_machine[0] if pert_parts else None
 
     # the global goodness-of-fit gate, and what is left when it fails
     steps.done()
     steps.begin("fit gate")
-    gate = _gate(lin, f_all, kcols(chosen), est, groups_design, Wn, usable, gate_alpha)
+    pure = _group_design(groups_design, Wn) if groups_design is not None else None
+    gate = _gate(lin, f_all, sel.kcols(chosen), est, pure, usable, gate_alpha)
     unexplained = None
     steps.done()
     if not gate["explained"]:
         where = locate(ctx, res.residual_machine[0], res.whitened[0])
-        unexplained = {
-            "chi2_per_dof": gate["chi2_per_dof"], "dof": gate["dof"], "p_value": gate["p_value"], "test": gate["test"],
-            "noise_used": est["used"], "lack_of_fit": gate.get("lack_of_fit"),
-            "where": {k: where[k] for k in ("by_run", "by_tool", "by_time", "by_direction", "by_position",
-                                            "by_temperature", "worst_points")},
-            "implausible": [_implausible_entry(usable[i][0], why, *_present(usable[i][0], *members([i], fit([i]))[0]))
-                            for i, why in implausible_alone.items() if i not in chosen],
-            "notes": notes, "data_driven": None,
-        }
+        unexplained = _unexplained(gate, est, where, sel, implausible_alone, chosen, notes)
         if findings:
-            # effects that leave the recording unexplained are not findings: the structure they mimic may be
-            # physics outside the library (a tool-length error fitted as a drift); they are reported as partial
-            unexplained["partial"] = [dict(f.to_dict(), why_not_a_finding=(
-                "significant and plausible, but the recording stays unexplained with it: what it fits may be "
-                "physics outside the library that it only resembles")) for f in findings]
-            unexplained["notes"].append(f"{len(findings)} candidate(s) would explain part of the misfit "
-                                        "(unexplained.partial); none is reported as a finding")
-            findings, final, res_after = [], _quality(base), None
+            findings, final, res_after = _demote(unexplained, findings, lambda: _quality(base))
             # `where` then describes the baseline's residuals, as `final` does; what the partial effects leave
             # is kept beside it
-            unexplained["where_after_partial"] = unexplained["where"]
             w0 = locate(ctx, base.residual_machine[0], base.whitened[0])
             unexplained["where"] = {k: w0[k] for k in unexplained["where"]}
         if data_driven and gate["p_value"] is not None:
@@ -541,7 +611,8 @@ def _diagnose(rec, candidates, alpha, max_set, confound_margin, max_degree, gate
             splits = 20
             steps.more(splits)
             steps.begin("data-driven search")
-            unexplained["data_driven"] = _data_driven(ctx, lin, X_final, Wn, alpha, splits, on_split=steps.done)
+            unexplained["data_driven"] = _data_driven(ctx, lin, X_final, lambda raw, frame: _whitened(raw, frame, ctx, Wn),
+                                                      alpha, splits, on_split=steps.done)
     return Diagnosis(rec.name, _quality(base), mismatch, findings, final, skipped, untestable, considered,
                      {"alpha": alpha, "bonferroni_level": level, "max_set": max_set, "confound_margin_bic": confound_margin,
                       "gate_alpha": gate_alpha, "candidates": [c.label for c in candidates],
@@ -550,12 +621,292 @@ def _diagnose(rec, candidates, alpha, max_set, confound_margin, max_degree, gate
                      noise=est, unexplained=unexplained)
 
 
+def _demote(unexplained, findings, base_quality):
+    """Effects that leave the recording unexplained are not findings: the structure they mimic may be physics
+    outside the library (a tool-length error fitted as a drift); they are reported as partial."""
+    unexplained["partial"] = [dict(f.to_dict(), why_not_a_finding=(
+        "significant and plausible, but the recording stays unexplained with it: what it fits may be "
+        "physics outside the library that it only resembles")) for f in findings]
+    unexplained["notes"].append(f"{len(findings)} candidate(s) would explain part of the misfit "
+                                "(unexplained.partial); none is reported as a finding")
+    unexplained["where_after_partial"] = unexplained["where"]
+    return [], base_quality(), None
+
+
+# --------------------------------------------------------------------- several stations
+@dataclass
+class StationsDiagnosisContext(DiagnosisContext):
+    """A :class:`~mtbudget.contracts.DiagnosisContext` for a recording of several stations.
+
+    ``pose`` is the first xyz station's pose (zeros when there is none); ``P_LT`` holds each row's predicted point
+    in its own station's frame (a range station: the vector from the station to the point, machine axes), so a
+    candidate in the "tracker" frame acts in each row's station frame; a range row sees a displacement along its
+    beam only.  ``stations`` ([:class:`mtbudget.recording.Station`]) and ``row_station`` (M,) say which station
+    measured every row."""
+
+    stations: list = field(default_factory=list)
+    row_station: np.ndarray | None = None
+
+
+@dataclass
+class _Stations:
+    """What :func:`locate` needs to summarise the residuals of several stations."""
+
+    stations: list
+    row_station: np.ndarray
+    row: np.ndarray  # (n_res,) plan row of each whitened residual
+    per_row: np.ndarray  # (M,) whitened residuals per row
+    rotation: np.ndarray  # (M, 3, 3)
+    beam: np.ndarray  # (M, 3) station frame
+    size: np.ndarray  # (M,) mm
+
+
+def _station_quality(res, L) -> dict:
+    """chi2/dof, dof, RMS (um: the root mean square over the rows of each row's residual size: 3-D for an xyz row,
+    the range residual for a range row) and convergence of an identification over several stations."""
+    return {"chi2_per_dof": float(res.chi2_per_dof), "dof": int(res.dof),
+            "rms": {"value": float(display(np.sqrt(np.mean(L.residual_size**2)), "mm", "um")), "unit": "um"},
+            "converged": bool(res.converged)}
+
+
+def _stations_whitener(L, scale=None):
+    """Columns (M, 3, k) in ``frame`` -> whitened columns (n_res, k) of a recording of several stations; ``scale``
+    (n_res,) multiplies each whitened residual (the estimated noise)."""
+    def whiten(C, frame):
+        op = L.machine if frame == "machine" else L.station
+        out = np.einsum("nj,njk->nk", op, np.asarray(C, float)[L.row])
+        return out if scale is None else out * scale[:, None]
+    return whiten
+
+
+def _expand_per_station(candidates, ctx):
+    """A candidate with a ``per_station(ctx)`` method stands for one candidate per station of the recording."""
+    out = []
+    for c in candidates:
+        if not callable(getattr(c, "per_station", None)):
+            out.append(c)
+            continue
+        got = _call(c, "per_station", ctx)
+        if not isinstance(got, (list, tuple)) or not all(isinstance(x, Candidate) for x in got):
+            _fail(c, f"must return a list of candidates, got {type(got).__name__}", "per_station")
+        out += list(got)
+    return out
+
+
+def _diagnose_stations(rec, candidates, alpha, max_set, confound_margin, max_degree, gate_alpha, data_driven, steps):
+    """The diagnosis of a recording of several stations (docs/diagnose.md, "Several stations")."""
+    from .multistation import identify_stations, linearise
+
+    where_rec = rec.path or rec.name
+    model = MeasurementModel.for_plan(rec.machine, rec.plan, max_degree=max_degree)
+    stations, row_station, fixed = rec.station_list(), rec.station_ids(), rec.fixed_inputs()
+    lt_range = rec.lt_range if rec.lt_range is not None else np.full(len(rec), np.nan)
+
+    def identify_all(lt_xyz, lt_rng):
+        res = identify_stations(model, stations, row_station, lt_xyz, lt_rng, rec.repeatability, fixed=fixed)
+        return res, linearise(res, lt_xyz, lt_rng, rec.repeatability, fixed=fixed)
+
+    steps.begin("baseline fit (all stations)")
+    try:
+        base, L = identify_all(rec.lt, lt_range)
+    except MtbudgetError as exc:
+        raise DiagnosisError(f"{where_rec}: the baseline over its {len(stations)} stations cannot be identified: "
+                             f"{exc}") from None
+    if base.dof < 10:
+        raise DiagnosisError(f"{where_rec}: only {base.dof} degrees of freedom are left after the baseline over "
+                             f"{len(stations)} stations ({len(rec)} rows); measure more points")
+    first_xyz = next((st for st in stations if st.kind == "xyz"), None)
+    pose = base.station_values(first_xyz.id)[0] if first_xyz is not None else np.zeros(6)
+    ctx = StationsDiagnosisContext(rec, model, pose, base.theta.copy(), L.P_W, L.P_station, stations=list(stations),
+                                   row_station=np.asarray(row_station))
+    info = _Stations(list(stations), np.asarray(row_station), L.row, L.residuals_per_row, L.rotation, L.beam,
+                     L.residual_size)
+    lin0 = _Linear(L.design, L.whitened, L.row)
+    mismatch = locate(ctx, L.residual_machine, L.whitened, info)
+    steps.done()
+    expanded = _expand_per_station(candidates, ctx)
+    steps.more(len(expanded) - len(candidates))
+    skipped, untestable, usable = _candidate_columns(expanded, ctx, lin0, _stations_whitener(L), steps)
+
+    steps.begin("noise estimate (REML, per station)")
+    groups = _point_groups(rec.plan)
+    est, scale = _estimate_noise_stations(rec, L, lin0, [u[1] for u in usable], groups)
+    if scale is not None:
+        lin = _Linear(L.design * scale[:, None], L.whitened * scale, L.row)
+        whiten = _stations_whitener(L, scale)
+        usable = [(c, whiten(raw, c.frame), raw) for c, _, raw in usable]
+    else:
+        lin, whiten = lin0, _stations_whitener(L)
+    steps.done()
+    steps.begin(f"candidate scan ({len(usable)} candidates, sets up to {max_set})")
+    K = max(len(usable), 1)
+    level = alpha / K
+    sel = _Selector(lin, usable)
+    considered, chosen, implausible_alone = sel.scan(level, max_set)
+    steps.done()
+    steps.begin(f"refit with the findings ({len(chosen)})")
+    findings, f_all = _findings(chosen, sel, K, alpha, confound_margin, ctx)
+    # refit with the effects at their estimates taken out of the measurements (each in its station's frame)
+    offsets = np.cumsum([0] + [usable[i][1].shape[1] for i in chosen])
+    lt_xyz, lt_rng = np.array(rec.lt, float), np.array(lt_range, float)
+    xyz_rows = np.isin(row_station, [st.id for st in stations if st.kind == "xyz"])
+    after, res, L_after = [], base, L
+    for pos, i in enumerate(chosen):
+        c, _, raw = usable[i]
+        d = raw @ f_all.beta[offsets[pos]:offsets[pos + 1]]  # (M, 3) mm in the candidate's frame
+        if c.frame == "machine":
+            d = np.einsum("mji,mj->mi", L.rotation, d)  # R^T d: into each row's station frame
+        lt_xyz[xyz_rows] -= d[xyz_rows]
+        lt_rng[~xyz_rows] -= (d[~xyz_rows] * L.beam[~xyz_rows]).sum(axis=1)
+        try:
+            res, L_after = identify_all(lt_xyz, lt_rng)
+        except MtbudgetError as exc:
+            raise DiagnosisError(f"{where_rec}: the refit with {c.label} cannot be identified: {exc}") from None
+        findings[pos].after = _station_quality(res, L_after)
+        after.append(findings[pos].after)
+    notes = []
+    if findings and res.chi2 > base.chi2:
+        notes.append("the effects the selection chose fit worse than the baseline once taken out of the measurements "
+                     f"(chi-square per dof {res.chi2_per_dof:.3f} vs {base.chi2_per_dof:.3f}); none is reported")
+        chosen, findings, after, res, L_after = [], [], [], base, L
+        f_all = sel.fit([])
+    final = after[-1] if after else _station_quality(base, L)
+    res_after = L_after.residual_machine if after else None
+
+    steps.done()
+    steps.begin("fit gate")
+    pure = None
+    if est["replicates"]:
+        pure = np.concatenate([_station_group_design(groups, L, scale), lin.Q0], axis=1)
+    gate = _gate(lin, f_all, sel.kcols(chosen), est, pure, usable, gate_alpha)
+    unexplained = None
+    steps.done()
+    if not gate["explained"]:
+        info_after = _Stations(info.stations, info.row_station, L_after.row, L_after.residuals_per_row,
+                               L_after.rotation, L_after.beam, L_after.residual_size)
+        where = locate(ctx, L_after.residual_machine, L_after.whitened, info_after)
+        unexplained = _unexplained(gate, est, where, sel, implausible_alone, chosen, notes)
+        if findings:
+            findings, final, res_after = _demote(unexplained, findings, lambda: _station_quality(base, L))
+            unexplained["where"] = {k: mismatch[k] for k in unexplained["where"]}
+        if data_driven and gate["p_value"] is not None:
+            X_final = np.concatenate([lin.Q0] + [usable[i][1] for i in chosen], axis=1)
+            splits = 20
+            steps.more(splits)
+            steps.begin("data-driven search")
+            unexplained["data_driven"] = _data_driven(ctx, lin, X_final, whiten, alpha, splits, on_split=steps.done)
+    return Diagnosis(rec.name, _station_quality(base, L), mismatch, findings, final, skipped, untestable, considered,
+                     {"alpha": alpha, "bonferroni_level": level, "max_set": max_set, "confound_margin_bic": confound_margin,
+                      "gate_alpha": gate_alpha, "candidates": [c.label for c in candidates],
+                      "thermal_correction": rec.thermal_correction,
+                      "stations": [{"id": int(st.id), "kind": st.kind, "rows": int(np.count_nonzero(row_station == st.id))}
+                                   for st in stations],
+                      "baseline": "all stations at once (mtbudget.multistation.identify_stations): geometric errors, "
+                                  "each xyz station's pose, each range station's position and dead path",
+                      "refit": "the findings at their estimates are taken out of the measurements, each in its "
+                               "station's frame, and all stations are identified again"},
+                     residuals_before=L.residual_machine, residuals_after=res_after,
+                     noise=est, unexplained=unexplained)
+
+
+def _station_group_design(groups, L, scale=None) -> np.ndarray:
+    """Whitened design of one free machine-frame position per group (the same nominal point and tool, whichever
+    station measured it): (n_res, 3G)."""
+    G = int(groups.max()) + 1
+    g = groups[L.row]
+    op = L.machine if scale is None else L.machine * scale[:, None]
+    Z = np.zeros((len(L.row), 3 * G))
+    for c in range(3):
+        Z[np.arange(len(L.row)), 3 * g + c] = op[:, c]
+    return Z
+
+
+def _estimate_noise_stations(rec, L, lin0, cand_cols, groups):
+    """The noise of several stations: one multiplier of the stated variance per station, by REML on the error
+    contrasts of repeated points (the same nominal point and tool, measured by any station: a free machine-frame
+    position per point, plus every station's unknowns and every testable candidate), or on the baseline residuals
+    when there are too few.  Returns (the noise dict, the scale of every whitened residual or None)."""
+    n = len(L.row)
+    Clib = np.concatenate(cand_cols, axis=1) if cand_cols else np.zeros((n, 0))
+    N = _complement(np.concatenate([_station_group_design(groups, L), L.design, Clib], axis=1))
+    replicates = N.shape[1] >= MIN_PURE_ERROR_DOF
+    if not replicates:
+        N = _complement(np.concatenate([L.design, Clib], axis=1))
+    y = N.T @ L.whitened
+    sid = np.asarray(rec.station_ids())[L.row]
+    stations = rec.station_list()
+    Gs, keep = [], []
+    for st in stations:
+        m = sid == st.id
+        G = N[m].T @ N[m]
+        if np.trace(G) > 1e-6:  # the station carries part of the error contrasts
+            Gs.append(G)
+            keep.append(st)
+    s, cov = _reml(y, Gs, np.ones(len(Gs))) if Gs else (np.zeros(0), np.zeros((0, 0)))
+    se = np.sqrt(np.maximum(np.diag(cov), 0.0))
+    chi2_pe, df_pe = float(y @ y), int(N.shape[1])
+    ratio_pe = math.sqrt(chi2_pe / df_pe) if df_pe else math.nan
+    p_pe = float(min(1.0, 2 * min(stats.chi2.sf(chi2_pe, df_pe), stats.chi2.cdf(chi2_pe, df_pe)))) if df_pe else 1.0
+    scatter = {"chi2_per_dof": chi2_pe / df_pe if df_pe else math.nan, "dof": df_pe, "p_value": p_pe,
+               "ratio": ratio_pe, "misstated": bool(df_pe and p_pe < NOISE_ALPHA and
+                                                    not (1 / MISSTATED_FACTOR <= ratio_pe <= MISSTATED_FACTOR))}
+
+    def q(v, internal, unit):
+        return None if v is None else {"value": float(display(v, internal, unit)), "unit": unit}
+
+    per, bad, mult = [], [], {}
+    for st in stations:
+        entry = {"id": int(st.id), "kind": st.kind,
+                 "stated": {"angular": q(st.angular, "rad", "urad"), "distance": q(st.distance, "mm", "um"),
+                            "distance_per_length": q(st.distance_per_length, "", "um/m")},
+                 "ratio": None, "ratio_uncertainty": None, "misstated": False}
+        if st in keep:
+            k = keep.index(st)
+            f = math.sqrt(max(s[k], 0.0))
+            if se[k] < 0.5 * max(s[k], 1.0):  # the plan separates this station's noise from the others'
+                uf = se[k] / (2 * f) if f > 0 else None
+                mis = bool(abs(s[k] - 1.0) > 3 * se[k] and not (1 / MISSTATED_FACTOR <= f <= MISSTATED_FACTOR))
+                entry.update(ratio=f, ratio_uncertainty=uf, misstated=mis)
+                mult[st.id] = f
+                if mis:
+                    bad.append(f"the noise of station {st.id} ({st.kind}) is {f:.2g} +- {uf:.1g} times the stated "
+                               "value")
+            else:
+                entry["note"] = ("not separable from the other stations' noise with this plan (it is counted in the "
+                                 "scatter of repeated points)")
+        else:
+            entry["note"] = "no error contrast of this station: its noise cannot be estimated"
+        per.append(entry)
+    if scatter["misstated"] and not bad:
+        bad.append(f"the scatter of repeated points is {ratio_pe:.2g} times the stated noise (chi-square per dof "
+                   f"{scatter['chi2_per_dof']:.2f} on {df_pe} dof, p = {p_pe:.1g})")
+    used = "estimated" if bad else "stated"
+    scale = None
+    if used == "estimated":
+        f_row = np.array([mult.get(int(i), ratio_pe if replicates else 1.0) for i in sid])
+        scale = 1.0 / np.where(f_row > 0, f_row, 1.0)
+    out = {
+        "method": ("REML on the error contrasts of repeated points (one free machine-frame position per nominal point "
+                   "and tool, whichever station measured it, plus every station's unknowns) after every testable "
+                   "candidate; one multiplier of the stated variance per station" if replicates else
+                   "REML on the baseline residuals after every testable candidate (too few repeated points: "
+                   "unmodelled structure cannot be told from noise); one multiplier per station"),
+        "dof": df_pe, "replicates": bool(replicates), "used": used, "stations": per,
+        "repeated_points": scatter if replicates else None,
+        "sentence": (("the stated uncertainties do not match the data: " + "; ".join(bad) +
+                      ". Selection and the fit test use the estimated noise; no finding is claimed for the "
+                      "mismatch itself") if bad else None),
+    }
+    return out, scale
+
+
 #: members of a set whose individual sizes add up to more than this many times the size of their sum cancel
 CANCEL = 2.5
 
 
-def _findings(chosen, usable, lin, fit, ftest, bic, kcols, K, alpha, confound_margin, ctx):
+def _findings(chosen, sel, K, alpha, confound_margin, ctx):
     """The chosen effects as findings, each with its evidence, estimate and confounding alternatives."""
+    usable, lin, fit, ftest, bic, kcols = sel.usable, sel.lin, sel.fit, sel.ftest, sel.bic, sel.kcols
     f_all = fit(chosen)
     findings = []
     offsets = np.cumsum([0] + [usable[i][1].shape[1] for i in chosen])
@@ -776,15 +1127,16 @@ def _estimate_noise(rec, ctx, Wh, A0, w, cand_cols) -> dict:
 
 
 # --------------------------------------------------------------------- the gate
-def _gate(lin, f_all, k_chosen, est, groups, Wn, usable, gate_alpha) -> dict:
+def _gate(lin, f_all, k_chosen, est, pure, usable, gate_alpha) -> dict:
     """Does the final model explain the recording within the noise?  Lack of fit against pure error when points
-    are repeated, else a chi-square test against the stated noise (impossible when that noise was rejected)."""
+    are repeated (``pure``: the whitened design of the saturated static model, one free position per repeated
+    point), else a chi-square test against the stated noise (impossible when that noise was rejected)."""
     dof = lin.dof0 - k_chosen
     chi2 = f_all.chi2
     out = {"chi2_per_dof": chi2 / dof if dof > 0 else math.nan, "dof": int(dof)}
-    if groups is not None:
+    if pure is not None:
         Clib = [u[1] for u in usable]
-        X = np.concatenate([_group_design(groups, Wn)] + Clib, axis=1)
+        X = np.concatenate([pure] + Clib, axis=1)
         N = _complement(X)
         chi2_pe, df_pe = float(np.sum((N.T @ lin.w) ** 2)), N.shape[1]
         df_lof = dof - df_pe
@@ -843,7 +1195,7 @@ def _features(ctx) -> dict:
     return feats
 
 
-def _data_driven(ctx, lin, X_final, Wn, alpha, splits: int = 20, on_split=None) -> dict | None:
+def _data_driven(ctx, lin, X_final, whiten, alpha, splits: int = 20, on_split=None) -> dict | None:
     """The best sparse description of what the final model leaves, from the recording's own columns.
 
     Forward selection (up to three terms, each significant at a Bonferroni level over the library on the
@@ -858,7 +1210,7 @@ def _data_driven(ctx, lin, X_final, Wn, alpha, splits: int = 20, on_split=None) 
     for fname, f in feats.items():
         for d in _DIRS:
             raw = (f[:, None] * u) if d == "range" else f[:, None] * np.eye(3)[AXIS_INDEX[d]][None]
-            cols.append(_whitened(raw[:, :, None], "tracker" if d == "range" else "machine", ctx, Wn))
+            cols.append(whiten(raw[:, :, None], "tracker" if d == "range" else "machine"))
             names.append((fname, d))
     C = np.concatenate(cols, axis=1)
     L = C.shape[1]
@@ -894,7 +1246,7 @@ def _data_driven(ctx, lin, X_final, Wn, alpha, splits: int = 20, on_split=None) 
             ok[j] = False
         return chosen
 
-    point_rows = lambda pts: np.repeat(pts, 3) * 3 + np.tile(np.arange(3), len(pts))  # noqa: E731
+    point_rows = lambda pts: np.flatnonzero(np.isin(lin.rowpt, pts))  # noqa: E731  (pts sorted: rows in order)
     first = {}
     selected, p_held, held = None, None, None
     for k in range(splits):
@@ -979,7 +1331,7 @@ def _stability(lin, usable, chosen, pos, ctx):
     out = {}
     c = usable[chosen[pos]][0]
     for k in runs:
-        keep = np.repeat(ctx.plan.run == k, 3)
+        keep = (ctx.plan.run == k)[lin.rowpt]
         A = lin.Q0[keep]
         Cs = [usable[i][1][keep] for i in chosen]
         Cm = np.concatenate(Cs, axis=1)
@@ -990,6 +1342,9 @@ def _stability(lin, usable, chosen, pos, ctx):
         cov = np.linalg.pinv(Cp.T @ Cp, rcond=1e-12)
         offsets = np.cumsum([0] + [usable[i][1].shape[1] for i in chosen])
         sl = slice(offsets[pos], offsets[pos + 1])
+        if np.linalg.norm(Cp[:, sl]) <= 1e-9 * max(np.linalg.norm(usable[chosen[pos]][1]), 1e-300):
+            out[int(k)] = {"estimate": None, "uncertainty": None, "note": "this run's rows do not carry it"}
+            continue
         est, unc, unit = _present(c, beta[sl], cov[sl, sl])
         out[int(k)] = {"estimate": est[0] if len(est) == 1 else est, "uncertainty": unc[0] if len(unc) == 1 else unc}
     return out

@@ -284,6 +284,37 @@ def _gauge(model, fixed, stations, P0, J_W) -> list:
     return out
 
 
+def _station_rows(model, stations, row_station, lt_xyz, lt_range, repeatability, P0):
+    """Every station's rows with their fixed whiteners, and the closed-form start of the unknowns (theta = 0)."""
+    M = model.n_points
+    x0 = [np.zeros(model.n_params)]
+    rows = []
+    for st in stations:
+        idx = np.flatnonzero(row_station == st.id)
+        if st.kind == "xyz":
+            meas = lt_xyz[idx]
+            if len(idx) < 3 or not np.isfinite(meas).all():
+                raise IdentificationError(f"{st.label}: needs at least 3 rows with finite lt_x, lt_y, lt_z")
+            C = lt.covariance(meas, st.angular, st.distance, st.distance_per_length) + repeatability**2 * np.eye(3)
+            rows.append(_Rows(st, idx, meas, whitener(C)))
+            x0.append(lt.register(P0[idx], meas[None])[0])
+        elif st.kind == "range":
+            meas = lt_range[idx]
+            if len(idx) < 5 or not np.isfinite(meas).all():
+                raise IdentificationError(f"{st.label}: needs at least 5 rows with a finite lt_range for a start "
+                                          "position")
+            S, o = multilaterate(P0[idx], meas)
+            r = np.linalg.norm(P0[idx] - S, axis=1)  # the length-proportional part at the start's distances
+            sigma = np.sqrt((st.distance + st.distance_per_length * r) ** 2 + repeatability**2)
+            rows.append(_Rows(st, idx, meas, 1.0 / sigma))
+            x0.append(np.concatenate([S, [o]]))
+        else:
+            raise IdentificationError(f"station {st.id}: unknown kind {st.kind!r}; expected 'xyz' or 'range'")
+    if not np.isin(np.arange(M), np.concatenate([r.idx for r in rows])).all():
+        raise IdentificationError("some rows belong to no station")
+    return rows, x0
+
+
 def identify_stations(model: MeasurementModel, stations: list, row_station, lt_xyz, lt_range, repeatability: float,
                       *, fixed: dict | None = None, max_iter: int = 50, xtol: float = 1e-7, rank_tol: float = 1e-7
                       ) -> MultiIdentification:
@@ -310,31 +341,7 @@ def identify_stations(model: MeasurementModel, stations: list, row_station, lt_x
         raise IdentificationError(f"rows of station {bad}, which is not among the stations {ids}")
     P0, J0 = model.machine_points(np.zeros((1, model.n_params)), fixed, jacobian=True)
     P0, J0 = P0[0], J0[0]
-    x0 = [np.zeros(model.n_params)]
-    rows = []
-    for st in stations:
-        idx = np.flatnonzero(row_station == st.id)
-        if st.kind == "xyz":
-            meas = lt_xyz[idx]
-            if len(idx) < 3 or not np.isfinite(meas).all():
-                raise IdentificationError(f"{st.label}: needs at least 3 rows with finite lt_x, lt_y, lt_z")
-            C = lt.covariance(meas, st.angular, st.distance, st.distance_per_length) + repeatability**2 * np.eye(3)
-            rows.append(_Rows(st, idx, meas, whitener(C)))
-            x0.append(lt.register(P0[idx], meas[None])[0])
-        elif st.kind == "range":
-            meas = lt_range[idx]
-            if len(idx) < 5 or not np.isfinite(meas).all():
-                raise IdentificationError(f"{st.label}: needs at least 5 rows with a finite lt_range for a start "
-                                          "position")
-            S, o = multilaterate(P0[idx], meas)
-            r = np.linalg.norm(P0[idx] - S, axis=1)  # the length-proportional part at the start's distances
-            sigma = np.sqrt((st.distance + st.distance_per_length * r) ** 2 + repeatability**2)
-            rows.append(_Rows(st, idx, meas, 1.0 / sigma))
-            x0.append(np.concatenate([S, [o]]))
-        else:
-            raise IdentificationError(f"station {st.id}: unknown kind {st.kind!r}; expected 'xyz' or 'range'")
-    if not np.isin(np.arange(M), np.concatenate([r.idx for r in rows])).all():
-        raise IdentificationError("some rows belong to no station")
+    rows, x0 = _station_rows(model, stations, row_station, lt_xyz, lt_range, repeatability, P0)
     x = np.concatenate(x0)
     sv = _scales(model, stations)
     names, units = _names(model, stations)
@@ -390,6 +397,86 @@ def identify_stations(model: MeasurementModel, stations: list, row_station, lt_x
         dof=int(A.shape[0] - rank), rank=rank, condition=cond, singular_values=s, null_space=null,
         gauge=_gauge(model, fixed, stations, P0, J0), converged=converged, iterations=it, row_station=row_station,
         residual_xyz=res_xyz, residual_range=res_rng, whitened=w, station_chi2=station_chi2)
+
+
+@dataclass
+class Linearisation:
+    """The whitened linear model around a :class:`MultiIdentification`'s solution, for nested tests on it
+    (:mod:`mtbudget.diagnose`).  Internal units: mm.
+
+    The whitened residuals are ordered as :attr:`MultiIdentification.whitened`: station by station, each
+    station's rows in plan order, three entries per xyz row (its whitener applied to the station-frame residual)
+    and one per range row (the range residual over its standard deviation).
+    """
+
+    design: np.ndarray  # (n_res, r) whitened Jacobian on the identifiable directions (scaled unknowns)
+    whitened: np.ndarray  # (n_res,) whitened residuals (measured - predicted)
+    row: np.ndarray  # (n_res,) the plan row of every whitened residual
+    machine: np.ndarray  # (n_res, 3) whitened residual per mm of displacement of its row's point, machine frame
+    station: np.ndarray  # (n_res, 3) the same per mm of displacement in its row's station frame
+    rotation: np.ndarray  # (M, 3, 3) R of each row's station (machine <- station frame; identity for a range station)
+    beam: np.ndarray  # (M, 3) unit vector from the row's station to its point, in the station's frame
+    P_W: np.ndarray  # (M, 3) predicted machine-frame points
+    P_station: np.ndarray  # (M, 3) predicted point in its station's frame (a range station: P_W - S)
+    residual_machine: np.ndarray  # (M, 3) residual in the machine frame (a range row: along its beam only)
+    residual_size: np.ndarray  # (M,) |residual| of every row, mm (xyz: 3-D; range: the range residual's size)
+    residuals_per_row: np.ndarray  # (M,) 3 for an xyz row, 1 for a range row
+
+
+def linearise(res: MultiIdentification, lt_xyz, lt_range, repeatability: float, *, fixed: dict | None = None
+              ) -> Linearisation:
+    """The whitened design and residuals of :func:`identify_stations` at its solution ``res`` (the same
+    measurements, repeatability and fixed inputs it was given), with the per-row maps from a displacement of a
+    point to its whitened residuals.  Nothing is re-estimated."""
+    model = res.model
+    M = model.n_points
+    lt_xyz = np.asarray(lt_xyz, float).reshape(M, 3) if lt_xyz is not None else np.full((M, 3), np.nan)
+    lt_range = np.asarray(lt_range, float).reshape(M) if lt_range is not None else np.full(M, np.nan)
+    fixed = dict(fixed or {})
+    P0 = model.machine_points(np.zeros((1, model.n_params)), fixed)[0]
+    rows, _ = _station_rows(model, res.stations, res.row_station, lt_xyz, lt_range, repeatability, P0)
+    sv = _scales(model, res.stations)
+    w, raw, A = _evaluate(model, fixed, rows, res.x, sv)
+    Q = range_basis(np.ones(res.n_unknowns, bool), res.null_space)
+    P_W = model.machine_points(res.theta[None], fixed)[0]
+    R_all = np.tile(np.eye(3), (M, 1, 1))
+    P_st = np.zeros((M, 3))
+    res_m = np.zeros((M, 3))
+    size = np.zeros(M)
+    n_per = np.zeros(M, int)
+    row_idx, mach, stat = [], [], []
+    k = model.n_params
+    for r, e in zip(rows, raw):
+        st = r.station
+        P = P_W[r.idx]
+        if st.kind == "xyz":
+            pose = res.x[k:k + 6]
+            R = lt.rotation(pose[3], pose[4], pose[5])
+            R_all[r.idx] = R
+            P_st[r.idx] = (P - pose[:3]) @ R
+            res_m[r.idx] = e @ R.T  # R e, row by row
+            size[r.idx] = np.linalg.norm(e, axis=1)
+            n_per[r.idx] = 3
+            row_idx.append(np.repeat(r.idx, 3))
+            stat.append(r.weight.reshape(-1, 3))  # W_i: rows of the whitener
+            mach.append(np.einsum("nij,kj->nik", r.weight, R).reshape(-1, 3))  # W_i R^T
+            k += 6
+        else:
+            S = res.x[k:k + 3]
+            d = P - S
+            u = d / np.linalg.norm(d, axis=1, keepdims=True)
+            P_st[r.idx] = d
+            res_m[r.idx] = e[:, None] * u
+            size[r.idx] = np.abs(e)
+            n_per[r.idx] = 1
+            row_idx.append(r.idx)
+            stat.append(r.weight[:, None] * u)
+            mach.append(r.weight[:, None] * u)
+            k += 4
+    beam = P_st / np.linalg.norm(P_st, axis=1, keepdims=True)
+    return Linearisation(design=A @ Q, whitened=w, row=np.concatenate(row_idx), machine=np.concatenate(mach),
+                         station=np.concatenate(stat), rotation=R_all, beam=beam, P_W=P_W, P_station=P_st,
+                         residual_machine=res_m, residual_size=size, residuals_per_row=n_per)
 
 
 def identify_recording_any(rec, max_degree: int = 3) -> tuple[Recording, MultiIdentification]:

@@ -43,6 +43,10 @@ def diagnosis_text(d) -> str:
     if hints:
         out.append("  where the mismatch is:")
         out += [f"    - {h}" for h in hints]
+    if m.get("by_station"):
+        out.append("  by station (baseline residuals: an xyz row's in its station's frame, a range row's along its beam; "
+                   "an xyz station's pose absorbs the mean of a range offset, station_range_offset tests what is left):")
+        out += _by_station_text(m["by_station"], um)
     noise = getattr(d, "noise", None) or {}
     if noise.get("sentence"):
         out.append(f"  NOISE: {noise['sentence']}.")
@@ -57,8 +61,7 @@ def diagnosis_text(d) -> str:
         out.append(f"  ({len(d.considered)} candidates tested at a family-wise level of {d.settings['alpha']:g})")
     for f in d.findings:
         x = f.to_dict()
-        ax = f" of the {f.candidate.axis} axis" if f.candidate.axis and len(f.candidate.axis) == 1 else (
-            f" ({f.candidate.axis})" if f.candidate.axis else "")
+        ax = _axis_words(f.candidate.axis)
         out.append(f"  FOUND {f.candidate.effect}{ax}: {f.candidate.description}")
         unit = pretty(f.unit)
         out.append(f"    estimate {_fmt_value(x['estimate']['value'])} {unit} +- {_fmt_value(x['uncertainty']['value'], 2)} "
@@ -82,6 +85,25 @@ def diagnosis_text(d) -> str:
     for s in d.untestable:
         out.append(f"  not testable {s['effect']}{'[' + s['axis'] + ']' if s['axis'] else ''}: {s['reason']}")
     return "\n".join(out)
+
+
+def _axis_words(axis) -> str:
+    """" of the x axis", " (station 2)", " (xy)" or ""."""
+    if not axis:
+        return ""
+    if axis in ("x", "y", "z"):
+        return f" of the {axis} axis"
+    return f" (station {axis})" if str(axis).isdigit() else f" ({axis})"
+
+
+def _by_station_text(by, um) -> list:
+    out = []
+    for sid, v in by.items():
+        se = v.get("mean_along_beam_stderr")
+        se_txt = f" (standard error {se:.2f} {um}, k = 1)" if se is not None else ""
+        out.append(f"    station {sid} ({v['kind']}): {v['rows']} rows, RMS residual {v['rms']:.2f} {um}, mean along the "
+                   f"beam {v['mean_along_beam']:+.2f} {um}{se_txt}, chi-square per residual {v['chi2_per_residual']:.2f}")
+    return out
 
 
 def _unexplained_text(u) -> list:
@@ -108,6 +130,9 @@ def _unexplained_text(u) -> list:
                                              for k, v in tools.items()))
     for x in lines:
         out.append(f"    - {x}")
+    if where.get("by_station"):
+        out.append("    by station:")
+        out += ["  " + x for x in _by_station_text(where["by_station"], pretty("um"))]
     for imp in u.get("implausible", []):
         ax = f"[{imp['axis']}]" if imp["axis"] else ""
         out.append(f"    IMPLAUSIBLE {imp['effect']}{ax} would fit, but {imp['reason']}: not a finding")
@@ -271,6 +296,9 @@ def _noise_section(doc: _Doc, n: dict):
     if not n:
         doc.p("No noise estimate in this diagnosis.")
         return
+    if "stations" in n:
+        _noise_stations(doc, n)
+        return
     doc.p(f"Standard deviations (k = 1) of one measured point; the estimate is {n['method']} "
           f"({n['dof']} degrees of freedom). Along and across the beam at the mean range "
           f"{_q(n['mean_range'])}. The ratio is estimated / stated, with its standard uncertainty (k = 1). "
@@ -303,6 +331,39 @@ def _noise_section(doc: _Doc, n: dict):
         doc.p(f"Machine repeatability: {mr['note']}.")
 
 
+def _noise_stations(doc: _Doc, n: dict):
+    """The noise of a recording of several stations: one multiplier of the stated variance per station."""
+    doc.p(f"Stated standard uncertainties (k = 1) of each station and the estimated ratio of its noise to them, with "
+          f"the ratio's standard uncertainty (k = 1); the estimate is {n['method']} ({n['dof']} degrees of freedom). "
+          f"Selection and the fit gate used the {n['used']} noise.")
+    rows = []
+    for st in n["stations"]:
+        stated = st["stated"]
+        what = ", ".join(x for x in (f"angle {_q(stated['angular'])}" if stated.get("angular") else "",
+                                     f"distance {_q(stated['distance'])} + {_q(stated['distance_per_length'])}") if x)
+        r = "-" if st["ratio"] is None else f"{st['ratio']:.2f}" + (
+            "" if st["ratio_uncertainty"] is None else f" ± {st['ratio_uncertainty']:.2f}")
+        verdict = "MISSTATED" if st["misstated"] else ("as stated" if st["ratio"] is not None else
+                                                        U(st.get("note", "not estimated")))
+        rows.append([f"station {st['id']}", st["kind"], what, r, verdict])
+    doc.table(["station", "kind", "stated (k = 1)", "ratio estimated / stated", "verdict"], rows)
+    rp = n.get("repeated_points")
+    if rp:
+        doc.p(f"Scatter of repeated points (every station together): {rp['ratio']:.2f} times the stated noise "
+              f"(χ²/dof {rp['chi2_per_dof']:.3f} on {rp['dof']} degrees of freedom, p-value {rp['p_value']:.2g}).")
+    if n.get("sentence"):
+        doc.p(n["sentence"][0].upper() + n["sentence"][1:] + ".", strong=True)
+
+
+def _by_station_table(doc: _Doc, by: dict):
+    um = pretty("um")
+    doc.table(["station", "kind", "rows", f"RMS residual [{um}]", f"mean along the beam [{um}]",
+               "standard error (k = 1)", "χ² per residual"],
+              [[str(k), v["kind"], str(v["rows"]), f"{v['rms']:.2f}", f"{v['mean_along_beam']:+.2f}",
+                "-" if v.get("mean_along_beam_stderr") is None else f"{v['mean_along_beam_stderr']:.2f}",
+                f"{v['chi2_per_residual']:.2f}"] for k, v in by.items()])
+
+
 def _unexplained_section(doc: _Doc, u: dict):
     doc.h(2, "Not explained")
     p = u.get("p_value")
@@ -323,6 +384,9 @@ def _unexplained_section(doc: _Doc, u: dict):
         doc.table(["run", "points", f"mean x, y, z [{um}]", f"RMS [{um}]", "χ² per coordinate"],
                   [[str(k), str(v["points"]), _vec(v["mean"]), f"{v['rms']:.2f}", f"{v['chi2_per_point']:.2f}"]
                    for k, v in w["by_run"].items()])
+    if w.get("by_station"):
+        doc.p("By station (an xyz row's residual in its station's frame, a range row's along its beam):")
+        _by_station_table(doc, w["by_station"])
     if w.get("by_tool"):
         doc.p("By tool (reflector holder offset):")
         doc.table(["tool", f"offset [{pretty(next(iter(w['by_tool'].values())).get('tool_unit', 'mm'))}]", "points",
@@ -445,6 +509,8 @@ def diagnosis_report(d, rec, folder) -> Path:
         ["description", (U(getattr(rec, "description", "") or "-"),)],
         ["machine", (U(rec.machine),)],
         ["points, runs", f"{len(plan)}, {len(set(plan.run.tolist()))}"],
+        *([["stations", "; ".join(f"{st['id']} {st['kind']} ({st['rows']} rows)" for st in d.settings["stations"])]]
+          if d.settings.get("stations") else []),
         ["temperature sensors", (U(sensors),)],
         ["candidates tested", (U(", ".join(d.settings.get("candidates", []))),)],
         ["family-wise level (Bonferroni), fit gate level", f"{d.settings['alpha']:g}, {d.settings.get('gate_alpha', 0.01):g}"],
@@ -459,6 +525,12 @@ def diagnosis_report(d, rec, folder) -> Path:
                 "yes" if b.get("converged", True) else "NO"],
                ["final (with the findings)", f"{fin['chi2_per_dof']:.3f}", str(fin["dof"]), _q(fin["rms"], 3),
                 "yes" if fin.get("converged", True) else "NO"]])
+    if d.mismatch.get("by_station"):
+        doc.h(3, "By station")
+        doc.p("Baseline: ", U(d.settings.get("baseline", "")), ". Residuals of the baseline by station: an xyz row's "
+              "residual in its station's frame, a range row's along its beam. A station's pose absorbs the mean of a "
+              "range offset along its beam; the candidate station_range_offset tests what is left.")
+        _by_station_table(doc, d.mismatch["by_station"])
     doc.h(2, "Findings")
     if d.findings:
         rows = []

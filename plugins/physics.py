@@ -6,7 +6,14 @@ parameters, in the machine or the tracker frame, and says which measurement
 would tell it from the effects it is easily confused with.  The effect names
 are fixed: thermal_expansion, reversal, tracker_drift, tracker_range_offset,
 tracker_range_scale, air_temperature_drift, approximation_degree,
-axis_coupling, spindle_growth, column_tilt, tool_length, axis_coupling_quadratic.
+axis_coupling, spindle_growth, column_tilt, tool_length, axis_coupling_quadratic,
+station_range_offset.
+
+On a recording of several stations (``ctx.stations``, ``ctx.row_station``:
+:class:`mtbudget.diagnose.StationsDiagnosisContext`) a "tracker" frame
+column acts in each row's own station frame (``ctx.P_LT`` holds each row's
+point in it; a range station's "frame" has the machine's axes and sees a
+displacement along its beam only).
 
 Every candidate declares the physically plausible range of its parameters
 (``plausible``, display units): an estimate outside it is reported as
@@ -17,6 +24,8 @@ of 100 um/m.
 """
 
 from __future__ import annotations
+
+import copy
 
 import numpy as np
 
@@ -128,7 +137,19 @@ class TrackerDrift(Candidate):
         return drift_offset(ctx.plan, np.asarray(beta, float))
 
 
+def _xyz_rows(ctx):
+    """(M,) True on the rows of laser-tracker (xyz) stations (every row of a one-station recording)."""
+    stations = getattr(ctx, "stations", None)
+    if not stations or getattr(ctx, "row_station", None) is None:
+        return np.ones(len(ctx.plan), bool)
+    return np.isin(ctx.row_station, [st.id for st in stations if st.kind == "xyz"])
+
+
 class TrackerRangeOffset(Candidate):
+    """A constant error of every tracker distance.  On several stations: the same offset on every laser-tracker
+    (xyz) station, as when one tracker is moved from station to station; a range station's own offset is its dead
+    path, an unknown of the baseline, so its rows carry nothing of it."""
+
     effect = "tracker_range_offset"
     description = "a constant error of every tracker distance (ADM zero, reflector of another type or size)"
     parameters = {"offset": "um"}
@@ -137,11 +158,82 @@ class TrackerRangeOffset(Candidate):
     plausible = {"offset": (-50.0, 50.0)}
     quantity_names = {"offset": "a range offset"}
     hints = {"tracker_range_scale": "Measure a calibrated length, or the same points from a second tracker station.",
-             "tool_length": "Measure the reflector holders on a tool presetter, or repeat with the tools swapped."}
+             "tool_length": "Measure the reflector holders on a tool presetter, or repeat with the tools swapped.",
+             "station_range_offset": "Measure with each tracker's own reflector at a calibrated length, or repeat "
+                                     "a station with the tracker of another."}
+
+    def requires(self, ctx):
+        return None if _xyz_rows(ctx).any() else "no laser-tracker (xyz) station: a range station's offset is its dead path"
 
     def columns(self, ctx):
         u = ctx.P_LT / np.linalg.norm(ctx.P_LT, axis=1, keepdims=True)
-        return u[:, :, None]
+        return (u * _xyz_rows(ctx)[:, None])[:, :, None]
+
+
+class StationRangeOffset(Candidate):
+    """A constant error of the distances of one laser-tracker (xyz) station: its ADM zero error, or the offset of
+    the reflector it measures (another type or size of SMR than its compensation assumes).
+
+    Registered once; on a recording of several stations it stands for one candidate per station
+    (:meth:`per_station`), named ``station_range_offset[<station id>]``.  The plausible range, |c| <= 50 um: an
+    ADM zero error of a tracker in calibration is a few um (the tracker's own stated distance uncertainty,
+    typically 4-10 um, bounds it); a reflector of another type or size than the one compensated (a 1.5 in SMR
+    for a 0.5 in, a broken-corner for a hollow one) shifts every distance by ten to a few tens of um; beyond
+    50 um it is a gross setup error (a wrong SMR offset, a reflector in a nest), not a range offset that a
+    verification should absorb, and the same |c| <= 50 um as ``tracker_range_offset``.
+
+    From one station the pose absorbs almost all of an offset (docs/diagnose.md: found in 3 % of single-station
+    cases); from several, the other stations fix the points, and what the station's pose cannot absorb (the
+    offset along each beam, varying in direction over the points) is seen.  On a one-station recording it is
+    skipped (that offset is ``tracker_range_offset``); a range station's offset is its dead path, already an
+    unknown of the baseline, so it is skipped there with that reason.
+    """
+
+    effect = "station_range_offset"
+    description = ("a constant error of the distances of one laser-tracker station (its ADM zero error, or the "
+                   "offset of the reflector it measures)")
+    parameters = {"offset": "um"}
+    frame = "tracker"  # each row's own station frame
+    plausible = {"offset": (-50.0, 50.0)}
+    quantity_names = {"offset": "a station range offset"}
+    hints = {"tracker_range_offset": "Measure each tracker's reflector at a calibrated length (a common offset "
+                                     "moves every station, a station's offset only its own).",
+             "tracker_range_scale": "Measure a calibrated length from that station."}
+
+    def per_station(self, ctx):
+        """One candidate per station of the recording (``axis`` is the station id); the host's stamps are kept."""
+        out = []
+        for st in getattr(ctx, "stations", None) or []:
+            c = copy.copy(self)
+            c.axis = str(st.id)
+            c.description = (f"a constant error of the distances of station {st.id} (its ADM zero error, or the "
+                             "offset of the reflector it measures)")
+            out.append(c)
+        return out
+
+    def _station(self, ctx):
+        for st in getattr(ctx, "stations", None) or []:
+            if str(st.id) == str(self.axis):
+                return st
+        return None
+
+    def requires(self, ctx):
+        stations = getattr(ctx, "stations", None) or []
+        if len(stations) < 2:
+            return ("one station: its range offset is tracker_range_offset (the pose absorbs most of it; a second "
+                    "station or a calibrated length separates it)")
+        st = self._station(ctx)
+        if st is None:
+            return f"no station {self.axis} in this recording"
+        if st.kind != "xyz":
+            return (f"station {st.id} is a range station (tracking interferometer): a constant offset of its "
+                    "distances is its dead path, already an unknown of the baseline")
+        return None
+
+    def columns(self, ctx):
+        u = ctx.P_LT / np.linalg.norm(ctx.P_LT, axis=1, keepdims=True)
+        on = np.asarray(ctx.row_station) == self._station(ctx).id
+        return (u * on[:, None])[:, :, None]
 
 
 class TrackerRangeScale(Candidate):
@@ -413,6 +505,7 @@ def all_candidates():
     out += [ApproximationDegree(a) for a in AXES] + [AxisCoupling(p) for p in ("xy", "xz", "yz")]
     out += [SpindleGrowth(), ColumnTilt("x"), ColumnTilt("y"), ToolLength()]
     out += [AxisCouplingQuadratic(p) for p in ("xy", "xz", "yz")]
+    out += [StationRangeOffset()]
     return out
 
 
