@@ -178,22 +178,28 @@ def point_lpu(scenario) -> dict:
     ``cov_e = P J cov_theta J^T P^T``.  It covers the measurement noise the
     verification states (tracker and repeatability), which is what the
     identification covariance describes; sources without a stated weight are
-    in the MCM only.  Returns {"estimate": (M0, 3) um, "cov": (M0, 3, 3) um^2}.
+    in the MCM only.  With [scales] the noise-free machine expands about the stated fixed points at the read
+    temperatures and the identification corrects it as a fixed input, as in every Monte Carlo trial.
+    Returns {"estimate": (M0, 3) um, "cov": (M0, 3, 3) um^2}.
     """
     from .identify import identify
     from .units import factor
 
     sc = scenario
+    # [scales]: the machine expands about each stated fixed point at the read temperatures, and the verification
+    # corrects that as a known input (the stated scales, the read temperatures); without [scales] both are empty
+    truth_inputs, fixed = sc.truth_inputs({}), sc.correction or None
     if sc.stations:  # [[stations]]: the noise-free measurements of every station, identified over all of them
         from .multistation import identify_stations
         from .simulate import measure_stations
 
-        xyz, ranges = measure_stations(sc, sc.truth.machine_points(sc.theta[None, :]), {})
-        ms = identify_stations(sc.id_model, sc.stations, sc.row_station, xyz[0], ranges[0], sc.noise.repeatability)
+        xyz, ranges = measure_stations(sc, sc.truth.machine_points(sc.theta[None, :], truth_inputs), truth_inputs)
+        ms = identify_stations(sc.id_model, sc.stations, sc.row_station, xyz[0], ranges[0], sc.noise.repeatability,
+                               fixed=fixed)
         p = sc.id_model.n_params
         theta, cov_theta = ms.x[None, :p], ms.cov[:p, :p]
     else:
-        res = identify(sc.id_model, sc.truth.predict(sc.theta[None, :], sc.pose), sc.noise)
+        res = identify(sc.id_model, sc.truth.predict(sc.theta[None, :], sc.pose, truth_inputs), sc.noise, fixed=fixed)
         theta, cov_theta = res.theta, res.cov_theta[0]
     F_true = sc.evaluate(sc.truth, sc.theta[None, :])[0]
     if sc.null_bias is not None:

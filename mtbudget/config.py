@@ -16,8 +16,8 @@ import numpy as np
 
 from .errors import ConfigError
 from .machine import AXES, COMPONENT_ERRORS, SQUARENESS, Configuration
-from .plan import Plan, Sensor, build_plan, mesh
-from .recording import ATTACHED_TO, COLUMNS, MAX_TIME, UNCERTAINTIES, uncertainty_problem
+from .plan import Plan, Scale, Sensor, build_plan, mesh
+from .recording import ATTACHED_TO, COLUMNS, CTE_RANGE, MAX_TIME, UNCERTAINTIES, uncertainty_problem
 from .units import ABSOLUTE_TEMPERATURE, to_internal
 
 try:
@@ -122,7 +122,7 @@ class Reader:
 SCHEMA = {
     "": ("format", "name", "description", "machine", "reference_temperature", "seed", "mesh", "plan", "tracker",
          "machine_tool", "geometric_errors", "sensors", "effects", "placement", "sources", "weights", "measurand",
-         "stations"),
+         "stations", "scales"),
     "mesh": ("x", "y", "z", "step", "step_x", "step_y", "step_z"),
     "plan": ("runs", "tools", "feed", "stop_time", "tool_change_time"),
     "tracker": ("D", "L", "H", "a", "b", "d", "angular", "distance", "distance_per_length"),
@@ -134,6 +134,9 @@ SCHEMA = {
     "weights": ("angular", "distance", "distance_per_length", "repeatability"),
     "measurand": ("tool",),
     "stations": ("kind", "D", "L", "H", "a", "b", "d", "position", "dead_path", "description"),
+    # [scales.<axis>]: the nominal expansion of each axis scale, simulated and corrected (as recording.toml's [scales])
+    "scales": AXES,
+    "scales.<axis>": ("cte", "fixed_point"),
 }
 #: the tables that are arrays of tables ([[sensors]], [[stations]]): checked entry by entry
 ARRAY_TABLES = ("sensors", "stations")
@@ -203,7 +206,7 @@ class SimulationConfig:
     distance: float
     distance_per_length: float
     repeatability: float
-    cte: float  # 1/K, nominal expansion coefficient of the axes' scales
+    cte: float  # 1/K, nominal expansion coefficient of the scales of the axes without a [scales.<axis>] table
     max_degree: int
     geometric: dict  # {"coefficients": {...}, "squareness": {...}} or generation std
     sensors: list = field(default_factory=list)
@@ -211,6 +214,10 @@ class SimulationConfig:
     weights: dict | None = None  # [weights]: identification weights stated apart from the physical inputs
     measurand_tool: list | None = None  # [measurand] tool: where the compensated machine is evaluated (mm)
     stations: list = field(default_factory=list)  # [StationSpec]: [[stations]]; empty: one tracker at [tracker]'s pose
+    #: [scales.<axis>]: {axis: plan.Scale}, the scales whose nominal expansion the simulated machine has and the
+    #: verification corrects (about each fixed point, at the read axis temperatures); empty: none (the nominal
+    #: expansion taken as perfectly corrected, the thermal sources drawing only the deviations about the axis zero)
+    scales: dict = field(default_factory=dict)
     source: dict = field(default_factory=dict)  # the raw TOML (for logging)
     path: Path | None = None
 
@@ -234,6 +241,7 @@ class SimulationConfig:
         plan = build_plan(pts, self.tools, runs, self.feed, self.stop_time, self.tool_change_time)
         rng = rng or np.random.default_rng(self.seed)
         plan.sensors = [s.sensor for s in self.sensors]
+        plan.scales = dict(self.scales)
         if not plan.time[-1] <= MAX_TIME:
             raise ConfigError(f"{self.where('plan')}: the plan lasts {plan.time[-1]:.3g} s; at most {MAX_TIME:g} s "
                               "(check feed, stop_time and tool_change_time)")
@@ -276,6 +284,44 @@ def _pose(tr: "Reader") -> np.ndarray:
     if np.any(np.abs(pose[:3]) > MAX_LENGTH):
         raise ConfigError(f"{tr.where('DLH'[int(np.argmax(np.abs(pose[:3])))])}: beyond {MAX_LENGTH:g} mm")
     return pose
+
+
+def config_states(data: dict, key: str) -> bool:
+    """Whether the raw configuration ``data`` states the dotted ``key`` ("machine_tool.cte")."""
+    node = data
+    for part in key.split("."):
+        if not isinstance(node, dict) or part not in node:
+            return False
+        node = node[part]
+    return True
+
+
+def _scales(r: "Reader", sensors: list) -> dict:
+    """[scales.<axis>] cte, fixed_point: the nominal expansion of each axis scale (keys already checked for [scales])."""
+    if not r.has("scales"):
+        return {}
+    sc = r.sub("scales")
+    out = {}
+    for a in AXES:
+        if not sc.has(a):
+            continue
+        t = sc.sub(a)
+        t.check_keys(SCHEMA["scales.<axis>"], f"[scales.{a}]")
+        if not t.has("cte"):
+            raise ConfigError(f"{t.where('cte')}: missing (the nominal expansion coefficient of the {a} scale, for "
+                              "example \"11.5 um/(m*K)\")")
+        cte = t.quantity("cte", "1/K")
+        if not CTE_RANGE[0] <= cte <= CTE_RANGE[1]:
+            raise ConfigError(f"{t.where('cte')}: {t.raw('cte')!r:.60} is not a plausible expansion coefficient of a "
+                              f"scale (expected {CTE_RANGE[0] * 1e6:g} to {CTE_RANGE[1] * 1e6:g} um/(m*K))")
+        x0 = t.quantity("fixed_point", "mm", "0 mm")
+        if abs(x0) > MAX_LENGTH:
+            raise ConfigError(f"{t.where('fixed_point')}: beyond {MAX_LENGTH:g} mm; not a position on the {a} axis")
+        if not any(s.sensor.axis == a for s in sensors):
+            raise ConfigError(f"{sc.where(a)}: no [[sensors]] table is attached to the {a} axis; simulating and "
+                              "correcting the scale's expansion needs its temperature")
+        out[a] = Scale(cte, x0)
+    return out
 
 
 def _stations(raw: list, path) -> list:
@@ -351,7 +397,7 @@ def parse_config(data: dict, path=None) -> SimulationConfig:
     if fmt != CONFIG_FORMAT:
         raise ConfigError(f"{r.where('format')}: expected \"{CONFIG_FORMAT}\", got {fmt!r}")
     r.check_keys(SCHEMA[""], "a configuration")
-    for table in [t for t in SCHEMA if t and t not in ARRAY_TABLES]:  # every table the schema lists, checked here
+    for table in [t for t in SCHEMA if t and t not in ARRAY_TABLES and "." not in t]:  # every table; [scales.x]: _scales
         if r.has(table):
             r.sub(table).check_keys(SCHEMA[table], f"[{table}]")
     for table in ARRAY_TABLES:
@@ -518,6 +564,11 @@ def parse_config(data: dict, path=None) -> SimulationConfig:
             None if abs(physical[attr]) <= 1e-3 else "a CTE beyond 1000 um/(m*K) is not plausible")
         if problem:  # the rule of recordings: what `simulate` writes must read back
             raise ConfigError(f"{r.sub(table).where(name)}: {problem}")
+    scales = _scales(r, sensors)
+    if scales and len(scales) == len(AXES) and config_states(data, "machine_tool.cte"):
+        raise ConfigError(f"{r.where('machine_tool.cte')}: the scales' expansion coefficient is stated twice, here and "
+                          f"in [scales.x], [scales.y] and [scales.z]; [machine_tool] cte is the CTE of the axes without a "
+                          "[scales.<axis>] table: remove it (or one of the [scales] tables)")
     weights = None
     if r.has("weights"):
         w = r.sub("weights")
@@ -547,6 +598,7 @@ def parse_config(data: dict, path=None) -> SimulationConfig:
         weights=weights,
         measurand_tool=measurand_tool,
         stations=stations,
+        scales=scales,
         max_degree=mt.number("max_degree", 3, int, low=1, high=9),
         geometric=geometric,
         sensors=sensors,

@@ -92,8 +92,9 @@ class Engine:
             if sc.stations:
                 ranges = np.concatenate([s.ranges for s in sims]) if nb > 1 else sims[0].ranges
                 res = _StationsResult(model, sc, meas[idx], ranges[idx])
-            else:
-                res = identify(model, meas[idx], sc.noise, strategy, chunk=n, groups=label[idx])
+            else:  # [scales]: the stated nominal expansion at the read temperatures is a known input, (1, M) arrays
+                res = identify(model, meas[idx], sc.noise, strategy, chunk=n, groups=label[idx],
+                               fixed=sc.correction or None)
             not_converged += np.bincount(label[idx], ~res.converged, minlength=nb).astype(int)
             if res.fallback is not None:
                 fallbacks += np.bincount(label[idx], res.fallback, minlength=nb).astype(int)
@@ -178,7 +179,8 @@ class _StationsResult:
         P0 = model.machine_points(np.zeros((1, model.n_params)))[0]
         rows = [(st, np.flatnonzero(sc.row_station == st.id)) for st in sc.stations]
         for i in range(k):
-            r = identify_stations(model, sc.stations, sc.row_station, meas[i], ranges[i], sc.noise.repeatability)
+            r = identify_stations(model, sc.stations, sc.row_station, meas[i], ranges[i], sc.noise.repeatability,
+                                  fixed=sc.correction or None)
             self.theta[i] = r.x[:model.n_params]
             self.converged[i] = r.converged
             self.chi2_per_dof[i] = r.chi2_per_dof

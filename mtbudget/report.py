@@ -54,7 +54,18 @@ MEASURAND = ("error of the compensated machine at each mesh point, per machine a
 def measurand_text(res) -> str:
     """The measurand of this run in one sentence: which tool offset, and what the verification leaves unidentified
     there ([measurand] tool; docs/measurand.md), and from which stations ([[stations]])."""
-    return _measurand_at_tool((res.spec or {}).get("measurand")) + _stations_clause(res.spec or {})
+    spec = res.spec or {}
+    return _measurand_at_tool(spec.get("measurand")) + _stations_clause(spec) + _scales_clause(spec)
+
+
+def _scales_clause(spec: dict) -> str:
+    scales = (spec.get("config") or {}).get("scales") or {}
+    if not scales:
+        return ""
+    axes = ", ".join(sorted(scales))
+    return (f"; the nominal expansion of the {axes} scale(s) ([scales]: CTE about each fixed point) is simulated and "
+            "corrected to the reference temperature with the read temperatures; what the correction cannot know "
+            "(sensor calibration, CTE uncertainty, drift) is in the budget")
 
 
 def _stations_clause(spec: dict) -> str:

@@ -15,7 +15,13 @@ Sources draw it through their ``links``; the identification weights follow
 it.  A source table may state a linked parameter instead of the
 configuration key; stating both with different values is an error.  To see
 what misstated weights cost, a ``[weights]`` table states the weights
-explicitly, and every output shows both.
+explicitly, and every output shows both.  The scales' expansion coefficient is per axis:
+``[scales.<axis>] cte`` for an axis whose nominal expansion is simulated and corrected, ``[machine_tool] cte`` for
+the axes without such a table (stating it beside all three is an error).
+
+**Thermal correction** ([scales]): the simulated machine's stated scales expand about their fixed points at the
+true axis temperatures (:meth:`Scenario.truth_inputs`), the verification corrects them with the stated scales at
+the read temperatures (:attr:`Scenario.correction`, a fixed input of the identification).
 """
 
 from __future__ import annotations
@@ -71,12 +77,38 @@ class Scenario:
     station_specs: list | None = None
     row_station: np.ndarray | None = None
     null_bias: np.ndarray | None = None  # (M0, 3) mm: the truth's own unidentifiable part there (replaced by its prior)
+    #: [scales]: what the verification takes as known, the nominal expansion of the stated scales at the READ axis
+    #: temperatures (``identify(..., fixed=...)``, (1, M) arrays, as ``Recording.fixed_inputs()``); empty without
+    correction: dict = field(default_factory=dict)
     _id_models: dict = field(default_factory=dict, repr=False)
     _cache: dict = field(default_factory=dict, repr=False)  # models at the measurand's tool, identifiability, prior
 
     @property
     def max_degree(self) -> int:
         return self.config.max_degree
+
+    def truth_inputs(self, pert: dict) -> dict:
+        """The simulated machine's model inputs: ``pert`` (the sources' perturbations, summed per input) with the
+        stated scales' expansion ([scales]).  For an axis with a stated scale the true relative expansion is the
+        nominal one at the read temperatures plus what the sources draw on ``axis_scale`` (the deviations: sensor
+        calibration and drift times the CTE, the CTE's own uncertainty times the temperature difference), and all of
+        it acts about the scale's fixed point: ``axis_offset`` gets ``-fixed_point s / (1 + s)`` of the total s, so
+        the effective position is ``fixed_point + (p - fixed_point)(1 + s)`` exactly.  Without [scales]: ``pert``."""
+        scales = self.plan.scales
+        if not scales:
+            return pert
+        nominal = self._cache.get("nominal_scale")
+        if nominal is None:
+            nominal = self._cache["nominal_scale"] = {
+                a: self.plan.expansion({a: sc}, self.config.reference_temperature)[f"axis_scale.{a}"]
+                for a, sc in scales.items()}
+        out = dict(pert)
+        for a, sc in scales.items():
+            s = np.atleast_2d(nominal[a] + out.get(f"axis_scale.{a}", 0.0))
+            out[f"axis_scale.{a}"] = s
+            if sc.fixed_point:
+                out[f"axis_offset.{a}"] = out.get(f"axis_offset.{a}", 0.0) - sc.fixed_point * s / (1.0 + s)
+        return out
 
     def identification_model(self, max_degree: int | None = None) -> MeasurementModel:
         """The model the verification identifies with (ISO 230-1 convention), cached per degree."""
@@ -347,6 +379,11 @@ def _resolve_links(config: SimulationConfig, sources: list, tables: dict) -> dic
                                   "state it once, or put "
                                   "the identification weights apart in a [weights] table")
             drawn[key], stated_by[key] = value, where
+    scales = getattr(config, "scales", None) or {}
+    if "machine_tool.cte" in stated_by and len(scales) == 3:
+        raise ConfigError(f"{stated_by['machine_tool.cte']}: the scales' expansion coefficient is stated twice, here and "
+                          "in [scales.x], [scales.y] and [scales.z]; [machine_tool] cte (and a thermal source's cte) is "
+                          "the CTE of the axes without a [scales.<axis>] table: remove it")
     for s in sources:
         for param, key in s.links.items():
             q = Q_(drawn[key], PHYSICAL_INPUTS[key][0])
@@ -392,8 +429,9 @@ def build_scenario(config: SimulationConfig, host: PluginHost | None = None, sou
         tool = np.asarray(config.measurand_tool, float)
         at_tool = MeasurementModel(truth.config, truth.errors, _tool_plan(plan.nominal[mesh_rows], tool))
         mesh_points = at_tool.machine_points(np.zeros(truth.n_params))[0]
+    correction = {k: _read_only(v[None, :]) for k, v in plan.nominal_expansion(config.reference_temperature).items()}
     sc = Scenario(config, plan, truth, theta, pose, noise, drawn, srcs, context, mesh_rows, mesh_points,
-                  _rigid_projector(mesh_points), tool, stations, specs, row_station)
+                  _rigid_projector(mesh_points), tool, stations, specs, row_station, correction=correction)
     if tool is not None:
         _unidentified_source(sc, host)
     return sc

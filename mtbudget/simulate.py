@@ -107,7 +107,7 @@ def simulate_block(scenario: Scenario, block: int, n: int, seed: int, active: li
             else:
                 targets[k] = targets[k] + v if k in targets else v
     offset = targets.pop("measurand_offset", None)
-    pert = from_targets(targets)
+    pert = scenario.truth_inputs(from_targets(targets))  # [scales]: the nominal expansion, about each fixed point
     truth = scenario.truth
     theta_true = scenario.theta[None, :] + pert.pop("geometry", 0.0)
     theta_true = np.broadcast_to(theta_true, (n, truth.n_params))
@@ -195,7 +195,9 @@ def truth_dict(scenario: Scenario, seed: int, trial: int) -> dict:
     drift = fixed("tracker_drift", "v_{}", "um/h")
     return {
         "conventions": {
-            "thermal": "axis -> CTE in um/(m K): the axis scale reads the nominal position p but moves to p * (1 + CTE * (T_axis - 20 degC)), about the axis zero",
+            "thermal": "axis -> CTE in um/(m K): the axis scale reads the nominal position p but moves to p * (1 + CTE * (T_axis - 20 degC)), about the axis zero"
+                       + ("; on an axis of 'scales' about that scale's fixed point, on top of its nominal expansion" if scenario.plan.scales else ""),
+            "scales": "axis -> the nominal expansion of its scale, stated in recording.toml [scales]: the simulated scale moves to fixed_point + (p - fixed_point) * (1 + cte * (T_axis - 20 degC)) at the true axis temperature (the reading plus what the sensor-calibration and drift sources drew), the identification corrects it at the read temperature",
             "reversal": "axis -> full reversal value B in um: approaching from either side the axis stops B/2 short of the target",
             "drift": "apparent velocity of the measured points in the machine frame, um/h, from the start of the test",
             "tracker_pose": "D, L, H in mm and Euler angles a, b, d in rad of the tracker frame in the machine frame (the paper's Eq. 21-22); with several stations, the first's",
@@ -209,6 +211,8 @@ def truth_dict(scenario: Scenario, seed: int, trial: int) -> dict:
         },
         "sources": {s.name: {k: (f"{v:~P}" if hasattr(v, "units") else str(v)) for k, v in s.parameters.items()}
                     for s in scenario.sources},
+        "scales": {a: {"cte_um_per_m_K": display(sc.cte, "1/K", "um/(m*K)"), "fixed_point_mm": float(sc.fixed_point)}
+                   for a, sc in sorted(scenario.plan.scales.items())},
         "tracker_pose": dict(zip("DLHabd", map(float, scenario.pose))),
         **({"stations": [{"id": st.id, "kind": st.kind, "description": st.description,
                           **({"pose": dict(zip("DLHabd", map(float, spec.pose)))} if st.kind == "xyz" else

@@ -21,6 +21,20 @@ def _axis_temperatures(ctx):
     return {a: ctx.plan.axis_temperature(a, ctx.reference_temperature) for a in AXES}
 
 
+def _axis_ctes(src, ctx) -> dict:
+    """The nominal CTE (1/K) of each axis scale: the stated scale's ([scales.<axis>] of the configuration, the plan's
+    ``scales``) where there is one, else the source's ``cte`` ([machine_tool] cte, the axes without a stated scale).
+
+    Where a scale is stated the simulated machine has its nominal expansion and the verification corrects it at the
+    read temperature (mtbudget.scenario.Scenario.truth_inputs); these sources then draw what the correction cannot
+    know, the deviation of the true expansion from the corrected one, and it acts about the scale's fixed point.
+    Without a stated scale the nominal expansion is taken as perfectly corrected and the deviation acts about the
+    axis zero (the paper's Eq. 7-9)."""
+    scales = getattr(ctx.plan, "scales", None) or {}
+    default = src.value("cte", "1/K")
+    return {a: scales[a].cte if a in scales else default for a in AXES}
+
+
 class TemperatureSensorCalibration(Source):
     """Each axis sensor reads with a calibration offset (Eq. 3: u_device = u_calibration / k).
 
@@ -40,12 +54,14 @@ class TemperatureSensorCalibration(Source):
         return (self.parameters["u_calibration"] / self.parameters["k"]).to("K")
 
     def sample(self, n, rng, ctx):
+        # the true axis temperature is the reading plus the sensor's calibration error dT: the scale is off by
+        # CTE dT against the correction made at the reading (about the fixed point of a stated scale)
         u = self.value("u_calibration", "K") / float(self.parameters["k"].magnitude)
-        cte = self.value("cte", "1/K")
+        cte = _axis_ctes(self, ctx)
         out = {}
         for a in AXES:
             dT = rng.normal(0.0, u, (n, 1))
-            out[f"axis_scale.{a}"] = Q_(np.broadcast_to(cte * dT, (n, ctx.n_points)).copy(), _ONE)
+            out[f"axis_scale.{a}"] = Q_(np.broadcast_to(cte[a] * dT, (n, ctx.n_points)).copy(), _ONE)
         return out
 
 
@@ -65,17 +81,25 @@ class CTEUncertainty(Source):
     links = {"cte": "machine_tool.cte"}
     nonnegative = ("fraction", "floor")
 
-    def width(self) -> float:
-        return max(float(self.parameters["fraction"].magnitude) * self.value("cte", "1/K"), self.value("floor", "1/K"))
+    def width(self, cte: float | None = None) -> float:
+        """Full width (1/K) for a nominal CTE (default: the ``cte`` parameter, [machine_tool] cte)."""
+        cte = self.value("cte", "1/K") if cte is None else cte
+        return max(float(self.parameters["fraction"].magnitude) * abs(cte), self.value("floor", "1/K"))
 
     def standard_uncertainty(self):
         return Q_(self.width() / (2 * math.sqrt(3)), "1/K").to("um/(m*K)")
 
     def sample(self, n, rng, ctx):
-        w = self.width()
+        # the true CTE is the nominal one plus dalpha: against the correction made with the nominal CTE the scale is
+        # off by dalpha (T_axis - T_ref), about the fixed point of a stated scale
+        cte = _axis_ctes(self, ctx)
         T = _axis_temperatures(ctx)
-        return {f"axis_scale.{a}": Q_(rng.uniform(-w / 2, w / 2, (n, 1)) * (T[a] - ctx.reference_temperature)[None, :], _ONE)
-                for a in AXES}
+        out = {}
+        for a in AXES:
+            w = self.width(cte[a])
+            out[f"axis_scale.{a}"] = Q_(rng.uniform(-w / 2, w / 2, (n, 1)) * (T[a] - ctx.reference_temperature)[None, :],
+                                        _ONE)
+        return out
 
 
 class EnvironmentalVariation(Source):
@@ -124,9 +148,10 @@ class TemperatureDrift(Source):
         return self.parameters["rate"]
 
     def sample(self, n, rng, ctx):
-        rate, cte = self.value("rate", "K/s"), self.value("cte", "1/K")
+        # the true axis temperature drifts by rate t away from what the correction reads
+        rate, cte = self.value("rate", "K/s"), _axis_ctes(self, ctx)
         t = ctx.plan.time[None, :]
-        return {f"axis_scale.{a}": Q_(cte * rng.normal(0.0, rate, (n, 1)) * t, _ONE) for a in AXES}
+        return {f"axis_scale.{a}": Q_(cte[a] * rng.normal(0.0, rate, (n, 1)) * t, _ONE) for a in AXES}
 
 
 class Backlash(Source):
