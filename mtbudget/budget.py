@@ -195,7 +195,7 @@ def point_lpu(scenario) -> dict:
 
         xyz, ranges = measure_stations(sc, sc.truth.machine_points(sc.theta[None, :], truth_inputs), truth_inputs)
         ms = identify_stations(sc.id_model, sc.stations, sc.row_station, xyz[0], ranges[0], sc.noise.repeatability,
-                               fixed=fixed)
+                               fixed=fixed, hold=sc.unidentifiable(sc.id_model))
         p = sc.id_model.n_params
         theta, cov_theta = ms.x[None, :p], ms.cov[:p, :p]
     else:

@@ -124,7 +124,7 @@ SCHEMA = {
          "machine_tool", "geometric_errors", "sensors", "effects", "placement", "sources", "weights", "measurand",
          "stations", "scales"),
     "mesh": ("x", "y", "z", "step", "step_x", "step_y", "step_z"),
-    "plan": ("runs", "tools", "feed", "stop_time", "tool_change_time"),
+    "plan": ("runs", "tools", "feed", "stop_time", "tool_change_time", "station_change_time"),
     "tracker": ("D", "L", "H", "a", "b", "d", "angular", "distance", "distance_per_length"),
     "machine_tool": ("repeatability", "max_degree", "cte"),
     "geometric_errors": ("seed", "translational", "angular", "squareness", "coefficients"),
@@ -201,6 +201,7 @@ class SimulationConfig:
     feed: float
     stop_time: float
     tool_change_time: float
+    station_change_time: float  # s, moving to the next station of [[stations]] (and setting it up)
     pose: np.ndarray  # D, L, H, a, b, d
     angular: float
     distance: float
@@ -239,12 +240,14 @@ class SimulationConfig:
         # several stations measure the plan one after the other: station k's runs are k*runs+1 .. (k+1)*runs
         runs = self.runs * max(1, len(self.stations))
         plan = build_plan(pts, self.tools, runs, self.feed, self.stop_time, self.tool_change_time)
+        if len(self.stations) > 1:  # each move to the next station takes station_change_time
+            plan.time = plan.time + (plan.run - 1) // self.runs * self.station_change_time
         rng = rng or np.random.default_rng(self.seed)
         plan.sensors = [s.sensor for s in self.sensors]
         plan.scales = dict(self.scales)
         if not plan.time[-1] <= MAX_TIME:
             raise ConfigError(f"{self.where('plan')}: the plan lasts {plan.time[-1]:.3g} s; at most {MAX_TIME:g} s "
-                              "(check feed, stop_time and tool_change_time)")
+                              "(check feed, stop_time, tool_change_time and station_change_time)")
         for i, s in enumerate(self.sensors):
             T = plan.temperature[s.sensor.column] = s.values(plan.time, rng)
             lo, hi = ABSOLUTE_TEMPERATURE
@@ -362,7 +365,7 @@ def _stations(raw: list, path) -> list:
         out.append(StationSpec("range", None, pos, dead, desc))
     if out and all(st.kind == "range" for st in out) and len(out) < 3:
         raise ConfigError(f"{path}: stations: {len(out)} range station(s) cannot locate a point in space; state at "
-                          "least three range stations (four to calibrate their positions too), or an xyz station")
+                          "least three range stations, or an xyz station")
     return out
 
 
@@ -462,7 +465,8 @@ def parse_config(data: dict, path=None) -> SimulationConfig:
         raise ConfigError(f"{pl.where('runs')}: {n_mesh} mesh points x {len(tools)} tools x {runs} runs is more than "
                           f"{MAX_PLAN_ROWS} measured points")
     plan_times = {}
-    for key, default, low in (("feed", "2000 mm/min", None), ("stop_time", "12 s", 0.0), ("tool_change_time", "120 s", 0.0)):
+    for key, default, low in (("feed", "2000 mm/min", None), ("stop_time", "12 s", 0.0), ("tool_change_time", "120 s", 0.0),
+                              ("station_change_time", "10 min", 0.0)):
         plan_times[key] = pl.quantity(key, "mm/s" if key == "feed" else "s", default)
         if (low is None and not plan_times[key] > 0) or (low is not None and plan_times[key] < low):
             raise ConfigError(f"{pl.where(key)}: must be {'positive' if low is None else 'zero or positive'}")

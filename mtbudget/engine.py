@@ -157,45 +157,53 @@ class Engine:
 
 
 class _StationsResult:
-    """The trials of a verification from several stations ([[stations]]), each identified over all its stations at
-    once by :func:`mtbudget.multistation.identify_stations` (Gauss-Newton, one trial at a time: the shared
-    factorisation of the one-station path does not apply yet).  Holds what the engine reads of an identification:
-    theta, convergence and the paper's Eq. 27 scalars, with the distances of a range station's rows being their
-    range residuals."""
-
-    fallback = None
+    """The trials of a verification from several stations ([[stations]]), identified over all their stations at
+    once (:func:`mtbudget.multistation.identify_stations_batch`; a trial it cannot finish is solved again by
+    :func:`mtbudget.multistation.identify_stations`, the reference, and counted in ``fallback``).  Holds what the
+    engine reads of an identification: theta, convergence and the paper's Eq. 27 scalars.  Eq. 27 is a mean
+    distance between measured and compensated points: it is taken over the laser trackers' rows (an interferometer
+    measures a distance, not a point), or over the range residuals when every station is an interferometer."""
 
     def __init__(self, model, sc: Scenario, meas: np.ndarray, ranges: np.ndarray):
-        from .multistation import identify_stations, multilaterate
+        from .multistation import identify_stations, identify_stations_batch, multilaterate
         from .tracker import register, to_tracker
 
-        k = len(meas)
-        self.theta = np.empty((k, model.n_params))
-        self.converged = np.zeros(k, bool)
-        self.chi2_per_dof = np.empty(k)
-        self.mean_error_after = np.empty(k)
-        self.mean_error_before = np.empty(k)
-        self.max_residual = np.empty(k)
-        P0 = model.machine_points(np.zeros((1, model.n_params)))[0]
-        rows = [(st, np.flatnonzero(sc.row_station == st.id)) for st in sc.stations]
-        for i in range(k):
+        fixed = sc.correction or None
+        k, p = len(meas), model.n_params
+        hold = sc.unidentifiable(model)
+        b = identify_stations_batch(model, sc.stations, sc.row_station, meas, ranges, sc.noise.repeatability,
+                                    fixed=fixed, hold=hold)
+        self.theta, self.converged = b["theta"].copy(), b["converged"].copy()
+        self.chi2_per_dof = b["chi2"] / b["dof"]
+        res_xyz, res_rng = b["residual_xyz"].copy(), b["residual_range"].copy()
+        self.fallback = b["failed"].copy()
+        for i in np.flatnonzero(self.fallback):
             r = identify_stations(model, sc.stations, sc.row_station, meas[i], ranges[i], sc.noise.repeatability,
-                                  fixed=sc.correction or None)
-            self.theta[i] = r.x[:model.n_params]
-            self.converged[i] = r.converged
-            self.chi2_per_dof[i] = r.chi2_per_dof
-            after = np.where(np.isnan(r.residual_range), _norm3(r.residual_xyz), np.abs(r.residual_range))
-            self.mean_error_after[i] = after.mean()
-            self.max_residual[i] = after.max()
-            before = np.empty(len(after))  # the nominal machine, each station placed by its closed-form start
-            for st, idx in rows:
-                if st.kind == "xyz":
-                    pose = register(P0[idx], meas[i, idx][None])
-                    before[idx] = _norm3(meas[i, idx] - to_tracker(P0[idx][None], pose)[0])
-                else:
+                                  fixed=fixed, hold=hold)
+            self.theta[i], self.converged[i], self.chi2_per_dof[i] = r.x[:p], r.converged, r.chi2_per_dof
+            res_xyz[i], res_rng[i] = r.residual_xyz, r.residual_range
+        xyz_rows = np.isin(sc.row_station, [st.id for st in sc.stations if st.kind == "xyz"])
+        if xyz_rows.any():
+            after = _norm3(res_xyz[:, xyz_rows])
+        else:
+            after = np.abs(res_rng)
+        self.mean_error_after = after.mean(axis=1)
+        self.max_residual = after.max(axis=1)
+        # before compensation: the nominal machine, each station placed by its closed-form start
+        P0 = model.machine_points(np.zeros((1, p)), fixed)[0]
+        before = []
+        for st in sc.stations:
+            idx = np.flatnonzero(sc.row_station == st.id)
+            if st.kind == "xyz":
+                pose = register(np.broadcast_to(P0[idx], meas[:, idx].shape), meas[:, idx])
+                before.append(_norm3(meas[:, idx] - to_tracker(np.broadcast_to(P0[idx], meas[:, idx].shape), pose)))
+            elif not xyz_rows.any():
+                d = np.empty((k, len(idx)))
+                for i in range(k):
                     S, o = multilaterate(P0[idx], ranges[i, idx])
-                    before[idx] = np.abs(ranges[i, idx] - np.sqrt(((P0[idx] - S) ** 2).sum(-1)) - o)
-            self.mean_error_before[i] = before.mean()
+                    d[i] = np.abs(ranges[i, idx] - np.sqrt(((P0[idx] - S) ** 2).sum(-1)) - o)
+                before.append(d)
+        self.mean_error_before = np.concatenate(before, axis=1).mean(axis=1)
 
 
 def _norm3(x: np.ndarray) -> np.ndarray:

@@ -252,6 +252,29 @@ def _null_space(A: np.ndarray, rank_tol: float):
     return rank, s_full, float(s_full[0] / s_full[rank - 1]) if rank else float("inf"), null
 
 
+def _free_basis(A: np.ndarray, null: np.ndarray, hold: np.ndarray | None, rank_tol: float) -> np.ndarray:
+    """Orthonormal basis (n, r) of the directions the iterations move the scaled unknowns along: every direction but
+    the null space ``null`` of the whitened Jacobian A (minimum norm: they stay at their start), or, with ``hold``
+    (p, h) directions of the geometric parameters, every direction but those (held at their start) and what else A
+    cannot see among the rest.  A rigid motion of the machine points together with every station changes no
+    measurement, so a geometric direction that moves the points rigidly is null only together with the stations:
+    holding its geometric part fixes the same datum as holding the combination, and the minimum reached is the
+    same, but the geometric parameters then never move along it (as with one tracker, whose pose absorbs it)."""
+    n = A.shape[1]
+    if hold is None or hold.size == 0:
+        return range_basis(np.ones(n, bool), null)
+    H = np.zeros((n, hold.shape[1]))
+    H[:hold.shape[0]] = hold
+    Q0 = range_basis(np.ones(n, bool), np.linalg.qr(H)[0])
+    AQ = A @ Q0
+    norms = np.linalg.norm(AQ, axis=0)
+    norms[norms == 0] = 1.0
+    _, sv, Vt = np.linalg.svd(AQ / norms, full_matrices=False)
+    keep = sv > rank_tol * sv[0]
+    V = Vt[keep].T / norms[:, None]
+    return np.linalg.qr(Q0 @ V)[0]
+
+
 def _gauge(model, fixed, stations, P0, J_W) -> list:
     """The six rigid freedoms of the whole (machine points and every station together): for each, whether the
     error model can move the machine points that way (then the data cannot see it: a null direction, held at the
@@ -284,6 +307,15 @@ def _gauge(model, fixed, stations, P0, J_W) -> list:
     return out
 
 
+def _range_start(st, points: np.ndarray, ranges: np.ndarray) -> tuple[np.ndarray, float]:
+    """:func:`multilaterate` of one range station, its failure naming the station and what to change."""
+    try:
+        return multilaterate(points, ranges)
+    except IdentificationError as exc:
+        raise IdentificationError(f"{st.label}: {exc.reason}; measure points on more than one plane (the mesh's z "
+                                  "range) and at different distances from it") from None
+
+
 def _station_rows(model, stations, row_station, lt_xyz, lt_range, repeatability, P0):
     """Every station's rows with their fixed whiteners, and the closed-form start of the unknowns (theta = 0)."""
     M = model.n_points
@@ -303,7 +335,7 @@ def _station_rows(model, stations, row_station, lt_xyz, lt_range, repeatability,
             if len(idx) < 5 or not np.isfinite(meas).all():
                 raise IdentificationError(f"{st.label}: needs at least 5 rows with a finite lt_range for a start "
                                           "position")
-            S, o = multilaterate(P0[idx], meas)
+            S, o = _range_start(st, P0[idx], meas)
             r = np.linalg.norm(P0[idx] - S, axis=1)  # the length-proportional part at the start's distances
             sigma = np.sqrt((st.distance + st.distance_per_length * r) ** 2 + repeatability**2)
             rows.append(_Rows(st, idx, meas, 1.0 / sigma))
@@ -316,15 +348,17 @@ def _station_rows(model, stations, row_station, lt_xyz, lt_range, repeatability,
 
 
 def identify_stations(model: MeasurementModel, stations: list, row_station, lt_xyz, lt_range, repeatability: float,
-                      *, fixed: dict | None = None, max_iter: int = 50, xtol: float = 1e-7, rank_tol: float = 1e-7
-                      ) -> MultiIdentification:
+                      *, fixed: dict | None = None, max_iter: int = 50, xtol: float = 1e-7, rank_tol: float = 1e-7,
+                      hold: np.ndarray | None = None) -> MultiIdentification:
     """Identify the geometric errors and every station's own unknowns from all stations at once.
 
     stations: :class:`mtbudget.recording.Station` (id, kind, stated uncertainties); row_station (M,) the station of
     every row of ``model.plan``; lt_xyz (M, 3) the xyz rows in their station's frame (mm, NaN elsewhere); lt_range
     (M,) the range rows (mm, NaN elsewhere); repeatability (mm) of the machine; fixed: known perturbations
     (``MODEL_INPUTS`` keys, e.g. ``Recording.fixed_inputs()``).  xtol: convergence, largest step of a scaled
-    unknown (um, urad).
+    unknown (um, urad).  hold: (p, h) directions of the geometric parameters (scaled, orthonormal) held at their
+    start instead of the minimum-norm datum, e.g. what one tracker cannot identify
+    (:meth:`mtbudget.scenario.Scenario.unidentifiable`): see :func:`_free_basis`.
     """
     row_station = np.asarray(row_station)
     M = model.n_points
@@ -351,7 +385,7 @@ def identify_stations(model: MeasurementModel, stations: list, row_station, lt_x
     if A.shape[0] <= n:
         raise IdentificationError(f"too few measurements: {A.shape[0]} residuals for {n} unknowns")
     rank, s, cond, null = _null_space(A, rank_tol)
-    Q = range_basis(np.ones(n, bool), null)
+    Q = _free_basis(A, null, hold, rank_tol)
     if A.shape[0] <= Q.shape[1]:
         raise IdentificationError(f"too few measurements: {A.shape[0]} residuals for {Q.shape[1]} identifiable "
                                   "unknowns (no redundancy left)")
@@ -421,6 +455,163 @@ class Linearisation:
     residual_machine: np.ndarray  # (M, 3) residual in the machine frame (a range row: along its beam only)
     residual_size: np.ndarray  # (M,) |residual| of every row, mm (xyz: 3-D; range: the range residual's size)
     residuals_per_row: np.ndarray  # (M,) 3 for an xyz row, 1 for a range row
+
+
+def identify_stations_batch(model: MeasurementModel, stations: list, row_station, lt_xyz, lt_range,
+                            repeatability: float, *, fixed: dict | None = None, max_iter: int = 50, xtol: float = 1e-7,
+                            rank_tol: float = 1e-7, hold: np.ndarray | None = None) -> dict:
+    """:func:`identify_stations` for N trials of one plan at once (the engine's): lt_xyz (N, M, 3), lt_range (N, M).
+
+    The same weighted least squares, the same closed-form starts, the same whiteners and the same convergence
+    test (a Gauss-Newton step below ``xtol``), vectorised over the trials.  What the trials share is computed once:
+    the nominal machine points, and the directions the data cannot see (the null space of the whitened Jacobian at
+    the first trial's start: what a plan and a set of stations identify does not depend on the noise).  The
+    Jacobian is evaluated only when the chord iterations on the last one have converged (each chord step costs a
+    residual evaluation): a trial has converged when the first step after a fresh Jacobian, a full Gauss-Newton
+    step, is below ``xtol``.  A trial whose cost rises on such a step (where Gauss-Newton would halve it) is
+    ``failed``: the caller solves it again with :func:`identify_stations`, the reference.
+
+    Returns a dict: theta (N, p), x (N, n), converged (N,), failed (N,), iterations (N,), chi2 (N,), dof,
+    residual_xyz (N, M, 3) mm (NaN on range rows), residual_range (N, M) mm (NaN on xyz rows)."""
+    fixed = dict(fixed or {})
+    lt_xyz = np.asarray(lt_xyz, float)
+    lt_range = np.asarray(lt_range, float)
+    N, M = lt_xyz.shape[:2]
+    p = model.n_params
+    row_station = np.asarray(row_station)
+    P0 = model.machine_points(np.zeros((1, p)), fixed)[0]
+    blocks = []  # (station, rows, weight (N, m, 3, 3) or (N, m), slice of x)
+    x0 = [np.zeros((N, p))]
+    k = p
+    for st in stations:
+        idx = np.flatnonzero(row_station == st.id)
+        if st.kind == "xyz":
+            meas = lt_xyz[:, idx]
+            C = lt.covariance(meas, st.angular, st.distance, st.distance_per_length) + repeatability**2 * np.eye(3)
+            blocks.append((st, idx, whitener(C), slice(k, k + 6)))
+            x0.append(lt.register(np.broadcast_to(P0[idx], meas.shape), meas))
+            k += 6
+        else:
+            meas = lt_range[:, idx]
+            starts = np.array([np.concatenate([S, [o]]) for S, o in (_range_start(st, P0[idx], meas[i])
+                                                                     for i in range(N))])
+            r = np.sqrt(((P0[idx][None] - starts[:, None, :3]) ** 2).sum(-1))
+            sigma = np.sqrt((st.distance + st.distance_per_length * r) ** 2 + repeatability**2)
+            blocks.append((st, idx, 1.0 / sigma, slice(k, k + 4)))
+            x0.append(starts)
+            k += 4
+    n = k
+    x = np.concatenate(x0, axis=1)
+    sv = _scales(model, stations)
+
+    def evaluate(x, t, jacobian=True):
+        """Whitened residuals (k, n_res), raw residuals per block and the whitened Jacobian (k, n_res, n) in scaled
+        unknowns of trials ``t`` at their unknowns ``x`` (k, n)."""
+        N = len(t)
+        theta = x[:, :p]
+        if jacobian:
+            P_W, J_W = model.machine_points(theta, fixed, jacobian=True)
+        else:
+            P_W, J_W = model.machine_points(theta, fixed), None
+        res, jac, raw = [], [], []
+        for st, idx, W, sl in blocks:
+            P = P_W[:, idx]
+            if st.kind == "xyz":
+                pose = x[:, sl]
+                R = lt.rotation(pose[:, 3], pose[:, 4], pose[:, 5])  # (N, 3, 3)
+                pred = (P - pose[:, None, :3]) @ R
+                e = lt_xyz[t][:, idx] - pred
+                W = W[t]
+                raw.append(e)
+                res.append((W @ e[..., None])[..., 0].reshape(N, -1))
+                if jacobian:
+                    J = np.zeros((N, len(idx), 3, n))
+                    WR = W @ np.swapaxes(R, 1, 2)[:, None]  # (N, m, 3, 3): whitener times R^T
+                    J[..., :p] = WR @ J_W[:, idx]
+                    J[..., sl] = W @ lt.pose_jacobian(P, pose)
+                    jac.append(J.reshape(N, -1, n))
+            else:
+                Sx, o = x[:, sl][:, :3], x[:, sl][:, 3]
+                d = P - Sx[:, None, :]
+                dist = np.sqrt((d * d).sum(-1))
+                e = lt_range[t][:, idx] - (dist + o[:, None])
+                W = W[t]
+                raw.append(e)
+                res.append(W * e)
+                if jacobian:
+                    u = d / dist[..., None]
+                    J = np.zeros((N, len(idx), n))
+                    J[..., :p] = (u[..., None, :] @ J_W[:, idx])[..., 0, :]
+                    J[..., sl.start:sl.start + 3] = -u
+                    J[..., sl.start + 3] = 1.0
+                    jac.append(W[..., None] * J)
+        w = np.concatenate(res, axis=1)
+        A = np.concatenate(jac, axis=1) / sv if jacobian else None
+        return w, raw, A
+
+    all_trials = np.arange(N)
+    w, raw, A = evaluate(x, all_trials)
+    rank, _, _, null = _null_space(A[0], rank_tol)
+    Q = _free_basis(A[0], null, hold, rank_tol)
+    cost = (w * w).sum(axis=1)
+    converged = np.zeros(N, bool)
+    failed = np.zeros(N, bool)
+    iterations = np.zeros(N, int)
+    # Gauss-Newton with the Jacobian refreshed only when the chord iterations on it have converged: a trial is
+    # converged when the first step after a refresh (a full Gauss-Newton step) is below xtol, which is
+    # identify_stations' criterion; the chord steps in between cost a residual evaluation each, not a Jacobian
+    a = all_trials
+    for refresh in range(max_iter):
+        if refresh:
+            w_a, raw_a, A_a = evaluate(x[a], a)
+            w[a], A = w_a, A_a
+            for r_all, r_new in zip(raw, raw_a):
+                r_all[a] = r_new
+        else:
+            A = A[a]
+        AQ = A @ Q
+        AQt = np.swapaxes(AQ, 1, 2)
+        L = np.linalg.cholesky(AQt @ AQ)  # (na, q, q): the normal matrix of this Jacobian, factorised once
+        first = np.ones(len(a), bool)
+        inner = np.ones(len(a), bool)
+        for it in range(max_iter):
+            b = np.flatnonzero(inner)
+            if not len(b):
+                break
+            t = a[b]
+            g = (AQt[b] @ w[t][..., None])
+            y = np.linalg.solve(L[b], g)
+            y = np.linalg.solve(np.swapaxes(L[b], 1, 2), y)[..., 0]
+            z = y @ Q.T
+            x_new = x[t] + z / sv
+            w_new, raw_new, _ = evaluate(x_new, t, jacobian=False)
+            c_new = (w_new * w_new).sum(axis=1)
+            rose = ~(c_new <= cost[t] * (1 + 1e-10) + 1e-300)
+            keep = ~rose
+            tk = t[keep]
+            x[tk], w[tk], cost[tk] = x_new[keep], w_new[keep], c_new[keep]
+            for r_all, r_new in zip(raw, raw_new):
+                r_all[tk] = r_new[keep]
+            iterations[t] += 1
+            small = np.abs(z).max(axis=1) < xtol
+            converged[t[keep & small & first[b]]] = True
+            # a chord step that raises the cost ends this Jacobian: refresh (a Gauss-Newton step from here); one that
+            # raises it right after a refresh is where Gauss-Newton would halve its step: given up here, counted
+            failed[t[rose & first[b]]] = True
+            inner[b[rose | small]] = False
+            first[b] = False
+        a = np.flatnonzero(~converged & ~failed)
+        if not len(a):
+            break
+    res_xyz = np.full((N, M, 3), np.nan)
+    res_rng = np.full((N, M), np.nan)
+    for (st, idx, _, _), e in zip(blocks, raw):
+        if st.kind == "xyz":
+            res_xyz[:, idx] = e
+        else:
+            res_rng[:, idx] = e
+    return {"theta": x[:, :p], "x": x, "converged": converged, "iterations": iterations, "chi2": cost,
+            "dof": int(w.shape[1] - rank), "failed": failed, "residual_xyz": res_xyz, "residual_range": res_rng}
 
 
 def linearise(res: MultiIdentification, lt_xyz, lt_range, repeatability: float, *, fixed: dict | None = None

@@ -68,6 +68,15 @@ def _scales_clause(spec: dict) -> str:
             "(sensor calibration, CTE uncertainty, drift) is in the budget")
 
 
+#: sources whose options the identification over several stations does not take (Gauss-Newton to convergence)
+STATIONS_IDLE = {"convergence_criteria": "does not act with [[stations]]", "phase_sequence": "does not act with [[stations]]"}
+
+
+def _idle_sources(spec: dict) -> dict:
+    """{source: why its row is zero by construction} for this run."""
+    return dict(STATIONS_IDLE) if (spec.get("config") or {}).get("stations") else {}
+
+
 def _stations_clause(spec: dict) -> str:
     stations = (spec.get("config") or {}).get("stations") or []
     if not stations:
@@ -75,7 +84,8 @@ def _stations_clause(spec: dict) -> str:
     kinds = ", ".join(str(st.get("kind")) for st in stations)
     return (f"; verified from {len(stations)} station(s) ({kinds}) measuring the plan one after the other, every "
             "station's pose (xyz) or position and dead path (range) identified with the errors (Gauss-Newton over all "
-            "stations: the optimisation strategy's phases and tolerance do not apply)")
+            "stations: the optimisation strategy's phases and tolerance do not apply); the paper's Eq. 27 figures are "
+            "means over the laser trackers' points (an interferometer measures a distance, not a point)")
 
 
 def _measurand_at_tool(m: dict | None) -> str:
@@ -189,14 +199,16 @@ def budget_text(res: RunResult) -> str:
         lines.append("")
         lines.append(f"Budget of the per-point measurand, each source alone on the same trials ({pretty(pb['unit'])}, k = 1):")
         lines.append(f"  {'source':<32} {'group':<22} {'u_i, RMS over the mesh (x, y, z)':>34} {'share':>7}")
+        idle = _idle_sources(res.spec or {})
         for r in sorted(pb["rows"], key=lambda r: -r["share"]):
-            lines.append(f"  {r['source']:<32} {r['group']:<22} {_vec(r['u_rms_over_mesh'], 2):>34} {r['share']:7.1%}")
+            lines.append(f"  {r['source']:<32} {r['group']:<22} {_vec(r['u_rms_over_mesh'], 2):>34} {r['share']:7.1%}"
+                         + (f"  ({idle[r['source']]})" if r["source"] in idle else ""))
         lines.append(f"  {'interaction (not additive)':<32} {'':<22} {'':>34} {pb['interaction_share']:7.1%}")
         lines.append(f"  {'total':<32} {'':<22} {_vec(pb['total']['u_rms_over_mesh'], 2):>34} {1:7.1%}")
         lines.append("  by group: " + ", ".join(f"{g['group']} {g['share']:.1%}" for g in pb["groups"]))
         for k in pb.get("systematic", []):
-            lines.append(f"  systematic, {k['systematic']} ({', '.join(k['sources'])}): {_vec(k['u_rms_over_mesh'], 2)} "
-                         f"RMS over the mesh, {k['share']:.1%}; how each was bounded:")
+            lines.append(f"  systematic, {k['systematic']} ({', '.join(k['sources'])}): u_i {_vec(k['u_rms_over_mesh'], 2)} "
+                         f"{pretty(pb['unit'])} RMS over the mesh (k = 1), {k['share']:.1%}; how each was bounded:")
             lines += [f"    {name}: {sentence}" for name, sentence in k["bounded"].items()]
     lines.append("")
     lines.append("Volume summaries and the paper's figures, per verification (the spread is over simulated verifications;")
@@ -581,9 +593,11 @@ def run_report(res: RunResult, folder, tolerance_um: float | None = None, charac
                "inputs at once, so none is defined.", "",
                f"| source | group | u_i RMS over the mesh x, y, z [{pretty(pb['unit'])}] | u_i at the worst point | share |",
                "| --- | --- | --- | --- | --- |"]
+        idle = _idle_sources(res.spec or {})
         for r in sorted(pb["rows"], key=lambda r: -r["share"]):
-            md.append(f"| {r['source']} | {r['group']} | {_vec(r['u_rms_over_mesh'], 2)} | {_vec(r['u_at_worst_point'], 2)} | "
-                      f"{r['share']:.1%} |")
+            note = f" ({idle[r['source']]})" if r["source"] in idle else ""
+            md.append(f"| {r['source']}{note} | {r['group']} | {_vec(r['u_rms_over_mesh'], 2)} | "
+                      f"{_vec(r['u_at_worst_point'], 2)} | {r['share']:.1%} |")
         md.append(f"| interaction | | | | {pb['interaction_share']:.1%} |")
         md.append(f"| **total** | | {_vec(pb['total']['u_rms_over_mesh'], 2)} | {_vec(pb['total']['u_at_worst_point'], 2)} | 100 % |")
         md += ["", "| group | share |", "| --- | --- |"] + [f"| {g['group']} | {g['share']:.1%} |" for g in pb["groups"]]

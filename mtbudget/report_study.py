@@ -251,14 +251,14 @@ def stations_lines(r: dict) -> list:
              "relative, k = 1: a ratio of two to about "
              f"{np.sqrt(2) / np.sqrt(2 * (one['trials'] - 1)):.0%}; more trials with --trials)",
              "  " + "; ".join(f"{v['label']}: {v['kinds']}" for v in r["variants"]), "",
-             f"  {'':<52}{'x':>8}{'y':>8}{'z':>8}"]
+             f"  {'':<52}{'x':>10}{'y':>10}{'z':>10}"]
     for v in r["variants"]:
         sm = v["summary"]
-        lines.append(f"  {v['label'] + ': RMS of u over the mesh':<52}" + "".join(f"{x:8.2f}" for x in sm["u_rms_over_mesh"]))
-        lines.append(f"  {v['label'] + ': largest u':<52}" + "".join(f"{x:8.2f}" for x in sm["u_max"]))
+        lines.append(f"  {v['label'] + ': RMS of u over the mesh':<52}" + "".join(f" {x:9.2f}" for x in sm["u_rms_over_mesh"]))
+        lines.append(f"  {v['label'] + ': largest u':<52}" + "".join(f" {x:9.2f}" for x in sm["u_max"]))
     lines.append(f"  {'ratio ' + many['label'] + ' / ' + one['label'] + ', median over points':<52}"
-                 + "".join(f"{x:8.2f}" for x in r["ratio_median"]))
-    lines.append(f"  {'ratio, largest over points':<52}" + "".join(f"{x:8.2f}" for x in r["ratio_max"]))
+                 + "".join(f" {x:9.2f}" for x in r["ratio_median"]))
+    lines.append(f"  {'ratio, largest over points':<52}" + "".join(f" {x:9.2f}" for x in r["ratio_max"]))
     lines.append("")
     for v in r["variants"]:
         c = v["compensation_rms"]
@@ -267,7 +267,9 @@ def stations_lines(r: dict) -> list:
                      f"summary) mean {c['mean']:.2f} µm, standard deviation {c['std']:.2f} µm (k = 1){extra}")
         if v.get("budget_groups"):
             shares = ", ".join(f"{g['group']} {g['share']:.0%}" for g in v["budget_groups"] if g["share"] > 0.005)
-            lines.append(f"    budget of the per-point variance by group: {shares}")
+            inter = v.get("interaction_share")
+            lines.append(f"    budget of the per-point variance by group: {shares}"
+                         + (f"; interaction (not additive) {inter:+.0%}" if inter is not None else ""))
     return lines
 
 
@@ -314,6 +316,8 @@ def stations_report(r: dict, folder: Path) -> Path:
     for v in r["variants"]:
         sm, c = v["summary"], v["compensation_rms"]
         groups = ", ".join(f"{g['group']} {g['share']:.0%}" for g in v.get("budget_groups") or [] if g["share"] > 0.005)
+        if v.get("interaction_share") is not None:
+            groups += f", interaction (not additive) {v['interaction_share']:+.0%}"
         lines.append(f"| {v['label']} ({v['kinds']}) | {', '.join(f'{x:.2f}' for x in sm['u_rms_over_mesh'])} | "
                      f"{', '.join(f'{x:.2f}' for x in sm['u_max'])} | {c['mean']:.2f}, {c['std']:.2f} | "
                      f"{groups or 'not computed (attribution trials 0)'} |")

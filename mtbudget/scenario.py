@@ -44,6 +44,9 @@ from .units import Q_, to_internal
 #: keys of the [sources] table that are not source names
 SOURCE_TABLE_KEYS = ("enable", "disable", "add")
 
+#: the shortest distance a station may stand from a measured point (mm): closer, no tracker or interferometer measures
+MIN_STATION_DISTANCE = 100.0
+
 #: sources that were retired, with where their physics lives now: a [sources] disable list may still name them (it
 #: asks for nothing); enable, add or a [sources.NAME] table is an error that says where to go
 RETIRED_SOURCES = {"multilateration": "multilateration is simulated from the stations themselves since issue 20 (the "
@@ -148,6 +151,21 @@ class Scenario:
 
             self._cache["identifiability"] = analyse(self.id_model)
         return self._cache["identifiability"]
+
+    def unidentifiable(self, model: MeasurementModel) -> np.ndarray:
+        """(p, k) orthonormal directions (scaled parameters: um, urad) of ``model`` that this plan cannot identify from
+        one tracker (:func:`mtbudget.identify.analyse`: what the tracker pose absorbs, what no tool offset shows).
+        Several stations cannot identify them either (they move the points rigidly, or not at all); the
+        identification over several stations holds them at zero (``identify_stations(..., hold=)``), as the one-
+        tracker identification does, so that at another tool they are covered by the prior
+        (``unidentified_at_tool``) rather than by a datum convention."""
+        from .identify import analyse
+
+        key = ("null", id(model))
+        if key not in self._cache:  # the model is kept beside its null space so that its id is not reused
+            Nz = analyse(model).null_space if model is not self.id_model else self.identifiability().null_space
+            self._cache[key] = (model, Nz)
+        return self._cache[key][1]
 
     def unidentified_prior(self):
         """At a tool the verification did not use: (N, L), the directions of the identification model's parameters
@@ -301,7 +319,7 @@ def select_sources(config: SimulationConfig, host: PluginHost, names: list | Non
         if n in RETIRED_SOURCES and where != "sources.disable":
             raise ConfigError(f"{config.where(where)}: {RETIRED_SOURCES[n]}")
         if n not in available and not (n in RETIRED_SOURCES and where == "sources.disable"):
-            close = difflib.get_close_matches(n, list(available), n=1)
+            close = difflib.get_close_matches(n, list(available) + list(RETIRED_SOURCES), n=1)
             hint = f"; did you mean {close[0]!r}?" if close else f"; available: {', '.join(sorted(available))}"
             raise ConfigError(f"{config.where(where)}: unknown source {n!r}{hint}")
 
@@ -444,6 +462,13 @@ def _stations(config: SimulationConfig, plan: Plan, noise: Noise):
 
     stations = [Station(k + 1, spec.kind, noise.angular if spec.kind == "xyz" else None, noise.distance,
                         noise.distance_per_length, spec.description) for k, spec in enumerate(config.stations)]
+    P = plan.nominal + plan.tool  # the nominal tool points (an error-free XFYZ machine) the stations measure
+    for k, spec in enumerate(config.stations):
+        where = config.where(f"stations[{k}]." + ("D, L, H" if spec.kind == "xyz" else "position"))
+        d = float(np.sqrt(((P - spec.tracker_pose[:3]) ** 2).sum(axis=1)).min())
+        if not d >= MIN_STATION_DISTANCE:
+            raise ConfigError(f"{where}: the station stands {d:.0f} mm from a measured point; no instrument measures "
+                              f"closer than {MIN_STATION_DISTANCE:.0f} mm: put it outside the measured volume")
     row_station = (plan.run - 1) // config.runs + 1
     row_station = row_station.astype(np.int64)
     row_station.setflags(write=False)

@@ -118,6 +118,7 @@ def simulate_block(scenario: Scenario, block: int, n: int, seed: int, active: li
     out = SimulatedBlock((meas, theta_true, choices))
     out.measurand_offset = None if offset is None else np.broadcast_to(offset, (n, len(scenario.plan), 3))
     out.ranges = ranges
+    out.pose_offset = np.broadcast_to(pert["pose"], (n, 6)) if "pose" in pert else None
     return out
 
 
@@ -157,6 +158,7 @@ class SimulatedBlock(tuple):
 
     measurand_offset = None
     ranges = None  # (n, M) mm: the ranges of the range stations of [[stations]] (NaN on xyz rows); None without
+    pose_offset = None  # (n, 6): what the sources drew on the tracker pose (every station moves by it); None without
 
 
 def simulate_recording(scenario: Scenario, seed: int | None = None, trial: int = 0, block: int = 64):
@@ -176,10 +178,10 @@ def simulate_recording(scenario: Scenario, seed: int | None = None, trial: int =
         reference_temperature=cfg.reference_temperature,
         description=cfg.description or f"simulated by mtbudget (seed {seed}, trial {trial})", **several,
     )
-    return rec, truth_dict(scenario, seed, trial)
+    return rec, truth_dict(scenario, seed, trial, None if sim.pose_offset is None else sim.pose_offset[i])
 
 
-def truth_dict(scenario: Scenario, seed: int, trial: int) -> dict:
+def truth_dict(scenario: Scenario, seed: int, trial: int, pose_offset: np.ndarray | None = None) -> dict:
     """What a simulated recording holds, in display units (the ``truth.json`` beside it)."""
     model = scenario.truth
     coefs, sq = model.errors.coefficients(scenario.theta)
@@ -193,6 +195,7 @@ def truth_dict(scenario: Scenario, seed: int, trial: int) -> dict:
         return {a: v for a, v in vals.items() if v}
 
     drift = fixed("tracker_drift", "v_{}", "um/h")
+    dpose = np.zeros(6) if pose_offset is None else np.asarray(pose_offset, float)  # where the trial put the stations
     return {
         "conventions": {
             "thermal": "axis -> CTE in um/(m K): the axis scale reads the nominal position p but moves to p * (1 + CTE * (T_axis - 20 degC)), about the axis zero"
@@ -200,8 +203,8 @@ def truth_dict(scenario: Scenario, seed: int, trial: int) -> dict:
             "scales": "axis -> the nominal expansion of its scale, stated in recording.toml [scales]: the simulated scale moves to fixed_point + (p - fixed_point) * (1 + cte * (T_axis - 20 degC)) at the true axis temperature (the reading plus what the sensor-calibration and drift sources drew), the identification corrects it at the read temperature",
             "reversal": "axis -> full reversal value B in um: approaching from either side the axis stops B/2 short of the target",
             "drift": "apparent velocity of the measured points in the machine frame, um/h, from the start of the test",
-            "tracker_pose": "D, L, H in mm and Euler angles a, b, d in rad of the tracker frame in the machine frame (the paper's Eq. 21-22); with several stations, the first's",
-            "stations": "with several stations: each xyz station's pose as tracker_pose, each range station's position (mm, machine frame) and dead path (mm)",
+            "tracker_pose": "D, L, H in mm and Euler angles a, b, d in rad of the tracker frame in the machine frame (the paper's Eq. 21-22), as simulated (the configured pose plus what the registration source drew in this trial); with several stations, the first's",
+            "stations": "with several stations, as simulated: each xyz station's pose as tracker_pose, each range station's position (mm, machine frame) and dead path (mm); the registration source moves every station by the same drawn offset",
         },
         "simulation": {"seed": int(seed), "trial": int(trial)},
         "effects": {
@@ -213,10 +216,11 @@ def truth_dict(scenario: Scenario, seed: int, trial: int) -> dict:
                     for s in scenario.sources},
         "scales": {a: {"cte_um_per_m_K": display(sc.cte, "1/K", "um/(m*K)"), "fixed_point_mm": float(sc.fixed_point)}
                    for a, sc in sorted(scenario.plan.scales.items())},
-        "tracker_pose": dict(zip("DLHabd", map(float, scenario.pose))),
+        "tracker_pose": dict(zip("DLHabd", map(float, scenario.pose + dpose))),
         **({"stations": [{"id": st.id, "kind": st.kind, "description": st.description,
-                          **({"pose": dict(zip("DLHabd", map(float, spec.pose)))} if st.kind == "xyz" else
-                             {"position_mm": [float(v) for v in spec.position], "dead_path_mm": float(spec.dead_path)})}
+                          **({"pose": dict(zip("DLHabd", map(float, spec.pose + dpose)))} if st.kind == "xyz" else
+                             {"position_mm": [float(v) for v in spec.position + dpose[:3]],
+                              "dead_path_mm": float(spec.dead_path)})}
                          for st, spec in zip(scenario.stations, scenario.station_specs)]} if scenario.stations else {}),
         "noise": {"angular_urad": display(scenario.noise.angular, "rad", "urad"),
                   "dist_um": display(scenario.noise.distance, "mm", "um"),

@@ -395,6 +395,7 @@ def verification_clouds(res, scenario: Scenario, blocks: int = 4) -> tuple[np.nd
     The run's own trials of its first ``blocks`` blocks are simulated again
     (same streams) and identified with the default strategy.
     """
+    one_tracker(scenario, "the error clouds of paper Figs. 12-15")
     eng = Engine(scenario, seed=res.spec["seed"], block=res.spec["block"])
     n_blocks = max(1, min(blocks, res.trials // eng.block))
     init, final = [], []
@@ -532,6 +533,7 @@ def verification_arrays(scenario: Scenario, trials: int, seed: int | None = None
     compensated_vectors (N, M, 3): the compensated error's components (machine frame), residual_vectors
     (N, M, 3): the residual's (tracker frame).
     """
+    one_tracker(scenario, "the paper's verification figures")
     eng = Engine(scenario, seed=seed, block=block)
     strategy = Strategy.one_phase(weighted=weighted)
     rows = scenario.mesh_rows
@@ -656,6 +658,7 @@ def paper_readings(scenario: Scenario, trials: int = 1000, tests: int = 5_000, s
     placement tests per direction for each reading of Figs. 9-11 and each row of the sensitivity table, whose
     verifications are the smaller count ``sensitivity_trials`` (both stated in the result).  seed, block: those
     of the run whose verifications are simulated again (a block draws from its own random stream)."""
+    one_tracker(scenario, "the readings of the paper's figures")
     seed = scenario.config.seed if seed is None else seed
     chosen = study_readings(scenario)
     out: dict = {"chosen": chosen, "match_tolerance": MATCH_TOLERANCE,
@@ -711,20 +714,33 @@ def sensitivity_table(scenario: Scenario, trials: int, tests: int, seed: int, ch
                     "the weighting acts on the verification only)"}
 
 
+def one_tracker(scenario: Scenario, what: str):
+    """The paper's studies are of one tracker: a configuration with [[stations]] is refused in one line."""
+    if scenario.stations:
+        raise ConfigError(f"{scenario.config.where('stations')}: {what}: the paper's one tracker only; for "
+                          "[[stations]] use `mtbudget study stations` (one station against all) or `mtbudget run`")
+
+
 def station_variants(config) -> list:
-    """The verification of ``config`` ([[stations]]) from its first station alone and from all its stations: the same
+    """The verification of ``config`` ([[stations]]) from its first laser tracker alone and from all its stations: the same
     machine (the same generation functions and seed), the same plan per station, the same sources.  Returns
     [(label, SimulationConfig)]."""
     from dataclasses import replace
 
     if len(config.stations) < 2:
         raise ConfigError(f"{config.where('stations')}: the comparison needs at least two [[stations]] (it runs the "
-                          f"first alone and all of them); this configuration has {len(config.stations)}")
+                          f"first laser tracker alone and all of them); this configuration has {len(config.stations)}")
+    first = next((i for i, st in enumerate(config.stations) if st.kind == "xyz"), None)
+    if first is None:
+        raise ConfigError(f"{config.where('stations')}: the comparison runs one laser tracker (kind = \"xyz\") against "
+                          "all the stations; these are all interferometers, and one cannot locate a point alone")
     out = []
-    for k in (1, len(config.stations)):
+    for keep in ([first], list(range(len(config.stations)))):
         src = dict(config.source)
-        src["stations"] = list(config.source.get("stations", []))[:k]
-        out.append((f"{k} station{'s' if k > 1 else ''}", replace(config, stations=config.stations[:k], source=src)))
+        src["stations"] = [list(config.source.get("stations", []))[i] for i in keep]
+        k = len(keep)
+        out.append((f"{k} station{'s' if k > 1 else ''}",
+                    replace(config, stations=[config.stations[i] for i in keep], source=src)))
     return out
 
 
@@ -754,7 +770,8 @@ def stations_comparison(config, trials: int = 256, attribution_trials: int = 64,
                          "trials": res.acc.n, "u": u, "summary": points_summary(pts),
                          "compensation_rms": {"mean": out["mean"], "std": out["std"], "unit": out["unit"]},
                          "not_converged": res.not_converged,
-                         "budget_groups": pb.get("groups"), "budget_rows": pb.get("rows")})
+                         "budget_groups": pb.get("groups"), "budget_rows": pb.get("rows"),
+                         "interaction_share": pb.get("interaction_share")})
     one, many = variants[0]["u"], variants[-1]["u"]
     return {"measurand": "error of the compensated machine at each mesh point, per machine axis, at the "
                          "verification's tool, rigid-body part removed (docs/measurand.md); u is the standard "
@@ -814,15 +831,32 @@ def station_information(scenario: Scenario, stations: list) -> tuple[np.ndarray,
 RANK_TOL = 1e-9
 
 
-def set_uncertainty(info: np.ndarray, Jf: np.ndarray, rank_tol: float = RANK_TOL) -> np.ndarray:
+def set_uncertainty(info: np.ndarray, Jf: np.ndarray, rank_tol: float = RANK_TOL,
+                    prior: np.ndarray | None = None) -> np.ndarray:
     """u (M0, 3) of the compensated machine's error per point and axis (mm: the field Jacobian's unit, parameters
     scaled) from the summed information ``info`` (p, p) of a set of stations: the parameters' covariance is its
     pseudo-inverse on the directions the set identifies (what it cannot see is held, as the identification holds
-    it, and does not show at the verification's tool)."""
+    it, and does not show at the verification's tool).  prior: (3 M0,) mm^2 added to every variance, what the
+    verification cannot identify at a [measurand] tool it did not use (:func:`unidentified_variance`)."""
     lam, V = np.linalg.eigh(info)
     keep = lam > rank_tol * lam.max()
     G = Jf @ V[:, keep]
-    return np.sqrt((G * G / lam[keep]).sum(axis=1)).reshape(-1, 3)
+    var = (G * G / lam[keep]).sum(axis=1)
+    if prior is not None:
+        var = var + prior
+    return np.sqrt(var).reshape(-1, 3)
+
+
+def unidentified_variance(scenario: Scenario) -> np.ndarray | None:
+    """At a [measurand] tool the verification did not use: the variance (3 M0,) mm^2 of what it cannot identify
+    there, from the prior of the generation functions (as :func:`mtbudget.budget.point_lpu` and the Monte Carlo's
+    source unidentified_at_tool); None at the verification's tool."""
+    m = scenario.context.measurand
+    if m is None:
+        return None
+    field = m["unidentified_field"][:, scenario.mesh_rows]
+    G = scenario.rigid_free @ field.reshape(field.shape[0], -1).T
+    return (G * G).sum(axis=1)
 
 
 def ring_candidates(scenario: Scenario, n: int, kind: str, radius: float, height: float) -> list:
@@ -839,6 +873,18 @@ def ring_candidates(scenario: Scenario, n: int, kind: str, radius: float, height
     return out
 
 
+def _check_candidates(scenario: Scenario, candidates: list):
+    """Every candidate at least the tracker's shortest range ([placement] range_min) from every measured point."""
+    s = placement_settings(scenario, tests=1)
+    pts = scenario.mesh_points
+    for i, (_, place) in enumerate(candidates):
+        d = float(np.sqrt(((pts - np.asarray(place, float)[:3]) ** 2).sum(axis=1)).min())
+        if not d >= s.range_min:
+            raise ConfigError(f"candidate station {i} stands {d:.0f} mm from a measured point, closer than the "
+                              f"shortest range {s.range_min:.0f} mm ([placement] range_min): a larger circle, or "
+                              "another height", key="--radius")
+
+
 def station_placement(scenario: Scenario, candidates: list, k_max: int = 4, progress: bool = False) -> dict:
     """Which set of stations minimises the per-point uncertainty of the compensated machine (issue 20): every subset
     of 1 .. ``k_max`` of the ``candidates`` ([(kind, place)], see :func:`station_information`), ranked by the largest u
@@ -851,7 +897,9 @@ def station_placement(scenario: Scenario, candidates: list, k_max: int = 4, prog
         raise ConfigError(f"the number of stations must be between 1 and the {len(candidates)} candidates, got {k_max}",
                           key="--stations")
     t0 = time.perf_counter()
+    _check_candidates(scenario, candidates)
     info, Jf = station_information(scenario, candidates)
+    prior = unidentified_variance(scenario)
     um = factor("mm", "um")
     # what every candidate together identifies: a set that sees less (a lone range station) identifies too little
     lam_all = np.linalg.eigvalsh(info.sum(axis=0))
@@ -866,7 +914,7 @@ def station_placement(scenario: Scenario, candidates: list, k_max: int = 4, prog
         for i, idx in enumerate(sets):
             N = info[list(idx)].sum(axis=0)
             if np.count_nonzero(np.linalg.eigvalsh(N) > tol) == full:
-                u = set_uncertainty(N, Jf, tol / np.linalg.eigvalsh(N).max()) * um
+                u = set_uncertainty(N, Jf, tol / np.linalg.eigvalsh(N).max(), prior) * um
                 worst_u[i] = u.max()
                 rms_u[i] = np.sqrt((u**2).mean(axis=0))
             bar.update(1)
@@ -880,7 +928,8 @@ def station_placement(scenario: Scenario, candidates: list, k_max: int = 4, prog
                         "worst": list(sets[worst]), "worst_max_u": float(worst_u[worst]),
                         "median_max_u": float(np.median(worst_u[ok])),
                         "best_u": set_uncertainty(info[list(sets[best])].sum(axis=0), Jf,
-                                                  tol / np.linalg.eigvalsh(info[list(sets[best])].sum(axis=0)).max()) * um})
+                                                  tol / np.linalg.eigvalsh(info[list(sets[best])].sum(axis=0)).max(),
+                                                  prior) * um})
         per_k.append(row)
     return {"measurand": "largest standard uncertainty (k = 1) over the mesh points and axes of the compensated "
                          "machine's error (docs/measurand.md), GUF: the identification covariance from the stated "

@@ -107,7 +107,7 @@ class ModelFormPeriodic(Source):
     your own: ``[sources.model_form_periodic] lead_x = "16 mm"``, and ``u_x = A / sqrt(2)`` for an amplitude A that
     an ISO 230-2 positioning test with steps finer than the lead (for example lead / 8 over two leads) measured or
     bounds.  A mesh whose positions on an axis are a whole number of leads apart sees one phase on that axis (a
-    translation the tracker pose absorbs): nothing is left at the mesh points, all of it between them.  The
+    translation the rigid-body part absorbs): nothing is left at the mesh points, all of it between them.  The
     budget row says so (``bounded``).
     """
 
@@ -171,10 +171,12 @@ class ModelFormPeriodic(Source):
         notes = []
         if aliased:
             notes.append(f"{', '.join(aliased)}: the plan's positions are whole leads apart, so every point sees one "
-                         "phase, a translation the tracker pose absorbs")
+                         "phase, a translation the rigid-body part of the verification absorbs (the tracker pose, or "
+                         "the stations' datum)")
         if fitted:
-            notes.append(f"{', '.join(fitted)}: a polynomial of degree {degree} passes through the error at each of the "
-                         "plan's positions")
+            npos = {a: len(np.unique(rows[:, "xyz".index(a)])) for a in fitted}
+            notes.append("; ".join(f"{a}: a polynomial of degree {npos[a] - 1} passes through the error at each of the "
+                                   f"plan's {npos[a]} positions" for a in fitted))
         if notes:
             text += (f" On this plan nothing of the {', '.join(aliased + fitted)} error is left at the mesh points, all "
                      "of it between them, where the measurand is not evaluated (" + "; ".join(notes) + ").")
