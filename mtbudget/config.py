@@ -133,7 +133,8 @@ SCHEMA = {
     "effects": ("thermal", "reversal", "drift"),
     "weights": ("angular", "distance", "distance_per_length", "repeatability"),
     "measurand": ("tool",),
-    "stations": ("kind", "D", "L", "H", "a", "b", "d", "position", "dead_path", "description"),
+    "stations": ("kind", "D", "L", "H", "a", "b", "d", "position", "dead_path", "description", "angular", "distance",
+                 "distance_per_length"),
     # [scales.<axis>]: the nominal expansion of each axis scale, simulated and corrected (as recording.toml's [scales])
     "scales": AXES,
     "scales.<axis>": ("cte", "fixed_point"),
@@ -274,6 +275,10 @@ class StationSpec:
     position: np.ndarray | None  # (3,) mm, machine frame, of a range station
     dead_path: float = 0.0  # mm, a range station's offset (identified with its position)
     description: str = ""
+    #: its own standard uncertainties (k = 1; rad, mm, mm/mm) where it states them, else None: the [tracker] ones
+    angular: float | None = None
+    distance: float | None = None
+    distance_per_length: float | None = None
 
     @property
     def tracker_pose(self) -> np.ndarray:
@@ -341,12 +346,21 @@ def _stations(raw: list, path) -> list:
         desc = s.get("description", "")
         if not isinstance(desc, str):
             raise ConfigError(f"{sr.where('description')}: expected a string")
+        own = {}
+        for name, unit in (("angular", "rad"), ("distance", "mm"), ("distance_per_length", "mm/mm")):
+            if name in s:
+                if name == "angular" and kind == "range":
+                    raise ConfigError(f"{sr.where(name)}: a range station measures no angle")
+                own[name] = sr.quantity(name, unit)
+                problem = uncertainty_problem(f"tracker.{name}", own[name])
+                if problem:
+                    raise ConfigError(f"{sr.where(name)}: {problem}")
         if kind == "xyz":
             extra = [k for k in ("position", "dead_path") if k in s]
             if extra:
                 raise ConfigError(f"{sr.where(extra[0])}: an xyz station states its pose (D, L, H, a, b, d), not "
                                   f"{extra[0]}")
-            out.append(StationSpec("xyz", _pose(sr), None, 0.0, desc))
+            out.append(StationSpec("xyz", _pose(sr), None, 0.0, desc, **own))
             continue
         extra = [k for k in POSE_KEYS if k in s]
         if extra:
@@ -362,7 +376,7 @@ def _stations(raw: list, path) -> list:
         dead = sr.quantity("dead_path", "mm", "0 mm")
         if abs(dead) > MAX_LENGTH:
             raise ConfigError(f"{sr.where('dead_path')}: beyond {MAX_LENGTH:g} mm")
-        out.append(StationSpec("range", None, pos, dead, desc))
+        out.append(StationSpec("range", None, pos, dead, desc, **own))
     if out and all(st.kind == "range" for st in out) and len(out) < 3:
         raise ConfigError(f"{path}: stations: {len(out)} range station(s) cannot locate a point in space; state at "
                           "least three range stations, or an xyz station")

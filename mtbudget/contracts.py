@@ -84,6 +84,9 @@ class Context:
     #: at a [measurand] tool the verification did not use: {"unidentified_field": (k, M, 3) mm}, the field at the mesh
     #: rows of each unit draw of the error combinations it cannot identify (their prior); None otherwise
     measurand: dict | None = None
+    #: several stations ([[stations]]): what each plan row's station states of its noise, {"angular" (rad),
+    #: "distance" (mm), "distance_per_length"}: (M,) arrays (a station's own, else the tracker's); None for one tracker
+    row_noise: dict | None = None
 
     @property
     def n_points(self) -> int:

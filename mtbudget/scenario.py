@@ -433,12 +433,19 @@ def build_scenario(config: SimulationConfig, host: PluginHost | None = None, sou
         stations, specs, row_station = _stations(config, plan, noise)
         P0 = truth.machine_points(np.zeros(truth.n_params))[0]
         nominal = np.empty_like(P0)
+        row_noise = {name: np.empty(len(plan)) for name in ("angular", "distance", "distance_per_length")}
         for st, spec in zip(stations, specs):
             rows = row_station == st.id
             nominal[rows] = lt.to_tracker(P0[rows][None], spec.tracker_pose)[0]
+            for name, arr in row_noise.items():  # what the run draws: the station's own, else the tracker's
+                v = getattr(spec, name)
+                arr[rows] = drawn[f"tracker.{name}"] if v is None else v
+        row_noise = {k: _read_only(v) for k, v in row_noise.items()}
     else:
         nominal = truth.predict(np.zeros(truth.n_params), pose)[0]
-    context = Context(plan, truth, _read_only(nominal), _read_only(theta), config.reference_temperature, config)
+        row_noise = None
+    context = Context(plan, truth, _read_only(nominal), _read_only(theta), config.reference_temperature, config,
+                      row_noise=row_noise)
     first = (plan.run == plan.run.min()) & np.all(plan.tool == plan.tool[0], axis=1)
     mesh_rows = np.flatnonzero(first)
     mesh_points = truth.machine_points(np.zeros(truth.n_params))[0][mesh_rows]
@@ -460,8 +467,12 @@ def _stations(config: SimulationConfig, plan: Plan, noise: Noise):
     true places, and the station of every plan row (station k measures runs (k-1)*runs+1 .. k*runs)."""
     from .recording import Station
 
-    stations = [Station(k + 1, spec.kind, noise.angular if spec.kind == "xyz" else None, noise.distance,
-                        noise.distance_per_length, spec.description) for k, spec in enumerate(config.stations)]
+    def own(spec, name):  # a station's own stated uncertainty, else the verification's ([tracker] or [weights])
+        v = getattr(spec, name)
+        return getattr(noise, name) if v is None else v
+
+    stations = [Station(k + 1, spec.kind, own(spec, "angular") if spec.kind == "xyz" else None, own(spec, "distance"),
+                        own(spec, "distance_per_length"), spec.description) for k, spec in enumerate(config.stations)]
     P = plan.nominal + plan.tool  # the nominal tool points (an error-free XFYZ machine) the stations measure
     for k, spec in enumerate(config.stations):
         where = config.where(f"stations[{k}]." + ("D, L, H" if spec.kind == "xyz" else "position"))

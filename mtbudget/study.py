@@ -28,6 +28,7 @@ from __future__ import annotations
 import difflib
 import time
 from dataclasses import dataclass
+from types import SimpleNamespace
 
 import numpy as np
 
@@ -789,7 +790,9 @@ def station_information(scenario: Scenario, stations: list) -> tuple[np.ndarray,
     identification over all of them at once, :func:`mtbudget.multistation.identify_stations`, linearised at the
     noise-free verification).
 
-    stations: [(kind, place)] with place a pose (6,) for "xyz" or a position (3,) for "range", mm and rad.
+    stations: [(kind, place)] with place a pose (6,) for "xyz" or a position (3,) for "range", mm and rad, or
+    [(kind, place, noise)] with noise a dict of the station's own "angular", "distance", "distance_per_length" (any
+    missing or None: the verification's); :func:`configured_candidates` gives a configuration's [[stations]].
     Returns (R (K, p, p), the field Jacobian with the rigid part removed (3 M0, p), scaled)."""
     from .identify import scale_vector, whitener
 
@@ -799,10 +802,12 @@ def station_information(scenario: Scenario, stations: list) -> tuple[np.ndarray,
     P, J = model.machine_points(np.zeros((1, model.n_params)), jacobian=True)
     sv = scale_vector(model)
     P, J = P[0][rows], J[0][rows] / sv  # (M, 3), (M, 3, p) per um / urad
-    noise = sc.noise
     out = []
-    for kind, place in stations:
-        place = np.asarray(place, float)
+    for cand in stations:
+        kind, place = cand[0], np.asarray(cand[1], float)
+        own = cand[2] if len(cand) > 2 else {}
+        noise = SimpleNamespace(**{k: own.get(k) if own.get(k) is not None else getattr(sc.noise, k)
+                                   for k in ("angular", "distance", "distance_per_length", "repeatability")})
         if kind == "xyz":
             R = lt.rotation(*place[3:])
             P_LT = (P - place[:3]) @ R
@@ -859,6 +864,13 @@ def unidentified_variance(scenario: Scenario) -> np.ndarray | None:
     return (G * G).sum(axis=1)
 
 
+def configured_candidates(config) -> list:
+    """A configuration's [[stations]] as candidates of :func:`station_information`, with their own noise."""
+    return [(st.kind, st.pose if st.kind == "xyz" else st.position,
+             {"angular": st.angular, "distance": st.distance, "distance_per_length": st.distance_per_length})
+            for st in config.stations]
+
+
 def ring_candidates(scenario: Scenario, n: int, kind: str, radius: float, height: float) -> list:
     """``n`` candidate stations evenly around the mesh centre at ``radius`` (mm) from it: xyz stations on a horizontal
     circle ``height`` (mm) above the centre, upright (a = b = 0) and facing it; range stations alternately ``height``
@@ -877,8 +889,8 @@ def _check_candidates(scenario: Scenario, candidates: list):
     """Every candidate at least the tracker's shortest range ([placement] range_min) from every measured point."""
     s = placement_settings(scenario, tests=1)
     pts = scenario.mesh_points
-    for i, (_, place) in enumerate(candidates):
-        d = float(np.sqrt(((pts - np.asarray(place, float)[:3]) ** 2).sum(axis=1)).min())
+    for i, cand in enumerate(candidates):
+        d = float(np.sqrt(((pts - np.asarray(cand[1], float)[:3]) ** 2).sum(axis=1)).min())
         if not d >= s.range_min:
             raise ConfigError(f"candidate station {i} stands {d:.0f} mm from a measured point, closer than the "
                               f"shortest range {s.range_min:.0f} mm ([placement] range_min): a larger circle, or "
@@ -934,7 +946,7 @@ def station_placement(scenario: Scenario, candidates: list, k_max: int = 4, prog
     return {"measurand": "largest standard uncertainty (k = 1) over the mesh points and axes of the compensated "
                          "machine's error (docs/measurand.md), GUF: the identification covariance from the stated "
                          "tracker noise and repeatability, linearised at the noise-free verification",
-            "unit": "um", "candidates": [{"kind": kd, "place": np.asarray(pl, float).tolist()} for kd, pl in candidates],
+            "unit": "um", "candidates": [{"kind": c[0], "place": np.asarray(c[1], float).tolist()} for c in candidates],
             "per_k": per_k, "seconds": time.perf_counter() - t0, "mesh_points": scenario.mesh_points}
 
 

@@ -37,8 +37,13 @@ class TrackerNoise(Source):
 
     def sample(self, n, rng, ctx):
         r = np.linalg.norm(ctx.nominal_tracker_points, axis=1)
-        ur = self.value("distance", "mm") + self.value("distance_per_length", "") * r
-        ua = np.abs(rng.normal(self.value("angular_mean", "rad"), self.value("angular_sd", "rad"), (n, 1, 2)))
+        mean = self.value("angular_mean", "rad")
+        ua = np.abs(rng.normal(mean, self.value("angular_sd", "rad"), (n, 1, 2)))
+        if ctx.row_noise is None:
+            ur = self.value("distance", "mm") + self.value("distance_per_length", "") * r
+        else:  # several stations, each with its own stated noise: the drawn angular u scales each one's alike
+            ur = ctx.row_noise["distance"] + ctx.row_noise["distance_per_length"] * r
+            ua = ua * (ctx.row_noise["angular"] / mean if mean > 0 else 0.0)[None, :, None]
         return {"spherical_noise.range": Q_(rng.standard_normal((n, ctx.n_points)) * ur[None, :], _MM),
                 "spherical_noise.angles": Q_(rng.standard_normal((n, ctx.n_points, 2)) * ua, _RAD)}
 

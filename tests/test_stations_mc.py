@@ -122,6 +122,9 @@ def test_noise_free_stations_identify_the_machine_exactly():
     (lambda d: d["stations"][0].update(description=3), "stations[0].description"),
     (lambda d: d["stations"][1].update(H="300 mm", D="1000 mm", L="300 mm"), "stations[1].D, L, H"),
     (lambda d: d["stations"][2].update(position=["1000 mm", "300 mm", "100 mm"]), "stations[2].position"),
+    (lambda d: d["stations"][2].update(angular="5 urad"), "stations[2].angular"),
+    (lambda d: d["stations"][0].update(distance="-1 um"), "stations[0].distance"),
+    (lambda d: d["stations"][3].update(distance_per_length="3 kg"), "stations[3].distance_per_length"),
 ])
 def test_bad_stations_are_one_line_naming_the_key(change, where):
     d = four()
@@ -241,7 +244,7 @@ def test_station_information_summed_is_the_joint_identification():
     GUF of the identification over all the set's stations at once (budget.point_lpu through identify_stations, the
     full joint covariance), for the bundled four stations and for the first alone."""
     from mtbudget.budget import point_lpu
-    from mtbudget.study import set_uncertainty, station_information, unidentified_variance
+    from mtbudget.study import configured_candidates, set_uncertainty, station_information, unidentified_variance
 
     for tool in (None, ["0 mm", "0 mm", "-300 mm"]):  # at the verification's tool, and at a longer one
         d = four()
@@ -249,8 +252,7 @@ def test_station_information_summed_is_the_joint_identification():
             d["measurand"] = {"tool": tool}
         cfg = parse_config(d)
         sc = build_scenario(cfg)
-        cands = [(s.kind, s.pose if s.kind == "xyz" else s.position) for s in cfg.stations]
-        info, Jf = station_information(sc, cands)
+        info, Jf = station_information(sc, configured_candidates(cfg))
         for k in (1, 4):
             dk = dict(d, stations=d["stations"][:k])
             g = np.sqrt(np.diagonal(point_lpu(build_scenario(parse_config(dk)))["cov"], axis1=1, axis2=2))
@@ -409,3 +411,20 @@ def test_the_paper_studies_refuse_several_stations_and_study_stations_needs_a_tr
     d["stations"] = d["stations"][2:] + d["stations"][:2]
     r = stations_comparison(parse_config(d), trials=16, attribution_trials=0)
     assert r["variants"][0]["kinds"] == "xyz" and r["variants"][1]["kinds"] == "range, range, xyz, xyz"
+
+
+def test_a_station_draws_and_weighs_its_own_stated_noise():
+    """An interferometer stating 0.2 um + 0.3 um/m: tracker_noise draws its ranges with that standard deviation
+    (closed form at each row's distance, 4000 trials), the trackers keep the [tracker] 4 um + 0.8 um/m, and the
+    identification weighs each station with its own."""
+    from mtbudget.simulate import sample_source
+
+    sc = build_scenario(load_config(FOUR))
+    src = next(s for s in sc.sources if s.name == "tracker_noise")
+    draw = sample_source(sc, src, 4000, np.random.default_rng(1))["spherical_noise.range"]  # (n, M) mm
+    r = np.linalg.norm(sc.context.nominal_tracker_points, axis=1)
+    for st in sc.stations:
+        rows = sc.row_station == st.id
+        expect = (0.2e-3 + 0.3e-6 * r[rows]) if st.kind == "range" else (4e-3 + 0.8e-6 * r[rows])
+        np.testing.assert_allclose(draw[:, rows].std(axis=0), expect, rtol=0.1)
+        assert st.distance == (0.2e-3 if st.kind == "range" else 4e-3)
