@@ -21,6 +21,8 @@ from mtbudget.recording import read_recording, write_recording
 
 from mtbudget.config import example_recording
 
+from conftest import independent_fit
+
 CTE_STEEL = "11.5 um/(m*K)"  # the truth's CTE of the X scale (truth.json "effects.thermal.x")
 
 
@@ -339,57 +341,9 @@ def test_noise_free_the_correction_leaves_nothing_and_a_wrong_cte_leaves_its_exp
 def thermal_projector(sc, h=1e-4):
     """L (3 M0, 3 M): the compensated error at the mesh points (rigid part removed) of a machine-frame displacement of
     the plan's measured points that the measurements see and the machine at 20 degC does not (a scale's expansion
-    beyond the correction), to first order, without the engine: the identification's weighted least squares written
-    here (the approach of tests/test_model_form.py: central finite differences of the model in the pose and the
-    geometric errors, the tracker covariance of Eq. 23 written here, the errors the plan cannot tell apart kept at
-    their initial value, the rigid part removed by a projector written here)."""
-    model, pose, rows = sc.id_model, np.asarray(sc.pose, float), sc.mesh_rows
-    p = model.n_params
-    th0 = np.zeros(p)
-    steps = np.array([h if q.unit == "mm" else h / 1000.0 for q in model.errors.params] + [h] * 3 + [h / 1000.0] * 3)
-    E = np.eye(p + 6) * steps
-    m = model.predict(np.concatenate([th0 + E[:, :p], th0 - E[:, :p]]), np.concatenate([pose + E[:, p:],
-                                                                                         pose - E[:, p:]]))
-    A = ((m[:p + 6] - m[p + 6:]) / (2 * steps[:, None, None])).reshape(p + 6, -1).T  # (3 M, p + 6)
-    m0 = model.predict(th0[None], pose)[0]
-    M = len(m0)
-    R = np.stack([(model.predict(th0[None], pose, {"point_offset": np.broadcast_to(np.eye(3)[k], (1, M, 3))})[0]
-                   - m0)[0] for k in range(3)], axis=1)  # (3, 3): tracker <- machine
-    B = np.kron(np.eye(M), R)
-    n = sc.noise
-    r = np.linalg.norm(m0, axis=1)
-    az, el = np.arctan2(m0[:, 1], m0[:, 0]), np.arcsin(m0[:, 2] / r)
-    W = np.zeros((3 * M, 3 * M))
-    for i in range(M):
-        ca, sa, ce, se = np.cos(az[i]), np.sin(az[i]), np.cos(el[i]), np.sin(el[i])
-        J = np.array([[ce * ca, -r[i] * ce * sa, -r[i] * se * ca], [ce * sa, r[i] * ce * ca, -r[i] * se * sa],
-                      [se, 0.0, r[i] * ce]])
-        C = J @ np.diag([(n.distance + n.distance_per_length * r[i]) ** 2, n.angular**2, n.angular**2]) @ J.T
-        W[3 * i:3 * i + 3, 3 * i:3 * i + 3] = np.linalg.inv(C + n.repeatability**2 * np.eye(3))
-    sv = np.array([1e3 if q.unit == "mm" else 1e6 for q in model.errors.params] + [1e3] * 3 + [1e6] * 3)
-    As = A / sv
-    norms = np.linalg.norm(As, axis=0)
-    norms[norms == 0] = 1.0
-    _, sing, Vt = np.linalg.svd(As / norms, full_matrices=False)
-    null = (Vt.T / norms[:, None])[:, sing < 1e-7 * sing[0]]
-    geo = np.linalg.svd(null[:p], full_matrices=True)[0]
-    k = int(np.sum(np.linalg.svd(null[:p], compute_uv=False) > 1e-9))
-    T = np.zeros((p + 6, p + 6 - k))
-    T[:p, :p - k] = geo[:, k:]
-    T[p:, p - k:] = np.eye(6)
-    Ar = As @ T
-    K = (T @ np.linalg.solve(Ar.T @ W @ Ar, Ar.T @ W)) / sv[:, None]
-    F = model.machine_points(np.concatenate([th0 + E[:p, :p], th0 - E[:p, :p]]))[:, rows]
-    Jm = ((F[:p] - F[p:]) / (2 * steps[:p, None, None])).reshape(p, -1).T  # (3 M0, p)
-    c = sc.commanded + sc.plan.tool[rows]
-    c = c - c.mean(axis=0)
-    G = np.zeros((len(rows), 3, 6))
-    G[:, :, :3] = np.eye(3)
-    for j in range(3):
-        G[:, :, 3 + j] = np.cross(np.eye(3)[j], c)
-    G = G.reshape(-1, 6)
-    P = np.eye(len(G)) - G @ np.linalg.pinv(G)
-    return -P @ Jm @ K[:p] @ B
+    beyond the correction), to first order, without the engine (conftest.independent_fit)."""
+    P, Jm, KB, _ = independent_fit(sc, h)
+    return -P @ Jm @ KB
 
 
 FAR = {"x": (11.5, 2000.0), "y": (9.0, -1000.0), "z": (11.5, 1500.0)}  # fixed points well off the mesh
