@@ -341,8 +341,9 @@ def _stations(raw: list, path) -> list:
         sr = Reader(s, path, f"stations[{i}].")
         kind = s.get("kind")
         if kind not in ("xyz", "range"):
+            got = "it is missing" if kind is None else f"got {kind!r:.60}"
             raise ConfigError(f"{sr.where('kind')}: expected \"xyz\" (a laser tracker: range and two angles) or "
-                              f"\"range\" (a tracking interferometer: range only), got {kind!r:.60}")
+                              f"\"range\" (a tracking interferometer: range only); {got}")
         desc = s.get("description", "")
         if not isinstance(desc, str):
             raise ConfigError(f"{sr.where('description')}: expected a string")

@@ -698,8 +698,8 @@ def summary(rec: Recording, res: MultiIdentification) -> dict:
         stations.append({
             "id": st.id, "kind": st.kind, "rows": int(np.count_nonzero(res.row_station == st.id)),
             "chi2": chi2, "residuals": m,
-            "values": [{"name": nm, "value": float(v), "uncertainty": float(u), "unit": un}
-                       for nm, v, u, un in zip(names, vals, us, units)],
+            "values": [{"name": nm, "value": float(v), "uncertainty": float(u), "unit": un, "identifiable": bool(o)}
+                       for nm, v, u, un, o in zip(names, vals, us, units, res.identifiable()[res._slice(st.id)[0]])],
         })
     p = res.n_params
     ok = res.identifiable()
@@ -726,17 +726,24 @@ def summary_text(rec: Recording, res: MultiIdentification) -> list[str]:
            f"  condition number          {res.condition:.3g}  (column-equilibrated whitened Jacobian, identifiable "
            "directions)",
            "  stations (standard uncertainties, k = 1):"]
+    ok = res.identifiable()
+    datum = False
     for st in res.stations:
         vals, us = res.station_values(st.id)
+        held = ["" if o else "*" for o in ok[res._slice(st.id)[0]]]
+        datum |= "*" in held
         chi2, m = res.station_chi2[st.id]
         if st.kind == "xyz":
-            pos = ", ".join(f"{v:.4f} mm (u {u * 1e3:.2f} µm)" for v, u in zip(vals[:3], us[:3]))
-            ang = ", ".join(f"{v:.6f} rad (u {u * 1e6:.2f} µrad)" for v, u in zip(vals[3:], us[3:]))
+            pos = ", ".join(f"{v:.4f} mm{h} (u {u * 1e3:.2f} µm)" for v, u, h in zip(vals[:3], us[:3], held[:3]))
+            ang = ", ".join(f"{v:.6f} rad{h} (u {u * 1e6:.2f} µrad)" for v, u, h in zip(vals[3:], us[3:], held[3:]))
             out.append(f"    station {st.id} (xyz)   D, L, H = {pos}; a, b, d = {ang};  chi2 {chi2:.1f} over {m}")
         else:
-            pos = ", ".join(f"{v:.4f} mm (u {u * 1e3:.2f} µm)" for v, u in zip(vals[:3], us[:3]))
-            out.append(f"    station {st.id} (range) S = {pos}; dead path {vals[3]:.4f} mm (u {us[3] * 1e3:.2f} µm);"
-                       f"  chi2 {chi2:.1f} over {m}")
+            pos = ", ".join(f"{v:.4f} mm{h} (u {u * 1e3:.2f} µm)" for v, u, h in zip(vals[:3], us[:3], held[:3]))
+            out.append(f"    station {st.id} (range) S = {pos}; dead path {vals[3]:.4f} mm{held[3]} (u {us[3] * 1e3:.2f} "
+                       f"µm);  chi2 {chi2:.1f} over {m}")
+    if datum:
+        out.append("    * takes part in a combination the data cannot see (below): where the station stands along it "
+                   "is fixed by the datum, not measured, and its u is relative to that datum")
     out.append("  datum (the six rigid freedoms of the whole):")
     for g in res.gauge:
         out.append(f"    {g['freedom']}: fixed by {g['fixed_by']}")

@@ -72,9 +72,39 @@ def _scales_clause(spec: dict) -> str:
 STATIONS_IDLE = {"convergence_criteria": "does not act with [[stations]]", "phase_sequence": "does not act with [[stations]]"}
 
 
-def _idle_sources(spec: dict) -> dict:
-    """{source: why its row is zero by construction} for this run."""
-    return dict(STATIONS_IDLE) if (spec.get("config") or {}).get("stations") else {}
+def _idle_sources(spec: dict, rows: list | None = None) -> dict:
+    """{source: why its row is zero by construction} for this run (and a systematic source that leaves nothing at the
+    mesh points: its sentence under the table says why)."""
+    out = dict(STATIONS_IDLE) if (spec.get("config") or {}).get("stations") else {}
+    for r in rows or []:
+        if r.get("systematic") and not max(r["u_rms_over_mesh"]) > 1e-6:  # um: nothing but round-off
+            out[r["source"]] = "nothing at the mesh points: see how it was bounded, below"
+    return out
+
+
+def _station_rows(cfg: dict, tr: dict) -> list:
+    """The Conditions rows of the instruments: the tracker's pose, or one row per station of [[stations]]; the
+    stated noise; the scales' nominal expansion ([scales]) where stated."""
+    noise = ", ".join(f"{k} {tr[k]}" for k in ("angular", "distance", "distance_per_length") if k in tr) or "defaults"
+    stations = cfg.get("stations") or []
+    if not stations:
+        rows = [f"| tracker pose | D {tr.get('D')}, L {tr.get('L')}, H {tr.get('H')}, a {tr.get('a')}, b {tr.get('b')}, "
+                f"d {tr.get('d')} |", f"| tracker noise (k = 1) | {noise} |"]
+    else:
+        rows = [f"| stations | {len(stations)}, measuring the plan one after the other; the [tracker] noise (k = 1) "
+                f"where a station states none: {noise} |"]
+        for i, st in enumerate(stations, start=1):
+            if st.get("kind") == "xyz":
+                place = ", ".join(f"{k} {st.get(k)}" for k in "DLHabd")
+            else:
+                place = f"position {', '.join(str(v) for v in st.get('position') or [])}, dead path {st.get('dead_path', '0 mm')}"
+            own = ", ".join(f"{k} {st[k]}" for k in ("angular", "distance", "distance_per_length") if k in st)
+            rows.append(f"| station {i} ({st.get('kind')}) | {md_escape(str(st.get('description') or ''))} {place}"
+                        + (f"; its own noise (k = 1): {own}" if own else "") + " |")
+    for axis, sc in sorted((cfg.get("scales") or {}).items()):
+        rows.append(f"| scale {axis} ([scales]) | CTE {sc.get('cte')} about {sc.get('fixed_point', '0 mm')}, simulated and "
+                    "corrected to the reference temperature |")
+    return rows
 
 
 def _stations_clause(spec: dict) -> str:
@@ -199,7 +229,7 @@ def budget_text(res: RunResult) -> str:
         lines.append("")
         lines.append(f"Budget of the per-point measurand, each source alone on the same trials ({pretty(pb['unit'])}, k = 1):")
         lines.append(f"  {'source':<32} {'group':<22} {'u_i, RMS over the mesh (x, y, z)':>34} {'share':>7}")
-        idle = _idle_sources(res.spec or {})
+        idle = _idle_sources(res.spec or {}, pb["rows"])
         for r in sorted(pb["rows"], key=lambda r: -r["share"]):
             lines.append(f"  {r['source']:<32} {r['group']:<22} {_vec(r['u_rms_over_mesh'], 2):>34} {r['share']:7.1%}"
                          + (f"  ({idle[r['source']]})" if r["source"] in idle else ""))
@@ -367,7 +397,7 @@ def provenance_lines(res: RunResult) -> list:
              f"| mesh | x {_span(mesh.get('x'))}, y {_span(mesh.get('y'))}, z {_span(mesh.get('z'))}, "
              f"step {_span(mesh.get('step', '-'))} |",
              f"| tool offset of the statement | {_statement_tool(res, cfg)} |",
-             f"| tracker pose | D {tr.get('D')}, L {tr.get('L')}, H {tr.get('H')}, a {tr.get('a')}, b {tr.get('b')}, d {tr.get('d')} |",
+             *_station_rows(cfg, tr),
              f"| sources drawn | {', '.join(res.spec.get('sources') or []) or 'none'} |",
              f"| trials, seed, coverage | {res.trials}, {res.spec.get('seed')}, {percent(res.coverage)} |",
              f"| mtbudget | {__version__} |", f"| report written | {time.strftime('%Y-%m-%d %H:%M %Z')} |"]
@@ -593,7 +623,7 @@ def run_report(res: RunResult, folder, tolerance_um: float | None = None, charac
                "inputs at once, so none is defined.", "",
                f"| source | group | u_i RMS over the mesh x, y, z [{pretty(pb['unit'])}] | u_i at the worst point | share |",
                "| --- | --- | --- | --- | --- |"]
-        idle = _idle_sources(res.spec or {})
+        idle = _idle_sources(res.spec or {}, pb["rows"])
         for r in sorted(pb["rows"], key=lambda r: -r["share"]):
             note = f" ({idle[r['source']]})" if r["source"] in idle else ""
             md.append(f"| {r['source']}{note} | {r['group']} | {_vec(r['u_rms_over_mesh'], 2)} | "

@@ -357,11 +357,40 @@ def station_placement_lines(r: dict) -> list:
         lines.append(f"  {k['stations']:>8} {k['sets']:>6} {k['best_max_u']:8.2f} {k['median_max_u']:8.2f} "
                      f"{k['worst_max_u']:8.2f}   {', '.join(str(i) for i in k['best'])}: "
                      f"({', '.join(f'{x:.2f}' for x in k['best_rms_u'])}){note}")
-    lines += ["", "  candidates (x, y, z in mm, machine frame):"]
+    nz = c[0]["noise"]
+    lines += ["", "  every candidate ranked with the stated noise (k = 1): " + ", ".join(
+        f"{v:g} {u}" for v, u in ((nz.get("angular_urad"), "µrad"), (nz["distance_um"], "µm"),
+                                  (nz["distance_per_length_um_per_m"], "µm/m")) if v is not None)
+              + " (--angular, --distance, --distance-per-length; default [tracker])",
+              "  candidates (x, y, z in mm, machine frame):"]
     lines += [f"    {i}: {', '.join(f'{v:.0f}' for v in cd['place'][:3])}" for i, cd in enumerate(c)]
     lines += ["  (GUF from the stated noise: the Monte Carlo of a chosen set, `mtbudget run` with its [[stations]], adds "
               "the other sources)"]
+    best = [k for k in r["per_k"] if k["identifying"]]
+    if best:
+        lines += ["", f"  the best set of {best[-1]['stations']}, to paste into a configuration:"]
+        lines += ["    " + ln for ln in stations_toml([c[i] for i in best[-1]["best"]])]
     return lines
+
+
+def stations_toml(cands: list) -> list:
+    """[[stations]] tables of candidate stations ({"kind", "place", "noise"}), with their noise if not [tracker]'s."""
+    out = []
+    for cd in cands:
+        p = cd["place"]
+        out.append("[[stations]]")
+        out.append(f'kind = "{cd["kind"]}"')
+        if cd["kind"] == "xyz":
+            out += [f'{k} = "{v:.1f} mm"' for k, v in zip("DLH", p[:3])]
+            out += [f'{k} = "{np.degrees(v):.4f} deg"' for k, v in zip("abd", p[3:6])]
+        else:
+            out.append("position = [" + ", ".join(f'"{v:.1f} mm"' for v in p[:3]) + "]")
+        nz = cd.get("noise") or {}
+        if "angular_urad" in nz:
+            out.append(f'angular = "{nz["angular_urad"]:g} urad"')
+        if nz:
+            out += [f'distance = "{nz["distance_um"]:g} um"', f'distance_per_length = "{nz["distance_per_length_um_per_m"]:g} um/m"']
+    return out
 
 
 def station_placement_figure(r: dict, folder: Path) -> Path:
@@ -416,6 +445,10 @@ def station_placement_report(r: dict, folder: Path) -> Path:
                      f"{', '.join(f'{x:.2f}' for x in k['best_rms_u'])} |")
     lines += ["", "| candidate | x, y, z [mm] |", "| --- | --- |"]
     lines += [f"| {i} | {', '.join(f'{v:.0f}' for v in cd['place'][:3])} |" for i, cd in enumerate(c)]
+    best = [k for k in r["per_k"] if k["identifying"]]
+    if best:
+        lines += ["", f"The best set of {best[-1]['stations']}, to paste into a configuration:", "", "```toml"]
+        lines += stations_toml([c[i] for i in best[-1]["best"]]) + ["```"]
     lines += ["", f"![Best set of stations per number of stations]({p.name})"]
     (folder / "station_placement.md").write_text("\n".join(lines) + "\n")
     write_html(lines, folder, folder / "station_placement.html", "mtbudget: where to put several stations")

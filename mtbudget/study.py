@@ -871,7 +871,8 @@ def configured_candidates(config) -> list:
             for st in config.stations]
 
 
-def ring_candidates(scenario: Scenario, n: int, kind: str, radius: float, height: float) -> list:
+def ring_candidates(scenario: Scenario, n: int, kind: str, radius: float, height: float,
+                    noise: dict | None = None) -> list:
     """``n`` candidate stations evenly around the mesh centre at ``radius`` (mm) from it: xyz stations on a horizontal
     circle ``height`` (mm) above the centre, upright (a = b = 0) and facing it; range stations alternately ``height``
     above and below it (ranges from one plane cannot resolve the direction across it)."""
@@ -881,7 +882,18 @@ def ring_candidates(scenario: Scenario, n: int, kind: str, radius: float, height
         phi = 2 * np.pi * k / n
         h = height if kind == "xyz" or k % 2 == 0 else -height
         pos = c + np.array([radius * np.cos(phi), radius * np.sin(phi), h])
-        out.append((kind, np.concatenate([pos, [0.0, 0.0, phi + np.pi]]) if kind == "xyz" else pos))
+        out.append((kind, np.concatenate([pos, [0.0, 0.0, phi + np.pi]]) if kind == "xyz" else pos, dict(noise or {})))
+    return out
+
+
+def _candidate_noise(scenario: Scenario, cand) -> dict:
+    """The standard uncertainties (k = 1) a candidate is ranked with, in display units."""
+    own = cand[2] if len(cand) > 2 else {}
+    get = {k: own.get(k) if own.get(k) is not None else getattr(scenario.noise, k)
+           for k in ("angular", "distance", "distance_per_length")}
+    out = {"distance_um": get["distance"] * 1e3, "distance_per_length_um_per_m": get["distance_per_length"] * 1e6}
+    if cand[0] == "xyz":
+        out["angular_urad"] = get["angular"] * 1e6
     return out
 
 
@@ -946,7 +958,8 @@ def station_placement(scenario: Scenario, candidates: list, k_max: int = 4, prog
     return {"measurand": "largest standard uncertainty (k = 1) over the mesh points and axes of the compensated "
                          "machine's error (docs/measurand.md), GUF: the identification covariance from the stated "
                          "tracker noise and repeatability, linearised at the noise-free verification",
-            "unit": "um", "candidates": [{"kind": c[0], "place": np.asarray(c[1], float).tolist()} for c in candidates],
+            "unit": "um", "candidates": [{"kind": c[0], "place": np.asarray(c[1], float).tolist(),
+                                          "noise": _candidate_noise(scenario, c)} for c in candidates],
             "per_k": per_k, "seconds": time.perf_counter() - t0, "mesh_points": scenario.mesh_points}
 
 

@@ -428,3 +428,26 @@ def test_a_station_draws_and_weighs_its_own_stated_noise():
         expect = (0.2e-3 + 0.3e-6 * r[rows]) if st.kind == "range" else (4e-3 + 0.8e-6 * r[rows])
         np.testing.assert_allclose(draw[:, rows].std(axis=0), expect, rtol=0.1)
         assert st.distance == (0.2e-3 if st.kind == "range" else 4e-3)
+
+
+def test_the_best_set_pasted_into_a_configuration_gives_the_same_uncertainty(tmp_path):
+    """The [[stations]] tables the placement study prints for its best set read back as a configuration whose own
+    stations, ranked the same way, give the same largest u (the printed places are rounded to 0.1 mm and 1e-4 deg)."""
+    from mtbudget.report_study import stations_toml
+    from mtbudget.study import (configured_candidates, ring_candidates, set_uncertainty, station_information,
+                                station_placement)
+
+    sc = build_scenario(load_config(PAPER))
+    r = station_placement(sc, ring_candidates(sc, 6, "xyz", 2500.0, 500.0, {"angular": 10e-6}), k_max=3)
+    best = r["per_k"][-1]
+    text = PAPER.read_text()
+    start = text.index("[tracker]")
+    end = text.index('angular = "20 urad"', start)
+    text = text[:start] + "[tracker]\n" + text[end:] + "\n" + "\n".join(
+        stations_toml([r["candidates"][i] for i in best["best"]])) + "\n"
+    (tmp_path / "best.toml").write_text(text)
+    cfg = load_config(tmp_path / "best.toml")
+    assert [st.angular for st in cfg.stations] == [pytest.approx(10e-6)] * 3
+    sc3 = build_scenario(cfg)
+    info, Jf = station_information(sc3, configured_candidates(cfg))
+    assert set_uncertainty(info.sum(axis=0), Jf).max() * 1e3 == pytest.approx(best["best_max_u"], rel=1e-3)
