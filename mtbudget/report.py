@@ -55,7 +55,7 @@ def measurand_text(res) -> str:
     """The measurand of this run in one sentence: which tool offset, and what the verification leaves unidentified
     there ([measurand] tool; docs/measurand.md), and from which stations ([[stations]])."""
     spec = res.spec or {}
-    return _measurand_at_tool(spec.get("measurand")) + _stations_clause(spec) + _scales_clause(spec)
+    return measurand_at_tool(spec.get("measurand")) + _stations_clause(spec) + _scales_clause(spec)
 
 
 def _scales_clause(spec: dict) -> str:
@@ -118,7 +118,7 @@ def _stations_clause(spec: dict) -> str:
             "means over the laser trackers' points (an interferometer measures a distance, not a point)")
 
 
-def _measurand_at_tool(m: dict | None) -> str:
+def measurand_at_tool(m: dict | None) -> str:
     if not m:
         return MEASURAND
     tool = ", ".join(f"{v:g}" for v in m["tool"])

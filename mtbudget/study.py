@@ -751,7 +751,7 @@ def stations_comparison(config, trials: int = 256, attribution_trials: int = 64,
     side (issue 20; the paper's Section 2.2.3 leaves it open): each variant of :func:`station_variants` is one
     Monte Carlo run of the engine (same seed), with its budget when ``attribution_trials`` > 0.  Per point and axis:
     u (k = 1) of each variant and their ratio; per variant the volume summaries and the budget by group."""
-    from .report import points_summary
+    from .report import measurand_at_tool, points_summary
     from .runner import run
 
     variants = []
@@ -774,9 +774,8 @@ def stations_comparison(config, trials: int = 256, attribution_trials: int = 64,
                          "budget_groups": pb.get("groups"), "budget_rows": pb.get("rows"),
                          "interaction_share": pb.get("interaction_share")})
     one, many = variants[0]["u"], variants[-1]["u"]
-    return {"measurand": "error of the compensated machine at each mesh point, per machine axis, at the "
-                         "verification's tool, rigid-body part removed (docs/measurand.md); u is the standard "
-                         "uncertainty (k = 1) from the Monte Carlo",
+    return {"measurand": measurand_at_tool(res.spec.get("measurand")) + "; u is the standard uncertainty (k = 1) "
+                         "from the Monte Carlo",
             "unit": "um", "commanded": [p["nominal"]["value"] for p in pts], "variants": variants,
             "ratio": many / one, "ratio_median": np.median(many / one, axis=0).tolist(),
             "ratio_max": (many / one).max(axis=0).tolist()}
