@@ -1,6 +1,6 @@
 """The verification Monte Carlo against a plain numpy floor of the same size (issue 12, first bullet).
 
-Run:  python benchmarks/bench_engine_floor.py [--trials 640] [--before REV]
+Run:  python benchmarks/bench_engine_floor.py [--trials 640] [--before REV [--before-paths P ...]] [--chunk-blocks K]
 
 1. Accuracy, before any time: simulated verifications of the built-in default configuration
    (the engine's own trials) identified with the chord solver and with Gauss-Newton; the largest
@@ -14,7 +14,10 @@ Run:  python benchmarks/bench_engine_floor.py [--trials 640] [--before REV]
 3. The engine: ``mtbudget.runner.run`` on the built-in default configuration, attribution_trials=0,
    with the chord solver, with Gauss-Newton and (``--before REV``) the whole engine as it was at git
    revision REV (its ``mtbudget`` and built-in plugins unpacked into a temporary directory, run in a
-   subprocess), all in this run.  Wall and CPU time (the machines are shared: the wall clock also
+   subprocess), all in this run.  ``--before-paths``: only these files from REV, everything else from the
+   working tree (a change of those files alone, while other files change too).  ``--chunk-blocks K``: the
+   runner's blocks identified together, in every arm (default: the runner's own choice, 4 blocks for runs
+   this short; runs of 65 536 trials or more use 16).  Wall and CPU time (the machines are shared: the wall clock also
    counts other processes).  Per-trial time is the slope between two run lengths
    (best of 3 each), so the run's one-off work (scenario, GUF, first identifiability analysis) does
    not count; the all-in time of the longer run is printed beside it.
@@ -161,40 +164,52 @@ import sys, time
 from mtbudget.config import load_config
 from mtbudget.runner import run
 short, long = int(sys.argv[1]), int(sys.argv[2])
+kw = {} if sys.argv[3] == "-" else {"chunk_blocks": int(sys.argv[3])}
 cfg = load_config()
 out = {}
 for n in (short, long):
     best = (float("inf"), float("inf"))
     for _ in range(3):
         w, c = time.perf_counter(), time.process_time()
-        run(cfg, trials=n, block=64, attribution_trials=0)
+        run(cfg, trials=n, block=64, attribution_trials=0, **kw)
         best = min(best, (time.perf_counter() - w, time.process_time() - c))
     out[n] = best
 print((out[long][0] - out[short][0]) / (long - short), (out[long][1] - out[short][1]) / (long - short))
 """
 
 
-def engine_at(rev: str, short: int, long: int):
+def engine_at(rev: str, short: int, long: int, paths=None, chunk_blocks=None):
     """(wall, CPU) seconds per trial of the engine of git revision ``rev`` (its mtbudget and built-in plugins,
-    unpacked into a temporary directory and run in a subprocess), by the same slope as :func:`engine_per_trial`."""
+    unpacked into a temporary directory and run in a subprocess), by the same slope as :func:`engine_per_trial`.
+    paths: only these files (repository paths) from ``rev``, the rest from the working tree."""
     import io
     import os
+    import shutil
     import tarfile
     import tempfile
 
-    tar = subprocess.run(["git", "-C", str(ROOT), "archive", rev, "mtbudget", "plugins"], check=True,
-                         capture_output=True).stdout
     with tempfile.TemporaryDirectory() as tmp:
-        tarfile.open(fileobj=io.BytesIO(tar)).extractall(tmp)
+        if paths:
+            shutil.copytree(ROOT / "mtbudget", Path(tmp) / "mtbudget", ignore=shutil.ignore_patterns("__pycache__"))
+            shutil.copytree(ROOT / "plugins", Path(tmp) / "plugins", ignore=shutil.ignore_patterns("__pycache__"))
+            for path in paths:
+                text = subprocess.run(["git", "-C", str(ROOT), "show", f"{rev}:{path}"], check=True,
+                                      capture_output=True).stdout
+                (Path(tmp) / path).write_bytes(text)
+        else:
+            tar = subprocess.run(["git", "-C", str(ROOT), "archive", rev, "mtbudget", "plugins"], check=True,
+                                 capture_output=True).stdout
+            tarfile.open(fileobj=io.BytesIO(tar)).extractall(tmp)
         os.rename(Path(tmp) / "plugins", Path(tmp) / "mtbudget_plugins")
         env = dict(os.environ, PYTHONPATH=tmp)
-        out = subprocess.run([sys.executable, "-c", _BEFORE, str(short), str(long)], check=True, env=env,
+        out = subprocess.run([sys.executable, "-c", _BEFORE, str(short), str(long),
+                              "-" if chunk_blocks is None else str(chunk_blocks)], check=True, env=env,
                              capture_output=True, text=True, cwd=tmp).stdout
     wall, cpu = map(float, out.split())
     return wall, cpu
 
 
-def engine_per_trial(arm, short, long):
+def engine_per_trial(arm, short, long, chunk_blocks=None):
     """Slope of run() time between two run lengths: (wall, CPU) seconds per trial, the run's one-off work excluded.
 
     CPU time (this process) beside wall time: on a shared machine the wall clock also counts the time other
@@ -214,7 +229,8 @@ def engine_per_trial(arm, short, long):
             best = (np.inf, np.inf)
             for _ in range(3):
                 w, c = time.perf_counter(), time.process_time()
-                run(cfg, trials=n, block=64, attribution_trials=0)
+                run(cfg, trials=n, block=64, attribution_trials=0,
+                    **({} if chunk_blocks is None else {"chunk_blocks": chunk_blocks}))
                 best = min(best, (time.perf_counter() - w, time.process_time() - c))
             times[n] = best
     finally:
@@ -226,7 +242,11 @@ def engine_per_trial(arm, short, long):
 def main():
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--trials", type=int, default=640, help="the longer run (the shorter is a fifth of it)")
-    ap.add_argument("--before", metavar="REV", help="also run the engine with mtbudget/identify.py of git revision REV")
+    ap.add_argument("--before", metavar="REV", help="also run the engine of git revision REV (in a subprocess)")
+    ap.add_argument("--before-paths", nargs="+", metavar="PATH",
+                    help="with --before: only these files from REV (e.g. mtbudget/identify.py), the rest from the "
+                         "working tree")
+    ap.add_argument("--chunk-blocks", type=int, help="blocks identified together, in every engine arm")
     args = ap.parse_args()
     scenario = build_scenario(load_config())
     model = scenario.id_model
@@ -255,18 +275,19 @@ def main():
           f"{1 / t_floor:,.0f} trials/s")
 
     short, long = max(64, args.trials // 5 // 64 * 64), args.trials
-    print(f"\nengine, mtbudget.runner.run(default config, block=64, attribution_trials=0), slope {short} -> {long} trials"
-          " (wall / CPU of this process):")
+    chunk = "the runner's default" if args.chunk_blocks is None else args.chunk_blocks
+    print(f"\nengine, mtbudget.runner.run(default config, block=64, attribution_trials=0, chunk_blocks: {chunk}), slope "
+          f"{short} -> {long} trials (wall / CPU of this process):")
     res = {}
     for name in ("chord", "gauss-newton"):
-        per, cpu, times = engine_per_trial(name, short, long)
+        per, cpu, times = engine_per_trial(name, short, long, args.chunk_blocks)
         res[name] = per, cpu
         print(f"  {name:22s} {per * 1e3:7.3f} / {cpu * 1e3:7.3f} ms/trial  {1 / per:7.0f} trials/s  "
               f"{per / t_floor:5.1f}x / {cpu / c_floor:5.1f}x the floor   (best of 3 runs: {short} trials "
               f"{times[short][0]:.2f} s, {long} trials {times[long][0]:.2f} s, {times[long][0] / long * 1e3:.2f} "
               "ms/trial all in)")
     if args.before:
-        per, cpu = engine_at(args.before, short, long)
+        per, cpu = engine_at(args.before, short, long, args.before_paths, args.chunk_blocks)
         res[f"before ({args.before})"] = per, cpu
         print(f"  {'before (' + args.before + ')':22s} {per * 1e3:7.3f} / {cpu * 1e3:7.3f} ms/trial  {1 / per:7.0f} "
               f"trials/s  {per / t_floor:5.1f}x / {cpu / c_floor:5.1f}x the floor   (its mtbudget and plugins, "

@@ -3,9 +3,13 @@
 Run:  python benchmarks/bench_identify.py [--quick]
 
 Both solve the same problem (same plan, weights, identifiable parameter
-directions) on the same simulated trials; results must agree to 1e-6 mm on
-the residuals before any time is reported.  Times are measured in this run,
-on this machine, and reported as ratios.
+directions) on the same simulated trials.  Before any time is reported, every
+trial's residuals must agree with the reference solver (Gauss-Newton, exact
+Jacobian) to 1e-6 mm, and the sample solved with scipy must agree too: to
+2e-6 mm, because scipy with 3-point differences itself stops up to ~1.4e-6 mm
+from the minimum (its distance from Gauss-Newton is printed beside ours; a
+round-off change of its start moves its end point by ~1e-6 mm).  Times are
+measured in this run, on this machine, and reported as ratios.
 """
 
 from __future__ import annotations
@@ -18,7 +22,7 @@ import numpy as np
 from scipy import optimize
 
 from mtbudget import tracker as lt
-from mtbudget.identify import Noise, analyse, identify, range_basis, scale_vector
+from mtbudget.identify import Noise, Strategy, analyse, identify, range_basis, scale_vector
 from mtbudget.model import MeasurementModel
 from mtbudget.plan import build_plan, mesh
 
@@ -97,18 +101,22 @@ def main():
     t_batch, res = time_batched(model, meas)
     sv = scale_vector(model)
     Q = range_basis(np.ones(model.n_params, bool), res.identifiability.null_space)
+    gn = identify(model, meas, NOISE, Strategy(solver="gauss-newton"))
+    worst_gn = np.abs(gn.residual - res.residual).max()
+    assert worst_gn < 1e-6, f"the batched results differ from Gauss-Newton by {worst_gn:.3g} mm"
     K = args.scipy_trials
     t = time.perf_counter()
-    worst = 0.0
-    for n in range(K):
-        worst = max(worst, np.abs(scipy_one(model, meas[n], Q, sv) - res.residual[n]).max())
+    sols = [scipy_one(model, meas[n], Q, sv) for n in range(K)]
     t_scipy = (time.perf_counter() - t) / K
-    assert worst < 1e-6, f"results differ by {worst:.3g} mm"
+    worst = max(np.abs(sols[n] - res.residual[n]).max() for n in range(K))
+    scipy_gn = max(np.abs(sols[n] - gn.residual[n]).max() for n in range(K))
+    assert worst < 2e-6, f"results differ from scipy's by {worst:.3g} mm"
     per_trial = t_batch / N
     print(f"plan: {model.n_points} points, {model.n_params} geometric parameters ({res.identifiability.identifiable} identifiable)")
     print(f"batched:   N={N} in {t_batch:.3f} s = {per_trial * 1e3:.3f} ms/trial = {N / t_batch:.0f} trials/s")
     print(f"scipy:     {t_scipy * 1e3:.1f} ms/trial (mean of {K} trials, same inputs)")
-    print(f"ratio:     {t_scipy / per_trial:.0f}x   (largest residual difference {worst:.2e} mm)")
+    print(f"ratio:     {t_scipy / per_trial:.0f}x   (largest residual difference {worst:.2e} mm; Gauss-Newton's from "
+          f"scipy's {scipy_gn:.2e} mm; ours from Gauss-Newton's, all {N} trials, {worst_gn:.2e} mm)")
     print(f"peak traced memory, N=1000: {peak_memory(model, meas) / 2**20:.0f} MiB")
     print("\nscaling with N (75 points):")
     for n in (1000, 10000) + (() if args.quick else (100000,)):

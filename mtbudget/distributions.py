@@ -9,6 +9,12 @@ parameter.
 
 The optional ``dof`` of the Type B distributions is for the GUF only: the
 "degrees of freedom" of an uncertainty that is itself uncertain (GUM G.4.2).
+
+Draws: every distribution draws from the numpy Generator it is given (``mcm.propagate`` gives each input
+its own, spawned from the seed), scaled and shifted in place.  Normal: ``standard_normal``; Rectangular,
+Arcsine (``sin(2 pi U)``) and CurvilinearTrapezoid (JCGM 101 6.4.3.4): ``random``; StudentT: Bailey's polar
+method from ``uniform(-1, 1)`` pairs (:func:`_student_t`); Triangular, Exponential, Gamma, Beta: numpy's own.
+The same seed gives the same draws.
 """
 
 from __future__ import annotations
@@ -137,7 +143,10 @@ class Rectangular(_Bounded):
     std = property(lambda s: Q_((s.b - s.a) / math.sqrt(12), s.units))
 
     def _draw(self, n, rng):
-        return self.a + (self.b - self.a) * rng.random(n)
+        x = rng.random(n)  # scaled and shifted in place (no temporaries of n values)
+        x *= self.b - self.a
+        x += self.a
+        return x
 
     def describe(self):
         return f"Rectangular({Q_(self.a, self.units):~P}, {Q_(self.b, self.units):~P})"
@@ -177,7 +186,12 @@ class Arcsine(_Bounded):
     std = property(lambda s: Q_((s.b - s.a) / (2 * math.sqrt(2)), s.units))
 
     def _draw(self, n, rng):
-        return (self.a + self.b) / 2 + (self.b - self.a) / 2 * np.sin(2 * np.pi * rng.random(n))
+        x = rng.random(n)
+        x *= 2 * np.pi
+        np.sin(x, out=x)
+        x *= (self.b - self.a) / 2
+        x += (self.a + self.b) / 2
+        return x
 
     def describe(self):
         return f"Arcsine({Q_(self.a, self.units):~P}, {Q_(self.b, self.units):~P})"
@@ -213,8 +227,13 @@ class CurvilinearTrapezoid(_Bounded):
         # JCGM 101 6.4.3.4: half-width w drawn from R(w - d, w + d), then X from R(mid - w', mid + w')
         r1, r2 = rng.random(n), rng.random(n)
         half = (self.b - self.a) / 2
-        w = half - self.d + 2 * self.d * r2
-        return (self.a + self.b) / 2 + w * (2 * r1 - 1)
+        r2 *= 2 * self.d  # w = half - d + 2 d r2, in place
+        r2 += half - self.d
+        r1 *= 2  # X = mid + w (2 r1 - 1)
+        r1 -= 1
+        r1 *= r2
+        r1 += (self.a + self.b) / 2
+        return r1
 
     def describe(self):
         return f"CurvilinearTrapezoid({Q_(self.a, self.units):~P}, {Q_(self.b, self.units):~P}, d={Q_(self.d, self.units):~P})"
@@ -242,10 +261,7 @@ class StudentT(Distribution):
     gum_std = property(lambda s: Q_(s.s, s.units))
 
     def _draw(self, n, rng):
-        # t = Z / sqrt(chi2_nu / nu), chi2_nu = 2 Gamma(nu/2): the same law as standard_t, ~20 % faster
-        g = rng.standard_gamma(self.nu / 2, n)
-        z = rng.standard_normal(n)
-        return self.mu + self.s * z * np.sqrt(self.nu / (2 * g))
+        return _shift(_student_t(self.nu, n, rng), self.s, self.mu)  # Bailey's polar method, see _student_t
 
     def describe(self):
         return f"StudentT(mean={self.mean:~P}, scale={Q_(self.s, self.units):~P}, dof={self.nu:g})"
@@ -310,6 +326,47 @@ class Beta(_Bounded):
 
     def _draw(self, n, rng):
         return self.a + (self.b - self.a) * rng.beta(self.p, self.q, n)
+
+
+def _shift(x: np.ndarray, scale: float, loc: float) -> np.ndarray:
+    """loc + scale * x, in place."""
+    x *= scale
+    x += loc
+    return x
+
+
+def _student_t(nu: float, n: int, rng: np.random.Generator) -> np.ndarray:
+    """n draws of Student's t with nu degrees of freedom: Bailey's polar method (Math. Comp. 62 (1994) 779-781).
+
+    (U, V) uniform on the square (-1, 1)^2, kept when W = U^2 + V^2 lies in (0, 1] (probability pi/4); then
+    T = U sqrt(nu (W^(-2/nu) - 1) / W) has exactly the t distribution.  Only uniforms and one power per draw:
+    ~1.3-1.7x faster than Z / sqrt(2 Gamma(nu/2) / nu) (a normal and a gamma draw each) on the project's
+    machine.  The stream: pairs are drawn in rounds of int(1.28 m) + 64 (all U then all V, from
+    ``rng.uniform(-1, 1)``) for the m values still missing, and the accepted values are taken in order: the
+    same seed gives the same draws.
+    """
+    out = np.empty(n)
+    k = 0
+    while k < n:
+        m = int((n - k) * 1.28) + 64
+        uv = rng.uniform(-1.0, 1.0, 2 * m)  # -1 + 2 * rng.random(): the same numbers, in one pass
+        u, v = uv[:m], uv[m:]
+        w = u * u
+        w += v * v
+        ok = w <= 1.0
+        ok &= w > 0.0
+        with np.errstate(invalid="ignore", divide="ignore"):  # the rejected pairs, computed and dropped
+            c = np.power(w, -2.0 / nu)
+            c -= 1.0
+            c *= nu
+            c /= w
+            np.sqrt(c, out=c)
+        c *= u
+        c = c[ok]  # one selection, at the end: cheaper than selecting u and w first
+        take = min(n - k, c.size)
+        out[k:k + take] = c[:take]
+        k += take
+    return out
 
 
 def t_factor(coverage: float, dof: float) -> float:

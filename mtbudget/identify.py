@@ -56,6 +56,7 @@ Solvers (``Strategy.solver``):
 from __future__ import annotations
 
 import hashlib
+import itertools
 import weakref
 from dataclasses import dataclass, field
 
@@ -63,7 +64,7 @@ import numpy as np
 
 from . import tracker as lt
 from .errors import IdentificationError
-from .machine import AXES, AXIS_INDEX, chain, skew, skew_basis
+from .machine import AXES, AXIS_INDEX, chain_adjoint, skew, skew_basis
 from .model import MeasurementModel
 from .units import factor, shown_unit
 
@@ -654,7 +655,7 @@ _MAX_RATE = 0.5
 
 def _spd_inverse(H: np.ndarray) -> np.ndarray:
     """Inverse of a symmetric positive definite matrix, equilibrated by its diagonal."""
-    d = 1.0 / np.sqrt(np.diag(H))
+    d = 1.0 / np.sqrt(H.diagonal())
     Li = np.linalg.inv(np.linalg.cholesky(H * d[:, None] * d[None, :]))
     return (Li.T @ Li) * d[:, None] * d[None, :]
 
@@ -667,9 +668,15 @@ def _rotation(om: np.ndarray) -> np.ndarray:
     t = np.sqrt(np.where(small, 1.0, t2))
     a = np.where(small, 1.0 - t2 / 6.0, np.sin(t) / t)
     b = np.where(small, 0.5 - t2 / 24.0, (1.0 - np.cos(t)) / np.where(small, 1.0, t2))
-    R = skew(om) * a[:, None, None] + (om[:, :, None] * om[:, None, :]) * b[:, None, None]
-    R[:, [0, 1, 2], [0, 1, 2]] += (1.0 - b * t2)[:, None]
-    return R
+    n = om.shape[0]
+    # [om]x as (n, 9) from one product with a constant 0/+-1 matrix (exact: one non-zero term per entry)
+    R = (om @ _SKEW9) * a[:, None] + (om[:, :, None] * om[:, None, :]).reshape(n, 9) * b[:, None]
+    R[:, ::4] += (1.0 - b * t2)[:, None]  # the diagonal
+    return R.reshape(n, 3, 3)
+
+
+#: [om]x = (om @ _SKEW9).reshape(3, 3)
+_SKEW9 = np.stack([skew(e).reshape(9) for e in np.eye(3)])
 
 
 def _rigid_columns(P: np.ndarray, c0: np.ndarray) -> np.ndarray:
@@ -694,24 +701,15 @@ class _Labels:
         self.n = int(self.of.max()) + 1 if N else 0
 
     def split(self, rows: np.ndarray):
-        """[(label, positions in ``rows``)] of the labels present among ``rows``."""
-        lab = self.of[rows]
+        """[(label, positions in ``rows``)] of the labels present among ``rows``: slices when each label's rows
+        are contiguous (the engine's blocks, in order), index arrays otherwise."""
         if self.n == 1:
             return [(0, slice(None))]
+        lab = self.of[rows]
+        if lab.size and (lab[1:] >= lab[:-1]).all():
+            bounds = [0, *(np.flatnonzero(lab[1:] != lab[:-1]) + 1).tolist(), lab.size]
+            return [(int(lab[lo]), slice(lo, hi)) for lo, hi in itertools.pairwise(bounds)]
         return [(k, np.flatnonzero(lab == k)) for k in np.unique(lab)]
-
-
-def _as_slices(parts, n):
-    """The label positions as contiguous slices (None when a label's positions are not contiguous)."""
-    out = []
-    for _, pos in parts:
-        if isinstance(pos, slice):
-            out.append(slice(0, n))
-            continue
-        if len(pos) and pos[-1] - pos[0] + 1 != len(pos):
-            return None
-        out.append(slice(int(pos[0]), int(pos[-1]) + 1) if len(pos) else slice(0, 0))
-    return out
 
 
 def _per_label(parts, rows, fn, width):
@@ -734,6 +732,7 @@ def _identify_chunk_chord(model, meas, noise, strategy, theta, pose0, fixed, pha
     lab = _Labels(labels, N)
     Wh = _weights(model, meas, noise, strategy)
     WL = _gram33(Wh)  # information matrix of each point, tracker frame: C^-1 = Wh^T Wh
+    WLc = np.ascontiguousarray(WL.transpose(2, 3, 0, 1))  # the same, component-major (3, 3, N, M), for _chord
     tol = min(strategy.xtol, strategy.chord_tol)
     refresh = max(tol, _REFRESH_STEP)
     theta_start = theta.copy()
@@ -757,7 +756,7 @@ def _identify_chunk_chord(model, meas, noise, strategy, theta, pose0, fixed, pha
         K2 = K.reshape(3 * M, -1)
         out = {}
         for k, W_bar in W_bars.items():
-            KW = np.einsum("mij,mjb->mib", W_bar, K)
+            KW = W_bar @ K  # (M, 3, 3) @ (M, 3, b): each point's information times its rows
             out[k] = _spd_inverse(K2.T @ KW.reshape(3 * M, -1))
         return out
 
@@ -767,7 +766,7 @@ def _identify_chunk_chord(model, meas, noise, strategy, theta, pose0, fixed, pha
 
     # the weighted pose-only fit of the nominal points (Eq. 27 "before"); its gradient is exact, so is its minimum
     nom = {"R": Rk.copy(), "T": pose_k[:, :3].copy(), "theta": np.zeros((N, p))}
-    ok, it = _chord(nom, all_rows, lambda th, rows: P_nom[rows], meas, WL, matrix(None), None, None, c0, tol,
+    ok, it = _chord(nom, all_rows, lambda th, rows: P_nom[rows], meas, WLc, matrix(None), None, None, c0, tol,
                     strategy, lab)
     bad |= ~ok
     iters += it
@@ -797,7 +796,7 @@ def _identify_chunk_chord(model, meas, noise, strategy, theta, pose0, fixed, pha
         Hinv = matrix(J0)
         todo = np.flatnonzero(~bad)
         # stage 1: the nominal Jacobian (earlier phases only give the next one its start)
-        ok, it = _chord(state, todo, evaluate, meas, WL, Hinv, J0.reshape(3 * M, -1), Qs, c0, refresh, strategy, lab,
+        ok, it = _chord(state, todo, evaluate, meas, WLc, Hinv, J0.reshape(3 * M, -1), Qs, c0, refresh, strategy, lab,
                         predict=True)
         bad[todo[~ok]] = True
         iters += it
@@ -807,19 +806,16 @@ def _identify_chunk_chord(model, meas, noise, strategy, theta, pose0, fixed, pha
         todo = np.flatnonzero(~bad)
         if todo.size:
             theta_c = state["theta"][todo].copy()
-            P_c = np.empty((len(todo), M, 3))
-            J_c = np.empty((len(todo), M, 3, Qs.shape[1]))
-            parts = lab.split(todo)
-            slices = _as_slices(parts, len(todo))
-            if slices is not None and not fixed:  # one evaluation, the product that mixes trials label by label
-                P_c, J_c = chain(model.config, model.errors, theta_c, model.inputs, jacobian=True, B=model.B,
-                                 project=Qs, row_groups=slices)
+            if not fixed:  # the Jacobian as an operator: J^T v propagated back through the chain, J never formed
+                P_c, J_c = chain_adjoint(model.config, model.errors, theta_c, model.inputs, B=model.B)
             else:
-                for _, pos in parts:  # the Jacobian's product mixes trials: label by label
+                P_c = np.empty((len(todo), M, 3))
+                J_c = np.empty((len(todo), M, 3, Qs.shape[1]))
+                for _, pos in lab.split(todo):  # the Jacobian's product mixes trials: label by label
                     P_c[pos], J_c[pos] = model.machine_points(theta_c[pos], _rows(fixed, todo[pos], N),
                                                               jacobian=True, project=Qs)
-            J_c = np.ascontiguousarray(J_c).reshape(len(todo), 3 * M, Qs.shape[1])  # trial-major, once
-            ok, it = _chord(state, todo, evaluate, meas, WL, Hinv, J_c, Qs, c0, tol, strategy, lab, first=P_c)
+                J_c = np.ascontiguousarray(J_c).reshape(len(todo), 3 * M, Qs.shape[1])  # trial-major, once
+            ok, it = _chord(state, todo, evaluate, meas, WLc, Hinv, J_c, Qs, c0, tol, strategy, lab, first=P_c)
             iters += it
             # what stage 1's nominal Jacobian left (b1) against the distance it was used over: stage 2's own bias
             # is about b1 * (b1 / distance) (it used a Jacobian b1 away from the minimum)
@@ -882,15 +878,16 @@ def _gram33(Wh):
     return out
 
 
-def _chord(state, rows, evaluate, meas, WL, Hinv, J, Qs, c0, tol, strategy, lab, first=None, predict=False):
+def _chord(state, rows, evaluate, meas, WLc, Hinv, J, Qs, c0, tol, strategy, lab, first=None, predict=False):
     """Chord iterations for the trials ``rows`` (updated in place in ``state``: R, T, theta).
 
-    evaluate(theta, rows) -> machine points (n, M, 3); WL (N, M, 3, 3) each point's information matrix
-    (tracker frame); Hinv the shared inverse normal matrix of each label; J the geometric Jacobian along the
-    scaled directions Qs, shared (3M, r) or per trial (n, 3M, r) (None: the pose alone); lab the labels
-    (:class:`_Labels`); first: the machine points at the start, when already known; predict: also stop when
-    the next step, predicted from the contraction of the last two, is below ``tol``.  Returns (converged
-    per row, iterations).
+    evaluate(theta, rows) -> machine points (n, M, 3); WLc (3, 3, N, M) each point's information matrix
+    (tracker frame), component-major; Hinv the shared inverse normal matrix of each label; J the geometric
+    Jacobian along the scaled directions Qs: shared (3M, r), per trial (n, 3M, r), or each trial's as an
+    operator (:func:`mtbudget.machine.chain_adjoint`: J(v, positions) = J^T v, (n, p)), None for the pose
+    alone; lab the labels (:class:`_Labels`); first: the machine points at the start, when already known;
+    predict: also stop when the next step, predicted from the contraction of the last two, is below ``tol``.
+    Returns (converged per row, iterations).
     """
     n = len(rows)
     ok = np.zeros(n, bool)
@@ -899,9 +896,10 @@ def _chord(state, rows, evaluate, meas, WL, Hinv, J, Qs, c0, tol, strategy, lab,
     live = np.arange(n)  # positions in rows still iterating
     prev = np.full(n, np.inf)
     it = 0
-    per_trial = J is not None and J.ndim == 3  # (n, 3M, r): each trial's own Jacobian
+    adjoint = callable(J)  # each trial's own Jacobian as an operator, J(v, positions) = J^T v (n, p)
+    per_trial = not adjoint and J is not None and J.ndim == 3  # (n, 3M, r): each trial's own Jacobian
     inv_ps = 1.0 / POSE_SCALE
-    meas_r, WL_r = meas[rows], WL[rows]
+    meas_r, WL_r = meas[rows], WLc[:, :, rows]  # component-major (3, 3, N, M): contiguous (trials, points) planes
     M = meas.shape[1]
     ones = np.ones((1, M))
     # every product below is per trial (stacked matrices of a fixed shape) or per label: see _Labels
@@ -912,14 +910,14 @@ def _chord(state, rows, evaluate, meas, WL, Hinv, J, Qs, c0, tol, strategy, lab,
         parts = lab.split(r)
         R, T = state["R"][r], state["T"][r]
         P_W = first[live] if (first is not None and it == 1) else evaluate(state["theta"][r], r)
-        W = WL_r[live] if part else WL_r
+        W = WL_r[:, :, live] if part else WL_r
         rl = (meas_r[live] if part else meas_r) - (P_W - T[:, None]) @ R  # x - R^T (P_W - T), tracker frame
         u = np.empty((nr, M, 3))  # C^-1 r, each point's information matrix (symmetric) times its residual
         for i in range(3):
-            u[..., i] = W[..., i, 0] * rl[..., 0] + W[..., i, 1] * rl[..., 1] + W[..., i, 2] * rl[..., 2]
+            u[..., i] = W[i, 0] * rl[..., 0] + W[i, 1] * rl[..., 1] + W[i, 2] * rl[..., 2]
         v = u @ np.swapaxes(R, 1, 2)  # the weighted residual in the machine frame: R C^-1 R^T (x_W - P_W)
         S = np.swapaxes(P_W - c0, 1, 2) @ v  # sum over the points of (P_W - c0) v^T: its antisymmetric part is the torque
-        G = np.empty((nr, 6 + (0 if J is None else J.shape[-1])))
+        G = np.empty((nr, 6 + (0 if J is None else Qs.shape[1])))
         G[:, :3] = (ones @ v)[:, 0] * inv_ps[:3]
         G[:, 3] = (S[:, 1, 2] - S[:, 2, 1]) * inv_ps[3]
         G[:, 4] = (S[:, 2, 0] - S[:, 0, 2]) * inv_ps[4]
@@ -927,7 +925,10 @@ def _chord(state, rows, evaluate, meas, WL, Hinv, J, Qs, c0, tol, strategy, lab,
         if J is not None:
             m3 = 3 * M
             V = v.reshape(nr, m3)
-            if per_trial:
+            if adjoint:  # J^T v of each trial (elementwise), then along the directions label by label
+                A = J(v, live if part else None)
+                G[:, 6:] = -_per_label(parts, r, lambda k, pos: A[pos] @ Qs, Qs.shape[1])
+            elif per_trial:
                 G[:, 6:] = -(V[:, None, :] @ (J[live] if part else J))[:, 0]
             else:
                 G[:, 6:] = -_per_label(parts, r, lambda k, pos: V[pos] @ J, J.shape[1])

@@ -13,6 +13,7 @@ from __future__ import annotations
 import json
 import math
 import os
+from collections import deque
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -43,14 +44,15 @@ class RunSettings:
     stopping at ``max_trials`` at most.  keep_samples: keep every trial's
     scalar outputs for exact intervals (default: for runs of up to 200 000
     trials and adaptive runs); otherwise memory stays bounded and intervals
-    come from fine histograms.
+    come from fine histograms.  chunk_blocks: blocks identified together, then merged and logged (None:
+    :func:`auto_chunk_blocks`); the results do not depend on it, only the speed and the convergence rows.
     """
 
     trials: int | None = 1000
     seed: int | None = None
     coverage: float = 0.95
     block: int = 64
-    chunk_blocks: int = 4  # blocks identified together and then logged: 16 is ~10 % faster, 4 loses less to a crash
+    chunk_blocks: int | None = None  # blocks identified together and then logged; None: auto_chunk_blocks
     sources: list | None = None
     executor: str = "inline"
     workers: int | None = None
@@ -75,7 +77,8 @@ class RunSettings:
         need(isinstance(self.coverage, float | int) and 0 < self.coverage < 1, "--coverage",
              f"must lie strictly between 0 and 1, got {self.coverage}")
         need(self.block >= 1, "block", f"must be >= 1, got {self.block}")
-        need(self.chunk_blocks >= 1, "chunk_blocks", f"must be >= 1, got {self.chunk_blocks}")
+        need(self.chunk_blocks is None or self.chunk_blocks >= 1, "chunk_blocks",
+             f"must be >= 1 (or None: automatic), got {self.chunk_blocks}")
         need(self.attribution_trials is not None and self.attribution_trials >= 0, "--attribution-trials",
              f"must be 0 (no budget) or a positive number of trials, got {self.attribution_trials}")
         need(self.attribution_trials == 0 or self.attribution_trials >= 2, "--attribution-trials",
@@ -87,6 +90,13 @@ class RunSettings:
         need(self.max_trials >= 2, "max_trials", f"must be >= 2, got {self.max_trials}")
         need(1 <= self.ndig <= 4, "ndig", f"must be 1 to 4 significant digits, got {self.ndig}")
         return self
+
+
+def auto_chunk_blocks(n_blocks: int) -> int:
+    """Blocks identified together in a run of ``n_blocks`` blocks: 4 up to 511 blocks (a crash loses little, and a
+    short run still gets a convergence row every 4 blocks), growing to 16 from 1024 blocks: identifying more trials
+    per call shares each call's fixed cost (16 blocks are ~15 % faster per trial than 4, docs/performance.md)."""
+    return min(16, max(4, int(n_blocks) // 64))
 
 
 #: per-point components kept as every trial's values (exact intervals) up to this many numbers, else histograms
@@ -154,7 +164,8 @@ def _run(config, settings, *, on_chunk, resume_blocks, engine, host, resume_hist
     done = {b.block: b for b in (resume_blocks or [])}
     ex = Executor(engine, spec, settings.executor, settings.workers, settings.address)
     bar = progress_bar(trials, "Monte Carlo", "trial", settings.progress)
-    chunk_blocks = settings.chunk_blocks
+    chunk_blocks = settings.chunk_blocks or auto_chunk_blocks(
+        math.ceil((int(trials) if trials is not None else settings.adaptive_batch or 10_000) / engine.block))
     try:
         def merge(b, target_n):
             """Merge block b, cut to the trials the run still needs; the merged (cut) block is what gets logged."""
@@ -167,14 +178,16 @@ def _run(config, settings, *, on_chunk, resume_blocks, engine, host, resume_hist
             todo = [b for b in block_ids if b not in done]
             chunks = [todo[i:i + chunk_blocks] for i in range(0, len(todo), chunk_blocks)]
             gen = ex.map(chunks)
-            cache = dict(done)
-            pending = list(block_ids)
+            # blocks computed or resumed and not yet merged; a block is released once merged (a resumed one too),
+            # so the run holds only what waits for an earlier block: memory bounded by the executor's window
+            cache = {b: done.pop(b) for b in block_ids if b in done}
+            pending = deque(block_ids)
             for _ in chunks:
                 for r in next(gen):
                     cache[r.block] = r
                 merged = []  # every block now available, in block order
                 while pending and pending[0] in cache:
-                    merged.append(merge(cache.pop(pending.pop(0)), target_n))  # merged blocks are not kept
+                    merged.append(merge(cache.pop(pending.popleft()), target_n))  # merged blocks are not kept
                 if merged:
                     _record(result)
                     bar.update(sum(b.n for b in merged))

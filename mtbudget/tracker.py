@@ -219,20 +219,18 @@ def register(P_W: np.ndarray, P_LT: np.ndarray, weights: np.ndarray | None = Non
     P_LT = np.asarray(P_LT, float)
     if P_W.ndim == 2:
         P_W = P_W[None]
-    N = P_LT.shape[0]
     P_W = np.broadcast_to(P_W, P_LT.shape)
     w = np.ones(P_LT.shape[:2]) if weights is None else np.broadcast_to(weights, P_LT.shape[:2])
     w = w / w.sum(axis=1, keepdims=True)
-    cw = np.einsum("nm,nmi->ni", w, P_W)
-    cl = np.einsum("nm,nmi->ni", w, P_LT)
-    H = np.einsum("nm,nmi,nmj->nij", w, P_LT - cl[:, None], P_W - cw[:, None])
+    wc = w[:, None, :]  # (N, 1, M): the weighted sums over the points as one small product per trial
+    cw = (wc @ P_W)[:, 0]
+    cl = (wc @ P_LT)[:, 0]
+    H = np.swapaxes((P_LT - cl[:, None]) * w[..., None], 1, 2) @ (P_W - cw[:, None])  # sum_m w_m a_m b_m^T
     U, _, Vt = np.linalg.svd(H)
-    det = np.sign(np.linalg.det(np.einsum("nij,njk->nik", U, Vt)))
-    D = np.zeros((N, 3, 3))
-    D[:, 0, 0] = 1
-    D[:, 1, 1] = 1
-    D[:, 2, 2] = det
-    # R maps tracker-frame vectors to machine-frame vectors: P_W = R P_LT + T
-    R = np.einsum("nji,njk,nlk->nil", Vt, D, U)
-    T = cw - np.einsum("nij,nj->ni", R, cl)
+    det = np.sign(np.linalg.det(U @ Vt))
+    # R = V diag(1, 1, det) U^T maps tracker-frame vectors to machine-frame vectors: P_W = R P_LT + T
+    VD = np.swapaxes(Vt, 1, 2).copy()
+    VD[:, :, 2] *= det[:, None]
+    R = VD @ np.swapaxes(U, 1, 2)
+    T = cw - (R @ cl[:, :, None])[:, :, 0]
     return np.concatenate([T, euler_from_rotation(R)], axis=1)

@@ -211,3 +211,44 @@ def test_a_trials_chain_does_not_depend_on_the_trials_evaluated_with_it():
     all_rows = chain(cfg, em, th, inp)
     for lo, hi in ((0, 1), (5, 6), (3, 5), (2, 9), (10, 37)):
         assert np.array_equal(chain(cfg, em, th[lo:hi], inp), all_rows[lo:hi])
+
+
+def test_the_chain_adjoint_is_the_transposed_jacobian_for_every_configuration():
+    """machine.chain_adjoint: J^T v without forming J, against the Jacobian of machine.chain, for every configuration,
+    both conventions, offsets and scales, models that leave errors and squareness out, and subsets of the trials;
+    a trial's J^T v does not depend on the trials evaluated with it, bit for bit."""
+    from mtbudget.machine import chain_adjoint
+
+    rng = np.random.default_rng(5)
+    M = 30
+    nom, tool = rng.uniform(-300, 300, (M, 3)), rng.uniform(-100, 100, (M, 3))
+    models = []
+    for code in ALL_CONFIGURATIONS:
+        cfg = Configuration.parse(code)
+        for conv in ("iso230", "free"):
+            models.append((cfg, ErrorModel.default(nom, 3, straightness_convention=conv,
+                                                   tool_axis=cfg.tool[-1] if cfg.tool else None)))
+    models.append((Configuration.parse("XFYZ"), ErrorModel(ranges={a: (-300, 300) for a in "xyz"},
+                                                           degrees={"dx(x)": 2, "ey(z)": 1}, squareness=False)))
+    for cfg, em in models:
+        th = rng.standard_normal((5, len(em.params))) * 1e-4
+        inp = ChainInputs(nom, tool, offset={"x": rng.standard_normal((5, M)) * 1e-3},
+                          scale={"z": rng.standard_normal((1, M)) * 1e-5})
+        P, J = chain(cfg, em, th, inp, jacobian=True)
+        Pa, adj = chain_adjoint(cfg, em, th, inp)
+        assert np.array_equal(P, Pa)
+        v = rng.standard_normal((5, M, 3))
+        ref = np.einsum("nmi,nmip->np", v, J)
+        scale = np.abs(ref).max()
+        assert np.abs(adj(v) - ref).max() <= 1e-13 * scale, cfg.code
+        idx = np.array([1, 3, 4])
+        assert np.abs(adj(v[idx], idx) - ref[idx]).max() <= 1e-13 * scale
+    # the same bits for a trial whatever other trials are evaluated with it
+    cfg, em = models[0]
+    th = rng.standard_normal((9, len(em.params))) * 1e-4
+    v = rng.standard_normal((9, M, 3))
+    whole = chain_adjoint(cfg, em, th, ChainInputs(nom, tool))[1](v)
+    for lo, hi in ((0, 1), (2, 5), (4, 9)):
+        assert np.array_equal(chain_adjoint(cfg, em, th[lo:hi], ChainInputs(nom, tool))[1](v[lo:hi]), whole[lo:hi])
+    sub = np.array([0, 2, 7])
+    assert np.array_equal(chain_adjoint(cfg, em, th, ChainInputs(nom, tool))[1](v[sub], sub), whole[sub])

@@ -235,3 +235,26 @@ def test_bad_input():
                   correlations={("a", "b"): 0.9, ("b", "c"): 0.9, ("a", "c"): -0.9})
     with pytest.raises(ModelError, match="only Normal"):
         propagate(lambda a, b: a + b, {"a": Normal(0, 1), "b": Rectangular(0, 1)}, trials=100, correlations={("a", "b"): 0.5})
+
+
+@pytest.mark.parametrize("dist, law", [
+    (StudentT(5.0, 2.0, 5), stats.t(5, loc=5.0, scale=2.0)),
+    (StudentT(0.0, 1.0, 24), stats.t(24)),
+    (Arcsine(-1.0, 3.0), stats.arcsine(loc=-1.0, scale=4.0)),
+    (Rectangular(2.0, 5.0), stats.uniform(loc=2.0, scale=3.0)),
+])
+def test_draws_follow_their_law_and_the_seed(dist, law):
+    """The in-place draws (and Bailey's polar method for t) have the stated law, and one seed gives one stream."""
+    x = dist.sample(200_000, np.random.default_rng(11)).magnitude
+    assert np.array_equal(x, dist.sample(200_000, np.random.default_rng(11)).magnitude)
+    assert stats.kstest(x, law.cdf).pvalue > 1e-3
+    assert x.std(ddof=1) == pytest.approx(dist.std.magnitude, rel=0.02)
+    small = dist.sample(7, np.random.default_rng(11)).magnitude  # few draws: the same code path
+    assert small.shape == (7,) and np.isfinite(small).all()
+
+
+def test_curvilinear_trapezoid_draws_have_its_variance():
+    d = CurvilinearTrapezoid(-1.0, 1.0, 0.25)
+    x = d.sample(400_000, np.random.default_rng(12)).magnitude
+    assert x.var() == pytest.approx(1 / 3 + 0.25**2 / 9, rel=0.01)
+    assert np.abs(x).max() <= 1.25
