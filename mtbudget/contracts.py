@@ -305,6 +305,19 @@ class Candidate:
         """(M, 3, k): displacement (mm) of each measured point per internal unit of each parameter, in ``frame``."""
         raise NotImplementedError
 
+    def variables(self, ctx: DiagnosisContext) -> list:
+        """The recording columns the effect names as its cause, as the diagnosis's data-driven feature names (for
+        example ``["T_x"]``, ``["dir_x"]``): an alternative explanation built from them is the effect in other words
+        and is not held against it.  Default: none."""
+        return []
+
+    def alternatives(self, ctx: DiagnosisContext) -> list:
+        """Physical explanations outside the library that could look like this effect, each a dict: ``name``,
+        ``description``, ``separate`` (the measurement that tells them apart) and optionally ``columns`` ((M, 3, k) mm
+        in ``frame``, or None for the same displacement of every point).  A finding that is not significant given one
+        of them is reported as confounded with it, never named alone.  Default: none."""
+        return []
+
     def perturbation(self, ctx: DiagnosisContext, beta: np.ndarray) -> dict | None:
         """Model perturbations (``MODEL_INPUTS`` keys) that put the effect into the full model at ``beta``
         (internal units), for the refit; None: the columns times ``beta`` as a displacement in ``frame``."""

@@ -30,6 +30,13 @@ Method (docs/diagnose.md has the reasoning and the calibration):
    A set in which any estimate is physically implausible (outside the
    candidate's declared ``plausible`` range), or whose members are large and
    cancel each other, is never chosen.
+   Every finding is then tested against explanations *outside* the library
+   (:func:`_outside_alternatives`): the physical alternatives its candidate
+   declares, and data-driven terms (alone and in pairs) built from the
+   recording's own columns.  When the finding is not significant (level
+   ``alpha``) with an alternative in its place, it is reported as confounded
+   with that alternative, not named alone (an intersection-union test: a
+   finding named alone beat every alternative at level ``alpha``).
 5. **After.** The chosen effects are put into the model at their estimates
    and the recording is identified again: chi-square and RMS before and after.
 
@@ -324,6 +331,13 @@ class Finding:
     after: dict
     confounded_with: list = field(default_factory=list)
     hints: list = field(default_factory=list)  # measurements that would tell it from the confounded ones
+    #: explanations outside the library that fit about as well (:func:`_outside_alternatives`)
+    outside: list = field(default_factory=list)
+
+    @property
+    def named_alone(self) -> bool:
+        """Neither another candidate nor an alternative outside the library fits about as well."""
+        return not self.confounded_with and not self.outside
 
     def to_dict(self) -> dict:
         scalar = len(self.estimate) == 1
@@ -333,6 +347,10 @@ class Finding:
             "estimate": {"value": self.estimate[0] if scalar else self.estimate, "unit": self.unit},
             "uncertainty": {"value": self.uncertainty[0] if scalar else self.uncertainty, "unit": self.unit},
             "evidence": self.evidence, "after": self.after, "confounded_with": self.confounded_with,
+            "confounded_outside_library": self.outside, "named_alone": self.named_alone,
+            "status": ("named" if self.named_alone else
+                       "confounded with an alternative outside the library" if self.outside else
+                       "confounded with another candidate"),
         }
 
 
@@ -568,7 +586,8 @@ def _diagnose(rec, candidates, alpha, max_set, confound_margin, max_degree, gate
     considered, chosen, implausible_alone = sel.scan(level, max_set)
     steps.done()
     steps.begin(f"refit with the findings ({len(chosen)})")
-    findings, f_all = _findings(chosen, sel, K, alpha, confound_margin, ctx)
+    findings, f_all = _findings(chosen, sel, K, alpha, confound_margin, ctx,
+                                lambda raw, frame: _whitened(raw, frame, ctx, Wn))
     # refit the full model with the effects in it at their estimates: "after" each finding (cumulative)
     offsets = np.cumsum([0] + [usable[i][1].shape[1] for i in chosen])
     pert_parts, after, res = [], [], base
@@ -616,7 +635,7 @@ def _diagnose(rec, candidates, alpha, max_set, confound_margin, max_degree, gate
     return Diagnosis(rec.name, _quality(base), mismatch, findings, final, skipped, untestable, considered,
                      {"alpha": alpha, "bonferroni_level": level, "max_set": max_set, "confound_margin_bic": confound_margin,
                       "gate_alpha": gate_alpha, "candidates": [c.label for c in candidates],
-                      "thermal_correction": rec.thermal_correction},
+                      "thermal_correction": rec.thermal_correction, "outside_library": _outside_settings(alpha)},
                      residuals_before=base.residual_machine[0], residuals_after=res_after,
                      noise=est, unexplained=unexplained)
 
@@ -745,7 +764,7 @@ def _diagnose_stations(rec, candidates, alpha, max_set, confound_margin, max_deg
     considered, chosen, implausible_alone = sel.scan(level, max_set)
     steps.done()
     steps.begin(f"refit with the findings ({len(chosen)})")
-    findings, f_all = _findings(chosen, sel, K, alpha, confound_margin, ctx)
+    findings, f_all = _findings(chosen, sel, K, alpha, confound_margin, ctx, whiten)
     # refit with the effects at their estimates taken out of the measurements (each in its station's frame)
     offsets = np.cumsum([0] + [usable[i][1].shape[1] for i in chosen])
     lt_xyz, lt_rng = np.array(rec.lt, float), np.array(lt_range, float)
@@ -798,7 +817,7 @@ def _diagnose_stations(rec, candidates, alpha, max_set, confound_margin, max_deg
     return Diagnosis(rec.name, _station_quality(base, L), mismatch, findings, final, skipped, untestable, considered,
                      {"alpha": alpha, "bonferroni_level": level, "max_set": max_set, "confound_margin_bic": confound_margin,
                       "gate_alpha": gate_alpha, "candidates": [c.label for c in candidates],
-                      "thermal_correction": rec.thermal_correction,
+                      "thermal_correction": rec.thermal_correction, "outside_library": _outside_settings(alpha),
                       "stations": [{"id": int(st.id), "kind": st.kind, "rows": int(np.count_nonzero(row_station == st.id))}
                                    for st in stations],
                       "baseline": "all stations at once (mtbudget.multistation.identify_stations): geometric errors, "
@@ -904,10 +923,12 @@ def _estimate_noise_stations(rec, L, lin0, cand_cols, groups):
 CANCEL = 2.5
 
 
-def _findings(chosen, sel, K, alpha, confound_margin, ctx):
-    """The chosen effects as findings, each with its evidence, estimate and confounding alternatives."""
+def _findings(chosen, sel, K, alpha, confound_margin, ctx, whiten=None):
+    """The chosen effects as findings, each with its evidence, estimate and confounding alternatives: the other
+    candidates of the library (BIC margin) and the alternatives outside it (:func:`_outside_alternatives`)."""
     usable, lin, fit, ftest, bic, kcols = sel.usable, sel.lin, sel.fit, sel.ftest, sel.bic, sel.kcols
     f_all = fit(chosen)
+    terms = _term_library(ctx, whiten) if (chosen and whiten is not None) else None
     findings = []
     offsets = np.cumsum([0] + [usable[i][1].shape[1] for i in chosen])
     dof_all = lin.dof0 - kcols(chosen)
@@ -933,10 +954,278 @@ def _findings(chosen, sel, K, alpha, confound_margin, ctx):
                     hints.append(hint)
         est, unc, unit = _present(c, beta, cov * scale)
         stab = _stability(lin, usable, chosen, pos, ctx)
+        # naming the finding alone rejects "it adds nothing beyond the alternative" for every alternative, each at
+        # the level alpha: an intersection-union test, of level alpha without a correction for their number
+        outside = _outside_alternatives(i, chosen, sel, ctx, whiten, terms, alpha) if terms is not None else []
         findings.append(Finding(c, est, unc, unit, {
             "F": F, "p_value": p, "p_value_bonferroni": min(1.0, p * K), "delta_chi2": f_rest.chi2 - f_all.chi2,
-            "delta_bic": d_bic, "candidates_tested": len(usable), "alpha": alpha, "by_run": stab}, {}, conf, hints))
+            "delta_bic": d_bic, "candidates_tested": len(usable), "alpha": alpha, "by_run": stab}, {}, conf, hints,
+            outside))
     return findings, f_all
+
+
+# --------------------------------------------------------------------- alternatives outside the library
+#: a data-driven term of which less than this fraction (whitened norm, after the rest of the model) lies outside the
+#: span of a finding's own columns is the finding in other words ("dir_x along x" for reversal[x]), not an alternative
+SAME_DESCRIPTION = 0.05
+#: at most this many data-driven alternatives are listed per finding (the best first)
+MAX_LISTED = 3
+#: pairs of data-driven terms: each of this many best single terms completed by the best second one
+PAIR_FIRST = 6
+#: the measurement that separates a finding from a data-driven alternative, by the kind of column the term uses
+SEPARATE = {
+    "time": "Measure a fixed reflector on the table at the start and at the end of the test (what follows time "
+            "moves it), and let the temperature go up and then down rather than steadily one way.",
+    "temperature": "Let the temperature go up and then down (not steadily one way), or put a temperature sensor "
+                   "where the alternative would act (on the spindle head, on the column).",
+    "run": "Repeat a run in the same direction as the one before it (a change between passes then shows alone).",
+    "tool": "Measure with the tools in the other order (a tool follows the holder, not the time).",
+    "direction": "Approach the points from both sides within every run.",
+    "position": "Measure a finer mesh, or another region, of that axis.",
+}
+
+
+def _outside_settings(alpha) -> dict:
+    """How the findings were tested against explanations outside the library (the JSON's settings)."""
+    return {"level": alpha,
+            "test": "partial F-test of each finding given each alternative in its place (the rest of the chosen set "
+                    "kept); named alone only when significant given every one (an intersection-union test)",
+            "alternatives": "declared by the candidates (alternatives(ctx)); data-driven terms from the recording's "
+                            f"own columns, alone and in pairs (each of the {PAIR_FIRST} best single terms completed by "
+                            "the best second one), except the finding's own columns and causes (variables(ctx))"}
+
+
+def _feature_kinds(fname, ctx) -> list:
+    """The kinds of recording column a data-driven term is built from (time, temperature, run, tool, direction,
+    position), in the order of :data:`SEPARATE`."""
+    kinds = set()
+    for part in fname.split("*"):
+        if part == "t":
+            kinds.add("time")
+        elif part in ctx.plan.temperature:
+            kinds.add("temperature")
+        elif part.startswith("run"):
+            kinds.add("run")
+        elif part.startswith("tool"):
+            kinds.add("tool")
+        elif part.startswith("dir_"):
+            kinds.add("direction")
+        else:
+            kinds.add("position")
+    return [k for k in SEPARATE if k in kinds]
+
+
+def _term_words(fname, d) -> str:
+    """A data-driven term in words: "a displacement along z that follows T_z"."""
+    def word(part):
+        if part == "t":
+            return "time"
+        if part.startswith("dir_"):
+            return f"the {part[4:]} approach direction"
+        if part.startswith("run") and part[3:].isdigit():
+            return f"run {part[3:]} (against the first run)"
+        if part.startswith("tool") and part[4:].isdigit():
+            return f"tool {part[4:]} (against the first tool)"
+        if part in AXES:
+            return f"the {part} position"
+        return f"the reading of {part}"
+    parts = fname.split("*")
+    what = word(parts[0]) if len(parts) == 1 else ("the square of " + word(parts[0]) if parts[0] == parts[1] else
+                                                   f"the product of {word(parts[0])} and {word(parts[1])}")
+    where = "along the beam" if d == "range" else f"along {d}"
+    return f"a displacement {where} that follows {what}"
+
+
+def _orth(X: np.ndarray) -> np.ndarray:
+    """Orthonormal basis of the column space of X (rank-revealing)."""
+    if X.shape[1] == 0:
+        return X
+    s_norm = np.linalg.norm(X, axis=0)
+    Xs = X[:, s_norm > 0] / s_norm[s_norm > 0]
+    if Xs.shape[1] == 0:
+        return Xs
+    U, sv, _ = np.linalg.svd(Xs, full_matrices=False)
+    return U[:, sv > 1e-9 * sv[0]]
+
+
+def _given(w, Cc, A, dof_rest):
+    """The partial F-test of the finding's columns ``Cc`` given the alternative ``A`` (both already cleared of the
+    rest of the model, as is ``w``): (chi2 with the alternative, chi2 with both, F, dof, p)."""
+    QA = _orth(A)
+    w2 = w - QA @ (QA.T @ w)
+    C2 = Cc - QA @ (QA.T @ Cc)
+    QC = _orth(C2)
+    chi_alt = float(w2 @ w2)
+    chi_both = float(chi_alt - np.sum((QC.T @ w2) ** 2))
+    k = QC.shape[1]
+    dof = dof_rest - QA.shape[1] - k
+    if k == 0 or dof <= 0:
+        return chi_alt, chi_alt, 0.0, (k, dof), 1.0
+    F = max(chi_alt - chi_both, 0.0) / k / (chi_both / dof)
+    return chi_alt, chi_both, F, (k, dof), float(stats.f.sf(F, k, dof))
+
+
+def _scan_terms(w, Qc, q, ok, dof_alt):
+    """Every single-term alternative at once: the finding's columns (orthonormal basis ``Qc``) tested given the unit
+    column ``q[:, j]`` in its place (``w``, ``Qc`` and ``q`` already cleared of the rest of the model; ``dof_alt``
+    the residual dof with the alternative).  Returns (chi2 with the alternative, F, p, dof with both), each (L,)."""
+    k = Qc.shape[1]
+    s = q.T @ w  # (L,)
+    t = Qc.T @ q  # (k, L)
+    b = Qc.T @ w  # (k,)
+    chi_alt = float(w @ w) - s**2
+    G = np.eye(k)[None] - np.einsum("al,bl->lab", t, t)  # (L, k, k): the finding's Gram matrix cleared of q
+    bb = (b[:, None] - t * s[None, :]).T  # (L, k)
+    red = np.einsum("la,lab,lb->l", bb, np.linalg.pinv(G, rcond=1e-10), bb)
+    red = np.where(ok, np.maximum(red, 0.0), 0.0)
+    dof = dof_alt - k
+    F = red / k / np.maximum((chi_alt - red) / dof, 1e-300)
+    return chi_alt, F, stats.f.sf(F, k, dof), int(dof)
+
+
+def _variables(c, ctx) -> list:
+    """The recording's columns (names of the data-driven features) the candidate names as the cause of its effect: the
+    approach direction of a reversal, the sensor of a thermal expansion, the time of a drift.  A data-driven term that
+    involves one of them is the same cause acting with another shape (a reversal "along the beam", a reversal that
+    changes between runs), a variant of the finding, not an alternative to it.  From the candidate's
+    ``variables(ctx)`` (none when it does not declare them)."""
+    if not callable(getattr(c, "variables", None)):
+        return []
+    got = _call(c, "variables", ctx)
+    if not isinstance(got, (list, tuple, set)) or not all(isinstance(x, str) for x in got):
+        _fail(c, f"must return a list of column names, got {got!r}", "variables")
+    return list(got)
+
+
+def _held_out(lin, X_rest, Cc, A, seed=20261122) -> dict:
+    """Chi-square per whitened residual on a random half of the points of the model fitted on the other half: with
+    the finding and with the alternative in its place (a predictive comparison, free of the selection)."""
+    rng = np.random.default_rng(seed)
+    pts = np.unique(lin.rowpt)
+    hold = np.isin(lin.rowpt, rng.permutation(pts)[: len(pts) // 2])
+    out = {}
+    for key, extra in (("with_finding", Cc), ("with_alternative", A)):
+        X = np.concatenate([X_rest, extra], axis=1)
+        beta, *_ = np.linalg.lstsq(X[~hold], lin.w[~hold], rcond=1e-10)
+        r = lin.w[hold] - X[hold] @ beta
+        out[f"chi2_per_residual_{key}"] = float(r @ r / max(hold.sum(), 1))
+    out["residuals"] = int(hold.sum())
+    return out
+
+
+def _outside_alternatives(i, chosen, sel, ctx, whiten, terms, level) -> list:
+    """Explanations outside the library that fit the recording about as well as the finding ``usable[i]``.
+
+    For each alternative (the physical alternatives the candidate declares, ``alternatives(ctx)``, and every
+    data-driven term built from the recording's own columns that is not the finding in other words), the finding is
+    tested *given* the alternative in its place (the rest of the chosen set kept): the partial F-test of its columns.
+    When it is not significant at the level it was found at (``level``, Bonferroni over the candidates), the
+    alternative explains what the finding explains: the finding is confounded with it.  An alternative declared with
+    no columns is the same displacement of every point (a tracker drift and a machine drifting as a whole): always
+    confounded.  Returns the confounding alternatives, the declared ones first, then up to :data:`MAX_LISTED`
+    data-driven terms (the best fitting first), each with its test, a held-out comparison and the measurement that
+    would separate them."""
+    lin, usable = sel.lin, sel.usable
+    c = usable[i][0]
+    rest = [j for j in chosen if j != i]
+    X_rest = np.concatenate([lin.Q0] + [usable[j][1] for j in rest], axis=1)
+    Qr = _orth(X_rest)
+
+    def clear(Y):
+        return Y - Qr @ (Qr.T @ Y)
+
+    w = clear(lin.w[:, None])[:, 0]
+    Cc = clear(usable[i][1])
+    dof_rest = lin.n - Qr.shape[1]
+    chi_with = float(w @ w - np.sum((_orth(Cc).T @ w) ** 2))
+    out = []
+    # the physical alternatives the candidate declares
+    declared = _call(c, "alternatives", ctx) if callable(getattr(c, "alternatives", None)) else None
+    for alt in declared or []:
+        if not isinstance(alt, dict) or not {"name", "description", "separate"} <= set(alt):
+            _fail(c, "must return a list of dicts with keys name, description, separate (and optionally columns, "
+                     f"frame), got {alt!r}", "alternatives")
+        entry = {"alternative": alt["name"], "kind": "declared by the candidate", "description": alt["description"],
+                 "separating_measurement": alt["separate"]}
+        cols = alt.get("columns")
+        if cols is None:
+            entry.update(identical=True, test={"F": 0.0, "dof": None, "p_value": 1.0, "level": level},
+                         why="the same displacement of every measured point: no recording of the tool point alone can "
+                             "tell them apart")
+            out.append(entry)
+            continue
+        raw = np.asarray(cols, float)
+        if raw.ndim != 3 or raw.shape[:2] != (len(ctx.plan), 3) or not np.all(np.isfinite(raw)):
+            _fail(c, f"alternative {alt['name']!r}: columns must be a finite array of shape ({len(ctx.plan)}, 3, k)",
+                  "alternatives")
+        A = clear(whiten(raw, alt.get("frame", "machine")))
+        if np.linalg.norm(A) <= 1e-9 * max(np.linalg.norm(whiten(raw, alt.get("frame", "machine"))), 1e-300):
+            continue  # the baseline absorbs the alternative: it explains nothing the finding explains
+        chi_alt, _, F, dof, p = _given(w, Cc, A, dof_rest)
+        if p >= level:
+            entry.update(identical=False, test={"F": F, "dof": list(dof), "p_value": p, "level": level},
+                         chi2_with_finding=chi_with, chi2_with_alternative=chi_alt,
+                         held_out=_held_out(lin, X_rest, usable[i][1], whiten(raw, alt.get("frame", "machine"))),
+                         why="the finding is not significant once this alternative is in the model in its place")
+            out.append(entry)
+    # data-driven terms from the recording's own columns, alone and in pairs
+    _, names, Craw = terms
+    own = set(_variables(c, ctx))
+    A = clear(Craw)
+    na = np.linalg.norm(A, axis=0)
+    Qc = _orth(Cc)
+    ok = na > 1e-6 * max(na.max(), 1e-300)
+    q = A / np.where(ok, na, 1.0)
+    left = np.linalg.norm(q - Qc @ (Qc.T @ q), axis=0)
+    ok &= left >= SAME_DESCRIPTION  # not a part of the finding's own columns
+    ok &= np.array([not set(fname.split("*")) & own for fname, _ in names], bool)  # not a variant of its own cause
+    if not ok.any() or not Qc.shape[1]:
+        return out
+    found = []  # (chi2 with the alternative, F, p, dof, [term indices])
+    chi1, F1, p1, dof1 = _scan_terms(w, Qc, q, ok, dof_rest - 1)
+    for j in np.flatnonzero(ok):
+        found.append((chi1[j], F1[j], p1[j], dof1, [int(j)]))
+    # pairs: each of the best single terms completed by the best second one (a composite structure, such as a
+    # tilt following a temperature times the height, is a sum of terms)
+    for j1 in np.flatnonzero(ok)[np.argsort(chi1[ok])][:PAIR_FIRST]:
+        q1 = q[:, j1]
+        w1 = w - q1 * (q1 @ w)
+        Qc1 = _orth(Qc - np.outer(q1, q1 @ Qc))
+        A1 = q - np.outer(q1, q1 @ q)
+        n1 = np.linalg.norm(A1, axis=0)
+        ok1 = ok & (n1 > 1e-3)
+        ok1[j1] = False
+        if not ok1.any() or not Qc1.shape[1]:
+            continue
+        chi2_, F2, p2, dof2 = _scan_terms(w1, Qc1, A1 / np.where(ok1, n1, 1.0), ok1, dof_rest - 2)
+        j2 = int(np.flatnonzero(ok1)[np.argmin(chi2_[ok1])])
+        found.append((chi2_[j2], F2[j2], p2[j2], dof2, [int(j1), j2]))
+    # the simplest first: single terms (best fitting first), then pairs that do not merely add a term to one of them
+    conf = sorted((x for x in found if x[2] >= level), key=lambda x: (len(x[4]), x[0]))
+    listed = []
+    for chi_a, F, p, dof, js in conf:
+        if any(set(js) >= set(prev) for prev in listed) or any(x[2] >= level and x[4] == js[:1] for x in found):
+            continue  # a pair that only adds a term to a single one that confounds the finding by itself
+        listed.append(js)
+        if len(listed) > MAX_LISTED:
+            break
+        fn = [names[j] for j in js]
+        kinds = []
+        for fname, _ in fn:
+            kinds += [k for k in _feature_kinds(fname, ctx) if k not in kinds]
+        kinds = [k for k in SEPARATE if k in kinds]
+        out.append({"alternative": " + ".join(f"{f} along {d}" for f, d in fn), "kind": "data-driven",
+                    "description": "; ".join(_term_words(f, d) for f, d in fn)
+                                   + " (data-driven, not a named physical effect)",
+                    "terms": [{"feature": f, "along": d} for f, d in fn],
+                    "separating_measurement": " ".join(SEPARATE[x] for x in kinds[:2]),
+                    "identical": False,
+                    "test": {"F": float(F), "dof": [int(Qc.shape[1]), int(dof)], "p_value": float(p), "level": level},
+                    "chi2_with_finding": chi_with, "chi2_with_alternative": float(chi_a),
+                    "held_out": _held_out(lin, X_rest, usable[i][1], Craw[:, js]),
+                    "why": "the finding is not significant once " + ("this term is" if len(js) == 1 else "these terms are")
+                           + " in the model in its place"})
+    return out
 
 
 # --------------------------------------------------------------------- noise
@@ -1195,6 +1484,21 @@ def _features(ctx) -> dict:
     return feats
 
 
+def _term_library(ctx, whiten):
+    """The data-driven terms: every feature of :func:`_features` acting along machine x, y, z and along the beam.
+
+    Returns (features, [(feature, direction)], whitened columns (n_res, L))."""
+    feats = _features(ctx)
+    u = ctx.P_LT / np.linalg.norm(ctx.P_LT, axis=1, keepdims=True)
+    names, cols = [], []
+    for fname, f in feats.items():
+        for d in _DIRS:
+            raw = (f[:, None] * u) if d == "range" else f[:, None] * np.eye(3)[AXIS_INDEX[d]][None]
+            cols.append(whiten(raw[:, :, None], "tracker" if d == "range" else "machine"))
+            names.append((fname, d))
+    return feats, names, np.concatenate(cols, axis=1)
+
+
 def _data_driven(ctx, lin, X_final, whiten, alpha, splits: int = 20, on_split=None) -> dict | None:
     """The best sparse description of what the final model leaves, from the recording's own columns.
 
@@ -1203,16 +1507,8 @@ def _data_driven(ctx, lin, X_final, whiten, alpha, splits: int = 20, on_split=No
     of the terms given the final model refitted there).  Stability: how often each term is selected first on
     ``splits`` random halves.  Data-driven, not a named physical effect.
     """
-    feats = _features(ctx)
+    feats, names, C = _term_library(ctx, whiten)
     M = len(ctx.plan)
-    u = ctx.P_LT / np.linalg.norm(ctx.P_LT, axis=1, keepdims=True)
-    names, cols = [], []
-    for fname, f in feats.items():
-        for d in _DIRS:
-            raw = (f[:, None] * u) if d == "range" else f[:, None] * np.eye(3)[AXIS_INDEX[d]][None]
-            cols.append(whiten(raw[:, :, None], "tracker" if d == "range" else "machine"))
-            names.append((fname, d))
-    C = np.concatenate(cols, axis=1)
     L = C.shape[1]
     rng = np.random.default_rng(20261122)
 

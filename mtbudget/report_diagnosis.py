@@ -74,6 +74,7 @@ def diagnosis_text(d) -> str:
             alts = ", ".join(f"{c['effect']}" + (f"[{c['axis']}]" if c["axis"] else "") for c in f.confounded_with)
             out.append(f"    CONFOUNDED: the data fit {alts} about as well; they cannot be told apart from this recording. "
                        f"{' '.join(f.hints) or GENERIC_HINT}")
+        out += _outside_text(f)
     if d.findings:
         out.append(f"  final: chi-square per dof {d.final['chi2_per_dof']:.3f}, RMS {_rms(d.final)}")
         if unexplained is None:
@@ -85,6 +86,38 @@ def diagnosis_text(d) -> str:
     for s in d.untestable:
         out.append(f"  not testable {s['effect']}{'[' + s['axis'] + ']' if s['axis'] else ''}: {s['reason']}")
     return "\n".join(out)
+
+
+def outside_sentence(f) -> str:
+    """One plain sentence: the finding is not named alone, an explanation outside the library fits about as well."""
+    label = f.candidate.effect + (f"[{f.candidate.axis}]" if f.candidate.axis else "")
+    return (f"{label} is not named alone: an explanation outside the library fits this recording about as well, so "
+            f"the recording shows {label} or that explanation, and cannot tell which")
+
+
+def _alternative_evidence(a) -> str:
+    """How the alternative fits: identical, or the finding's partial F-test given it."""
+    if a.get("identical"):
+        return a.get("why", "the same displacement of every measured point")
+    t = a["test"]
+    return (f"with it in the finding's place the finding is not significant (F = {t['F']:.2f} on {t['dof'][0]} and "
+            f"{t['dof'][1]} dof, p = {t['p_value']:.2g} >= {t['level']:g}); chi-square {a['chi2_with_alternative']:.1f} "
+            f"with it against {a['chi2_with_finding']:.1f} with the finding")
+
+
+def _outside_text(f) -> list:
+    if not getattr(f, "outside", None):
+        return []
+    out = [f"    CONFOUNDED WITH AN ALTERNATIVE OUTSIDE THE LIBRARY: {outside_sentence(f)}."]
+    for a in f.outside:
+        out.append(f"      - {a['alternative']} ({a['kind']}): {a['description']}; {_alternative_evidence(a)}.")
+        ho = a.get("held_out")
+        if ho:
+            out.append(f"        on held-out points (fitted on the other half): chi-square per residual "
+                       f"{ho['chi2_per_residual_with_finding']:.3f} with the finding, "
+                       f"{ho['chi2_per_residual_with_alternative']:.3f} with the alternative ({ho['residuals']} residuals)")
+        out.append(f"        to separate them: {a['separating_measurement']}")
+    return out
 
 
 def _axis_words(axis) -> str:
@@ -286,7 +319,10 @@ def _verdict(d) -> tuple:
         found = ("Found: ", *names[:-1], ". ") if names else ("No named effect accounts for it. ",)
         return ("NOT EXPLAINED: the final model leaves a misfit beyond the noise (see Not explained). ", *found)
     if d.findings:
-        return ("Found: ", *names[:-1], f". The final model explains the recording within its {which} uncertainty.")
+        caveat = "" if not any(getattr(f, "outside", None) for f in d.findings) else (" Not every finding is named alone: an explanation outside the library fits about "
+                                   "as well (see Findings).")
+        return ("Found: ", *names[:-1], f". The final model explains the recording within its {which} uncertainty."
+                + caveat)
     return (f"No finding: the recording is explained by the baseline model within its {which} uncertainty"
             + (" (not the stated one: see Noise)." if which == "estimated" else "."),)
 
@@ -544,13 +580,29 @@ def diagnosis_report(d, rec, folder) -> Path:
             rows.append([_label(f.candidate.effect, f.candidate.axis), (U(f.candidate.plugin or "-"),),
                          f"{_fmt_value(x['estimate']['value'])} {unit}", f"{_fmt_value(x['uncertainty']['value'], 2)} {unit}",
                          f"{f.evidence['p_value_bonferroni']:.2g}", f"{f.after['chi2_per_dof']:.3f}",
-                         tuple(cw[:-1]) if cw else "-"])
+                         tuple(cw[:-1]) if cw else "-",
+                         (U("; ".join(a["alternative"] for a in f.outside)),) if getattr(f, "outside", None)
+                         else "none fits as well: named alone" if not f.confounded_with else "none fits as well"])
         doc.table(["effect", "plugin", "estimate", "standard uncertainty (k = 1)", "p-value (Bonferroni)",
-                   "χ²/dof after", "confounded with"], rows)
+                   "χ²/dof after", "confounded with", "outside the library"], rows)
         for f in d.findings:
             doc.p(*_label(f.candidate.effect, f.candidate.axis), ": ", U(f.candidate.description))
             if f.confounded_with:
                 doc.p("Confounded: the data fit the alternatives about as well. ", U(" ".join(f.hints) or GENERIC_HINT))
+            if getattr(f, "outside", None):
+                doc.p("Not named alone: ", *_label(f.candidate.effect, f.candidate.axis),
+                      " or an explanation outside the library; this recording fits both about as well and cannot "
+                      "tell which.", strong=True)
+                rows = []
+                for a in f.outside:
+                    ho = a.get("held_out")
+                    rows.append([(U(a["alternative"]),), a["kind"], (U(a["description"]),),
+                                 (U(_alternative_evidence(a)),),
+                                 "-" if not ho else f"{ho['chi2_per_residual_with_finding']:.3f} / "
+                                                    f"{ho['chi2_per_residual_with_alternative']:.3f}",
+                                 (U(a["separating_measurement"]),)])
+                doc.table(["alternative outside the library", "kind", "what it is", "how it fits",
+                           "held-out χ² per residual: finding / alternative", "measurement that separates them"], rows)
     else:
         doc.p(f"No effect of the library is significant and plausible ({len(d.considered)} candidates tested at a "
               f"family-wise level of {d.settings['alpha']:g}).")

@@ -292,3 +292,29 @@ def named_or_confounded(diag) -> set:
     for f in diag.findings:
         out |= {(c["effect"], c["axis"]) for c in f.confounded_with}
     return out
+
+
+def named_alone(diag) -> set:
+    """The effects a diagnosis names with no confounder: neither another candidate nor an explanation outside the
+    library fits about as well."""
+    return {(f.candidate.effect, f.candidate.axis) for f in diag.findings if f.named_alone}
+
+
+def declared_outside(diag) -> set:
+    """The effects a diagnosis names but declares confounded with an explanation outside the library."""
+    return {(f.candidate.effect, f.candidate.axis) for f in diag.findings if f.outside}
+
+
+def wrong_named(diag, want: set) -> set:
+    """The findings that name a wrong effect (the counting rule of docs/diagnose.md, "Calibration beyond the library"):
+    a finding that is not a hidden effect in ``want``, not declared confounded with one of them, and not declared
+    confounded with an explanation outside the library (such a finding says "this, or something the library does not
+    hold", which is not a wrong name).  In a recording with nothing hidden every finding is a false claim whatever it
+    declares: count those with ``diag.findings``."""
+    out = set()
+    for f in diag.findings:
+        key = (f.candidate.effect, f.candidate.axis)
+        if key in want or f.outside or want & {(c["effect"], c["axis"]) for c in f.confounded_with}:
+            continue
+        out.add(key)
+    return out

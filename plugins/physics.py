@@ -44,6 +44,22 @@ def _e(axis):
     return v
 
 
+def _sensor_columns(ctx, axis=None, air=False):
+    """The temperature columns of the sensors on ``axis`` (or in the air): the names of those data-driven features."""
+    out = []
+    for s in getattr(ctx.plan, "sensors", []) or []:
+        on = s.attached_to.strip().lower() == "air" if air else getattr(s, "axis", None) == axis
+        if on and s.column in ctx.plan.temperature:
+            out.append(s.column)
+    return out
+
+
+def _tool_features(ctx):
+    """The data-driven features of the tools after the first ("tool2", ...)."""
+    tools, _ = _tools(ctx)
+    return [f"tool{k}" for k in range(2, len(tools) + 1)]
+
+
 def _varies(T, what):
     """None when the temperature T varies enough to test with, else why not."""
     if np.ptp(T) < MIN_TEMPERATURE_RANGE:
@@ -87,6 +103,20 @@ class ThermalExpansion(Candidate):
         p = ctx.plan.nominal[:, AXIS_INDEX[self.axis]] - getattr(self, "fixed_point", 0.0)
         return (p * T)[:, None, None] * _e(self.axis)[None, :, None]
 
+    def variables(self, ctx):
+        """The cause: the axis' temperature (a term that involves it is this effect with another shape)."""
+        return _sensor_columns(ctx, self.axis)
+
+    def alternatives(self, ctx):
+        """The axis scale following time rather than its sensor (anything that warms steadily)."""
+        t = ctx.plan.time - ctx.plan.time.mean()
+        p = ctx.plan.nominal[:, AXIS_INDEX[self.axis]] - getattr(self, "fixed_point", 0.0)
+        return [{"name": f"the {self.axis} scale following time",
+                 "description": f"the {self.axis} axis scale changing steadily with time, not with its own temperature "
+                                "(another part of the machine, or the scale itself, warming steadily)",
+                 "separate": "Measure while the temperature goes up and then down (not steadily one way).",
+                 "columns": (p * t)[:, None, None] * _e(self.axis)[None, :, None]}]
+
     def perturbation(self, ctx, beta):
         return thermal_scale(ctx.plan, {self.axis: float(beta[0])}, ctx.recording.reference_temperature,
                              {self.axis: getattr(self, "fixed_point", 0.0)})  # about the scale's fixed point
@@ -111,6 +141,22 @@ class Reversal(Candidate):
     def columns(self, ctx):
         return (-ctx.plan.direction[:, AXIS_INDEX[self.axis]] / 2.0)[:, None, None] * _e(self.axis)[None, :, None]
 
+    def variables(self, ctx):
+        return [f"dir_{self.axis}"]
+
+    def alternatives(self, ctx):
+        """Anything that changes between the plan's runs: the runs alternate the approach direction with time."""
+        runs = np.unique(ctx.plan.run)
+        if len(runs) < 2:
+            return []
+        C = np.stack([(ctx.plan.run == k).astype(float) for k in runs[1:]], axis=1)  # (M, runs - 1)
+        return [{"name": "a change between runs",
+                 "description": f"anything that changes along {self.axis} between the plan's runs (a thermal state, a "
+                                "re-clamping), since the runs alternate the approach direction with time",
+                 "separate": "Repeat a run in the same direction as the one before it (a reversal needs the direction "
+                             "to change, a change between runs does not).",
+                 "columns": C[:, None, :] * _e(self.axis)[None, :, None]}]
+
     def perturbation(self, ctx, beta):
         return reversal_offset(ctx.plan, {self.axis: float(beta[0])})
 
@@ -132,6 +178,19 @@ class TrackerDrift(Candidate):
 
     def columns(self, ctx):
         return ctx.plan.time[:, None, None] * np.eye(3)[None]
+
+    def variables(self, ctx):
+        return ["t"]
+
+    def alternatives(self, ctx):
+        """The machine drifting as a whole: the same displacement of every measured point."""
+        return [{"name": "machine thermal drift",
+                 "description": "the machine drifting as a whole during the test (ISO 230-3 thermal drift: spindle "
+                                "growth, column growth): the tool point moves against the table as a creeping tracker "
+                                "would make it appear to",
+                 "separate": "Measure a fixed reflector on the table at the start and at the end of the test (a "
+                             "tracker drift moves it, a machine drift does not).",
+                 "columns": None}]
 
     def perturbation(self, ctx, beta):
         return drift_offset(ctx.plan, np.asarray(beta, float))
@@ -268,6 +327,9 @@ class AirTemperatureDrift(Candidate):
         T = ctx.air_temperature()
         return (T - T[0])[:, None, None] * np.eye(3)[None]
 
+    def variables(self, ctx):
+        return _sensor_columns(ctx, air=True)
+
 
 class ApproximationDegree(Candidate):
     """The next Legendre term of each of the six error functions of one axis."""
@@ -281,6 +343,9 @@ class ApproximationDegree(Candidate):
     def __init__(self, axis):
         super().__init__(axis)
         self.description = f"the error functions of the {axis} axis need a higher degree than the model gives them"
+
+    def variables(self, ctx):
+        return [self.axis]
 
     def _next_degree(self, ctx):
         """One more than the highest degree the baseline gives this axis' errors."""
@@ -318,6 +383,9 @@ class AxisCoupling(Candidate):
         a, b = pair
         self.description = (f"a non-rigid coupling: the error depends on the {a} and {b} positions together "
                             "(sag, twist of the structure)")
+
+    def variables(self, ctx):
+        return list(self.axis)
 
     def requires(self, ctx):
         if all(np.ptp(ctx.plan.nominal[:, AXIS_INDEX[x]]) > 0 for x in self.axis):
@@ -373,6 +441,10 @@ class SpindleGrowth(Candidate):
         T, _ = _tool_axis_temperature(ctx)
         return ((T - T[0])[:, None] * _tool_direction(ctx))[:, :, None]
 
+    def variables(self, ctx):
+        _, axis = _tool_axis_temperature(ctx)
+        return _sensor_columns(ctx, axis)
+
 
 class ColumnTilt(Candidate):
     """A column (or ram) that tilts as it warms: the tool point moves sideways in proportion to its height."""
@@ -396,6 +468,10 @@ class ColumnTilt(Candidate):
         if T is None:
             return f"no temperature sensor on the {axis} axis (the column or ram)"
         return _varies(T, f"the {axis}-axis temperature")
+
+    def variables(self, ctx):
+        _, axis = _tool_axis_temperature(ctx)
+        return _sensor_columns(ctx, axis)
 
     def columns(self, ctx):
         T, _ = _tool_axis_temperature(ctx)
@@ -427,6 +503,9 @@ class ToolLength(Candidate):
              "tracker_range_offset": "Measure the reflector holders on a tool presetter, or repeat with the tools swapped.",
              "spindle_growth": "Measure the tools in the other order (a growth follows the temperature, a length error "
                                "the tool)."}
+
+    def variables(self, ctx):
+        return _tool_features(ctx)
 
     def requires(self, ctx):
         tools, _ = _tools(ctx)
@@ -476,6 +555,9 @@ class AxisCouplingQuadratic(Candidate):
         a, b = pair
         self.description = (f"a non-rigid coupling of third order: the error grows with {a} {b}^2 or {a}^2 {b} "
                             "(a sagging beam, a twisting table), amplitude at the corners of the measured range")
+
+    def variables(self, ctx):
+        return list(self.axis)
 
     def requires(self, ctx):
         for x in self.axis:
