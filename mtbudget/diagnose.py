@@ -888,8 +888,8 @@ def _estimate_noise_stations(rec, L, lin0, cand_cols, groups):
                 entry.update(ratio=f, ratio_uncertainty=uf, misstated=mis)
                 mult[st.id] = f
                 if mis:
-                    bad.append(f"the noise of station {st.id} ({st.kind}) is {f:.2g} +- {uf:.1g} times the stated "
-                               "value")
+                    bad.append(f"the noise of station {st.id} ({st.kind}) is {f:.2g} +- {uf:.1g} (k = 1) times the "
+                               "stated value")
             else:
                 entry["note"] = ("not separable from the other stations' noise with this plan (it is counted in the "
                                  "scatter of repeated points)")
@@ -1402,11 +1402,12 @@ def _estimate_noise(rec, ctx, Wh, A0, w, cand_cols) -> dict:
     if scatter and scatter["misstated"] and not any(mis):
         bad.append(f"the scatter of repeated points is {scatter['ratio']:.2g} times the stated noise (chi-square per "
                    f"dof {scatter['chi2_per_dof']:.2f} on {scatter['dof']} dof, p = {scatter['p_value']:.1g}), "
-                   f"along the beam {fa:.2g} +- {ua:.1g} and across it {fc:.2g} +- {uc:.1g} times")
+                   f"along the beam {fa:.2g} +- {ua:.1g} and across it {fc:.2g} +- {uc:.1g} times (k = 1)")
     if mis[0]:
-        bad.append(f"the noise along the beam (tracker range) is {fa:.2g} +- {ua:.1g} times the stated value")
+        bad.append(f"the noise along the beam (tracker range) is {fa:.2g} +- {ua:.1g} (k = 1) times the stated value")
     if mis[1]:
-        bad.append(f"the noise across the beam (tracker angles) is {fc:.2g} +- {uc:.1g} times the stated value")
+        bad.append(f"the noise across the beam (tracker angles) is {fc:.2g} +- {uc:.1g} (k = 1) times the stated "
+                   "value")
     out["sentence"] = (("the stated uncertainties do not match the data: " + "; ".join(bad) +
                         ". Selection and the fit test use the estimated noise; no finding is claimed for the "
                         "mismatch itself") if bad else None)
