@@ -17,6 +17,26 @@ def default_config():
     return load_config()
 
 
+#: the eight candidate families before issue 16: spindle growth, column tilt, tool length and the two-axis terms are
+#: outside it (the calibration's "against the original library" rows)
+ORIGINAL_LIBRARY = {"thermal_expansion", "reversal", "tracker_drift", "tracker_range_offset", "tracker_range_scale",
+                    "air_temperature_drift", "approximation_degree", "axis_coupling"}
+
+
+@pytest.fixture(scope="session")
+def candidates():
+    """Every registered diagnosis candidate."""
+    from mtbudget.plugins import default_host
+
+    return default_host().candidates()
+
+
+@pytest.fixture(scope="session")
+def original_library(candidates):
+    """The library before issue 16: what an effect outside it meets."""
+    return [c for c in candidates if c.effect in ORIGINAL_LIBRARY]
+
+
 @pytest.fixture
 def rng():
     return np.random.default_rng(12345)

@@ -14,7 +14,6 @@ import pytest
 
 from mtbudget.diagnose import diagnose
 from mtbudget.errors import PluginError
-from mtbudget.plugins import default_host
 from mtbudget.report_diagnosis import diagnosis_report, diagnosis_text
 from mtbudget.testing import (
     case_config,
@@ -25,19 +24,6 @@ from mtbudget.testing import (
     wrong_named,
 )
 
-ORIGINAL = {"thermal_expansion", "reversal", "tracker_drift", "tracker_range_offset", "tracker_range_scale",
-            "air_temperature_drift", "approximation_degree", "axis_coupling"}
-
-
-@pytest.fixture(scope="module")
-def candidates():
-    return default_host().candidates()
-
-
-@pytest.fixture(scope="module")
-def original_library(candidates):
-    """The eight families before issue 16: spindle growth and column tilt are outside it."""
-    return [c for c in candidates if c.effect in ORIGINAL]
 
 
 def _recording(tmp, seed, effects, multiple, sensor=None):

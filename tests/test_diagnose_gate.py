@@ -15,25 +15,11 @@ from click.testing import CliRunner
 from mtbudget.cli import main
 from mtbudget.config import example_recording
 from mtbudget.diagnose import diagnose
-from mtbudget.plugins import default_host
 from mtbudget.recording import read_recording
 from mtbudget.report_diagnosis import diagnosis_text
 from mtbudget.testing import expected, named, named_or_confounded, run_case
 
 STATED = "within its stated uncertainty"
-ORIGINAL = {"thermal_expansion", "reversal", "tracker_drift", "tracker_range_offset", "tracker_range_scale",
-            "air_temperature_drift", "approximation_degree", "axis_coupling"}
-
-
-@pytest.fixture(scope="module")
-def candidates():
-    return default_host().candidates()
-
-
-@pytest.fixture(scope="module")
-def original_library(candidates):
-    """The library before issue 16: what an effect outside it meets."""
-    return [c for c in candidates if c.effect in ORIGINAL]
 
 
 def test_json_has_noise_and_unexplained():
