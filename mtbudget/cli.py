@@ -527,7 +527,7 @@ def report(runlog, out, tolerance, characteristic):
 
 @main.group()
 def study():
-    """The paper's studies: tracker placement and 1000 simulated verifications.
+    """The paper's studies (tracker placement, 1000 simulated verifications) and the studies of several stations.
 
     \b
       mtbudget study all --out paper-study          both, on the built-in paper configuration
