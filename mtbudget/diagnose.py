@@ -1119,7 +1119,7 @@ def _outside_alternatives(i, chosen, sel, ctx, whiten, terms, level) -> list:
     For each alternative (the physical alternatives the candidate declares, ``alternatives(ctx)``, and every
     data-driven term built from the recording's own columns that is not the finding in other words), the finding is
     tested *given* the alternative in its place (the rest of the chosen set kept): the partial F-test of its columns.
-    When it is not significant at the level it was found at (``level``, Bonferroni over the candidates), the
+    When it is not significant at ``alpha`` (the family-wise level, not divided: an intersection-union test), the
     alternative explains what the finding explains: the finding is confounded with it.  An alternative declared with
     no columns is the same displacement of every point (a tracker drift and a machine drifting as a whole): always
     confounded.  Returns the confounding alternatives, the declared ones first, then up to :data:`MAX_LISTED`
@@ -1178,7 +1178,16 @@ def _outside_alternatives(i, chosen, sel, ctx, whiten, terms, level) -> list:
     q = A / np.where(ok, na, 1.0)
     left = np.linalg.norm(q - Qc @ (Qc.T @ q), axis=0)
     ok &= left >= SAME_DESCRIPTION  # not a part of the finding's own columns
-    ok &= np.array([not set(fname.split("*")) & own for fname, _ in names], bool)  # not a variant of its own cause
+    # not the finding's own cause in another shape: a term that involves a reading the finding names as its cause (a
+    # temperature, an approach direction, time); where the cause is an axis position (couplings, the next degree),
+    # only a term built from those positions alone, since nearly every term involves a position
+    positions = {"x", "y", "z"}
+    cause, place = own - positions, own & positions
+
+    def variant(parts):
+        return bool(parts & cause) or bool(place and parts <= place)
+
+    ok &= np.array([not variant(set(fname.split("*"))) for fname, _ in names], bool)
     if not ok.any() or not Qc.shape[1]:
         return out
     found = []  # (chi2 with the alternative, F, p, dof, [term indices])

@@ -172,7 +172,7 @@ class _StationsResult:
         k, p = len(meas), model.n_params
         hold = sc.unidentifiable(model)
         b = identify_stations_batch(model, sc.stations, sc.row_station, meas, ranges, sc.noise.repeatability,
-                                    fixed=fixed, hold=hold)
+                                    fixed=fixed, hold=hold, basis=_station_basis(sc, model, fixed, hold))
         self.theta, self.converged = b["theta"].copy(), b["converged"].copy()
         self.chi2_per_dof = b["chi2"] / b["dof"]
         res_xyz, res_rng = b["residual_xyz"].copy(), b["residual_range"].copy()
@@ -183,28 +183,42 @@ class _StationsResult:
             self.theta[i], self.converged[i], self.chi2_per_dof[i] = r.x[:p], r.converged, r.chi2_per_dof
             res_xyz[i], res_rng[i] = r.residual_xyz, r.residual_range
         xyz_rows = np.isin(sc.row_station, [st.id for st in sc.stations if st.kind == "xyz"])
-        if xyz_rows.any():
-            after = _norm3(res_xyz[:, xyz_rows])
-        else:
-            after = np.abs(res_rng)
-        self.mean_error_after = after.mean(axis=1)
-        self.max_residual = after.max(axis=1)
+        # trial by trial, so that a trial's figures do not depend on the trials identified with it, bit for bit
+        after = [_norm3(res_xyz[i, xyz_rows]) if xyz_rows.any() else np.abs(res_rng[i]) for i in range(k)]
+        self.mean_error_after = np.array([a.mean() for a in after])
+        self.max_residual = np.array([a.max() for a in after])
         # before compensation: the nominal machine, each station placed by its closed-form start (unweighted Kabsch
         # for a tracker: the one-tracker path's weighted pose fit gives about 5 % less on the paper's configuration)
         P0 = model.machine_points(np.zeros((1, p)), fixed)[0]
-        before = []
-        for st in sc.stations:
-            idx = np.flatnonzero(sc.row_station == st.id)
-            if st.kind == "xyz":
-                pose = register(np.broadcast_to(P0[idx], meas[:, idx].shape), meas[:, idx])
-                before.append(_norm3(meas[:, idx] - to_tracker(np.broadcast_to(P0[idx], meas[:, idx].shape), pose)))
-            elif not xyz_rows.any():
-                d = np.empty((k, len(idx)))
-                for i in range(k):
+        self.mean_error_before = np.empty(k)
+        for i in range(k):
+            before = []
+            for st in sc.stations:
+                idx = np.flatnonzero(sc.row_station == st.id)
+                if st.kind == "xyz":
+                    pose = register(P0[idx][None], meas[i, idx][None])
+                    before.append(_norm3(meas[i, idx] - to_tracker(P0[idx][None], pose)[0]))
+                elif not xyz_rows.any():
                     S, o = multilaterate(P0[idx], ranges[i, idx])
-                    d[i] = np.abs(ranges[i, idx] - np.sqrt(((P0[idx] - S) ** 2).sum(-1)) - o)
-                before.append(d)
-        self.mean_error_before = np.concatenate(before, axis=1).mean(axis=1)
+                    before.append(np.abs(ranges[i, idx] - np.sqrt(((P0[idx] - S) ** 2).sum(-1)) - o))
+            self.mean_error_before[i] = np.concatenate(before).mean()
+
+
+def _station_basis(sc: Scenario, model, fixed, hold) -> tuple:
+    """The directions the identification of several stations iterates along, from the noise-free verification of
+    the scenario: one basis for every trial, so a trial's result does not depend on which trials are identified
+    with it (chunking, executors, resume), bit for bit.  Cached per model in the scenario."""
+    from .multistation import identify_stations_batch
+    from .simulate import measure_stations
+
+    def make():
+        truth = sc.truth_inputs({})
+        xyz, ranges = measure_stations(sc, sc.truth.machine_points(sc.theta[None, :], truth), truth)
+        b = identify_stations_batch(model, sc.stations, sc.row_station, xyz, ranges, sc.noise.repeatability,
+                                    fixed=fixed, hold=hold, max_iter=1)
+        return model, b["basis"]  # the model is kept beside its basis so that its id is not reused
+
+    return sc.cached(("station basis", id(model)), make)[1]
 
 
 def _norm3(x: np.ndarray) -> np.ndarray:

@@ -459,7 +459,7 @@ class Linearisation:
 
 def identify_stations_batch(model: MeasurementModel, stations: list, row_station, lt_xyz, lt_range,
                             repeatability: float, *, fixed: dict | None = None, max_iter: int = 50, xtol: float = 1e-7,
-                            rank_tol: float = 1e-7, hold: np.ndarray | None = None) -> dict:
+                            rank_tol: float = 1e-7, hold: np.ndarray | None = None, basis: tuple | None = None) -> dict:
     """:func:`identify_stations` for N trials of one plan at once (the engine's): lt_xyz (N, M, 3), lt_range (N, M).
 
     The same weighted least squares, the same closed-form starts, the same whiteners and the same convergence
@@ -471,8 +471,21 @@ def identify_stations_batch(model: MeasurementModel, stations: list, row_station
     step, is below ``xtol``.  A trial whose cost rises on such a step (where Gauss-Newton would halve it) is
     ``failed``: the caller solves it again with :func:`identify_stations`, the reference.
 
+    basis: (Q, rank) the directions to iterate along and the Jacobian's rank, as a previous call returned them
+    (``"basis"``); without it they come from the first trial's Jacobian, so the last bits of every trial depend on
+    which trials are identified together: the engine passes the basis of the noise-free verification.
+
     Returns a dict: theta (N, p), x (N, n), converged (N,), failed (N,), iterations (N,), chi2 (N,), dof,
-    residual_xyz (N, M, 3) mm (NaN on range rows), residual_range (N, M) mm (NaN on xyz rows)."""
+    residual_xyz (N, M, 3) mm (NaN on range rows), residual_range (N, M) mm (NaN on xyz rows), basis.
+
+    A trial gives the same bits whatever trials are identified with it, as long as ``basis`` is given: numpy's
+    small products round a lone row differently (a matrix-vector path), so a single trial is evaluated as two.
+    """
+    if np.shape(lt_xyz)[0] == 1:  # one trial: as two (see above), the first returned
+        two = identify_stations_batch(model, stations, row_station, np.repeat(lt_xyz, 2, axis=0),
+                                      np.repeat(lt_range, 2, axis=0), repeatability, fixed=fixed, max_iter=max_iter,
+                                      xtol=xtol, rank_tol=rank_tol, hold=hold, basis=basis)
+        return {k: (v[:1] if isinstance(v, np.ndarray) and v.ndim and v.shape[0] == 2 else v) for k, v in two.items()}
     fixed = dict(fixed or {})
     lt_xyz = np.asarray(lt_xyz, float)
     lt_range = np.asarray(lt_range, float)
@@ -506,7 +519,10 @@ def identify_stations_batch(model: MeasurementModel, stations: list, row_station
 
     def evaluate(x, t, jacobian=True):
         """Whitened residuals (k, n_res), raw residuals per block and the whitened Jacobian (k, n_res, n) in scaled
-        unknowns of trials ``t`` at their unknowns ``x`` (k, n)."""
+        unknowns of trials ``t`` at their unknowns ``x`` (k, n); a lone trial evaluated as two."""
+        if len(t) == 1:
+            w2, raw2, A2 = evaluate(np.repeat(x, 2, axis=0), np.repeat(t, 2), jacobian)
+            return w2[:1], [r[:1] for r in raw2], None if A2 is None else A2[:1]
         N = len(t)
         theta = x[:, :p]
         if jacobian:
@@ -551,8 +567,11 @@ def identify_stations_batch(model: MeasurementModel, stations: list, row_station
 
     all_trials = np.arange(N)
     w, raw, A = evaluate(x, all_trials)
-    rank, _, _, null = _null_space(A[0], rank_tol)
-    Q = _free_basis(A[0], null, hold, rank_tol)
+    if basis is None:
+        rank, _, _, null = _null_space(A[0], rank_tol)
+        Q = _free_basis(A[0], null, hold, rank_tol)
+    else:  # given: the same for any grouping of the trials (the engine's, from the noise-free verification)
+        Q, rank = basis
     cost = (w * w).sum(axis=1)
     converged = np.zeros(N, bool)
     failed = np.zeros(N, bool)
@@ -582,7 +601,7 @@ def identify_stations_batch(model: MeasurementModel, stations: list, row_station
             g = (AQt[b] @ w[t][..., None])
             y = np.linalg.solve(L[b], g)
             y = np.linalg.solve(np.swapaxes(L[b], 1, 2), y)[..., 0]
-            z = y @ Q.T
+            z = (Q @ y[..., None])[..., 0]  # trial by trial: a product over all of them rounds by their count
             x_new = x[t] + z / sv
             w_new, raw_new, _ = evaluate(x_new, t, jacobian=False)
             c_new = (w_new * w_new).sum(axis=1)
@@ -611,7 +630,8 @@ def identify_stations_batch(model: MeasurementModel, stations: list, row_station
         else:
             res_rng[:, idx] = e
     return {"theta": x[:, :p], "x": x, "converged": converged, "iterations": iterations, "chi2": cost,
-            "dof": int(w.shape[1] - rank), "failed": failed, "residual_xyz": res_xyz, "residual_range": res_rng}
+            "dof": int(w.shape[1] - rank), "failed": failed, "residual_xyz": res_xyz, "residual_range": res_rng,
+            "basis": (Q, rank)}
 
 
 def linearise(res: MultiIdentification, lt_xyz, lt_range, repeatability: float, *, fixed: dict | None = None

@@ -152,6 +152,13 @@ class Scenario:
             self._cache["identifiability"] = analyse(self.id_model)
         return self._cache["identifiability"]
 
+    def cached(self, key, make):
+        """``make()`` computed once per scenario and ``key`` (a key that holds an object's id must keep the object
+        alive in the value, so that the id is not reused)."""
+        if key not in self._cache:
+            self._cache[key] = make()
+        return self._cache[key]
+
     def unidentifiable(self, model: MeasurementModel) -> np.ndarray:
         """(p, k) orthonormal directions (scaled parameters: um, urad) of ``model`` that this plan cannot identify from
         one tracker (:func:`mtbudget.identify.analyse`: what the tracker pose absorbs, what no tool offset shows).

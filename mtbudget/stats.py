@@ -137,7 +137,10 @@ class VectorHistogram:
         ok = (f >= 0) & (f < 1)
         idx = np.minimum((f * self.bins).astype(np.int64), self.bins - 1)
         idx += np.arange(x.shape[1]) * self.bins  # flat bin numbers: one 1-D add.at, ~2.5x faster than (k, bin)
-        np.add.at(self.counts.reshape(-1), idx[ok], 1)
+        flat = self.counts.reshape(-1)
+        if not np.shares_memory(flat, self.counts):  # a copy would take the counts and drop them silently
+            raise ValueError("histogram counts must be one contiguous array")
+        np.add.at(flat, idx[ok], 1)
 
     def quantiles(self, prob) -> np.ndarray:
         """(K, len(prob)) quantiles by linear interpolation of the binned CDF.
