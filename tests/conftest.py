@@ -145,3 +145,16 @@ def independent_fit(sc, h=1e-4):
         sel[3 * j:3 * j + 3, 3 * i:3 * i + 3] = np.eye(3)
     P = rigid_free(points(th0[None])[0])
     return P, Jm, K[:p] @ B, sel
+
+
+def unit_fields(obj, path=""):
+    """(path, value) of every unit field: keys "unit" and "*_unit"."""
+    if isinstance(obj, dict):
+        for k, v in obj.items():
+            if (k == "unit" or k.endswith("_unit")) and isinstance(v, str):
+                yield f"{path}.{k}", v
+            else:
+                yield from unit_fields(v, f"{path}.{k}")
+    elif isinstance(obj, list):
+        for v in obj:
+            yield from unit_fields(v, path + "[]")

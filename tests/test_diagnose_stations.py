@@ -2,8 +2,8 @@
 
 The four-station recordings are made here by an independent generator written from the paper's equations
 with plain numpy (the Eq. 6 small-angle chain of an XFYZ machine with Legendre error functions, the Eq. 22
-rotation as Rx(a) Ry(b) Rz(d), spherical tracker noise, ranges plus a dead path; the same equations as
-tests/test_multistation.py's generator, written again so that this file stands alone): it calls neither
+rotation as Rx(a) Ry(b) Rz(d), spherical tracker noise, ranges plus a dead path: tests/stations_generator.py,
+shared with tests/test_multistation.py): it calls neither
 mtbudget's chain, nor its tracker model, nor any candidate's columns.  The range offset is added to the
 measured distance r before the point is put back into Cartesian coordinates, as the tracker's ADM would.
 mtbudget is used only to hold the numbers (Plan, Recording) and to diagnose them.
@@ -15,76 +15,19 @@ import json
 
 import numpy as np
 import pytest
-from numpy.polynomial import legendre
 
 from mtbudget.config import example_recording
 from mtbudget.diagnose import diagnose
 from mtbudget.errors import DiagnosisError, RecordingError
 from mtbudget.plan import Plan
-from mtbudget.recording import Recording, Station, read_recording, write_recording
+from mtbudget.recording import Recording, read_recording, write_recording
 from mtbudget.report_diagnosis import diagnosis_report, diagnosis_text
 
 # ----------------------------------------------------------------------------- the independent generator
-X_POS, Y_POS, Z_POS = [800., 900., 1000., 1100., 1200.], [100., 200., 300., 400., 500.], [200., 300., 400.]
-DEGREE = {"x": 3, "y": 3, "z": 2}
+from stations_generator import (INTERFEROMETER, REPEAT, TRACKER, X_POS, Y_POS, Z_POS, machine_point, rot,  # noqa: E402
+                                station_recording, true_errors)
 
-
-def true_errors(rng) -> dict:
-    """A machine: {parameter name: value (mm or rad)} of the default (ISO 230-1) error model; no roll of Y and Z
-    (tool offsets along z cannot show it)."""
-    out = {}
-    for a in "xyz":
-        for kind in "de":
-            for c in "xyz":
-                if kind == "e" and c == "z" and a in "yz":
-                    continue
-                first = 2 if (kind == "d" and c != a) else 1
-                if kind == "e" and a == "z":
-                    first = 0
-                for n in range(first, DEGREE[a] + 1):
-                    out[f"{kind}{c}({a})[P{n}]"] = float(rng.normal(0, (6e-3 if kind == "d" else 8e-6) / max(n, 1)))
-    for s in ("sxy", "sxz", "syz"):
-        out[s] = float(rng.normal(0, 30e-6))
-    return out
-
-
-def _legendre(axis, pos, errors, prefix):
-    vals = {"x": X_POS, "y": Y_POS, "z": Z_POS}[axis]
-    u = (pos - 0.5 * (min(vals) + max(vals))) / (0.5 * (max(vals) - min(vals)))
-    out = np.zeros_like(pos)
-    for name, v in errors.items():
-        if name.startswith(prefix):
-            n = int(name.split("[P")[1][:-1])
-            e = np.zeros(n + 1)
-            e[n] = 1.0
-            out += v * legendre.legval(u, e)
-    return out
-
-
-def _skew(e):
-    return np.array([[0, -e[2], e[1]], [e[2], 0, -e[0]], [-e[1], e[0], 0]])
-
-
-def machine_point(errors, nominal, tool) -> np.ndarray:
-    """The XFYZ tool point in the workpiece frame (paper Eq. 2, 6-9): P_W = R_X^-1 (A_Y(A_Z(T)) - t_X)."""
-    px, py, pz = nominal.T
-    d = {a: np.stack([_legendre(a, nominal[:, i], errors, f"d{c}({a})[") for c in "xyz"], 1) for i, a in enumerate("xyz")}
-    e = {a: np.stack([_legendre(a, nominal[:, i], errors, f"e{c}({a})[") for c in "xyz"], 1) for i, a in enumerate("xyz")}
-    z0 = np.zeros_like(px)
-    t_x = np.stack([-px, z0, z0], 1) + d["x"]
-    t_y = np.stack([-py * errors["sxy"], py, z0], 1) + d["y"]
-    t_z = np.stack([-pz * errors["sxz"], -pz * errors["syz"], pz], 1) + d["z"]
-    v = tool + np.cross(e["z"], tool) + t_z
-    v = v + np.cross(e["y"], v) + t_y
-    w = v - t_x
-    return np.array([np.linalg.solve(np.eye(3) + _skew(e["x"][i]), w[i]) for i in range(len(w))])
-
-
-def rot(a, b, d) -> np.ndarray:
-    ca, sa, cb, sb, cd, sd = np.cos(a), np.sin(a), np.cos(b), np.sin(b), np.cos(d), np.sin(d)
-    return (np.array([[1, 0, 0], [0, ca, -sa], [0, sa, ca]]) @ np.array([[cb, 0, sb], [0, 1, 0], [-sb, 0, cb]])
-            @ np.array([[cd, -sd, 0], [sd, cd, 0], [0, 0, 1]]))
-
+from conftest import unit_fields
 
 #: (id, kind, truth): an xyz pose (D, L, H mm; a, b, d rad) or a range station's (S_x, S_y, S_z, dead path) mm.
 #: The trackers stand 0.9-1.8 m from the points (the mesh spans 400 x 400 x 200 mm): a station's pose absorbs
@@ -97,9 +40,6 @@ STATIONS = [
     (3, "range", np.array([600.0, -350.0, -250.0, -152.318])),
     (4, "range", np.array([1450.0, 900.0, -200.0, 87.5])),
 ]
-TRACKER = {"angular": 5e-6, "distance": 4e-3, "distance_per_length": 0.8e-6}  # rad, mm, mm/mm (k = 1)
-INTERFEROMETER = {"distance": 0.5e-3, "distance_per_length": 0.3e-6}
-REPEAT = 1.5e-3  # mm
 
 
 def four_stations(seed: int, offsets: dict | None = None, *, machine_seed: int | None = None, jitter: float = 0.0,
@@ -141,17 +81,7 @@ def four_stations(seed: int, offsets: dict | None = None, *, machine_seed: int |
         for key, v in (("point", np.arange(n)), ("run", np.full(n, k + 1)), ("nominal", mesh), ("tool", tool),
                        ("station", np.full(n, sid)), ("lt", lt), ("range", rng_col)):
             cols[key].append(v)
-    cat = {k: np.concatenate(v) for k, v in cols.items()}
-    M = len(cat["point"])
-    plan = Plan(point=cat["point"], run=cat["run"], time=np.arange(M) * 20.0, nominal=cat["nominal"],
-                direction=np.ones((M, 3)), tool=cat["tool"])
-    decl = [Station(sid, kind, TRACKER["angular"] if kind == "xyz" else None,
-                    TRACKER["distance"] if kind == "xyz" else INTERFEROMETER["distance"],
-                    TRACKER["distance_per_length"] if kind == "xyz" else INTERFEROMETER["distance_per_length"])
-            for sid, kind, _ in stations]
-    return Recording(name=name, machine="XFYZ", plan=plan, lt=cat["lt"], angular=TRACKER["angular"],
-                     distance=TRACKER["distance"], distance_per_length=TRACKER["distance_per_length"],
-                     repeatability=REPEAT, station=cat["station"], stations=decl, lt_range=cat["range"], format_version=2)
+    return station_recording(cols, stations, name)
 
 
 OFFSET_UM = 27.0  # the hidden range offset of station 2 (a reflector of another type)
@@ -257,16 +187,6 @@ def test_physics_outside_the_library_stays_unexplained_and_is_located_at_its_sta
     assert "By station (an xyz row's residual in its station's frame" in md
 
 
-def _units(obj, path=""):
-    if isinstance(obj, dict):
-        for k, v in obj.items():
-            if (k == "unit" or k.endswith("_unit")) and isinstance(v, str):
-                yield f"{path}.{k}", v
-            else:
-                yield from _units(v, f"{path}.{k}")
-    elif isinstance(obj, list):
-        for v in obj:
-            yield from _units(v, path + "[]")
 
 
 def test_every_json_unit_of_a_station_diagnosis_parses_and_is_spelled_one_way(with_offset):
@@ -274,7 +194,7 @@ def test_every_json_unit_of_a_station_diagnosis_parses_and_is_spelled_one_way(wi
     from mtbudget.units import parse_unit
 
     doc = json.loads(json.dumps(with_offset.to_dict()))
-    seen = dict(_units(doc))
+    seen = dict(unit_fields(doc))
     assert any(".noise.stations[].stated.distance.unit" in p for p in seen)
     for path, unit in seen.items():
         parse_unit(unit, where=path)

@@ -24,6 +24,8 @@ from mtbudget.report_diagnosis import diagnosis_report
 from mtbudget.testing import case_config, simulate_case
 from mtbudget.units import parse_unit, pretty
 
+from conftest import unit_fields
+
 ORIGINAL = {"thermal_expansion", "reversal", "tracker_drift", "tracker_range_offset", "tracker_range_scale",
             "air_temperature_drift", "approximation_degree", "axis_coupling"}
 #: every character issue 18 lists as breaking Markdown, HTML or matplotlib's mathtext
@@ -162,17 +164,6 @@ def test_progress_is_silent_by_default(capsys):
     assert out.out == "" and out.err == ""
 
 
-def _units(obj, path=""):
-    """(path, value) of every unit field: keys "unit" and "*_unit"."""
-    if isinstance(obj, dict):
-        for k, v in obj.items():
-            if (k == "unit" or k.endswith("_unit")) and isinstance(v, str):
-                yield f"{path}.{k}", v
-            else:
-                yield from _units(v, f"{path}.{k}")
-    elif isinstance(obj, list):
-        for v in obj:
-            yield from _units(v, path + "[]")
 
 
 def test_every_json_unit_parses_and_is_spelled_one_way(unexplained, misstated):
@@ -186,7 +177,7 @@ def test_every_json_unit_parses_and_is_spelled_one_way(unexplained, misstated):
     spelling = {}
     seen = []
     for doc in docs:
-        for path, unit in _units(doc):
+        for path, unit in unit_fields(doc):
             seen.append(path)
             u = parse_unit(unit, where=path)  # the project's one parser
             assert unit.isascii(), (path, unit)
