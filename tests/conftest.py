@@ -2,7 +2,9 @@ import numpy as np
 import pytest
 
 from mtbudget.config import example_recording, load_config
+from mtbudget.contracts import Group, Source
 from mtbudget.recording import read_recording
+from mtbudget.units import Q_
 
 EXAMPLES = ("null", "thermal_x", "reversal_y", "tracker_drift")
 
@@ -158,3 +160,27 @@ def unit_fields(obj, path=""):
     elif isinstance(obj, list):
         for v in obj:
             yield from unit_fields(v, path + "[]")
+
+
+def plugin_module(name, register_fn, hook="mtbudget_register_sources"):
+    """A plugin registered in code: a module whose ``hook`` is ``register_fn`` (tests of the plugin host)."""
+    import types
+
+    from mtbudget.hookspecs import hookimpl
+
+    mod = types.ModuleType(name)
+    setattr(mod, hook, hookimpl(register_fn))
+    return mod
+
+
+class OffsetSource(Source):
+    """A minimal source registered in code: a normal offset of every measured point in the tracker frame, u = 1 um."""
+
+    name = "good"
+    group = Group.MEASUREMENT_SYSTEM
+    distribution = "normal"
+    targets = ("tracker_offset",)
+    parameters = {"u": Q_(1.0, "um")}
+
+    def sample(self, n, rng, ctx):
+        return {"tracker_offset": Q_(rng.normal(0, self.value("u", "mm"), (n, ctx.n_points, 3)), "mm")}

@@ -20,7 +20,7 @@ import pytest
 import mtbudget
 from mtbudget import hookspecs
 from mtbudget.config import load_config
-from mtbudget.contracts import Candidate, Context, Group, Source
+from mtbudget.contracts import Candidate, Context, Source
 from mtbudget.engine import Engine
 from mtbudget.errors import PluginError
 from mtbudget.hookspecs import hookimpl
@@ -28,26 +28,15 @@ from mtbudget.plugins import PluginHost, call, checkout_builtins
 from mtbudget.scenario import build_scenario
 from mtbudget.units import Q_
 
+from conftest import OffsetSource, plugin_module
+
 ROOT = Path(__file__).resolve().parents[1]
 SMALL = ROOT / "tests" / "data" / "small.toml"
 BUILTIN = {"machine_tool", "measurement_system", "measurement_strategy", "optimisation_strategy", "physics", "exporters"}
 
 
-def plugin(name, register_fn, hook="mtbudget_register_sources"):
-    mod = types.ModuleType(name)
-    setattr(mod, hook, hookimpl(register_fn))
-    return mod
-
-
-class Good(Source):
-    name = "good"
-    group = Group.MEASUREMENT_SYSTEM
-    distribution = "normal"
-    targets = ("tracker_offset",)
-    parameters = {"u": Q_(1.0, "um")}
-
-    def sample(self, n, rng, ctx):
-        return {"tracker_offset": Q_(rng.normal(0, self.value("u", "mm"), (n, ctx.n_points, 3)), "mm")}
+plugin = plugin_module
+Good = OffsetSource
 
 
 class Wobble(Candidate):

@@ -4,23 +4,21 @@ The promise (docs/architecture.md, docs/performance.md): a block's numbers depen
 the sources only, never on which blocks are computed with it or where.
 """
 
-import types
 from pathlib import Path
 
 import numpy as np
 import pytest
 
 from mtbudget.config import load_config
-from mtbudget.contracts import Group, Source
 from mtbudget.engine import Engine
 from mtbudget.errors import ConfigError
 from mtbudget.executors import one_blas_thread
-from mtbudget.hookspecs import hookimpl
 from mtbudget.outputs import SCALARS
 from mtbudget.plugins import PluginHost
 from mtbudget.runner import run
 from mtbudget.scenario import build_scenario
-from mtbudget.units import Q_
+
+from conftest import OffsetSource, plugin_module
 
 SMALL = Path(__file__).parent / "data" / "small.toml"
 
@@ -72,23 +70,14 @@ def test_a_multiprocess_dask_cluster_at_an_address_gives_the_numbers_of_the_inli
         assert row == remote.budget[name], name
 
 
-class InCode(Source):
+class InCode(OffsetSource):
     """A source that exists only in the process that registered it."""
 
     name = "in_code_offset"
-    group = Group.MEASUREMENT_SYSTEM
-    distribution = "normal"
-    targets = ("tracker_offset",)
-    parameters = {"u": Q_(1.0, "um")}
-
-    def sample(self, n, rng, ctx):
-        return {"tracker_offset": Q_(rng.normal(0, self.value("u", "mm"), (n, ctx.n_points, 3)), "mm")}
 
 
 def _in_code_host():
-    mod = types.ModuleType("in_code_plugin")
-    mod.mtbudget_register_sources = hookimpl(lambda register: register(InCode()))
-    return PluginHost(plugins=(mod,))
+    return PluginHost(plugins=(plugin_module("in_code_plugin", lambda register: register(InCode())),))
 
 
 def test_a_source_registered_in_code_runs_inline(small):
