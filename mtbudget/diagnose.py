@@ -609,35 +609,52 @@ def _diagnose(rec, candidates, alpha, max_set, confound_margin, max_degree, gate
     final = after[-1] if after else _quality(base)
     res_after = res.residual_machine[0] if pert_parts else None
 
-    # the global goodness-of-fit gate, and what is left when it fails
-    steps.done()
-    steps.begin("fit gate")
+    # the global goodness-of-fit gate, and what is left when it fails; `where` then describes the baseline's
+    # residuals, as `final` does (what the partial effects leave is kept beside it)
     pure = _group_design(groups_design, Wn) if groups_design is not None else None
-    gate = _gate(lin, f_all, sel.kcols(chosen), est, pure, usable, gate_alpha)
-    unexplained = None
-    steps.done()
-    if not gate["explained"]:
-        where = locate(ctx, res.residual_machine[0], res.whitened[0])
-        unexplained = _unexplained(gate, est, where, sel, implausible_alone, chosen, notes)
-        if findings:
-            findings, final, res_after = _demote(unexplained, findings, lambda: _quality(base))
-            # `where` then describes the baseline's residuals, as `final` does; what the partial effects leave
-            # is kept beside it
-            w0 = locate(ctx, base.residual_machine[0], base.whitened[0])
-            unexplained["where"] = {k: w0[k] for k in unexplained["where"]}
-        if data_driven and gate["p_value"] is not None:
-            X_final = np.concatenate([lin.Q0] + [usable[i][1] for i in chosen], axis=1)
-            splits = 20
-            steps.more(splits)
-            steps.begin("data-driven search")
-            unexplained["data_driven"] = _data_driven(ctx, lin, X_final, lambda raw, frame: _whitened(raw, frame, ctx, Wn),
-                                                      alpha, splits, on_split=steps.done)
+    unexplained, findings, final, res_after = _gate_and_unexplained(
+        steps, ctx, lin, sel, f_all, chosen, usable, est, pure, gate_alpha, implausible_alone, notes, findings, final,
+        res_after, where_now=lambda: locate(ctx, res.residual_machine[0], res.whitened[0]),
+        base_quality=lambda: _quality(base), where_base=lambda: locate(ctx, base.residual_machine[0], base.whitened[0]),
+        whiten=lambda raw, frame: _whitened(raw, frame, ctx, Wn), data_driven=data_driven, alpha=alpha)
     return Diagnosis(rec.name, _quality(base), mismatch, findings, final, skipped, untestable, considered,
-                     {"alpha": alpha, "bonferroni_level": level, "max_set": max_set, "confound_margin_bic": confound_margin,
-                      "gate_alpha": gate_alpha, "candidates": [c.label for c in candidates],
-                      "thermal_correction": rec.thermal_correction, "outside_library": _outside_settings(alpha)},
+                     _settings(rec, candidates, alpha, level, max_set, confound_margin, gate_alpha),
                      residuals_before=base.residual_machine[0], residuals_after=res_after,
                      noise=est, unexplained=unexplained)
+
+
+def _settings(rec, candidates, alpha, level, max_set, confound_margin, gate_alpha, **more) -> dict:
+    """The ``settings`` of a diagnosis: the levels, the candidates, the correction applied, and ``more``."""
+    return {"alpha": alpha, "bonferroni_level": level, "max_set": max_set, "confound_margin_bic": confound_margin,
+            "gate_alpha": gate_alpha, "candidates": [c.label for c in candidates],
+            "thermal_correction": rec.thermal_correction, "outside_library": _outside_settings(alpha), **more}
+
+
+def _gate_and_unexplained(steps, ctx, lin, sel, f_all, chosen, usable, est, pure, gate_alpha, implausible_alone,
+                          notes, findings, final, res_after, *, where_now, base_quality, where_base, whiten,
+                          data_driven, alpha):
+    """The global goodness-of-fit gate of the final model and, when it fails, what is left (:func:`_unexplained`):
+    the findings demoted to partial (their quality and location then the baseline's: ``base_quality()``,
+    ``where_base()``), and the data-driven description.  Returns (unexplained or None, findings, final,
+    residuals after)."""
+    steps.done()
+    steps.begin("fit gate")
+    gate = _gate(lin, f_all, sel.kcols(chosen), est, pure, usable, gate_alpha)
+    steps.done()
+    if gate["explained"]:
+        return None, findings, final, res_after
+    unexplained = _unexplained(gate, est, where_now(), sel, implausible_alone, chosen, notes)
+    if findings:
+        findings, final, res_after = _demote(unexplained, findings, base_quality)
+        w0 = where_base()
+        unexplained["where"] = {k: w0[k] for k in unexplained["where"]}
+    if data_driven and gate["p_value"] is not None:
+        X_final = np.concatenate([lin.Q0] + [usable[i][1] for i in chosen], axis=1)
+        splits = 20
+        steps.more(splits)
+        steps.begin("data-driven search")
+        unexplained["data_driven"] = _data_driven(ctx, lin, X_final, whiten, alpha, splits, on_split=steps.done)
+    return unexplained, findings, final, res_after
 
 
 def _demote(unexplained, findings, base_quality):
@@ -792,38 +809,27 @@ def _diagnose_stations(rec, candidates, alpha, max_set, confound_margin, max_deg
     final = after[-1] if after else _station_quality(base, L)
     res_after = L_after.residual_machine if after else None
 
-    steps.done()
-    steps.begin("fit gate")
     pure = None
     if est["replicates"]:
         pure = np.concatenate([_station_group_design(groups, L, scale), lin.Q0], axis=1)
-    gate = _gate(lin, f_all, sel.kcols(chosen), est, pure, usable, gate_alpha)
-    unexplained = None
-    steps.done()
-    if not gate["explained"]:
+
+    def where_now():
         info_after = _Stations(info.stations, info.row_station, L_after.row, L_after.residuals_per_row,
                                L_after.rotation, L_after.beam, L_after.residual_size)
-        where = locate(ctx, L_after.residual_machine, L_after.whitened, info_after)
-        unexplained = _unexplained(gate, est, where, sel, implausible_alone, chosen, notes)
-        if findings:
-            findings, final, res_after = _demote(unexplained, findings, lambda: _station_quality(base, L))
-            unexplained["where"] = {k: mismatch[k] for k in unexplained["where"]}
-        if data_driven and gate["p_value"] is not None:
-            X_final = np.concatenate([lin.Q0] + [usable[i][1] for i in chosen], axis=1)
-            splits = 20
-            steps.more(splits)
-            steps.begin("data-driven search")
-            unexplained["data_driven"] = _data_driven(ctx, lin, X_final, whiten, alpha, splits, on_split=steps.done)
+        return locate(ctx, L_after.residual_machine, L_after.whitened, info_after)
+
+    unexplained, findings, final, res_after = _gate_and_unexplained(
+        steps, ctx, lin, sel, f_all, chosen, usable, est, pure, gate_alpha, implausible_alone, notes, findings, final,
+        res_after, where_now=where_now, base_quality=lambda: _station_quality(base, L), where_base=lambda: mismatch,
+        whiten=whiten, data_driven=data_driven, alpha=alpha)
     return Diagnosis(rec.name, _station_quality(base, L), mismatch, findings, final, skipped, untestable, considered,
-                     {"alpha": alpha, "bonferroni_level": level, "max_set": max_set, "confound_margin_bic": confound_margin,
-                      "gate_alpha": gate_alpha, "candidates": [c.label for c in candidates],
-                      "thermal_correction": rec.thermal_correction, "outside_library": _outside_settings(alpha),
-                      "stations": [{"id": int(st.id), "kind": st.kind, "rows": int(np.count_nonzero(row_station == st.id))}
-                                   for st in stations],
-                      "baseline": "all stations at once (mtbudget.multistation.identify_stations): geometric errors, "
-                                  "each xyz station's pose, each range station's position and dead path",
-                      "refit": "the findings at their estimates are taken out of the measurements, each in its "
-                               "station's frame, and all stations are identified again"},
+                     _settings(rec, candidates, alpha, level, max_set, confound_margin, gate_alpha,
+                               stations=[{"id": int(st.id), "kind": st.kind,
+                                          "rows": int(np.count_nonzero(row_station == st.id))} for st in stations],
+                               baseline="all stations at once (mtbudget.multistation.identify_stations): geometric "
+                                        "errors, each xyz station's pose, each range station's position and dead path",
+                               refit="the findings at their estimates are taken out of the measurements, each in its "
+                                     "station's frame, and all stations are identified again"),
                      residuals_before=L.residual_machine, residuals_after=res_after,
                      noise=est, unexplained=unexplained)
 
