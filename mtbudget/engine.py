@@ -94,7 +94,7 @@ class Engine:
                 res = _StationsResult(model, sc, meas[idx], ranges[idx])
             else:  # [scales]: the stated nominal expansion at the read temperatures is a known input, (1, M) arrays
                 res = identify(model, meas[idx], sc.noise, strategy, chunk=n, groups=label[idx],
-                               fixed=sc.correction or None)
+                               fixed=sc.correction or None, iteration_pose=sc.pose)
             not_converged += np.bincount(label[idx], ~res.converged, minlength=nb).astype(int)
             if res.fallback is not None:
                 fallbacks += np.bincount(label[idx], res.fallback, minlength=nb).astype(int)

@@ -462,6 +462,7 @@ def identify(
     fixed: dict | None = None,
     chunk: int | None = None,
     groups: np.ndarray | None = None,
+    iteration_pose: np.ndarray | None = None,
 ) -> Identification:
     """Identify pose and geometric errors for one or N trials.
 
@@ -479,6 +480,11 @@ def identify(
     trial's result depends on the trials of its own label only, bit for bit, as if each label were
     identified alone (the engine passes one label per block; ``chunk`` is then ignored, the labels
     are the chunks).
+
+    iteration_pose: (6,) the trials' nominal tracker pose, chord solver only: the iteration matrices are
+    then computed once from the nominal points seen from it and shared by every trial (cached), instead
+    of from each label's mean information; the solution does not depend on them (only how fast the
+    iterations reach it), and a trial's result still depends on its own label only.
 
     The result says which solver ran (``solver``) and, for the chord solver, which
     trials it handed to Gauss-Newton (``fallback``, ``n_fallback``).
@@ -531,7 +537,7 @@ def identify(
         if chord:
             parts.append(_identify_chunk_chord(model, meas, noise, strategy, theta0.copy(),
                                                None if pose0 is None else pose0.copy(), fixed, phases, cache,
-                                               labels=groups))
+                                               labels=groups, iteration_pose=iteration_pose))
         else:  # Gauss-Newton treats every trial alone: the labels are the chunks
             for k in np.unique(groups):
                 idx = np.flatnonzero(groups == k)
@@ -544,7 +550,8 @@ def identify(
         sl = slice(lo, min(N, lo + chunk))
         args = (model, meas[sl], noise, strategy, theta0[sl].copy(), None if pose0 is None else pose0[sl].copy(),
                 _rows(fixed, sl, N), phases)
-        parts.append(_identify_chunk_chord(*args, cache) if chord else _identify_chunk(*args))
+        parts.append(_identify_chunk_chord(*args, cache, iteration_pose=iteration_pose) if chord
+                     else _identify_chunk(*args))
     cat = lambda key: np.concatenate([q[key] for q in parts], axis=0)  # noqa: E731
     res = Identification(
         model=model, theta=cat("theta"), pose=cat("pose"), residual=cat("residual"),
@@ -722,10 +729,14 @@ def _per_label(parts, rows, fn, width):
     return out
 
 
-def _identify_chunk_chord(model, meas, noise, strategy, theta, pose0, fixed, phases, cache, labels=None):
+def _identify_chunk_chord(model, meas, noise, strategy, theta, pose0, fixed, phases, cache, labels=None,
+                          iteration_pose=None):
     """The chord solver on one chunk of trials (see the module docstring); falls back to Gauss-Newton per trial.
 
-    labels: (N,) the trials that share an iteration matrix (default: all of them), see :class:`_Labels`."""
+    labels: (N,) the trials that share an iteration matrix (default: all of them), see :class:`_Labels`.
+    iteration_pose: (6,) the trials' nominal tracker pose: the iteration matrices are then those of the
+    nominal points seen from it (the same for every trial and label, computed once per model, phase, pose
+    and noise, and cached) instead of each label's mean information."""
     N, M = meas.shape[:2]
     p = model.n_params
     sv = scale_vector(model)
@@ -744,21 +755,30 @@ def _identify_chunk_chord(model, meas, noise, strategy, theta, pose0, fixed, pha
     P_nom = np.broadcast_to(model.machine_points(np.zeros((1, p)), fixed) if fixed else P0, (N, M, 3))
     pose_k = lt.register(P_nom, meas)
     Rk = lt.rotation(pose_k[:, 3], pose_k[:, 4], pose_k[:, 5])
-    # mean over the label of R C^-1 R^T (two batched products rather than N M small ones)
-    X = (WL.reshape(N, 3 * M, 3) @ np.swapaxes(Rk, 1, 2)).reshape(N, M, 3, 3)  # C^-1 R^T
-    X = (Rk @ X.transpose(0, 2, 1, 3).reshape(N, 3, 3 * M)).reshape(N, 3, M, 3)  # R C^-1 R^T, axes (n, i, m, l)
     all_rows = np.arange(N)
-    W_bars = {k: (X[pos] if lab.n > 1 else X).mean(axis=0).transpose(1, 0, 2) for k, pos in lab.split(all_rows)}
+    shared = iteration_pose is not None and all(np.ndim(v) == 0 or np.shape(v)[0] == 1 for v in fixed.values())
+    if shared:  # the nominal points' information seen from the nominal pose: one matrix for every trial
+        pose_n = np.asarray(iteration_pose, float).reshape(1, 6)
+        key_n = ("iteration", pose_n.tobytes(), _noise_key(noise), strategy.weighted,
+                 tuple(sorted((k, np.asarray(v).tobytes()) for k, v in fixed.items())))
+
+        def nominal_information():  # R C^-1 R^T (M, 3, 3) of the nominal points, when first needed
+            Rn = lt.rotation(pose_n[:, 3], pose_n[:, 4], pose_n[:, 5])[0]
+            W_n = _gram33(_weights(model, lt.to_tracker(P_nom[:1], pose_n), noise, strategy))[0]
+            return {0: Rn @ W_n @ Rn.T}
+    else:  # mean over the label of R C^-1 R^T (two batched products rather than N M small ones)
+        X = (WL.reshape(N, 3 * M, 3) @ np.swapaxes(Rk, 1, 2)).reshape(N, M, 3, 3)  # C^-1 R^T
+        X = (Rk @ X.transpose(0, 2, 1, 3).reshape(N, 3, 3 * M)).reshape(N, 3, M, 3)  # R C^-1 R^T, axes (n, i, m, l)
+        W_bars = {k: (X[pos] if lab.n > 1 else X).mean(axis=0).transpose(1, 0, 2) for k, pos in lab.split(all_rows)}
     G0 = _rigid_columns(P0, c0)
 
-    def matrix(J):
-        K = G0 if J is None else np.concatenate([G0, -J], axis=2)
-        K2 = K.reshape(3 * M, -1)
-        out = {}
-        for k, W_bar in W_bars.items():
-            KW = W_bar @ K  # (M, 3, 3) @ (M, 3, b): each point's information times its rows
-            out[k] = _spd_inverse(K2.T @ KW.reshape(3 * M, -1))
-        return out
+    def matrix(J, Q=None):
+        if shared:  # cached per model (the plan cache), phase, pose, noise and fixed inputs
+            key = key_n + (None if Q is None else (Q.tobytes(), Q.shape),)
+            if key not in cache:
+                cache[key] = _iteration_matrices(G0, J, nominal_information())[0]
+            return _SameForAll(cache[key])
+        return _iteration_matrices(G0, J, W_bars)
 
     state = {"R": Rk.copy(), "T": pose_k[:, :3].copy(), "theta": theta}
     bad = np.zeros(N, bool)
@@ -793,7 +813,7 @@ def _identify_chunk_chord(model, meas, noise, strategy, theta, pose0, fixed, pha
     for k, (active, ident, Q) in enumerate(phases):
         Qs = Q / sv[:, None]
         _, J0 = _nominal(model, cache, Q)
-        Hinv = matrix(J0)
+        Hinv = matrix(J0, Q)
         todo = np.flatnonzero(~bad)
         # stage 1: the nominal Jacobian (earlier phases only give the next one its start)
         ok, it = _chord(state, todo, evaluate, meas, WLc, Hinv, J0.reshape(3 * M, -1), Qs, c0, refresh, strategy, lab,
@@ -852,6 +872,40 @@ def _identify_chunk_chord(model, meas, noise, strategy, theta, pose0, fixed, pha
     return out
 
 
+def _iteration_matrices(G0, J, W_bars):
+    """{label: inverse normal matrix} of the rigid columns G0 (M, 3, 6) and the geometric ones -J (M, 3, r)
+    (None: the pose alone) with each label's information W_bar (M, 3, 3)."""
+    M = G0.shape[0]
+    K = G0 if J is None else np.concatenate([G0, -J], axis=2)
+    K2 = K.reshape(3 * M, -1)
+    out = {}
+    for k, W_bar in W_bars.items():
+        KW = W_bar @ K  # (M, 3, 3) @ (M, 3, b): each point's information times its rows
+        out[k] = _spd_inverse(K2.T @ KW.reshape(3 * M, -1))
+    return out
+
+
+class _SameForAll(dict):
+    """One iteration matrix for every label."""
+
+    def __init__(self, H):
+        super().__init__()
+        self.H = H
+
+    def __missing__(self, key):
+        return self.H
+
+
+def _noise_key(noise) -> tuple:
+    """The stated noise as a hashable key."""
+    return tuple(np.asarray(getattr(noise, f), float).tobytes()
+                 for f in ("angular", "distance", "distance_per_length", "repeatability"))
+
+
+#: what the compiled kernels take: C-contiguous and writable (a read-only array is another numba type)
+_CW = ["C", "W"]
+
+
 def _apply(A, x):
     """A x for stacks of 3 x 3 matrices A (..., 3, 3) or (N, M, 3, 3) and points x (N, M, 3): elementwise."""
     if A.ndim == 3:  # one matrix per trial
@@ -898,10 +952,12 @@ def _chord(state, rows, evaluate, meas, WLc, Hinv, J, Qs, c0, tol, strategy, lab
     it = 0
     adjoint = callable(J)  # each trial's own Jacobian as an operator, J(v, positions) = J^T v (n, p)
     per_trial = not adjoint and J is not None and J.ndim == 3  # (n, 3M, r): each trial's own Jacobian
+    from .kernels import chord_residual
+
     inv_ps = 1.0 / POSE_SCALE
-    meas_r, WL_r = meas[rows], WLc[:, :, rows]  # component-major (3, 3, N, M): contiguous (trials, points) planes
     M = meas.shape[1]
-    ones = np.ones((1, M))
+    # C-contiguous writable float64 arrays: one compiled signature of the kernel (see mtbudget.kernels)
+    meas, WLc, c0 = (np.require(x, np.float64, _CW) for x in (meas, WLc, c0))
     # every product below is per trial (stacked matrices of a fixed shape) or per label: see _Labels
     for it in range(1, strategy.chord_iter + 1):
         part = live.size < n
@@ -910,18 +966,13 @@ def _chord(state, rows, evaluate, meas, WLc, Hinv, J, Qs, c0, tol, strategy, lab
         parts = lab.split(r)
         R, T = state["R"][r], state["T"][r]
         P_W = first[live] if (first is not None and it == 1) else evaluate(state["theta"][r], r)
-        W = WL_r[:, :, live] if part else WL_r
-        rl = (meas_r[live] if part else meas_r) - (P_W - T[:, None]) @ R  # x - R^T (P_W - T), tracker frame
-        u = np.empty((nr, M, 3))  # C^-1 r, each point's information matrix (symmetric) times its residual
-        for i in range(3):
-            u[..., i] = W[i, 0] * rl[..., 0] + W[i, 1] * rl[..., 1] + W[i, 2] * rl[..., 2]
-        v = u @ np.swapaxes(R, 1, 2)  # the weighted residual in the machine frame: R C^-1 R^T (x_W - P_W)
-        S = np.swapaxes(P_W - c0, 1, 2) @ v  # sum over the points of (P_W - c0) v^T: its antisymmetric part is the torque
+        # the weighted residual in the machine frame v = R C^-1 (x - R^T (P_W - T)), the cost and the rigid
+        # part of the gradient (sum of v, torque about c0), trial by trial in one compiled pass
         G = np.empty((nr, 6 + (0 if J is None else Qs.shape[1])))
-        G[:, :3] = (ones @ v)[:, 0] * inv_ps[:3]
-        G[:, 3] = (S[:, 1, 2] - S[:, 2, 1]) * inv_ps[3]
-        G[:, 4] = (S[:, 2, 0] - S[:, 0, 2]) * inv_ps[4]
-        G[:, 5] = (S[:, 0, 1] - S[:, 1, 0]) * inv_ps[5]
+        v, cost = np.empty((nr, M, 3)), np.empty(nr)
+        chord_residual(np.require(P_W, np.float64, _CW), meas, WLc, r.astype(np.int64, copy=False),
+                       np.require(R, np.float64, _CW), np.require(T, np.float64, _CW), c0, v, G, cost)
+        G[:, :6] *= inv_ps
         if J is not None:
             m3 = 3 * M
             V = v.reshape(nr, m3)
@@ -934,7 +985,6 @@ def _chord(state, rows, evaluate, meas, WLc, Hinv, J, Qs, c0, tol, strategy, lab
                 G[:, 6:] = -_per_label(parts, r, lambda k, pos: V[pos] @ J, J.shape[1])
         z = -_per_label(parts, r, lambda k, pos: G[pos] @ Hinv[k], G.shape[1])
         step = np.abs(z).max(axis=1)
-        cost = (rl.reshape(nr, 1, 3 * M) @ u.reshape(nr, 3 * M, 1))[:, 0, 0]
         # the step, applied
         Rot = _rotation(z[:, 3:6] * inv_ps[3:])
         state["R"][r] = Rot @ R

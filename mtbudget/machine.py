@@ -394,14 +394,93 @@ def chain(
     N, M = theta.shape[0], inputs.nominal.shape[0]
     if B is None:
         B = model.basis(inputs.nominal)
-    out, terms, t, peff, v_in, w_out = _evaluate(config, model, theta, inputs, B)
     if not jacobian:
-        return out
+        return chain_points(config, model, theta, inputs, B)
+    out, terms, t, peff, v_in, w_out = _evaluate(config, model, theta, inputs, B)
     return out, _jacobian(config, model, terms, t, peff, v_in, w_out, B, project, N, M, row_groups)
 
 
+def chain_points(config: Configuration, model: ErrorModel, theta: np.ndarray, inputs: ChainInputs,
+                 B: np.ndarray) -> np.ndarray:
+    """The small-angle chain's points (N, M, 3), compiled (:func:`mtbudget.kernels.chain_points`): one pass per
+    trial and point instead of :func:`_evaluate`'s passes over (N, M) arrays; the same arithmetic (the
+    Legendre sums in order instead of through BLAS: round-off).  A trial's points depend on its own inputs
+    only."""
+    from .kernels import chain_points as kernel
+
+    args = _kernel_inputs(config, model, theta, inputs, B)
+    N, M = theta.shape[0], inputs.nominal.shape[0]
+    scratch = np.empty((1, 3, 3, M))  # nothing kept for the adjoint
+    return kernel(*args, np.empty((N, M, 3)), scratch, scratch, scratch)
+
+
+def _kernel_inputs(config, model, theta, inputs, B):
+    """The compiled chain's inputs: (tool axes, workpiece axes, sides, px, py, pz, tool, coef, L, sq)."""
+    N, M = theta.shape[0], inputs.nominal.shape[0]
+    tool_axes, wp_axes, side = _kernel_axes(config)
+    L, src, dst, K = _kernel_layout(model, B)
+    coef = np.zeros((N, 3 * 6 * K))
+    coef[:, dst] = theta[:, src]
+    sq = np.zeros((N, 3))
+    for c, j in _squareness_columns(model):
+        sq[:, c] = theta[:, j]
+    pos = []
+    for a in AXES:
+        p = np.asarray(inputs.effective(a), float)
+        if p.shape[0] not in (1, N) or p.shape[1] != M:
+            p = np.broadcast_to(p, (N, M))
+        pos.append(p)
+    tool = np.broadcast_to(np.asarray(inputs.tool, float), (M, 3))
+    # C-contiguous, writable float64: one compiled signature whatever the caller's arrays (a read-only view
+    # would be another type to numba, and another compilation)
+    pos, tool = [np.require(x, np.float64, ["C", "W"]) for x in pos], np.require(tool, np.float64, ["C", "W"])
+    return (tool_axes, wp_axes, side, pos[0], pos[1], pos[2], tool, coef.reshape(N, 3, 6, K), L, sq)
+
+
+def _kernel_axes(config: Configuration):
+    """(tool-side axes innermost first, workpiece-side axes in order, side of each axis) as arrays."""
+    return (np.array([AXIS_INDEX[a] for a in reversed(config.tool)], np.int64),
+            np.array([AXIS_INDEX[a] for a in config.workpiece], np.int64),
+            np.array([float(config.side(a)) for a in AXES]))
+
+
+def _squareness_columns(model: ErrorModel):
+    """[(0 sxy / 1 sxz / 2 syz, parameter index)] of the modelled squareness errors."""
+    names = [p.name for p in model.params]
+    return [(c, names.index(s)) for c, s in enumerate(SQUARENESS) if s in names]
+
+
+def _kernel_layout(model: ErrorModel, B: np.ndarray):
+    """The compiled chain's coefficient table: Legendre values L (3, K, M) of each axis' orders (zero-padded
+    to the largest K), and where each parameter goes in the (axis, component error, order) table: (L, src,
+    dst, K); cached per model and basis, as :func:`_axis_layout`."""
+    cache = model.__dict__.setdefault("_kernel_layout_cache", {})
+    key = (id(model.params), B.shape, B.tobytes())
+    hit = cache.get(key)
+    if hit is not None:
+        return hit
+    if len(cache) > 8:
+        cache.clear()
+    layout = _axis_layout(model, B)
+    K = max([1] + [lay[1].shape[0] for lay in layout.values()])
+    M = B.shape[0]
+    L = np.zeros((3, K, M))
+    src, dst = [], []
+    for axis, (kc, La, s, d) in layout.items():
+        a = AXIS_INDEX[axis]
+        Ka = La.shape[0]
+        L[a, :Ka] = La
+        for j, slot in zip(s, d):  # slot = g * Ka + order index, g the component error's place in kc
+            kind, comp = kc[slot // Ka]
+            src.append(int(j))
+            dst.append((a * 6 + 3 * kind + comp) * K + slot % Ka)
+    hit = (L, np.array(src, np.intp), np.array(dst, np.intp), K)
+    cache[key] = hit
+    return hit
+
+
 def chain_adjoint(config: Configuration, model: ErrorModel, theta: np.ndarray, inputs: ChainInputs, *,
-                  B: np.ndarray | None = None):
+                  B: np.ndarray | None = None, reference: bool = False):
     """The chain's points (N, M, 3) and its Jacobian as an operator: ``(P_W, adjoint)``.
 
     ``adjoint(v, idx=None)`` is ``J^T v``, (n, p): for machine-frame vectors v (n, M, 3) at the points,
@@ -410,13 +489,52 @@ def chain_adjoint(config: Configuration, model: ErrorModel, theta: np.ndarray, i
     the chain (one 3-vector per axis, ``G_a^T v``, from the transposed rotations), component by
     component on (n, M) arrays, then contracted with the basis values.  Per trial, ~30x fewer
     operations than forming J; every operation is elementwise or a reduction within one trial, so a
-    trial's numbers do not depend on the other trials evaluated with it.
+    trial's numbers do not depend on the other trials evaluated with it.  Compiled
+    (:mod:`mtbudget.kernels`); ``reference=True``: the numpy formulation on (n, M) arrays it is tested
+    against.
     """
     theta = np.atleast_2d(np.asarray(theta, float))
     if B is None:
         B = model.basis(inputs.nominal)
-    out, terms, _, peff, v_in, w_out = _evaluate(config, model, theta, inputs, B)
-    return out, _Adjoint(config, model, terms, peff, v_in, w_out, B, theta.shape[0])
+    if reference:
+        out, terms, _, peff, v_in, w_out = _evaluate(config, model, theta, inputs, B)
+        return out, _Adjoint(config, model, terms, peff, v_in, w_out, B, theta.shape[0])
+    from .kernels import chain_points
+
+    args = _kernel_inputs(config, model, theta, inputs, B)
+    N, M = theta.shape[0], inputs.nominal.shape[0]
+    kept = (np.empty((N, 3, 3, M)), np.empty((N, 3, 3, M)), np.empty((N, 3, 3, M)))  # eps, vin, wout
+    out = chain_points(*args, np.empty((N, M, 3)), *kept)
+    return out, _AdjointCompiled(config, model, B, args, kept)
+
+
+class _AdjointCompiled:
+    """J^T v of the small-angle chain at fixed parameters, compiled (:func:`mtbudget.kernels.chain_vjp`), from
+    what the forward pass kept; the numbers of :class:`_Adjoint` to round-off."""
+
+    def __init__(self, config, model, B, args, kept):
+        self.args, self.kept = args, kept
+        self.tool_order = np.array([AXIS_INDEX[a] for a in config.tool], np.int64)
+        self.N = args[7].shape[0]
+        cache = model.__dict__.setdefault("_vjp_layout_cache", {})
+        key = (id(model.params), B.shape, B.tobytes())
+        if key not in cache:
+            if len(cache) > 8:
+                cache.clear()
+            ref = _Adjoint.layout(model, B)
+            params = np.array([(AXIS_INDEX[ref["cols"][k][0]], ref["cols"][k][1], ref["cols"][k][2])
+                               for k in ref["col_of"]], np.int64).reshape(-1, 3)
+            cache[key] = (params, ref["basis"])
+        self.params, self.basis = cache[key]
+
+    def __call__(self, v: np.ndarray, idx=None) -> np.ndarray:
+        from .kernels import chain_vjp
+
+        _, wp_axes, side, px, py, pz = self.args[:6]
+        rows = np.arange(self.N, dtype=np.int64) if idx is None else np.asarray(idx, np.int64)
+        out = np.empty((len(rows), len(self.params)))
+        return chain_vjp(self.tool_order, wp_axes, side, px, py, pz, *self.kept, rows,
+                         np.require(v, np.float64, ["C", "W"]), self.params, self.basis, out)
 
 
 class _Adjoint:
@@ -429,19 +547,13 @@ class _Adjoint:
         self.den = {a: 1.0 / (1.0 + (e[0] * e[0] + e[1] * e[1] + e[2] * e[2]))
                     for a, e in self.eps.items() if e is not None and a in config.workpiece}
         self.peff, self.v_in, self.w_out = peff, v_in, w_out
-        names = model_names(model)
-        groups = _component_groups(model)
-        # column g of the sensitivities -> the parameters it carries, with their basis values (M, p)
-        cols = [(axis, kind, comp) for axis, kind, comp, _ in groups]
-        cols += [(axis, 2, c) for name, axis, c in _SQ_COLUMNS if name in names]
+        lay = self.layout(model, B)
+        cols, self.col_of, self.basis = lay["cols"], lay["col_of"], lay["basis"]
         self.cols = cols
         self.by_axis: dict = {}
         for k, (axis, kind, comp) in enumerate(cols):
             self.by_axis.setdefault(axis, []).append((k, kind, comp))
         self.neg_peff = {a: -np.asarray(peff[a]) for a in AXES}
-        C = _basis_map(model, B)  # (M, g, p): one non-zero column per parameter
-        self.col_of = np.argmax(np.abs(C).max(axis=0) != 0, axis=0)  # (p,) the column of each parameter
-        self.basis = np.ascontiguousarray(C[:, self.col_of, np.arange(C.shape[2])].T)  # (p, M)
         # the parameters of each column: one contiguous run (a component error's orders, or one squareness)
         self.params_of = {}
         for k in range(len(cols)):
@@ -452,6 +564,19 @@ class _Adjoint:
                 self.params_of[k] = (int(js[0]), int(js[-1]) + 1)
             else:
                 self.params_of[k] = (0, 0)
+
+    @staticmethod
+    def layout(model, B) -> dict:
+        """The sensitivity columns (axis, kind 0 translation / 1 rotation / 2 squareness, component), the
+        column of each parameter (p,) and each parameter's basis values (p, M)."""
+        names = model_names(model)
+        # column g of the sensitivities -> the parameters it carries, with their basis values (M, p)
+        cols = [(axis, kind, comp) for axis, kind, comp, _ in _component_groups(model)]
+        cols += [(axis, 2, c) for name, axis, c in _SQ_COLUMNS if name in names]
+        C = _basis_map(model, B)  # (M, g, p): one non-zero column per parameter
+        col_of = np.argmax(np.abs(C).max(axis=0) != 0, axis=0)  # (p,) the column of each parameter
+        basis = np.ascontiguousarray(C[:, col_of, np.arange(C.shape[2])].T)  # (p, M)
+        return {"cols": cols, "col_of": col_of, "basis": basis}
 
     def _rows(self, x, idx):
         if idx is None or np.ndim(x) < 2 or np.shape(x)[0] != self.N or self.N == 1:

@@ -117,6 +117,23 @@ def test_chord_agrees_with_gauss_newton_and_scipy_on_every_trial(plan_of, N, sam
         assert np.abs(scipy_residual(model, meas[n], Q) - fast.residual[n]).max() < TOL_MM
 
 
+def test_a_shared_iteration_matrix_reaches_the_same_minimum(rng):
+    """iteration_pose (what the engine passes): one iteration matrix from the nominal points seen from the nominal
+    pose, for every trial; the solution is Gauss-Newton's and does not depend on that matrix: a pose 0.05 rad and
+    10 mm off reaches it in a few more iterations; 0.3 rad off, the chord contracts too slowly and every trial is
+    handed to Gauss-Newton, counted."""
+    model, meas = simulate(paper_plan(), 32, rng)
+    ref = identify(model, meas, NOISE, Strategy(solver="gauss-newton"))
+    labels = np.repeat(np.arange(4), 8)
+    for off, fallbacks in ((0.0, 0), (0.05, 0), (0.3, 32)):
+        pose = POSE + np.array([200, -100, 50, 1, -1, 1]) * off
+        shared = identify(model, meas, NOISE, iteration_pose=pose, groups=labels)
+        assert shared.n_fallback == fallbacks
+        assert_same_solution(model, shared, ref)
+    multi = identify(model, meas, NOISE, Strategy.multi_phase(), iteration_pose=POSE)
+    assert_same_solution(model, multi, identify(model, meas, NOISE, Strategy.multi_phase(solver="gauss-newton")))
+
+
 def test_multi_phase_and_given_starts_reach_the_same_minimum(rng):
     model, meas = simulate(paper_plan(), 16, rng)
     ref = identify(model, meas, NOISE, Strategy.multi_phase(solver="gauss-newton"))

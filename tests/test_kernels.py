@@ -1,0 +1,116 @@
+"""The compiled kernels (mtbudget/kernels.py) against independent formulations.
+
+The chain's points against ``machine.chain_reference`` (3 x 3 matrices per point, the paper's Eq. 6 as
+matrices), for every configuration; the chord's weighted residual and gradient against the formulas
+written out here with numpy; and the property the engine relies on: a trial's numbers do not depend on
+the other trials computed with it, bit for bit.
+"""
+
+import numpy as np
+import pytest
+
+from mtbudget.kernels import chord_residual
+from mtbudget.machine import ALL_CONFIGURATIONS, ChainInputs, Configuration, ErrorModel, chain, chain_reference
+
+
+@pytest.fixture(scope="module")
+def setup():
+    rng = np.random.default_rng(11)
+    M = 33
+    nom, tool = rng.uniform(-300, 300, (M, 3)), rng.uniform(-100, 100, (M, 3))
+    return rng, M, nom, tool
+
+
+@pytest.mark.parametrize("code", ALL_CONFIGURATIONS)
+def test_compiled_chain_points_equal_the_matrix_formulation(code, setup):
+    rng, M, nom, tool = setup
+    cfg = Configuration.parse(code)
+    for conv in ("iso230", "free"):
+        em = ErrorModel.default(nom, 4, straightness_convention=conv, tool_axis=cfg.tool[-1] if cfg.tool else None)
+        th = rng.standard_normal((4, len(em.params))) * 1e-4
+        inp = ChainInputs(nom, tool, offset={"y": rng.standard_normal((4, M)) * 1e-3},
+                          scale={"x": rng.standard_normal((1, M)) * 1e-5, "z": 2e-5})
+        got = chain(cfg, em, th, inp)
+        ref = chain_reference(cfg, em, th, inp)
+        assert got.shape == (4, M, 3)
+        assert np.abs(got - ref).max() <= 1e-12 * np.abs(ref).max(), code
+
+
+def test_compiled_chain_of_a_reduced_model_and_a_single_trial(setup):
+    rng, M, nom, tool = setup
+    cfg = Configuration.parse("XFYZ")
+    em = ErrorModel(ranges={a: (-300, 300) for a in "xyz"}, degrees={"dx(x)": 2, "ey(z)": 1}, squareness=False)
+    th = rng.standard_normal((1, len(em.params))) * 1e-4
+    inp = ChainInputs(nom, tool)
+    assert np.abs(chain(cfg, em, th, inp) - chain_reference(cfg, em, th, inp)).max() <= 1e-12 * 300
+    # no error at all: the nominal chain, exactly
+    zero = chain(cfg, em, np.zeros((2, len(em.params))), inp)
+    assert np.array_equal(zero[0], zero[1])
+    assert np.abs(zero[0] - (tool + nom)).max() <= 1e-12  # every axis moves the tool by +p relative to the part
+
+
+def reference_residual(P, meas, WL, idx, R, T, c0):
+    """The chord's quantities written out: r = x - R^T (P - T), u = C^-1 r, v = R u, the cost r.u, the sum of v
+    and the torque sum (P - c0) x v."""
+    x = meas[idx]
+    W = np.moveaxis(WL[:, :, idx], (0, 1), (-2, -1))  # (n, M, 3, 3)
+    r = x - np.einsum("nji,nmj->nmi", R, P - T[:, None])
+    u = np.einsum("nmij,nmj->nmi", W, r)
+    v = np.einsum("nij,nmj->nmi", R, u)
+    cost = np.einsum("nmi,nmi->n", r, u)
+    torque = np.cross(P - c0, v).sum(axis=1)
+    return v, np.concatenate([v.sum(axis=1), torque], axis=1), cost
+
+
+def test_chord_residual_against_the_formulas_and_trial_by_trial(setup):
+    rng, M, _, _ = setup
+    N = 7
+    meas = rng.uniform(-1000, 1000, (N, M, 3))
+    A = rng.standard_normal((N, M, 3, 3))
+    WL = np.ascontiguousarray(np.moveaxis(A @ np.swapaxes(A, -1, -2) + 3 * np.eye(3), (2, 3), (0, 1)))  # SPD
+    idx = np.array([4, 0, 6, 2], np.int64)
+    n = len(idx)
+    q, _ = np.linalg.qr(rng.standard_normal((n, 3, 3)))
+    R = q * np.sign(np.linalg.det(q))[:, None, None]
+    T = rng.uniform(-500, 500, (n, 3))
+    P = rng.uniform(-1000, 1000, (n, M, 3))
+    c0 = rng.uniform(-100, 100, 3)
+    v, G, cost = np.empty((n, M, 3)), np.empty((n, 6)), np.empty(n)
+    chord_residual(P, meas, WL, idx, R, T, c0, v, G, cost)
+    v_ref, G_ref, cost_ref = reference_residual(P, meas, WL, idx, R, T, c0)
+    assert np.abs(v - v_ref).max() <= 1e-12 * np.abs(v_ref).max()
+    assert np.abs(G - G_ref).max() <= 1e-12 * np.abs(G_ref).max()
+    assert np.abs(cost - cost_ref).max() <= 1e-12 * np.abs(cost_ref).max()
+    # each trial alone: the same bits
+    for k in range(n):
+        v1, G1, c1 = np.empty((1, M, 3)), np.empty((1, 6)), np.empty(1)
+        chord_residual(P[k:k + 1], meas, WL, idx[k:k + 1], R[k:k + 1], T[k:k + 1], c0, v1, G1, c1)
+        assert np.array_equal(v1[0], v[k]) and np.array_equal(G1[0], G[k]) and c1[0] == cost[k]
+
+
+def test_one_compiled_signature_per_kernel_across_the_engine_identify_and_diagnosis():
+    """Every path calls the kernels with the same array types (C-contiguous, writable float64): one compilation
+    each, never a second one in the middle of a run (a read-only view would be another numba type).  In a
+    fresh interpreter, so that other tests' calls do not count."""
+    import subprocess
+    import sys
+
+    code = """
+import numpy as np
+from mtbudget import kernels
+from mtbudget.config import example_recording, load_config
+from mtbudget.diagnose import diagnose
+from mtbudget.identify import Noise, identify
+from mtbudget.model import MeasurementModel
+from mtbudget.recording import read_recording
+from mtbudget.runner import run
+run(load_config(), trials=128, attribution_trials=16)
+rec = read_recording(example_recording("thermal_x"))
+meas = np.asarray(rec.lt, float)
+meas.setflags(write=False)
+identify(MeasurementModel.for_plan(rec.machine, rec.plan), meas, Noise.of(rec))
+diagnose(rec)
+print([len(k.signatures) for k in (kernels.chain_points, kernels.chain_vjp, kernels.chord_residual)])
+"""
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    assert out.strip().splitlines()[-1] == "[1, 1, 1]", out
