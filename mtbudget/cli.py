@@ -21,6 +21,10 @@ class _Group(click.Group):
         names = super().list_commands(ctx)
         return [n for n in self.ORDER if n in names] + [n for n in names if n not in self.ORDER]
 
+    def parse_args(self, ctx, args):
+        ctx.meta["mtbudget.argv"] = list(args)  # the command line as given (the first-run note reads it)
+        return super().parse_args(ctx, args)
+
     def invoke(self, ctx):
         # mtbudget's matrices are small: a second BLAS thread only waits on a shared machine (measured 25-60x slower
         # for the placement study and diagnosis on 2 busy cores). Set before numpy loads; the user's setting wins.
@@ -28,11 +32,27 @@ class _Group(click.Group):
 
         for var in ("OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "OMP_NUM_THREADS"):
             os.environ.setdefault(var, "1")
+        _first_run_note(ctx.meta.get("mtbudget.argv", []))
         try:
             return super().invoke(ctx)
         except MtbudgetError as exc:
             click.echo(f"error: {exc}", err=True)
             ctx.exit(2)
+
+
+#: commands that evaluate the kinematic chain (and so call the compiled kernels)
+_COMPUTING = {"study", "run", "simulate", "identify", "compensate", "diagnose"}
+
+
+def _first_run_note(args: list):
+    """On a terminal, say so when the first command after installing compiles the engine's kernels (numba,
+    several seconds once per machine), rather than sit silent."""
+    if not args or args[0] not in _COMPUTING or {"-h", "--help", "--quiet"} & set(args) or not sys.stderr.isatty():
+        return
+    from .kernels import compiled_here
+
+    if compiled_here() is False:
+        click.echo("compiling the engine's kernels (numba), once for this machine: about 10 s ...", err=True)
 
 
 @click.group(cls=_Group, context_settings={"help_option_names": ["-h", "--help"]})

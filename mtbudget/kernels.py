@@ -240,3 +240,17 @@ def chord_residual(P, meas, WL, idx, R, T, c0, v, G, cost):  # pragma: no cover 
         G[n, 3] = s12 - s21
         G[n, 4] = s20 - s02
         G[n, 5] = s01 - s10
+
+
+KERNELS = (chain_points, chain_vjp, chord_residual)
+
+
+def compiled_here() -> bool | None:
+    """Whether numba's cache already holds the kernels on this machine (False: the first call compiles them,
+    several seconds); None when that cannot be told (numba's cache layout is not public API)."""
+    import os
+
+    try:
+        return all(os.path.exists(k._cache._cache_file._index_path) for k in KERNELS)
+    except AttributeError:  # pragma: no cover - another numba
+        return None

@@ -114,3 +114,22 @@ print([len(k.signatures) for k in (kernels.chain_points, kernels.chain_vjp, kern
 """
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
     assert out.strip().splitlines()[-1] == "[1, 1, 1]", out
+
+
+def test_the_first_run_after_installing_says_it_compiles(monkeypatch, capsys, setup):
+    """On a terminal, a computing command whose kernels are not yet compiled says so (once per machine); never
+    with --quiet or --help, never for other commands; after a call the cache holds them."""
+    import sys
+
+    from mtbudget import cli, kernels
+
+    rng, M, nom, tool = setup
+    em = ErrorModel.default(nom, 2)
+    chain(Configuration.parse("XFYZ"), em, np.zeros((2, len(em.params))), ChainInputs(nom, tool))
+    assert kernels.compiled_here() is True
+    monkeypatch.setattr(sys.stderr, "isatty", lambda: True)
+    monkeypatch.setattr(kernels, "compiled_here", lambda: False)
+    for args, said in ((["run", "--trials", "10"], True), (["study", "all"], True), (["run", "--quiet"], False),
+                       (["diagnose", "--help"], False), (["plugins"], False), ([], False)):
+        cli._first_run_note(args)
+        assert ("compiling the engine's kernels" in capsys.readouterr().err) is said, args
