@@ -5,7 +5,10 @@
   pint quantities and the model inputs it perturbs (:data:`TARGETS`), and
   draws perturbations for N trials at once from a :class:`Context`.  The
   engine converts what ``sample`` returns to the internal units once per call
-  and checks shapes, dimensions and NaN.
+  and checks shapes, dimensions and NaN.  A source may instead implement
+  ``sample_internal``, which returns plain float64 arrays already in each
+  target's internal unit (the built-ins do): the engine then builds no pint
+  quantity per block, and ``sample`` wraps those arrays as quantities.
 * :class:`Candidate` (hook ``mtbudget_register_candidates``): a physics term
   a rigid-body verification model leaves out, for ``mtbudget diagnose``.  It
   gives the displacement of every measured point per unit of its parameters
@@ -19,6 +22,7 @@ an exception inside a plugin names the plugin, the hook and the method.
 from __future__ import annotations
 
 import enum
+import operator
 from dataclasses import dataclass
 
 import numpy as np
@@ -197,8 +201,33 @@ class Source:
             cache[(key, unit)] = hit
         return hit[1]
 
+    def remembered(self, key: tuple, build):
+        """``build()``, remembered while ``key`` holds the same objects (compared by identity): what a source derives
+        from its parameters and the context (converted values, masks, per-point factors) once instead of once per
+        block.  Put in ``key`` every object ``build`` reads, the parameter values included
+        (``*self.parameters.values()``), so a parameter that ``configure`` replaces or another context builds anew.
+        One entry per source (the last key)."""
+        hit = self.__dict__.get("_remembered")
+        if hit is not None and len(hit[0]) == len(key) and all(map(operator.is_, hit[0], key)):
+            return hit[1]
+        value = build()
+        self.__dict__["_remembered"] = (key, value)
+        return value
+
     def sample(self, n: int, rng: np.random.Generator, context: Context) -> dict:
-        """Perturbations for ``n`` trials: {target key: Quantity array of shape (n, *shape)}."""
+        """Perturbations for ``n`` trials: {target key: Quantity array of shape (n, *shape)}.
+
+        A source implements this or :meth:`sample_internal`; by default this is :meth:`sample_internal`'s arrays as
+        quantities in their targets' internal units."""
+        if not has_internal_sample(self):
+            raise NotImplementedError
+        return {k: Q_(v, internal_unit(k)) for k, v in self.sample_internal(n, rng, context).items()}
+
+    def sample_internal(self, n: int, rng: np.random.Generator, context: Context) -> dict:
+        """Optional, instead of :meth:`sample`: the same perturbations as float64 arrays of shape (n, *shape), each
+        already in its target's internal unit (:data:`TARGETS`: mm, rad, dimensionless).  The engine calls it
+        directly when the source does not override :meth:`sample` (no pint quantity per block) and checks keys,
+        shapes and NaN as it does for :meth:`sample`."""
         raise NotImplementedError
 
     def options(self, context: Context) -> list:
@@ -210,35 +239,91 @@ class Source:
         return None
 
 
-def check_sample(source: Source, out: dict, n: int, shapes: dict) -> dict:
-    """Validate a sample and convert it to internal float arrays (one conversion per call)."""
+_SAMPLE, _SAMPLE_INTERNAL = Source.sample, Source.sample_internal
+
+
+def check_sample(source: Source, out: dict, n: int, shapes: dict, method: str = "sample") -> dict:
+    """Validate a sample and convert it to internal float arrays (one conversion per call); ``method`` names what
+    returned it in the errors."""
     if not isinstance(out, dict):
-        raise PluginError(f"sample() must return a dict of target -> Quantity, got {type(out).__name__}",
-                          source.plugin, source.name, "sample")
+        raise PluginError(f"{method}() must return a dict of target -> Quantity, got {type(out).__name__}",
+                          source.plugin, source.name, method)
     conv = {}
     for key, q in out.items():
         if key not in source.targets:
-            raise PluginError(f"sample() returned {key!r}, which is not among its declared targets {source.targets}",
-                              source.plugin, source.name, "sample")
+            raise PluginError(f"{method}() returned {key!r}, which is not among its declared targets "
+                              f"{source.targets}", source.plugin, source.name, method)
         unit, _ = TARGETS[key]
         if not isinstance(q, pint.Quantity):
             if unit:
                 raise PluginError(f"{key!r} must be a pint Quantity in a unit of {ureg.Unit(unit).dimensionality}",
-                                  source.plugin, source.name, "sample")
+                                  source.plugin, source.name, method)
             q = Q_(np.asarray(q))
         target = ureg.Unit(unit) if unit else ureg.dimensionless
         if q.dimensionality != target.dimensionality:
             raise PluginError(f"{key!r} has dimension {q.dimensionality} ({q.units:~}), expected {target.dimensionality}"
-                              f" (e.g. {unit or 'dimensionless'})", source.plugin, source.name, "sample")
+                              f" (e.g. {unit or 'dimensionless'})", source.plugin, source.name, method)
         arr = np.asarray(q.to(target).magnitude, dtype=float)
         want = (n,) + shapes[key]
         if arr.shape != want:
-            raise PluginError(f"{key!r} has shape {arr.shape}, expected {want}", source.plugin, source.name, "sample")
+            raise PluginError(f"{key!r} has shape {arr.shape}, expected {want}", source.plugin, source.name, method)
         if not np.all(np.isfinite(arr)):
             raise PluginError(f"{key!r} contains NaN or infinity ({int((~np.isfinite(arr)).sum())} values)",
-                              source.plugin, source.name, "sample")
+                              source.plugin, source.name, method)
         conv[key] = arr
     return conv
+
+
+#: target key -> its internal unit as a pint Unit (built once)
+_INTERNAL_UNITS: dict = {}
+
+
+def internal_unit(key: str):
+    """The internal unit of a target of :data:`TARGETS` as a pint Unit (dimensionless for "")."""
+    unit = _INTERNAL_UNITS.get(key)
+    if unit is None:
+        name = TARGETS[key][0]
+        unit = _INTERNAL_UNITS[key] = ureg.Unit(name) if name else ureg.dimensionless
+    return unit
+
+
+def has_internal_sample(source: Source) -> bool:
+    """True when ``source`` implements :meth:`Source.sample_internal` and does not override :meth:`Source.sample`
+    (a subclass that overrides ``sample`` is sampled through it)."""
+    cls = type(source)
+    return getattr(cls, "sample", None) is _SAMPLE and getattr(cls, "sample_internal", None) is not _SAMPLE_INTERNAL
+
+
+_FLOAT = np.dtype(float)
+
+
+def check_internal(source: Source, out: dict, n: int, shapes: dict) -> dict:
+    """Validate what :meth:`Source.sample_internal` returned: float64 arrays, in the targets' internal units by
+    contract, of the right shapes and finite.  Returns ``out`` itself when it is all that (the common case);
+    anything else goes through :func:`check_sample` as quantities in the internal units, which converts what it
+    can and says what is wrong."""
+    if type(out) is dict:
+        targets = source.targets
+        for key, arr in out.items():
+            if (key not in targets or type(arr) is not np.ndarray or arr.dtype != _FLOAT
+                    or arr.shape != (n,) + shapes[key] or not np.isfinite(arr).all()):
+                break
+        else:
+            return out
+    if not isinstance(out, dict):
+        raise PluginError(f"sample_internal() must return a dict of target -> float array, got {type(out).__name__}",
+                          source.plugin, source.name, "sample_internal")
+    return check_sample(source, {k: _as_quantity(k, v) for k, v in out.items()}, n, shapes, "sample_internal")
+
+
+def _as_quantity(key, value):
+    """What sample_internal returned for ``key`` as a quantity in its internal unit, for check_sample to judge."""
+    if key not in TARGETS or isinstance(value, pint.Quantity):
+        return value
+    try:
+        return Q_(np.asarray(value, dtype=float), internal_unit(key))
+    except (TypeError, ValueError):
+        return value
 
 
 # ----------------------------------------------------------------------------- diagnosis candidates

@@ -19,61 +19,42 @@ import numpy as np
 import pint
 
 from . import tracker as lt
-from .contracts import TARGETS, Source, check_sample
+from .contracts import Source, check_internal, check_sample, has_internal_sample, internal_unit
 from .errors import PluginError
 from .machine import COMPONENT_ERRORS
 from .model import from_targets
 from .plugins import call
 from .recording import Recording
 from .scenario import Scenario, target_shapes
-from .units import display, ureg
+from .units import display
 
 
 def stream(seed: int, block: int, source: Source) -> np.random.Generator:
-    """The random stream of ``source`` in ``block`` of a run seeded ``seed``."""
-    key = (int(block), zlib.crc32(source.name.encode()))
-    return np.random.default_rng(np.random.SeedSequence(int(seed), spawn_key=key))
+    """The random stream of ``source`` in ``block`` of a run seeded ``seed``:
+    ``default_rng(SeedSequence(seed, spawn_key=(block, crc32(source.name))))``."""
+    crc = _CRC.get(source.name)
+    if crc is None:
+        crc = _CRC[source.name] = zlib.crc32(source.name.encode())
+    return np.random.default_rng(np.random.SeedSequence(int(seed), spawn_key=(int(block), crc)))
 
 
-#: target key -> its internal unit (a sample already in it needs no conversion)
-_INTERNAL: dict = {}
-
-
-def _internal_units(key: str):
-    units = _INTERNAL.get(key)
-    if units is None:
-        unit = TARGETS[key][0]
-        units = _INTERNAL[key] = ureg.Unit(unit) if unit else ureg.dimensionless
-    return units
-
-
-def _as_internal(src: Source, raw, n: int, shapes: dict) -> dict | None:
-    """The sample as float arrays when every value is a Quantity already in its target's internal unit, of the
-    right shape and finite (the common case: nothing to convert); None when anything needs
-    :func:`mtbudget.contracts.check_sample`, which converts or says what is wrong."""
-    if not isinstance(raw, dict):
-        return None
-    out = {}
-    for key, q in raw.items():
-        if key not in src.targets or not isinstance(q, pint.Quantity) or q.units != _internal_units(key):
-            return None
-        arr = np.asarray(q.magnitude, dtype=float)
-        if arr.shape != (n,) + shapes[key] or not np.isfinite(arr).all():
-            return None
-        out[key] = arr
-    return out
+_CRC: dict = {}  # source name -> crc32 of its name
 
 
 def sample_source(scenario: Scenario, src: Source, n: int, rng: np.random.Generator, shapes: dict | None = None,
                   options: dict | None = None) -> dict:
     """``n`` trials of one source as internal float arrays, checked (keys, shapes, units, NaN, strategy indices).
 
+    A source with ``sample_internal`` (the built-ins) gives float arrays in the internal units: no pint per block.
     options: a cache of each strategy source's options (source name -> list), filled on first use."""
-    raw = call(src, "sample", n, rng, scenario.context)
     shapes = shapes or target_shapes(scenario)
-    arrays = _as_internal(src, raw, n, shapes)
-    if arrays is None:
-        arrays = check_sample(src, raw, n, shapes)
+    if has_internal_sample(src):
+        arrays = check_internal(src, call(src, "sample_internal", n, rng, scenario.context), n, shapes)
+    else:
+        raw = call(src, "sample", n, rng, scenario.context)
+        arrays = _as_internal(src, raw, n, shapes)
+        if arrays is None:
+            arrays = check_sample(src, raw, n, shapes)
     if "strategy" in arrays:
         if options is None or src.name not in options:
             opts = call(src, "options", scenario.context)
@@ -81,10 +62,27 @@ def sample_source(scenario: Scenario, src: Source, n: int, rng: np.random.Genera
                 options[src.name] = opts
         k = len(options[src.name] if options is not None else opts)
         s = arrays["strategy"]
-        if np.any((s != np.round(s)) | (s < 0) | (s >= k)):
+        if s.size and not (s.min() >= 0 and s.max() < k and (s == np.floor(s)).all()):
             raise PluginError(f"'strategy' must hold option indices 0..{k - 1}", src.plugin, src.name,
                               "mtbudget_register_sources", "sample")
     return arrays
+
+
+def _as_internal(src: Source, raw, n: int, shapes: dict) -> dict | None:
+    """The sample as float arrays when every value is a Quantity already in its target's internal unit, of the
+    right shape and finite (nothing to convert); None when anything needs :func:`mtbudget.contracts.check_sample`,
+    which converts or says what is wrong."""
+    if type(raw) is not dict:
+        return None
+    out = {}
+    for key, q in raw.items():
+        if key not in src.targets or not isinstance(q, pint.Quantity) or q.units != internal_unit(key):
+            return None
+        arr = np.asarray(q.magnitude, dtype=float)
+        if arr.shape != (n,) + shapes[key] or not np.isfinite(arr).all():
+            return None
+        out[key] = arr
+    return out
 
 
 def simulate_block(scenario: Scenario, block: int, n: int, seed: int, active: list | None = None,
@@ -98,14 +96,20 @@ def simulate_block(scenario: Scenario, block: int, n: int, seed: int, active: li
     active = scenario.sources if active is None else active
     shapes = shapes or target_shapes(scenario)
     targets: dict = {}
+    summed = set()  # targets whose array is a sum made here (added to in place; a source's own array never is)
     choices = []
     for src in active:
         arr = sample_source(scenario, src, n, stream(seed, block, src), shapes, options)
         for k, v in arr.items():
             if k == "strategy":
                 choices.append((src, v.astype(int)))
+            elif k not in targets:
+                targets[k] = v
+            elif k in summed:
+                targets[k] += v  # the same sums, in the same order, without a new array for each
             else:
-                targets[k] = targets[k] + v if k in targets else v
+                targets[k] = targets[k] + v
+                summed.add(k)
     offset = targets.pop("measurand_offset", None)
     pert = scenario.truth_inputs(from_targets(targets))  # [scales]: the nominal expansion, about each fixed point
     truth = scenario.truth

@@ -8,17 +8,35 @@ import numpy as np
 
 from mtbudget.hookspecs import hookimpl
 from mtbudget.contracts import Group, Source
-from mtbudget.units import Q_, ureg
+from mtbudget.units import Q_
 
-_MM, _RAD, _ONE = ureg.Unit("mm"), ureg.Unit("rad"), ureg.Unit("")  # built once: Q_(x, "mm") parses the unit on every call
-
-
+# Every source draws in ``sample_internal``: float64 arrays already in each target's internal unit (mm, rad,
+# dimensionless), so the engine builds no pint quantity per block; ``sample`` (the contract) wraps them as quantities.
+# What a source derives from its parameters and the plan is remembered (``Source.remembered``), and the draws of
+# the three axes are one call where NumPy gives the same numbers that way (consecutive draws of one generator).
 
 AXES = ("x", "y", "z")
 
 
 def _axis_temperatures(ctx):
     return {a: ctx.plan.axis_temperature(a, ctx.reference_temperature) for a in AXES}
+
+
+def normal0(rng, scale: float, size) -> np.ndarray:
+    """``rng.normal(0.0, scale, size)``, bit for bit and faster: NumPy draws ``0.0 + scale * z`` from the same standard
+    normal ``z`` that ``standard_normal`` gives (the ``+ 0.0`` only turns a -0.0 into 0.0).  A scale that is not
+    positive goes to ``rng.normal`` itself (which refuses a negative one)."""
+    if not scale > 0.0:
+        return rng.normal(0.0, scale, size)
+    z = rng.standard_normal(size)
+    z *= scale
+    z += 0.0
+    return z
+
+
+def _key(src, ctx) -> tuple:
+    """What a source's remembered values of the plan depend on: its parameters and the context's plan."""
+    return (*src.parameters.values(), ctx, ctx.plan, ctx.reference_temperature)
 
 
 def _axis_ctes(src, ctx) -> dict:
@@ -53,16 +71,19 @@ class TemperatureSensorCalibration(Source):
     def standard_uncertainty(self):
         return (self.parameters["u_calibration"] / self.parameters["k"]).to("K")
 
-    def sample(self, n, rng, ctx):
+    def _prepare(self, ctx):
+        cte = _axis_ctes(self, ctx)
+        return (self.value("u_calibration", "K") / float(self.parameters["k"].magnitude),
+                np.array([cte[a] for a in AXES], float)[:, None, None])
+
+    def sample_internal(self, n, rng, ctx):
         # the true axis temperature is the reading plus the sensor's calibration error dT: the scale is off by
         # CTE dT against the correction made at the reading (about the fixed point of a stated scale)
-        u = self.value("u_calibration", "K") / float(self.parameters["k"].magnitude)
-        cte = _axis_ctes(self, ctx)
-        out = {}
-        for a in AXES:
-            dT = rng.normal(0.0, u, (n, 1))
-            out[f"axis_scale.{a}"] = Q_(np.broadcast_to(cte[a] * dT, (n, ctx.n_points)).copy(), _ONE)
-        return out
+        u, cte = self.remembered(_key(self, ctx), lambda: self._prepare(ctx))
+        dT = rng.normal(0.0, u, (3, n, 1))  # x, y, z: the numbers of three (n, 1) draws in turn
+        out = np.empty((3, n, ctx.n_points))
+        np.multiply(cte, dT, out=out)
+        return {"axis_scale.x": out[0], "axis_scale.y": out[1], "axis_scale.z": out[2]}
 
 
 class CTEUncertainty(Source):
@@ -89,17 +110,20 @@ class CTEUncertainty(Source):
     def standard_uncertainty(self):
         return Q_(self.width() / (2 * math.sqrt(3)), "1/K").to("um/(m*K)")
 
-    def sample(self, n, rng, ctx):
-        # the true CTE is the nominal one plus dalpha: against the correction made with the nominal CTE the scale is
-        # off by dalpha (T_axis - T_ref), about the fixed point of a stated scale
+    def _prepare(self, ctx):
         cte = _axis_ctes(self, ctx)
         T = _axis_temperatures(ctx)
-        out = {}
-        for a in AXES:
-            w = self.width(cte[a])
-            out[f"axis_scale.{a}"] = Q_(rng.uniform(-w / 2, w / 2, (n, 1)) * (T[a] - ctx.reference_temperature)[None, :],
-                                        _ONE)
-        return out
+        w = np.array([self.width(cte[a]) for a in AXES], float)[:, None, None]
+        dT = np.stack([T[a] - ctx.reference_temperature for a in AXES])[:, None, :]
+        return -w / 2, w / 2, dT
+
+    def sample_internal(self, n, rng, ctx):
+        # the true CTE is the nominal one plus dalpha: against the correction made with the nominal CTE the scale is
+        # off by dalpha (T_axis - T_ref), about the fixed point of a stated scale
+        low, high, dT = self.remembered(_key(self, ctx), lambda: self._prepare(ctx))
+        out = np.empty((3, n, ctx.n_points))
+        np.multiply(rng.uniform(low, high, (3, n, 1)), dT, out=out)  # the numbers of three (n, 1) draws in turn
+        return {"axis_scale.x": out[0], "axis_scale.y": out[1], "axis_scale.z": out[2]}
 
 
 class EnvironmentalVariation(Source):
@@ -120,12 +144,18 @@ class EnvironmentalVariation(Source):
     def standard_uncertainty(self):
         return (self.parameters["E_VE"] / (2 * math.sqrt(3))).to("um")
 
-    def sample(self, n, rng, ctx):
-        e = self.value("E_VE", "mm")
+    def _prepare(self, ctx):
         t = ctx.plan.time
         frac = t / t[-1] if t[-1] > 0 else np.zeros_like(t)
+        return self.value("E_VE", "mm"), frac[None, :]
+
+    def sample_internal(self, n, rng, ctx):
+        e, frac = self.remembered(_key(self, ctx), lambda: self._prepare(ctx))
         end = rng.uniform(-e / 2, e / 2, (n, 1, 3))
-        return {"point_offset": Q_(end * frac[None, :, None], _MM)}
+        out = np.empty((n, ctx.n_points, 3))  # end * frac, one coordinate at a time (rows of M, not a last axis of 3)
+        for c in range(3):
+            np.multiply(end[:, :, c], frac, out=out[:, :, c])
+        return {"point_offset": out}
 
 
 class TemperatureDrift(Source):
@@ -147,11 +177,17 @@ class TemperatureDrift(Source):
     def standard_uncertainty(self):
         return self.parameters["rate"]
 
-    def sample(self, n, rng, ctx):
+    def _prepare(self, ctx):
+        cte = _axis_ctes(self, ctx)
+        return (self.value("rate", "K/s"), np.array([cte[a] for a in AXES], float)[:, None, None],
+                ctx.plan.time[None, None, :])
+
+    def sample_internal(self, n, rng, ctx):
         # the true axis temperature drifts by rate t away from what the correction reads
-        rate, cte = self.value("rate", "K/s"), _axis_ctes(self, ctx)
-        t = ctx.plan.time[None, :]
-        return {f"axis_scale.{a}": Q_(cte[a] * rng.normal(0.0, rate, (n, 1)) * t, _ONE) for a in AXES}
+        rate, cte, t = self.remembered(_key(self, ctx), lambda: self._prepare(ctx))
+        out = np.empty((3, n, ctx.n_points))
+        np.multiply(cte * rng.normal(0.0, rate, (3, n, 1)), t, out=out)  # the numbers of three (n, 1) draws in turn
+        return {"axis_scale.x": out[0], "axis_scale.y": out[1], "axis_scale.z": out[2]}
 
 
 class Backlash(Source):
@@ -167,10 +203,15 @@ class Backlash(Source):
     def standard_uncertainty(self):
         return (self.parameters["B_max"] / math.sqrt(12)).to("um")
 
-    def sample(self, n, rng, ctx):
-        bmax = self.value("B_max", "mm")
-        return {f"axis_offset.{a}": Q_(-ctx.plan.direction[None, :, i] * rng.uniform(0, bmax, (n, 1)) / 2, _MM)
-                for i, a in enumerate(AXES)}
+    def _prepare(self, ctx):
+        return self.value("B_max", "mm"), -np.ascontiguousarray(ctx.plan.direction.T)[:, None, :]
+
+    def sample_internal(self, n, rng, ctx):
+        bmax, minus_direction = self.remembered(_key(self, ctx), lambda: self._prepare(ctx))
+        out = np.empty((3, n, ctx.n_points))
+        np.multiply(minus_direction, rng.uniform(0, bmax, (3, n, 1)), out=out)  # three (n, 1) draws in turn
+        out /= 2
+        return {"axis_offset.x": out[0], "axis_offset.y": out[1], "axis_offset.z": out[2]}
 
 
 class _PerPointNormal(Source):
@@ -181,9 +222,9 @@ class _PerPointNormal(Source):
     def standard_uncertainty(self):
         return self.parameters[self.key].to("um")
 
-    def sample(self, n, rng, ctx):
-        u = self.value(self.key, "mm")
-        return {f"axis_offset.{a}": Q_(rng.normal(0.0, u, (n, ctx.n_points)), _MM) for a in AXES}
+    def sample_internal(self, n, rng, ctx):
+        out = normal0(rng, self.value(self.key, "mm"), (3, n, ctx.n_points))  # three (n, M) draws in turn
+        return {"axis_offset.x": out[0], "axis_offset.y": out[1], "axis_offset.z": out[2]}
 
 
 class Repeatability(_PerPointNormal):
@@ -240,16 +281,27 @@ class GeometricErrorUncertainty(Source):
             raise PluginError(f"shape must be 'normal' or 'beta', got {self.parameters['shape']!r}", self.plugin, self.name)
         return rng.standard_normal(size)
 
-    def sample(self, n, rng, ctx):
+    def _prepare(self, ctx):
         # the machine's own parameters only, in their order: a richer truth (model_form's next-degree terms) draws
         # the same numbers for them, and its extra terms are model_form's to draw
         base = np.array([p.order <= ctx.config.max_degree for p in ctx.model.errors.params]) if ctx.config is not None \
             else np.ones(len(ctx.theta), bool)
-        z = np.zeros((n, len(ctx.theta)))
-        z[:, base] = self._draw(rng, (n, int(base.sum())))
-        mm, rad = ctx.parameter_mask("mm"), ctx.parameter_mask("rad")
-        return {"geometry.translational": Q_(z * mm * self.value("translational", "mm"), _MM),
-                "geometry.angular": Q_(z * rad * self.value("angular", "rad"), _RAD)}
+        # z * mask * u as z * (mask * u): the same numbers (u where the mask is 1, a zero of the same sign where it
+        # is 0: signs multiply associatively), one product fewer
+        return (None if base.all() else np.flatnonzero(base), int(base.sum()), len(ctx.theta),
+                ctx.parameter_mask("mm") * self.value("translational", "mm"),
+                ctx.parameter_mask("rad") * self.value("angular", "rad"))
+
+    def sample_internal(self, n, rng, ctx):
+        key = (*self.parameters.values(), ctx, ctx.config, ctx.model, ctx.theta,
+               None if ctx.config is None else ctx.config.max_degree)
+        base, k, p, tr, ang = self.remembered(key, lambda: self._prepare(ctx))
+        if base is None:  # every parameter is the machine's own
+            z = self._draw(rng, (n, k))
+        else:
+            z = np.zeros((n, p))
+            z[:, base] = self._draw(rng, (n, k))
+        return {"geometry.translational": z * tr, "geometry.angular": z * ang}
 
 
 # ----------------------------------------------------------------------------- simulated physics (opt-in)
@@ -268,14 +320,18 @@ class ThermalExpansionEffect(Source):
     parameters = {f"cte_{a}": Q_(0.0, "um/(m*K)") for a in AXES}
     opt_in = True
 
-    def sample(self, n, rng, ctx):
+    def _prepare(self, ctx):
         out = {}
         for a in AXES:
             cte = self.value(f"cte_{a}", "1/K")
             if cte:
                 dT = ctx.plan.axis_temperature(a, ctx.reference_temperature) - ctx.reference_temperature
-                out[f"axis_scale.{a}"] = Q_(np.tile(cte * dT, (n, 1)), _ONE)
+                out[f"axis_scale.{a}"] = cte * dT
         return out
+
+    def sample_internal(self, n, rng, ctx):
+        rows = self.remembered(_key(self, ctx), lambda: self._prepare(ctx))
+        return {k: np.tile(v, (n, 1)) for k, v in rows.items()}
 
 
 class ReversalEffect(Source):
@@ -288,13 +344,17 @@ class ReversalEffect(Source):
     parameters = {f"B_{a}": Q_(0.0, "um") for a in AXES}
     opt_in = True
 
-    def sample(self, n, rng, ctx):
+    def _prepare(self, ctx):
         out = {}
         for i, a in enumerate(AXES):
             B = self.value(f"B_{a}", "mm")
             if B:
-                out[f"axis_offset.{a}"] = Q_(np.tile(-0.5 * B * ctx.plan.direction[:, i], (n, 1)), _MM)
+                out[f"axis_offset.{a}"] = -0.5 * B * ctx.plan.direction[:, i]
         return out
+
+    def sample_internal(self, n, rng, ctx):
+        rows = self.remembered(_key(self, ctx), lambda: self._prepare(ctx))
+        return {k: np.tile(v, (n, 1)) for k, v in rows.items()}
 
 
 #: a pair of axes -> (index of each, index of the third axis, along which their coupling acts): ``xy`` is a z error
@@ -329,7 +389,7 @@ class AxisCouplingEffect(Source):
     parameters = {"xy": Q_(0.0, "um"), "xz": Q_(0.0, "um"), "yz": Q_(0.0, "um")}
     opt_in = True
 
-    def sample(self, n, rng, ctx):
+    def _prepare(self, ctx):
         nominal = ctx.plan.nominal
         u = axis_unit_positions(nominal)
         disp = np.zeros((len(nominal), 3))
@@ -338,7 +398,11 @@ class AxisCouplingEffect(Source):
             if not amp:
                 continue
             disp[:, third] += amp * u[:, a] * u[:, b]
-        return {"point_offset": Q_(np.tile(disp, (n, 1, 1)), _MM)}
+        return disp
+
+    def sample_internal(self, n, rng, ctx):
+        disp = self.remembered(_key(self, ctx), lambda: self._prepare(ctx))
+        return {"point_offset": np.tile(disp, (n, 1, 1))}
 
 
 EFFECTS = (ThermalExpansionEffect, ReversalEffect, AxisCouplingEffect)
@@ -358,12 +422,12 @@ class UnidentifiedAtTool(Source):
     parameters = {}
     opt_in = True
 
-    def sample(self, n, rng, ctx):
+    def sample_internal(self, n, rng, ctx):
         field = (ctx.measurand or {}).get("unidentified_field")
         if field is None:  # at the verification's own tool nothing it cannot identify shows
-            return {"measurand_offset": Q_(np.zeros((n, ctx.n_points, 3)), "mm")}
+            return {"measurand_offset": np.zeros((n, ctx.n_points, 3))}
         z = rng.standard_normal((n, field.shape[0]))
-        return {"measurand_offset": Q_(np.tensordot(z, field, axes=1), "mm")}
+        return {"measurand_offset": np.tensordot(z, field, axes=1)}
 
 
 class InUse(Source):
@@ -392,16 +456,16 @@ class InUse(Source):
     def standard_uncertainty(self):
         return self.parameters["R"].to("um")
 
-    def sample(self, n, rng, ctx):
+    def sample_internal(self, n, rng, ctx):
         M = ctx.n_points
-        R = self.parameters["R"].to("mm").magnitude
-        B = rng.uniform(0.0, self.parameters["B_max"].to("mm").magnitude, (n, 1, 3))
+        R = self.value("R", "mm")
+        B = rng.uniform(0.0, self.value("B_max", "mm"), (n, 1, 3))
         side = rng.choice((-1.0, 1.0), (n, M, 3))
-        dcte = rng.standard_normal((n, 1, 3)) * self.parameters["u_cte"].to("1/K").magnitude
-        dT = rng.uniform(-1.0, 1.0, (n, 1, 1)) * self.parameters["temperature_range"].to("K").magnitude
+        dcte = rng.standard_normal((n, 1, 3)) * self.value("u_cte", "1/K")
+        dT = rng.uniform(-1.0, 1.0, (n, 1, 1)) * self.value("temperature_range", "K")
         pos = np.asarray(ctx.plan.nominal, float)[None]  # (1, M, 3) mm, about the axis zero
         off = rng.standard_normal((n, M, 3)) * R - side * B / 2.0 + dcte * dT * pos
-        return {"measurand_offset": Q_(off, "mm")}
+        return {"measurand_offset": off}
 
 SOURCES = (TemperatureSensorCalibration, CTEUncertainty, EnvironmentalVariation, TemperatureDrift, Backlash,
            Repeatability, ControlError, GeometricErrorUncertainty) + EFFECTS
@@ -429,13 +493,17 @@ class SpindleGrowthEffect(Source):
     parameters = {"growth": Q_(0.0, "um/K"), "rate": Q_(0.0, "um/h"), "sensor": "T_z"}
     opt_in = True
 
-    def sample(self, n, rng, ctx):
+    def _prepare(self, ctx):
         tool = np.asarray(ctx.plan.tool, float)
         length = np.linalg.norm(tool, axis=1)
         along = np.where(length[:, None] > 0, tool / np.maximum(length, 1e-12)[:, None], [0.0, 0.0, -1.0])
         amount = self.value("growth", "mm/K") * _sensor_change(ctx, self.parameters["sensor"])
         amount = amount + self.value("rate", "mm/s") * (ctx.plan.time - ctx.plan.time[0])
-        return {"point_offset": Q_(np.tile(amount[:, None] * along, (n, 1, 1)), _MM)}
+        return amount[:, None] * along
+
+    def sample_internal(self, n, rng, ctx):
+        disp = self.remembered(_key(self, ctx), lambda: self._prepare(ctx))
+        return {"point_offset": np.tile(disp, (n, 1, 1))}
 
 
 class ColumnTiltEffect(Source):
@@ -449,13 +517,17 @@ class ColumnTiltEffect(Source):
     parameters = {"tilt_x": Q_(0.0, "urad/K"), "tilt_y": Q_(0.0, "urad/K"), "sensor": "T_z"}
     opt_in = True
 
-    def sample(self, n, rng, ctx):
+    def _prepare(self, ctx):
         dT = _sensor_change(ctx, self.parameters["sensor"])
         height = ctx.plan.nominal[:, 2] + ctx.plan.tool[:, 2]
         disp = np.zeros((ctx.n_points, 3))
         disp[:, 0] = self.value("tilt_x", "rad/K") * dT * height
         disp[:, 1] = self.value("tilt_y", "rad/K") * dT * height
-        return {"point_offset": Q_(np.tile(disp, (n, 1, 1)), _MM)}
+        return disp
+
+    def sample_internal(self, n, rng, ctx):
+        disp = self.remembered(_key(self, ctx), lambda: self._prepare(ctx))
+        return {"point_offset": np.tile(disp, (n, 1, 1))}
 
 
 class ToolLengthErrorEffect(Source):
@@ -469,7 +541,7 @@ class ToolLengthErrorEffect(Source):
     parameters = {"error": Q_(0.0, "um"), "tool": Q_(2.0)}
     opt_in = True
 
-    def sample(self, n, rng, ctx):
+    def _prepare(self, ctx):
         tool = np.asarray(ctx.plan.tool, float)
         seen = []
         for row in tool:
@@ -480,7 +552,11 @@ class ToolLengthErrorEffect(Source):
         if 0 <= k < len(seen) and np.linalg.norm(seen[k]) > 0:
             mine = np.all(np.isclose(tool, seen[k]), axis=1)
             disp[mine] = self.value("error", "mm") * seen[k] / np.linalg.norm(seen[k])
-        return {"point_offset": Q_(np.tile(disp, (n, 1, 1)), _MM)}
+        return disp
+
+    def sample_internal(self, n, rng, ctx):
+        disp = self.remembered(_key(self, ctx), lambda: self._prepare(ctx))
+        return {"point_offset": np.tile(disp, (n, 1, 1))}
 
 
 class AxisPolynomialEffect(Source):
@@ -494,7 +570,7 @@ class AxisPolynomialEffect(Source):
     parameters = {"amplitude": Q_(0.0, "um"), "direction": "z", "px": Q_(1.0), "py": Q_(2.0), "pz": Q_(0.0)}
     opt_in = True
 
-    def sample(self, n, rng, ctx):
+    def _prepare(self, ctx):
         f = np.ones(ctx.n_points)
         for i, a in enumerate(AXES):
             power = int(round(float(self.parameters[f"p{a}"].magnitude)))
@@ -504,7 +580,11 @@ class AxisPolynomialEffect(Source):
             f = f * u**power
         disp = np.zeros((ctx.n_points, 3))
         disp[:, AXES.index(self.parameters["direction"].strip().lower())] = self.value("amplitude", "mm") * f
-        return {"point_offset": Q_(np.tile(disp, (n, 1, 1)), _MM)}
+        return disp
+
+    def sample_internal(self, n, rng, ctx):
+        disp = self.remembered(_key(self, ctx), lambda: self._prepare(ctx))
+        return {"point_offset": np.tile(disp, (n, 1, 1))}
 
 
 SOURCES = SOURCES + (SpindleGrowthEffect, ColumnTiltEffect, ToolLengthErrorEffect, AxisPolynomialEffect, InUse, UnidentifiedAtTool)

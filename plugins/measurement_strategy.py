@@ -4,10 +4,7 @@ from __future__ import annotations
 
 from mtbudget.hookspecs import hookimpl
 from mtbudget.contracts import Group, Source
-from mtbudget.units import Q_, ureg
-
-_MM, _RAD, _ONE = ureg.Unit("mm"), ureg.Unit("rad"), ureg.Unit("")  # built once: Q_(x, "mm") parses the unit on every call
-
+from mtbudget.units import Q_
 
 
 class Registration(Source):
@@ -24,15 +21,15 @@ class Registration(Source):
     group = Group.MEASUREMENT_STRATEGY
     distribution = "normal"
     targets = ("pose.position", "pose.orientation")
-    parameters = {"u_position": Q_(0.5, _MM), "u_orientation": Q_(100.0, "urad")}
+    parameters = {"u_position": Q_(0.5, "mm"), "u_orientation": Q_(100.0, "urad")}
     nonnegative = ("u_position", "u_orientation")
 
     def standard_uncertainty(self):
         return self.parameters["u_position"]
 
-    def sample(self, n, rng, ctx):
-        return {"pose.position": Q_(rng.normal(0.0, self.value("u_position", "mm"), (n, 3)), _MM),
-                "pose.orientation": Q_(rng.normal(0.0, self.value("u_orientation", "rad"), (n, 3)), _RAD)}
+    def sample_internal(self, n, rng, ctx):  # float64 arrays in the internal units, mm and rad
+        return {"pose.position": rng.normal(0.0, self.value("u_position", "mm"), (n, 3)),
+                "pose.orientation": rng.normal(0.0, self.value("u_orientation", "rad"), (n, 3))}
 
 
 @hookimpl

@@ -7,10 +7,12 @@ import numpy as np
 from mtbudget import tracker as lt
 from mtbudget.hookspecs import hookimpl
 from mtbudget.contracts import Group, Source
-from mtbudget.units import Q_, ureg
+from mtbudget.units import Q_
 
-_MM, _RAD, _ONE = ureg.Unit("mm"), ureg.Unit("rad"), ureg.Unit("")  # built once: Q_(x, "mm") parses the unit on every call
+from .machine_tool import normal0
 
+# Every source draws in ``sample_internal`` (float64 arrays in the targets' internal units, mm and rad; see
+# plugins/machine_tool.py); ``sample`` wraps them as quantities.
 
 
 class TrackerNoise(Source):
@@ -35,17 +37,31 @@ class TrackerNoise(Source):
     def standard_uncertainty(self):
         return self.parameters["angular_mean"]
 
-    def sample(self, n, rng, ctx):
+    def _prepare(self, ctx):
         r = np.linalg.norm(ctx.nominal_tracker_points, axis=1)
         mean = self.value("angular_mean", "rad")
-        ua = np.abs(rng.normal(mean, self.value("angular_sd", "rad"), (n, 1, 2)))
         if ctx.row_noise is None:
-            ur = self.value("distance", "mm") + self.value("distance_per_length", "") * r
+            ur, rows = self.value("distance", "mm") + self.value("distance_per_length", "") * r, None
         else:  # several stations, each with its own stated noise: the drawn angular u scales each one's alike
             ur = ctx.row_noise["distance"] + ctx.row_noise["distance_per_length"] * r
-            ua = ua * (ctx.row_noise["angular"] / mean if mean > 0 else 0.0)[None, :, None]
-        return {"spherical_noise.range": Q_(rng.standard_normal((n, ctx.n_points)) * ur[None, :], _MM),
-                "spherical_noise.angles": Q_(rng.standard_normal((n, ctx.n_points, 2)) * ua, _RAD)}
+            rows = (ctx.row_noise["angular"] / mean if mean > 0 else 0.0)[None, :, None]
+        return mean, self.value("angular_sd", "rad"), ur[None, :], rows
+
+    def sample_internal(self, n, rng, ctx):
+        key = (*self.parameters.values(), ctx, ctx.nominal_tracker_points, ctx.row_noise)
+        mean, sd, ur, rows = self.remembered(key, lambda: self._prepare(ctx))
+        ua = np.abs(rng.normal(mean, sd, (n, 1, 2)))
+        M = ctx.n_points
+        z = rng.standard_normal(3 * n * M)  # the numbers of a (n, M) draw, then of a (n, M, 2) one
+        noise = z[:n * M].reshape(n, M)
+        noise *= ur
+        angles = z[n * M:].reshape(n, M, 2)
+        if rows is not None:
+            angles *= ua * rows
+        else:  # each angle's column by its own u: the same products, in rows of M (a last axis of 2 is slow)
+            angles[:, :, 0] *= ua[:, :, 0]
+            angles[:, :, 1] *= ua[:, :, 1]
+        return {"spherical_noise.range": noise, "spherical_noise.angles": angles}
 
 
 class SMRCentring(Source):
@@ -61,16 +77,34 @@ class SMRCentring(Source):
     def standard_uncertainty(self):
         return self.parameters["u_SMR"]
 
-    def sample(self, n, rng, ctx):
-        lateral = rng.normal(0.0, self.value("u_SMR", "mm"), (n, ctx.n_points, 2))
+    def sample_internal(self, n, rng, ctx):
+        u = self.value("u_SMR", "mm")
+        if u > 0.0:  # rng.normal(0.0, u, (n, M, 2)) bit for bit (see normal0), each column scaled as it is taken out
+            z = rng.standard_normal((n, ctx.n_points, 2))
+            a, b = np.multiply(z[..., 0], u), np.multiply(z[..., 1], u)
+            a += 0.0
+            b += 0.0
+        else:
+            lateral = rng.normal(0.0, u, (n, ctx.n_points, 2))
+            a, b = np.ascontiguousarray(lateral[..., 0]), np.ascontiguousarray(lateral[..., 1])
         # the beam's azimuth and elevation directions at the nominal points (the same in every trial): once
         pts = ctx.nominal_tracker_points
         hit = self.__dict__.get("_directions")
-        if hit is None or hit[0] is not pts:
-            hit = (pts, lt.smr_offset(pts, np.array([1.0, 0.0])), lt.smr_offset(pts, np.array([0.0, 1.0])))
+        if hit is None or hit[0] is not pts:  # (3, M) each: x, y, z of every point's direction
+            hit = (pts, np.ascontiguousarray(lt.smr_offset(pts, np.array([1.0, 0.0])).T),
+                   np.ascontiguousarray(lt.smr_offset(pts, np.array([0.0, 1.0])).T))
             self.__dict__["_directions"] = hit
         _, e_az, e_el = hit
-        return {"tracker_offset": Q_(lateral[..., :1] * e_az + lateral[..., 1:2] * e_el, _MM)}
+        # lateral[..., :1] * e_az + lateral[..., 1:2] * e_el, one coordinate at a time (the same products and sums, in
+        # rows of M instead of a last axis of 3)
+        out = np.empty((n, ctx.n_points, 3))
+        tmp = np.empty((n, ctx.n_points))
+        for c in range(3):
+            o = out[..., c]
+            np.multiply(a, e_az[c], out=o)
+            np.multiply(b, e_el[c], out=tmp)
+            o += tmp
+        return {"tracker_offset": out}
 
 
 class SoftwarePointUncertainty(Source):
@@ -86,8 +120,8 @@ class SoftwarePointUncertainty(Source):
     def standard_uncertainty(self):
         return self.parameters["u_MS"]
 
-    def sample(self, n, rng, ctx):
-        return {"tracker_offset": Q_(rng.normal(0.0, self.value("u_MS", "mm"), (n, ctx.n_points, 3)), _MM)}
+    def sample_internal(self, n, rng, ctx):
+        return {"tracker_offset": normal0(rng, self.value("u_MS", "mm"), (n, ctx.n_points, 3))}
 
 
 # ----------------------------------------------------------------------------- simulated physics (opt-in)
@@ -101,9 +135,9 @@ class TrackerDriftEffect(Source):
     parameters = {f"v_{a}": Q_(0.0, "um/h") for a in "xyz"}
     opt_in = True
 
-    def sample(self, n, rng, ctx):
+    def sample_internal(self, n, rng, ctx):
         v = np.array([self.value(f"v_{a}", "mm/s") for a in "xyz"])
-        return {"point_offset": Q_(np.tile(ctx.plan.time[:, None] * v[None, :], (n, 1, 1)), _MM)}
+        return {"point_offset": np.tile(ctx.plan.time[:, None] * v[None, :], (n, 1, 1))}
 
 
 class TrackerRangeOffsetEffect(Source):
@@ -116,8 +150,8 @@ class TrackerRangeOffsetEffect(Source):
     parameters = {"offset": Q_(0.0, "um")}
     opt_in = True
 
-    def sample(self, n, rng, ctx):
-        return {"spherical_noise.range": Q_(np.full((n, ctx.n_points), self.value("offset", "mm")), _MM)}
+    def sample_internal(self, n, rng, ctx):
+        return {"spherical_noise.range": np.full((n, ctx.n_points), self.value("offset", "mm"))}
 
 
 class AirTemperatureDriftEffect(Source):
@@ -134,14 +168,14 @@ class AirTemperatureDriftEffect(Source):
     parameters = {"sensitivity": Q_(0.0, "um/K")}
     opt_in = True
 
-    def sample(self, n, rng, ctx):
+    def sample_internal(self, n, rng, ctx):
         cols = [s.column for s in ctx.plan.sensors if s.attached_to.strip().lower() == "air"
                 and s.column in ctx.plan.temperature]
         disp = np.zeros((ctx.n_points, 3))
         if cols:
             T = np.mean([ctx.plan.temperature[c] for c in cols], axis=0)
             disp[:, 2] = self.value("sensitivity", "mm/K") * (T - T[0])
-        return {"point_offset": Q_(np.tile(disp, (n, 1, 1)), _MM)}
+        return {"point_offset": np.tile(disp, (n, 1, 1))}
 
 
 @hookimpl

@@ -8,12 +8,12 @@ from __future__ import annotations
 
 from mtbudget.hookspecs import hookimpl
 from mtbudget.contracts import Group, Source
-from mtbudget.units import Q_, ureg
+from mtbudget.units import Q_
 
 from .machine_tool import COUPLING_PAIRS, axis_unit_positions
 
-_ONE = ureg.Unit("")  # built once: Q_(x, "") parses the unit on every call
-_MM = ureg.Unit("mm")
+# Every source draws in ``sample_internal`` (float64 arrays in the targets' internal units; see
+# plugins/machine_tool.py); ``sample`` wraps them as quantities.
 
 
 class _Choice(Source):
@@ -21,8 +21,8 @@ class _Choice(Source):
     distribution = "uniform over the options"
     targets = ("strategy",)
 
-    def sample(self, n, rng, ctx):
-        return {"strategy": Q_(rng.integers(0, self._count(ctx), n).astype(float), _ONE)}
+    def sample_internal(self, n, rng, ctx):
+        return {"strategy": rng.integers(0, self._count(ctx), n).astype(float)}
 
     def _count(self, ctx) -> int:
         """``len(self.options(ctx))``, remembered while the parameters are the same objects (sampled once per block)."""
@@ -81,15 +81,19 @@ class ModelForm(Source):
     def standard_uncertainty(self):
         return self.parameters["translational"].to("um")
 
-    def sample(self, n, rng, ctx):
+    def _prepare(self, ctx):
         import numpy as np
 
         top = ctx.config.max_degree + 1
         extra = np.array([p.order == top and not p.is_squareness for p in ctx.model.errors.params])
+        return extra, ctx.parameter_mask("mm"), ctx.parameter_mask("rad"), self.value("translational", "mm"), \
+            self.value("angular", "rad")
+
+    def sample_internal(self, n, rng, ctx):
+        key = (*self.parameters.values(), ctx, ctx.config, ctx.model, ctx.config.max_degree)
+        extra, mm, rad, tr, ang = self.remembered(key, lambda: self._prepare(ctx))
         z = rng.standard_normal((n, len(extra))) * extra
-        mm, rad = ctx.parameter_mask("mm"), ctx.parameter_mask("rad")
-        return {"geometry.translational": Q_(z * mm * self.parameters["translational"].to("mm").magnitude, "mm"),
-                "geometry.angular": Q_(z * rad * self.parameters["angular"].to("rad").magnitude, "rad")}
+        return {"geometry.translational": z * mm * tr, "geometry.angular": z * rad * ang}
 
 
 class ModelFormPeriodic(Source):
@@ -141,13 +145,13 @@ class ModelFormPeriodic(Source):
         w = 2.0 * np.pi * np.asarray(nominal, float) / lead  # (M, 3)
         return c[:, None, :] * np.cos(w)[None] + s[:, None, :] * np.sin(w)[None]
 
-    def sample(self, n, rng, ctx):
+    def sample_internal(self, n, rng, ctx):
         import numpy as np
 
         u = np.array([self.value(f"u_{a}", "mm") for a in "xyz"])
         c, s = rng.standard_normal((2, n, 3)) * u
         d = self.displacement(ctx.plan.nominal, c, s)
-        return {"point_offset": Q_(d, _MM), "measurand_offset": Q_(d.copy(), _MM)}
+        return {"point_offset": d, "measurand_offset": d.copy()}
 
     def bounded(self, ctx):
         """One sentence: how the contribution was bounded, and what this plan's mesh lets it show."""
@@ -232,7 +236,7 @@ class ModelFormCoupling(Source):
             out[pair] = (third, np.array([pa * pb for pa in Pa for pb in Pb]))
         return out
 
-    def sample(self, n, rng, ctx):
+    def sample_internal(self, n, rng, ctx):
         import numpy as np
 
         nominal = ctx.plan.nominal
@@ -242,7 +246,7 @@ class ModelFormCoupling(Source):
         d = np.zeros((n, len(nominal), 3))
         for j, (pair, (third, S)) in enumerate(shapes.items()):
             d[:, :, third] += (z[:, j] * self.value(pair, "mm")) @ S
-        return {"point_offset": Q_(d, _MM), "measurand_offset": Q_(d.copy(), _MM)}
+        return {"point_offset": d, "measurand_offset": d.copy()}
 
     def bounded(self, ctx):
         deg = int(round(float(self.parameters["degree"].magnitude)))
