@@ -11,10 +11,14 @@ The optional ``dof`` of the Type B distributions is for the GUF only: the
 "degrees of freedom" of an uncertainty that is itself uncertain (GUM G.4.2).
 
 Draws: every distribution draws from the numpy Generator it is given (``mcm.propagate`` gives each input
-its own, spawned from the seed), scaled and shifted in place.  Normal: ``standard_normal``; Rectangular,
-Arcsine (``sin(2 pi U)``) and CurvilinearTrapezoid (JCGM 101 6.4.3.4): ``random``; StudentT: Bailey's polar
-method from ``uniform(-1, 1)`` pairs (:func:`_student_t`); Triangular, Exponential, Gamma, Beta: numpy's own.
-The same seed gives the same draws.
+its own, spawned from the seed), from the Generator's ``random`` (53-bit uniforms on [0, 1)) except where
+stated.  Rectangular: ``random``, scaled and shifted in place.  CurvilinearTrapezoid (JCGM 101 6.4.3.4): ``random``
+n values for the position, then n for the half-width.  Normal (JCGM 101 6.4.7: the polar form of the
+Box-Muller transform), Arcsine (cos 2 phi of a uniform point of the quarter disc) and StudentT (Bailey's
+polar method): pairs of uniforms kept inside a disc, drawn in rounds of at most :data:`_ROUND` pairs so that
+each round's work stays in the processor's cache (see :func:`_normal`, :func:`_arcsine`, :func:`_student_t`
+for their streams); every kept value has exactly the stated distribution.  Triangular, Exponential, Gamma,
+Beta, and correlated normals (``mcm.propagate``): numpy's own.  The same seed gives the same draws.
 """
 
 from __future__ import annotations
@@ -110,10 +114,7 @@ class Normal(Distribution):
         return Q_(self.sigma, self.units)
 
     def _draw(self, n, rng):
-        z = rng.standard_normal(n)  # scaled and shifted in place: the same numbers as mu + sigma * z, one array
-        z *= self.sigma
-        z += self.mu
-        return z
+        return _normal(n, rng, self.sigma, self.mu)  # the polar Box-Muller transform, see _normal
 
     def standard_normal_map(self, z):
         return self.mu + self.sigma * z
@@ -186,12 +187,7 @@ class Arcsine(_Bounded):
     std = property(lambda s: Q_((s.b - s.a) / (2 * math.sqrt(2)), s.units))
 
     def _draw(self, n, rng):
-        x = rng.random(n)
-        x *= 2 * np.pi
-        np.sin(x, out=x)
-        x *= (self.b - self.a) / 2
-        x += (self.a + self.b) / 2
-        return x
+        return _arcsine(n, rng, (self.b - self.a) / 2, (self.a + self.b) / 2)  # see _arcsine
 
     def describe(self):
         return f"Arcsine({Q_(self.a, self.units):~P}, {Q_(self.b, self.units):~P})"
@@ -224,16 +220,24 @@ class CurvilinearTrapezoid(_Bounded):
         return self.std if self.dof is None else Q_((self.b - self.a) / math.sqrt(12), self.units)
 
     def _draw(self, n, rng):
-        # JCGM 101 6.4.3.4: half-width w drawn from R(w - d, w + d), then X from R(mid - w', mid + w')
-        r1, r2 = rng.random(n), rng.random(n)
-        half = (self.b - self.a) / 2
-        r2 *= 2 * self.d  # w = half - d + 2 d r2, in place
-        r2 += half - self.d
-        r1 *= 2  # X = mid + w (2 r1 - 1)
-        r1 -= 1
-        r1 *= r2
-        r1 += (self.a + self.b) / 2
-        return r1
+        # JCGM 101 6.4.3.4: half-width w' drawn from R(w - d, w + d), then X from R(mid - w', mid + w').  The
+        # stream: n uniforms r1 (into the result), then n uniforms r2 (a round of at most _ROUND at a time:
+        # the same numbers as one call), X = mid + (half - d + 2 d r2) (2 r1 - 1), computed round by round
+        x = np.empty(n)
+        rng.random(out=x)
+        half, mid = (self.b - self.a) / 2, (self.a + self.b) / 2
+        buf = np.empty(min(n, _ROUND))
+        for s in range(0, n, buf.size):
+            r2 = buf[:min(buf.size, n - s)]
+            rng.random(out=r2)
+            r2 *= 2 * self.d  # w' = half - d + 2 d r2, in place
+            r2 += half - self.d
+            r1 = x[s:s + r2.size]
+            r1 *= 2  # X = mid + w' (2 r1 - 1)
+            r1 -= 1
+            r1 *= r2
+            r1 += mid
+        return x
 
     def describe(self):
         return f"CurvilinearTrapezoid({Q_(self.a, self.units):~P}, {Q_(self.b, self.units):~P}, d={Q_(self.d, self.units):~P})"
@@ -261,7 +265,7 @@ class StudentT(Distribution):
     gum_std = property(lambda s: Q_(s.s, s.units))
 
     def _draw(self, n, rng):
-        return _shift(_student_t(self.nu, n, rng), self.s, self.mu)  # Bailey's polar method, see _student_t
+        return _student_t(self.nu, n, rng, self.s, self.mu)  # Bailey's polar method, see _student_t
 
     def describe(self):
         return f"StudentT(mean={self.mean:~P}, scale={Q_(self.s, self.units):~P}, dof={self.nu:g})"
@@ -328,44 +332,151 @@ class Beta(_Bounded):
         return self.a + (self.b - self.a) * rng.beta(self.p, self.q, n)
 
 
-def _shift(x: np.ndarray, scale: float, loc: float) -> np.ndarray:
-    """loc + scale * x, in place."""
-    x *= scale
-    x += loc
-    return x
+#: pairs of uniforms per round of the disc samplers (_normal, _arcsine, _student_t): the round's work arrays
+#: (about 0.8 MB) stay in the core's cache, where numpy's element-wise operations run several times faster
+#: than on arrays of 10^6 values; measured best among 8192-65536 on the project's machine
+_ROUND = 32768
 
 
-def _student_t(nu: float, n: int, rng: np.random.Generator) -> np.ndarray:
-    """n draws of Student's t with nu degrees of freedom: Bailey's polar method (Math. Comp. 62 (1994) 779-781).
+def _rounds(n: int, per_pair: float):
+    """The disc samplers' rounds: (the output, the round's uniforms, three work arrays); per_pair = values per
+    kept pair (1 or 2).  A round draws 2 m uniforms for the r values still missing, m = min(_ROUND,
+    int(1.28 r / per_pair) + 64): 1.28 > 4 / pi, so that one round usually suffices below _ROUND."""
+    size = min(_ROUND, int(1.28 * n / per_pair) + 64)
+    return np.empty(n), np.empty(2 * size), np.empty(size), np.empty(size, bool), np.empty(size, bool)
 
-    (U, V) uniform on the square (-1, 1)^2, kept when W = U^2 + V^2 lies in (0, 1] (probability pi/4); then
-    T = U sqrt(nu (W^(-2/nu) - 1) / W) has exactly the t distribution.  Only uniforms and one power per draw:
-    ~1.3-1.7x faster than Z / sqrt(2 Gamma(nu/2) / nu) (a normal and a gamma draw each) on the project's
-    machine.  The stream: pairs are drawn in rounds of int(1.28 m) + 64 (all U then all V, from
-    ``rng.uniform(-1, 1)``) for the m values still missing, and the accepted values are taken in order: the
-    same seed gives the same draws.
+
+def _round_size(missing: int, per_pair: float) -> int:
+    return min(_ROUND, int(1.28 * missing / per_pair) + 64)
+
+
+def _keep(x: np.ndarray, kept: np.ndarray, out: np.ndarray, k: int) -> int:
+    """Append x[kept] (in order, as many as out still has room for) to out[k:]; return the new count.
+
+    ``flatnonzero`` then ``take``: branch-free, about twice as fast as ``x[kept]`` for a mask of random
+    values (a boolean index copies runs and mispredicts at every change)."""
+    idx = np.flatnonzero(kept)
+    take = min(out.shape[0] - k, idx.size)
+    np.take(x, idx[:take], out=out[k:k + take], mode="clip")  # indices are in range: "clip" is not buffered
+    return k + take
+
+
+def _in_disc(w: np.ndarray, kept: np.ndarray, pos: np.ndarray, closed: bool) -> np.ndarray:
+    """kept = 0 < w <= 1 (closed) or 0 < w < 1, in place."""
+    (np.less_equal if closed else np.less)(w, 1.0, out=kept)
+    np.greater(w, 0.0, out=pos)
+    kept &= pos
+    return kept
+
+
+def _normal(n: int, rng: np.random.Generator, sigma: float = 1.0, mu: float = 0.0) -> np.ndarray:
+    """n draws of N(mu, sigma^2): the polar form of the Box-Muller transform (Marsaglia and Bray 1964).
+
+    (U, V) uniform on the square [-1, 1)^2, kept when 0 < W = U^2 + V^2 < 1 (probability pi/4, the point is
+    then uniform in the disc); then U sqrt(-2 ln W / W) and V sqrt(-2 ln W / W) are two independent standard
+    normal values, exactly.  From uniforms, one logarithm and one square root per pair: 1.7x faster than
+    ``standard_normal`` (numpy's ziggurat) on the project's machine, when run in rounds that stay in cache.
+    The stream: rounds of 2 m uniforms from ``rng.random`` (m from :func:`_round_size`, at most
+    :data:`_ROUND`), U = 2 r - 1 from the first m and V = 2 r - 1 from the next m; each round appends the
+    values from U of its kept pairs in order, then those from V, until n are there.
     """
-    out = np.empty(n)
+    out, buf, work, kept, pos = _rounds(n, 2)
+    f = np.empty_like(work)
     k = 0
     while k < n:
-        m = int((n - k) * 1.28) + 64
-        uv = rng.uniform(-1.0, 1.0, 2 * m)  # -1 + 2 * rng.random(): the same numbers, in one pass
-        u, v = uv[:m], uv[m:]
-        w = u * u
-        w += v * v
-        ok = w <= 1.0
-        ok &= w > 0.0
-        with np.errstate(invalid="ignore", divide="ignore"):  # the rejected pairs, computed and dropped
-            c = np.power(w, -2.0 / nu)
-            c -= 1.0
-            c *= nu
-            c /= w
-            np.sqrt(c, out=c)
-        c *= u
-        c = c[ok]  # one selection, at the end: cheaper than selecting u and w first
-        take = min(n - k, c.size)
-        out[k:k + take] = c[:take]
-        k += take
+        m = _round_size(n - k, 2)
+        r = buf[:2 * m]
+        rng.random(out=r)
+        r *= 2.0
+        r -= 1.0  # exactly: U and V on a grid of 2^-52, symmetric about 0 inside the disc
+        u, v, w, ff = r[:m], r[m:], work[:m], f[:m]
+        np.multiply(u, u, out=w)
+        np.multiply(v, v, out=ff)
+        w += ff
+        keep = _in_disc(w, kept[:m], pos[:m], closed=False)
+        with np.errstate(divide="ignore", invalid="ignore"):  # the rejected pairs, computed and dropped
+            np.log(w, out=ff)
+            ff *= -2.0 * sigma * sigma
+            ff /= w
+            np.sqrt(ff, out=ff)  # sigma sqrt(-2 ln W / W)
+        r[:m] *= ff
+        r[m:] *= ff
+        if mu:
+            r += mu
+        k = _keep(u, keep, out, k)
+        k = _keep(v, keep, out, k)
+    return out
+
+
+def _arcsine(n: int, rng: np.random.Generator, half: float = 1.0, mid: float = 0.0) -> np.ndarray:
+    """n draws of the arcsine (U-shaped) distribution on [mid - half, mid + half] (JCGM 101 6.4.6).
+
+    (U, V) uniform on the square [0, 1)^2, kept when 0 < W = U^2 + V^2 <= 1 (probability pi/4: the point is
+    then uniform in the quarter disc, its angle phi uniform on [0, pi/2]); then (U^2 - V^2) / W = cos 2 phi,
+    with 2 phi uniform on [0, pi], has exactly the arcsine distribution on [-1, 1] (as sin(2 pi R) has, which
+    needs a sine: 2.3x slower on the project's machine).  The stream: rounds of 2 m uniforms from
+    ``rng.random`` (m from :func:`_round_size`, at most :data:`_ROUND`), U from the first m and V from the next
+    m; the kept pairs are taken in order until n are there.
+    """
+    out, buf, w, kept, pos = _rounds(n, 1)
+    k = 0
+    while k < n:
+        m = _round_size(n - k, 1)
+        r = buf[:2 * m]
+        rng.random(out=r)
+        r *= r
+        u2, v2, ww = r[:m], r[m:], w[:m]
+        np.add(u2, v2, out=ww)
+        keep = _in_disc(ww, kept[:m], pos[:m], closed=True)
+        u2 -= v2
+        with np.errstate(divide="ignore", invalid="ignore"):  # W = 0: rejected
+            u2 /= ww
+        u2 *= half
+        if mid:
+            u2 += mid
+        k = _keep(u2, keep, out, k)
+    return out
+
+
+def _student_t(nu: float, n: int, rng: np.random.Generator, scale: float = 1.0, loc: float = 0.0) -> np.ndarray:
+    """n draws of loc + scale t_nu, Student's t with nu degrees of freedom: Bailey's polar method (Math. Comp. 62
+    (1994) 779-781).
+
+    (U, V) uniform on [-1, 1) x [0, 1), kept when 0 < W = U^2 + V^2 <= 1 (probability pi/4: the point is then
+    uniform in the upper half disc, W = R^2 uniform on (0, 1] and independent of the angle phi, uniform on
+    [0, pi], U / sqrt(W) = cos phi); then T = U sqrt(nu (W^(-2/nu) - 1) / W) = cos phi sqrt(nu (W^(-2/nu) - 1))
+    has exactly the t distribution (Bailey's theorem needs cos phi arcsine-distributed, which phi uniform on
+    [0, pi] gives as [0, 2 pi] does).  W^(-2/nu) - 1 is computed as expm1(-2/nu ln W), exact also for large nu.
+    Only uniforms, one logarithm, one exponential and one square root per pair: ~2x faster than numpy's
+    ``standard_t`` and than Z / sqrt(2 Gamma(nu/2) / nu), when run in rounds that stay in cache.  The stream:
+    rounds of 2 m uniforms from ``rng.random`` (m from :func:`_round_size`, at most :data:`_ROUND`), U = 2 r - 1
+    from the first m and V = r from the next m; the kept pairs are taken in order until n are there.
+    """
+    out, buf, w, kept, pos = _rounds(n, 1)
+    e, c2 = -2.0 / nu, nu * scale * scale
+    k = 0
+    while k < n:
+        m = _round_size(n - k, 1)
+        r = buf[:2 * m]
+        rng.random(out=r)
+        u, v, ww = r[:m], r[m:], w[:m]
+        u *= 2.0
+        u -= 1.0
+        v *= v
+        np.multiply(u, u, out=ww)
+        ww += v
+        keep = _in_disc(ww, kept[:m], pos[:m], closed=True)
+        with np.errstate(divide="ignore", invalid="ignore"):  # the rejected pairs, computed and dropped
+            np.log(ww, out=v)
+            v *= e
+            np.expm1(v, out=v)
+            v *= c2
+            v /= ww
+            np.sqrt(v, out=v)  # scale sqrt(nu (W^(-2/nu) - 1) / W)
+        v *= u
+        if loc:
+            v += loc
+        k = _keep(v, keep, out, k)
     return out
 
 

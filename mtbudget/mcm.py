@@ -3,7 +3,11 @@
     res = propagate(model, inputs, coverage=0.95, trials=None, seed=1, correlations=None)
 
 ``model(**arrays)`` receives one pint Quantity array per input (leading trial
-axis) and returns a Quantity array.  ``trials=None`` runs the adaptive
+axis) and returns a Quantity array, one value per trial, each computed from
+that trial's inputs alone (JCGM 101's y_r = f(x_r)): the model is evaluated
+on consecutive blocks of at most :data:`EVAL_BLOCK` trials (whose
+temporaries stay in cache), and the GUF evaluates it on the expectations
+and their neighbours in one call.  ``trials=None`` runs the adaptive
 procedure of JCGM 101 7.9; an int runs exactly that many trials.
 
 The GUF side uses the ``uncertainties`` package for the law of propagation
@@ -73,30 +77,53 @@ class Validation:
 
 @dataclass
 class Result:
-    samples: np.ndarray  # sorted magnitudes (output units)
+    """The Monte Carlo result: the trial values and what JCGM 101 7.6-7.7 makes of them.
+
+    ``values`` are the trials' output magnitudes (output units), the Result's own array, in trial order until
+    ``samples`` (the same values, sorted) is first used: the estimate, the standard uncertainty and the
+    probabilistically symmetric interval do not need the sort (the interval's two order statistics are picked
+    out exactly, see :func:`_order_statistic`), the shortest interval does.
+    """
+
+    values: np.ndarray  # output magnitudes, trial order until sorted (then sorted in place)
     units: pint.Unit
     coverage: float
     gum: GUFResult
     budget: list
     ndig: int = 2
     batches: list = field(default_factory=list)  # adaptive: (M, y, u, low, high) per batch
+    is_sorted: bool = False
+    _mean: float | None = field(default=None, init=False, repr=False, compare=False)  # cached
+    _std: float | None = field(default=None, init=False, repr=False, compare=False)  # cached
+
+    @property
+    def samples(self) -> np.ndarray:
+        """The trial values (magnitudes, output units), sorted."""
+        if not self.is_sorted:
+            self.values.sort()  # in place: the Result's own array; the same numbers in another order
+            self.is_sorted = True
+        return self.values
 
     @property
     def trials(self) -> int:
-        return int(self.samples.shape[0])
+        return int(self.values.shape[0])
 
     @property
     def estimate(self) -> pint.Quantity:
-        return Q_(float(self.samples.mean()), self.units)
+        if self._mean is None:
+            self._mean = float(self.values.mean())
+        return Q_(self._mean, self.units)
 
     @property
     def std_uncertainty(self) -> pint.Quantity:
-        return Q_(float(self.samples.std(ddof=1)), self.units)
+        if self._std is None:
+            self._std = _std(self.values, self.estimate.magnitude)
+        return Q_(self._std, self.units)
 
     def interval(self, kind: str = "symmetric", coverage: float | None = None):
         p = self.coverage if coverage is None else coverage
         if kind == "symmetric":
-            lo, hi = symmetric_interval(self.samples, p)
+            lo, hi = symmetric_interval(self.samples if self.is_sorted else _OrderStatistics(self.values), p)
         elif kind == "shortest":
             lo, hi = shortest_interval(self.samples, p)
         else:
@@ -112,10 +139,74 @@ class Result:
         return Validation(Q_(d_low, self.units), Q_(d_high, self.units), Q_(delta, self.units), ok)
 
 
+_BLOCK = 65536  # values per block of the blockwise reductions (0.5 MB: in cache)
+
+
+def _std(y: np.ndarray, mean: float) -> float:
+    """The standard deviation of y about its mean (ddof = 1), in two passes as numpy's ``std``; blockwise, the
+    deviations of a block in cache (no temporary of len(y) values)."""
+    n = y.shape[0]
+    if n < 2:
+        return math.nan
+    buf = np.empty(min(n, _BLOCK))
+    ss = 0.0
+    for s in range(0, n, buf.size):
+        d = buf[:min(buf.size, n - s)]
+        np.subtract(y[s:s + d.size], mean, out=d)
+        np.square(d, out=d)
+        ss += float(d.sum())  # numpy's pairwise sum (np.dot would go to BLAS and its threads)
+    return math.sqrt(ss / (n - 1))
+
+
+def _order_statistic(y: np.ndarray, k: int) -> float:
+    """The k-th smallest value of y (0-based; y finite): exactly ``np.sort(y)[k]``, without sorting y.
+
+    A strided sample of about 8192 values of y (the trials are independent: any fixed subset is a random
+    sample) places a bound a few binomial standard deviations beyond k on k's side; the values of y beyond the
+    bound (for a coverage interval's end, a few per cent of y) are picked out and partitioned.  The bound is
+    checked by counting: if fewer than needed lie beyond it (improbable), y is sorted (a copy).
+    """
+    n = y.shape[0]
+    if n <= 65536:
+        return float(np.partition(y, k)[k])
+    sub = np.sort(y[::n // 8192])
+    s = sub.shape[0]
+    top = k >= n // 2
+    j = n - 1 - k if top else k  # the rank from the nearer end
+    e = j * s / n  # its expected place in the sample, from the same end
+    i = min(s - 1, int(e + 6 * math.sqrt(e + 1) + 8))
+    # the j + 1 values of y nearest its end are among those beyond the bound if there are more than j of them;
+    # picked out by index (flatnonzero is branch-free: faster than a boolean index, which copies run by run)
+    cand = y.take(np.flatnonzero(y >= sub[s - 1 - i] if top else y <= sub[i]))
+    if cand.size > j:
+        at = cand.size - 1 - j if top else j
+        return float(np.partition(cand, at)[at])
+    return float(np.sort(y)[k])
+
+
+class _OrderStatistics:
+    """y as its sorted values for :func:`stats.symmetric_interval` (``shape``, ``[k]``), without sorting y."""
+
+    def __init__(self, y: np.ndarray):
+        self.y, self.shape = y, y.shape
+
+    def __getitem__(self, k: int) -> float:
+        return _order_statistic(self.y, int(k))
+
+
 def _as_distribution(name, d) -> Distribution:
     if isinstance(d, Distribution):
         return d
     raise ModelError(f"input {name!r}: expected a Distribution from mtbudget.distributions, got {type(d).__name__}")
+
+
+#: trials per call of the model (the last block may be shorter): 2^17 values, 1 MB an array, measured best among
+#: 2^13-2^18 for JCGM 101 9.4 and 9.5 (smaller blocks pay pint's overhead per call more often)
+EVAL_BLOCK = 131072
+
+#: threads that draw the inputs of one run (each input from its own stream, so the numbers do not depend on
+#: this); 1 draws them one after the other (what is left when the other cores are busy)
+DRAW_THREADS = 2
 
 
 def _sample_inputs(inputs: dict, n: int, seed_seq: np.random.SeedSequence, corr: np.ndarray | None, names: list) -> dict:
@@ -132,11 +223,11 @@ def _sample_inputs(inputs: dict, n: int, seed_seq: np.random.SeedSequence, corr:
     def draw(i):
         return names[i], inputs[names[i]].sample(n, np.random.default_rng(children[i]))
 
-    if n >= 200_000 and len(names) > 1:
+    if n >= 200_000 and len(names) > 1 and DRAW_THREADS > 1:
         # numpy's generators release the GIL while filling large arrays: draw the inputs on both cores
         from concurrent.futures import ThreadPoolExecutor
 
-        with ThreadPoolExecutor(max_workers=2) as pool:
+        with ThreadPoolExecutor(max_workers=DRAW_THREADS) as pool:
             return dict(pool.map(draw, range(len(names))))
     return dict(draw(i) for i in range(len(names)))
 
@@ -249,31 +340,43 @@ def propagate(model, inputs: dict, coverage: float = 0.95, trials: int | None = 
     out_units = g.estimate.units
     ss = np.random.SeedSequence(seed)
 
-    def run(n, child):
-        arrays = _sample_inputs(inputs, n, child, R, names)
-        y = _evaluate(model, arrays, names)
+    def values(y, n):
         try:
             ym = np.asarray(y.to(out_units).magnitude, float)
-            if ym.shape != (n,):
-                ym = np.broadcast_to(ym, (n,)) if ym.size == 1 else None
-            if ym is None:
-                raise ModelError(f"the model must return one value per trial, shape ({n},); got shape {np.shape(y.magnitude)}")
         except pint.DimensionalityError:
             raise ModelError(f"the model's output changed units between calls ({y.units:~} vs {out_units:~})") from None
-        _check_nan(ym, arrays)
+        if ym.shape != (n,) and ym.size != 1:
+            raise ModelError(f"the model must return one value per trial, shape ({n},); got shape {np.shape(y.magnitude)}")
         return ym
+
+    def run(n, child):
+        """(the trial values, a fresh array of the run's own, their sum)."""
+        arrays = _sample_inputs(inputs, n, child, R, names)
+        ym = np.empty(n)
+        mags = [(k, q.magnitude, q.units) for k, q in arrays.items()]
+        for s in range(0, n, EVAL_BLOCK):  # block by block: the model's temporaries stay in cache
+            e = min(n, s + EVAL_BLOCK)
+            part = arrays if e - s == n else {k: Q_(m[s:e], u) for k, m, u in mags}
+            ym[s:e] = values(_evaluate(model, part, names), e - s)
+        total = float(ym.sum())  # NaN or infinite if any value is (or, rarely, if the sum overflows): then look
+        if not math.isfinite(total):
+            _check_nan(ym, arrays)
+        return ym, total
 
     if trials is not None:
         if int(trials) < 2:
             raise ModelError(f"trials must be >= 2, got {trials}")
-        y = run(int(trials), ss.spawn(1)[0])
-        return Result(np.sort(y), out_units, coverage, g, rows, ndig)  # a copy: y may be an array the model keeps
+        y, total = run(int(trials), ss.spawn(1)[0])
+        res = Result(y, out_units, coverage, g, rows, ndig)  # sorted only when needed
+        res._mean = total / y.shape[0]  # what numpy's mean gives: the same pairwise sum, divided by the count
+        return res
 
     # adaptive Monte Carlo procedure (JCGM 101 7.9)
     h_size = batch or max(int(100 / (1 - coverage)), 10_000)
     parts, stop = [], AdaptiveStop(ndig)
     for child in iter(lambda: ss.spawn(1)[0], None):
-        y = np.sort(run(h_size, child))
+        y = run(h_size, child)[0]
+        y.sort()  # in place: the run's own array
         parts.append(y)
         stop.add(batch_row(y, coverage, presorted=True))
         allu = np.concatenate(parts).std(ddof=1)  # the batches in order, each sorted
@@ -282,4 +385,5 @@ def propagate(model, inputs: dict, coverage: float = 0.95, trials: int | None = 
     ally = np.concatenate(parts)
     ally.sort()  # in place: a fresh array
     return Result(ally, out_units, coverage, g, rows, ndig,
-                  batches=[(h_size * (i + 1),) + tuple(map(float, st[0])) for i, st in enumerate(stop.batches)])
+                  batches=[(h_size * (i + 1),) + tuple(map(float, st[0])) for i, st in enumerate(stop.batches)],
+                  is_sorted=True)

@@ -4,7 +4,7 @@ import math
 
 import numpy as np
 import pytest
-from scipy import stats
+from scipy import optimize, stats
 
 from mtbudget import ureg
 from mtbudget.distributions import (Arcsine, CurvilinearTrapezoid, DistributionError, Exponential, Gamma, Normal,
@@ -68,15 +68,47 @@ MASS_INPUTS = {
 }
 
 
+def mass_exact(p=None):
+    """JCGM 101 9.3 exactly: the output's standard deviation (p None) or its p-quantile, in mg.
+
+    Given the three rectangular densities, Y = A (1 + B) - m_nom with A = m_Rc + dm_Rc normal is normal
+    (mean mu_A (1 + B) - m_nom, standard deviation s_A (1 + B)), B = (rho_a - rho_a0)(1/rho_W - 1/rho_R): the CDF
+    is the mean of the normal CDF over the three rectangular inputs (Gauss-Legendre, 20 nodes each: converged to
+    1e-11 mg).  The variance is closed: s_A^2 E(1 + B)^2 + mu_A^2 Var B, with E B = 0, E 1/rho = ln(b/a)/(b - a)
+    and E 1/rho^2 = 1/(a b) for rho rectangular on [a, b].
+    """
+    mu_a, s_a = 100_000 + 1.234, math.hypot(0.050, 0.020)
+    e1, e2 = (lambda a, b: math.log(b / a) / (b - a)), (lambda a, b: 1 / (a * b))
+    d2 = e2(7e3, 9e3) - e1(7e3, 9e3) ** 2 + e2(7.95e3, 8.05e3) - e1(7.95e3, 8.05e3) ** 2 + (e1(7e3, 9e3) - e1(7.95e3, 8.05e3)) ** 2
+    var_b = 0.2**2 / 12 * d2
+    if p is None:
+        return math.sqrt(s_a**2 * (1 + var_b) + mu_a**2 * var_b)
+    x, w = np.polynomial.legendre.leggauss(20)
+    (ra, wa), (rw, ww), (rr, wr) = [((a + b) / 2 + (b - a) / 2 * x, w / 2) for a, b in ((1.10, 1.30), (7e3, 9e3), (7.95e3, 8.05e3))]
+    B = ((ra - 1.2)[:, None, None] * (1 / rw[None, :, None] - 1 / rr[None, None, :])).ravel()
+    W = (wa[:, None, None] * ww[None, :, None] * wr[None, None, :]).ravel()
+    return optimize.brentq(lambda y: W @ stats.norm.cdf((y - mu_a * (1 + B) + 100_000) / (s_a * (1 + B))) - p, 0.5, 2.0, xtol=1e-12)
+
+
 def test_9_3_mass_calibration():
     res = propagate(mass_model, MASS_INPUTS, trials=M6, seed=4)
     assert res.gum.estimate.to(mg).magnitude == pytest.approx(1.2340, abs=5e-5)
     assert res.gum.std_uncertainty.to(mg).magnitude == pytest.approx(0.0539, abs=5e-5)
-    assert res.estimate.to(mg).magnitude == pytest.approx(1.2341, abs=2e-4)
-    assert res.std_uncertainty.to(mg).magnitude == pytest.approx(0.0754, abs=3e-4)
+    # JCGM 101 Table 9 (one run of 10^6 trials): 1.2341 mg, u = 0.0754 mg, shortest 95 % [1.0834, 1.3825] mg.
+    # Exactly (mass_exact): the mean is 1.2340 mg (E rho_a = rho_a0), u = 0.075480 mg, and the law is symmetric about
+    # the mean (to 3e-8 mg), so the shortest 95 % interval is the symmetric one, [1.08443, 1.38357] mg.  Tolerances: 4 standard
+    # errors of 10^6 trials (mean: u / 1000; u: 4e-5; symmetric ends: sqrt(0.025 0.975 / 10^6) / pdf = 2.1e-4; the
+    # shortest interval's ends scatter by about 1e-3 from run to run, the published ones too)
+    u = mass_exact()
+    assert u == pytest.approx(0.0754, abs=1e-4)  # the published value, from the closed form
+    assert res.estimate.to(mg).magnitude == pytest.approx(1.2340, abs=4 * u / 1000)
+    assert res.std_uncertainty.to(mg).magnitude == pytest.approx(u, abs=1.6e-4)
+    q_lo, q_hi = mass_exact(0.025), mass_exact(0.975)
+    assert (q_lo, q_hi) == pytest.approx((1.0834, 1.3825), abs=1.5e-3)  # the published interval, within its scatter
+    lo, hi = res.interval("symmetric")
+    assert (lo.to(mg).magnitude, hi.to(mg).magnitude) == pytest.approx((q_lo, q_hi), abs=8.5e-4)
     lo, hi = res.interval("shortest")
-    assert lo.to(mg).magnitude == pytest.approx(1.0834, abs=1e-3)
-    assert hi.to(mg).magnitude == pytest.approx(1.3825, abs=1e-3)
+    assert (lo.to(mg).magnitude, hi.to(mg).magnitude) == pytest.approx((q_lo, q_hi), abs=4e-3)
     assert not res.validate().passed
     # the budget: share of variance adds up to one; rho_W dominates nothing at first order
     assert sum(r.share for r in res.budget) == pytest.approx(1.0)
@@ -258,3 +290,75 @@ def test_curvilinear_trapezoid_draws_have_its_variance():
     x = d.sample(400_000, np.random.default_rng(12)).magnitude
     assert x.var() == pytest.approx(1 / 3 + 0.25**2 / 9, rel=0.01)
     assert np.abs(x).max() <= 1.25
+
+
+@pytest.mark.parametrize("case", ["heavy tails", "ties", "small", "narrow coverage", "wide coverage"])
+def test_the_symmetric_interval_without_sorting_is_the_sorted_one(case):
+    """propagate leaves the trials unsorted until a sort is needed: the symmetric interval's two order
+    statistics, picked out without sorting, are exactly those of the sorted values (JCGM 101 7.7.1)."""
+    from mtbudget.stats import symmetric_interval
+
+    model, inputs, n, p = {
+        "heavy tails": (lambda x: x, {"x": StudentT(0.0, 1.0, 2.5)}, 300_000, 0.95),
+        "ties": (lambda x: np.round(x), {"x": Normal(0.0, 2.0)}, 200_000, 0.95),  # few distinct values, many ties
+        "small": (lambda x, y: x * y, {"x": Normal(1.0, 0.1), "y": Rectangular(1.0, 2.0)}, 5_001, 0.95),
+        "narrow coverage": (lambda x, y: x + y, {"x": Normal(0.0, 1.0), "y": Arcsine(-3.0, 3.0)}, 200_001, 0.1),
+        "wide coverage": (lambda x: np.exp(x), {"x": Normal(0.0, 1.0)}, 100_000, 0.999),
+    }[case]
+    res = propagate(model, inputs, coverage=p, trials=n, seed=13)
+    assert not res.is_sorted
+    values = res.values.copy()
+    lo, hi = res.interval("symmetric")
+    assert not res.is_sorted  # the interval did not sort
+    assert (lo.magnitude, hi.magnitude) == symmetric_interval(np.sort(values), p)
+    # the estimate and the standard uncertainty as numpy computes them
+    assert res.estimate.magnitude == pytest.approx(values.mean(), rel=1e-14, abs=1e-300)
+    assert res.std_uncertainty.magnitude == pytest.approx(values.std(ddof=1), rel=1e-12)
+    # samples: the same values, sorted (in place, once)
+    assert np.array_equal(res.samples, np.sort(values)) and res.is_sorted
+    assert res.interval("symmetric") == (lo, hi)
+
+
+def test_the_model_s_array_is_not_the_result_s():
+    """A model that returns an array it keeps: the Result holds its own copy, and sorting it leaves the model's."""
+    kept = {}
+
+    def model(x):
+        kept["y"] = 2 * x
+        return kept["y"]
+
+    res = propagate(model, {"x": Normal(0.0, 1.0)}, trials=300_000, seed=14)
+    before = kept["y"].magnitude.copy()
+    res.samples  # noqa: B018 - sorts
+    assert np.array_equal(kept["y"].magnitude, before)
+    assert not np.shares_memory(res.values, kept["y"].magnitude)
+
+
+def test_one_thread_or_two_the_same_numbers(monkeypatch):
+    from mtbudget import mcm
+
+    inputs = {"a": Normal(1.0, 0.1), "b": StudentT(0.0, 1.0, 5), "c": Arcsine(-1.0, 1.0)}
+    ys = []
+    for threads in (1, 2):
+        monkeypatch.setattr(mcm, "DRAW_THREADS", threads)
+        ys.append(propagate(lambda a, b, c: a * b + c, inputs, trials=250_000, seed=15).values)
+    assert np.array_equal(ys[0], ys[1])
+
+
+def test_the_order_statistics_are_exact_whatever_the_order_of_the_values():
+    """The interval's order statistics come from a strided sample's bound, checked by counting: values in an
+    adversarial order (the strided places hold the extremes, so the bound falls short) still give exactly the
+    sorted values' interval."""
+    from mtbudget.mcm import Result
+    from mtbudget.stats import symmetric_interval
+
+    n = 100_003
+    rng = np.random.default_rng(16)
+    for extremes in (-1e6, 1e6):
+        y = rng.standard_normal(n)
+        y[:: n // 8192] = extremes + rng.standard_normal(y[:: n // 8192].size)
+        for p in (0.95, 0.5):
+            res = Result(y.copy(), ureg.m, p, None, [])
+            lo, hi = res.interval("symmetric")
+            assert not res.is_sorted
+            assert (lo.magnitude, hi.magnitude) == symmetric_interval(np.sort(y), p)
