@@ -41,7 +41,7 @@ class _Group(click.Group):
 
 
 #: commands that evaluate the kinematic chain (and so call the compiled kernels)
-_COMPUTING = {"study", "run", "simulate", "identify", "compensate", "diagnose"}
+_COMPUTING = {"study", "run", "replay", "simulate", "identify", "compensate", "diagnose"}
 
 
 def _first_run_note(args: list):
@@ -52,7 +52,7 @@ def _first_run_note(args: list):
     from .kernels import compiled_here
 
     if compiled_here() is False:
-        click.echo("compiling the engine's kernels (numba), once for this machine: about 10 s ...", err=True)
+        click.echo("compiling the engine's kernels (numba), once for this machine: 5-10 s ...", err=True)
 
 
 @click.group(cls=_Group, context_settings={"help_option_names": ["-h", "--help"]})

@@ -219,7 +219,7 @@ class Source:
 
         A source implements this or :meth:`sample_internal`; by default this is :meth:`sample_internal`'s arrays as
         quantities in their targets' internal units."""
-        if not has_internal_sample(self):
+        if type(self).sample_internal is _SAMPLE_INTERNAL:  # neither implemented
             raise NotImplementedError
         return {k: Q_(v, internal_unit(k)) for k, v in self.sample_internal(n, rng, context).items()}
 

@@ -258,6 +258,8 @@ class StudentT(Distribution):
             raise DistributionError(f"StudentT: scale must be >= 0, got {s}")
         if not dof > 2:
             raise DistributionError(f"StudentT: dof must be > 2 for the variance MCM needs to exist, got {dof}")
+        if not math.isfinite(dof):
+            raise DistributionError("StudentT: dof must be finite (infinitely many degrees of freedom: use Normal)")
         self.mu, self.s, self.nu, self.units, self.dof = float(m.magnitude), float(s.magnitude), float(dof), m.units, float(dof)
 
     mean = property(lambda s: Q_(s.mu, s.units))
@@ -396,9 +398,11 @@ def _normal(n: int, rng: np.random.Generator, sigma: float = 1.0, mu: float = 0.
         keep = _in_disc(w, kept[:m], pos[:m], closed=False)
         with np.errstate(divide="ignore", invalid="ignore"):  # the rejected pairs, computed and dropped
             np.log(w, out=ff)
-            ff *= -2.0 * sigma * sigma
+            ff *= -2.0
             ff /= w
-            np.sqrt(ff, out=ff)  # sigma sqrt(-2 ln W / W)
+            np.sqrt(ff, out=ff)  # sqrt(-2 ln W / W)
+            if sigma != 1.0:  # outside the root: sigma^2 would overflow or underflow at extreme scales
+                ff *= sigma
         r[:m] *= ff
         r[m:] *= ff
         if mu:
@@ -453,7 +457,7 @@ def _student_t(nu: float, n: int, rng: np.random.Generator, scale: float = 1.0, 
     from the first m and V = r from the next m; the kept pairs are taken in order until n are there.
     """
     out, buf, w, kept, pos = _rounds(n, 1)
-    e, c2 = -2.0 / nu, nu * scale * scale
+    e = -2.0 / nu
     k = 0
     while k < n:
         m = _round_size(n - k, 1)
@@ -470,9 +474,11 @@ def _student_t(nu: float, n: int, rng: np.random.Generator, scale: float = 1.0, 
             np.log(ww, out=v)
             v *= e
             np.expm1(v, out=v)
-            v *= c2
+            v *= nu
             v /= ww
-            np.sqrt(v, out=v)  # scale sqrt(nu (W^(-2/nu) - 1) / W)
+            np.sqrt(v, out=v)  # sqrt(nu (W^(-2/nu) - 1) / W)
+            if scale != 1.0:  # outside the root: scale^2 would overflow or underflow at extreme scales
+                v *= scale
         v *= u
         if loc:
             v += loc

@@ -19,7 +19,17 @@ import numpy as np
 from numba import njit
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
+def _compiled(f):
+    """numba's ``njit`` (no Python objects, no division checks: IEEE results, as numpy's), cached on disk; where
+    numba finds no writable cache location (a read-only installation and home), compiled in memory instead (once
+    per process).  No ``fastmath``: sums keep their order, so the numbers are the same on every CPU."""
+    try:
+        return njit(cache=True, nogil=True, error_model="numpy")(f)
+    except RuntimeError:  # "cannot cache function ...: no locator available"
+        return njit(cache=False, nogil=True, error_model="numpy")(f)
+
+
+@_compiled
 def _forward(n, tool_axes, wp_axes, side, px, py, pz, toolT, coef, L, sq, comp, t, v, vin, wout):  # pragma: no cover
     """Trial n of the small-angle chain: its points into ``v`` (3, M), each axis' component errors into
     ``comp`` (3, 6, M) and translations into ``t`` (3, 3, M); what enters each tool-side axis into ``vin``
@@ -78,7 +88,7 @@ def _forward(n, tool_axes, wp_axes, side, px, py, pz, toolT, coef, L, sq, comp, 
             wa[0, m], wa[1, m], wa[2, m] = v[0, m], v[1, m], v[2, m]
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
+@_compiled
 def chain_points(tool_axes, wp_axes, side, px, py, pz, tool, coef, L, sq, out, eps, vin, wout):  # pragma: no cover
     """The small-angle chain (machine.py's module docstring) for N trials and M points, into ``out`` (N, M, 3).
 
@@ -108,7 +118,7 @@ def chain_points(tool_axes, wp_axes, side, px, py, pz, tool, coef, L, sq, out, e
     return out
 
 
-@njit(cache=True, nogil=True, error_model="numpy", fastmath={"reassoc"})
+@_compiled
 def chain_vjp(tool_order, wp_axes, side, px, py, pz, eps, vin, wout, rows, vec, params, basis,
               out):  # pragma: no cover - compiled
     """J^T v of the small-angle chain (``machine._Adjoint``), trial by trial, into ``out`` (n, p).
@@ -117,8 +127,7 @@ def chain_vjp(tool_order, wp_axes, side, px, py, pz, eps, vin, wout, rows, vec, 
     them); wp_axes, side, px, py, pz as for :func:`chain_points`; eps, vin, wout: what
     :func:`chain_points` kept; rows: (n,) the trials (their rows in those arrays); vec: (n, M, 3)
     machine-frame vectors at the points; params: (p, 3) each parameter's axis, kind (0 translation,
-    1 rotation, 2 squareness) and component; basis: (p, M) its basis values at the points.  The sums over
-    the points may be reassociated by the compiler (round-off; the same for every call).
+    1 rotation, 2 squareness) and component; basis: (p, M) its basis values at the points.
     """
     M = vec.shape[1]
     g = np.zeros((3, 3, M))  # G_a^T v of each axis
@@ -184,7 +193,7 @@ def chain_vjp(tool_order, wp_axes, side, px, py, pz, eps, vin, wout, rows, vec, 
     return out
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
+@_compiled
 def chord_residual(P, meas, WL, idx, R, T, c0, v, G, cost):  # pragma: no cover - compiled
     """A chord iteration's weighted residual and rigid gradient, trial by trial (``identify._chord``).
 
@@ -252,5 +261,5 @@ def compiled_here() -> bool | None:
 
     try:
         return all(os.path.exists(k._cache._cache_file._index_path) for k in KERNELS)
-    except AttributeError:  # pragma: no cover - another numba
+    except AttributeError:  # pragma: no cover - another numba, or compiled in memory (no cache)
         return None

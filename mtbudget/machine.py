@@ -531,7 +531,17 @@ class _AdjointCompiled:
         from .kernels import chain_vjp
 
         _, wp_axes, side, px, py, pz = self.args[:6]
-        rows = np.arange(self.N, dtype=np.int64) if idx is None else np.asarray(idx, np.int64)
+        if idx is None:
+            rows = np.arange(self.N, dtype=np.int64)
+        else:  # the kernel does not check bounds: positions among the N trials, one per row of v
+            rows = np.asarray(idx)
+            if rows.ndim != 1 or rows.dtype.kind not in "iu" or (rows.size and not (
+                    0 <= rows.min() and rows.max() < self.N)):
+                raise IndexError(f"adjoint: idx must be positions among the {self.N} trials, got {idx!r}")
+            rows = rows.astype(np.int64, copy=False)
+        M = self.kept[0].shape[-1]
+        if np.shape(v) != (len(rows), M, 3):
+            raise ValueError(f"adjoint: v must have shape ({len(rows)}, {M}, 3), got {np.shape(v)}")
         out = np.empty((len(rows), len(self.params)))
         return chain_vjp(self.tool_order, wp_axes, side, px, py, pz, *self.kept, rows,
                          np.require(v, np.float64, ["C", "W"]), self.params, self.basis, out)

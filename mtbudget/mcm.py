@@ -100,6 +100,7 @@ class Result:
     def samples(self) -> np.ndarray:
         """The trial values (magnitudes, output units), sorted."""
         if not self.is_sorted:
+            self.std_uncertainty  # noqa: B018 - the mean and u first, summed in trial order whatever is asked first
             self.values.sort()  # in place: the Result's own array; the same numbers in another order
             self.is_sorted = True
         return self.values

@@ -172,3 +172,18 @@ def test_the_two_normal_values_of_a_pair_are_independent():
     assert z1.size > 0.45 * N and z1.size == z2.size
     for a, b in ((z1, z2), (z1**2, z2**2), (np.abs(z1), np.abs(z2))):
         assert abs(np.corrcoef(a, b)[0, 1]) < 5 / math.sqrt(z1.size)
+
+
+def test_extreme_scales_neither_overflow_nor_underflow():
+    """The scale multiplies the finished draw (never squared inside a root): 1e155 and 1e-170 give finite, non-zero
+    values with the law's spread; a t with 1e300 degrees of freedom is the normal; infinite dof is refused."""
+    from mtbudget.distributions import DistributionError
+
+    rng = np.random.default_rng(41)
+    for dist, s in ((Normal(0.0, 1e155), 1e155), (Normal(0.0, 1e-170), 1e-170), (StudentT(0.0, 1e-170, 5), 1e-170),
+                    (StudentT(0.0, 1e5, 1e300), 1e5)):
+        x = dist.sample(20_000, rng).magnitude / s
+        assert np.isfinite(x).all() and (x != 0).all()
+        assert 0.95 < x.std() / dist.std.magnitude * s < 1.05
+    with pytest.raises(DistributionError, match="finite"):
+        StudentT(0.0, 1.0, math.inf)

@@ -133,3 +133,49 @@ def test_the_first_run_after_installing_says_it_compiles(monkeypatch, capsys, se
                        (["diagnose", "--help"], False), (["plugins"], False), ([], False)):
         cli._first_run_note(args)
         assert ("compiling the engine's kernels" in capsys.readouterr().err) is said, args
+
+
+def test_the_adjoint_refuses_positions_outside_its_trials(setup):
+    """The compiled J^T v does not check bounds itself: the operator refuses what the kernel would misread."""
+    from mtbudget.machine import chain_adjoint
+
+    rng, M, nom, tool = setup
+    em = ErrorModel.default(nom, 2)
+    _, adj = chain_adjoint(Configuration.parse("XFYZ"), em, np.zeros((4, len(em.params))), ChainInputs(nom, tool))
+    v = rng.standard_normal((2, M, 3))
+    assert adj(v, np.array([1, 3])).shape == (2, len(em.params))
+    for bad in (np.array([1, 7]), np.array([-1, 0]), np.array([True, False, True, False]), np.array([0.0, 1.0])):
+        with pytest.raises(IndexError):
+            adj(v, bad)
+    with pytest.raises(ValueError):
+        adj(v[:1], np.array([1, 3]))
+
+
+def test_without_a_writable_cache_the_kernels_compile_in_memory(tmp_path):
+    """A read-only installation and a home where no cache can be made: the kernels still compute (numba compiles
+    in memory, once per process) instead of failing at import.  kernels.py imports only numpy and numba: it is
+    loaded here on its own from a folder whose __pycache__ is a file."""
+    import os
+    import shutil
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    import mtbudget.kernels
+
+    ro = tmp_path / "ro"
+    ro.mkdir()
+    shutil.copy(Path(mtbudget.kernels.__file__), ro / "kernels_copy.py")
+    (ro / "__pycache__").write_text("")  # a file where numba would put its cache
+    blocker = tmp_path / "afile"
+    blocker.write_text("")
+    env = {k: v for k, v in os.environ.items() if k != "NUMBA_CACHE_DIR"}
+    env.update(PYTHONPATH=str(ro), XDG_CACHE_HOME=str(blocker / "cache"), HOME=str(blocker / "home"))
+    code = ("import numpy as np, kernels_copy as k\n"
+            "M = 4; v, G, c = np.empty((1, M, 3)), np.empty((1, 6)), np.empty(1)\n"
+            "k.chord_residual(np.ones((1, M, 3)), np.zeros((1, M, 3)), np.ones((3, 3, 1, M)), np.zeros(1, np.int64),"
+            " np.eye(3)[None].copy(), np.zeros((1, 3)), np.zeros(3), v, G, c)\n"
+            "print(c[0], k.compiled_here())")
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, cwd=tmp_path)
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert out.stdout.split() == ["36.0", "None"]  # r = -1 per coordinate, C^-1 all ones: r.u = 3 x 3 per point

@@ -362,3 +362,13 @@ def test_the_order_statistics_are_exact_whatever_the_order_of_the_values():
             lo, hi = res.interval("symmetric")
             assert not res.is_sorted
             assert (lo.magnitude, hi.magnitude) == symmetric_interval(np.sort(y), p)
+
+
+def test_the_estimate_and_u_do_not_depend_on_what_is_asked_first():
+    """The mean and u are summed in trial order, before any sort: the same bits whichever is asked first."""
+    inputs = {"x": Normal(0.0, 1.0), "y": Arcsine(-1.0, 1.0)}
+    first = propagate(lambda x, y: x * y + x, inputs, trials=300_000, seed=5)
+    u1 = first.std_uncertainty
+    second = propagate(lambda x, y: x * y + x, inputs, trials=300_000, seed=5)
+    second.interval("shortest")  # sorts
+    assert second.std_uncertainty == u1 and second.estimate == first.estimate

@@ -299,6 +299,21 @@ def test_a_subclass_that_overrides_sample_is_sampled_through_it():
         Source().sample(1, np.random.default_rng(0), sc.context)
 
 
+def test_a_subclass_that_extends_a_builtin_through_super_sample():
+    """A plugin that scales a built-in source's draws through super().sample(): the built-in's quantities."""
+    class Doubled(mt.Repeatability):
+        def sample(self, n, rng, ctx):
+            return {k: 2 * v for k, v in super().sample(n, rng, ctx).items()}
+
+    sc = build_scenario(load_config(DATA / "small.toml"))
+    shapes = target_shapes(sc)
+    base = simulate.sample_source(sc, mt.Repeatability(), 4, np.random.default_rng(3), shapes)
+    twice = simulate.sample_source(sc, Doubled(), 4, np.random.default_rng(3), shapes)
+    assert base.keys() == twice.keys()
+    for k in base:
+        assert np.array_equal(twice[k], 2 * base[k])
+
+
 def test_every_builtin_source_samples_internally():
     for src in default_host().sources():
         if src.plugin in {"machine_tool", "measurement_system", "measurement_strategy", "optimisation_strategy"}:
