@@ -20,50 +20,175 @@ import numpy as np
 
 from .contracts import Group
 from .executors import Executor
-from .outputs import MEAN_SQUARE_OUTPUTS, SCALARS, RunResult, accumulate_block
+from .outputs import MEAN_SQUARE_OUTPUTS, SCALARS, RunResult
 from .plugins import call
 from .progress import progress_bar
-from .stats import Accumulator, percent
+from .stats import percent
+
+
+class RunReduction:
+    """What the budget keeps of one Monte Carlo run of the first ``n`` trials: every trial's scalar outputs and the
+    co-moments of the per-point components, merged block by block in block order.
+
+    ``add`` takes the run's blocks in order (a block past ``n`` trials is cut to the trials left; blocks after
+    that are ignored); ``moments()`` gives, per scalar output, the variance (ddof 1), the mean square and the
+    mean of the ``n`` values, and the variance of each point's components.  It is exactly what merging the
+    blocks into a :class:`mtbudget.stats.Accumulator` gave (same concatenation, same merges in the same order),
+    without the statistics the budget never reads (histograms, moments of the other vector outputs).
+    """
+
+    def __init__(self, n: int, components: bool = True):
+        self.limit = int(n)
+        self.n = 0
+        self.components = components
+        self.scalars: dict = {o: [] for o in SCALARS}
+        self.cm = None  # CoMoments of the components so far
+        self.blocks: list = []
+
+    @property
+    def full(self) -> bool:
+        return self.n >= self.limit
+
+    def add(self, b) -> None:
+        """Merge block ``b`` (a BlockResult), or its first trials when it crosses ``n``."""
+        if self.full:
+            return
+        left = self.limit - self.n
+        t = b if left >= b.n else b.truncated(left)
+        for o in SCALARS:
+            self.scalars[o].append(t.scalars[o])
+        if self.components:
+            m = t.component_comoments()
+            if m is not None:
+                self.cm = m if self.cm is None else self.cm.merge(m)
+        self.blocks.append(int(b.block))
+        self.n += t.n
+
+    def moments(self) -> dict:
+        out = {}
+        for o in SCALARS:
+            y = np.concatenate(self.scalars[o])
+            out[o] = {"variance": float(np.var(y, ddof=1)), "mean_square": float(np.mean(y**2)), "mean": float(y.mean())}
+        if self.cm is not None:
+            out["components"] = np.diagonal(self.cm.cov, axis1=1, axis2=2)  # (M0, 3) variance of each point's components
+        return out
+
+
+class RunPrefix(RunReduction):
+    """The budget's "all sources" row, collected while the run merges its blocks (:func:`mtbudget.runner.run`).
+
+    The budget's first row is the first ``n`` trials with every source active: the same blocks, drawn from the same
+    per-source streams, as the run's own first ``n`` trials (a block's results depend on seed, block and active
+    sources only, not on the chunking or the executor: bit-identical).  The run hands its merged blocks here in
+    block order, each marked computed now by ``engine`` or resumed from a log (a resumed block may come from another
+    mtbudget or other plugins: it makes the prefix unusable and the budget computes the row itself, as it does
+    when this run does not cover ``n`` trials).  It holds references to the run's arrays, copies nothing.
+    """
+
+    def __init__(self, engine, n: int):
+        super().__init__(n)
+        self.engine = engine
+        self.usable = True
+
+    def add(self, b, computed: bool = True) -> None:
+        if self.full or not self.usable:
+            return
+        if (not computed or int(b.block) != len(self.blocks) or b.component_comoments() is None
+                or (b.components is None and b.n > self.limit - self.n)):
+            # a resumed block, a block out of order, or one without the per-point statistics the row needs
+            self.usable = False
+            return
+        super().add(b)
+
+    def covers(self, engine, n: int) -> bool:
+        """Whether this is the budget's "all sources" row of ``engine`` on its first ``n`` trials, exactly: the prefix
+        holds the run's first ``self.n`` trials (all of them when the run had fewer than its limit)."""
+        return self.usable and engine is self.engine and self.n == n
+
+
+def _same_block(a, b) -> bool:
+    """Whether two blocks' results are the same bits (every scalar, every per-point component, the counts)."""
+    def same(x, y):
+        if x is None or y is None:
+            return x is None and y is None
+        x, y = np.asarray(x), np.asarray(y)
+        return x.shape == y.shape and x.dtype == y.dtype and x.tobytes() == y.tobytes()
+
+    return (a.n == b.n and a.not_converged == b.not_converged and a.fallbacks == b.fallbacks
+            and set(a.scalars) == set(b.scalars) and all(same(a.scalars[k], b.scalars[k]) for k in a.scalars)
+            and same(a.components, b.components))
 
 
 def attribution(engine, result: RunResult, n: int, *, ex_kind="inline", workers=None, address=None,
-                chunk_blocks=4, leave_one_out: bool = False, progress: bool = False) -> dict:
-    """One-source-at-a-time budget of every scalar output on the first ``n`` trials (see the module docstring)."""
+                chunk_blocks=4, leave_one_out: bool = False, progress: bool = False,
+                executor: Executor | None = None) -> dict:
+    """One-source-at-a-time budget of every scalar output on the first ``n`` trials (see the module docstring).
+
+    Two rows are not computed as Monte Carlo runs of their own when they need not be:
+
+    * "all sources" is the run's own first ``n`` trials: taken from ``result.prefix`` (a :class:`RunPrefix` the
+      run filled while merging) when it covers them with this engine, every block computed in this run;
+    * "no source": no source draws anything, so nothing in a trial depends on the block (the random streams are
+      the only thing that does): every block is the same nominal block.  Blocks 0 and 1 are computed and compared
+      bit for bit; when they are equal, the others are that block (the statistics are merged from it block by
+      block, as they were from each block: the same numbers); when not, every block is computed.
+
+    ``executor``: an open :class:`mtbudget.executors.Executor` of ``engine`` to run the rows on (the run's: its
+    workers have the engine built), left open; by default one of ``ex_kind`` is started and closed here.
+    """
     import uncertainties
 
     nblocks = math.ceil(n / engine.block)
     blocks = list(range(nblocks))
     spec = result.spec
-    ex = Executor(engine, spec, ex_kind, workers, address)
+    ex = executor if executor is not None else Executor(engine, spec, ex_kind, workers, address)
     runs = 2 + len(engine.sources) * (2 if leave_one_out else 1)
     bar = progress_bar(runs * nblocks, "budget", "block", progress)
 
-    def moments(active_names):
-        acc = Accumulator(keep_samples=True, keep_vector_samples=False)
-        chunks = [blocks[i:i + chunk_blocks] for i in range(0, len(blocks), chunk_blocks)]
-        for res in ex.map(chunks, active_names):
+    def chunked(ids):
+        return [ids[i:i + chunk_blocks] for i in range(0, len(ids), chunk_blocks)]
+
+    def moments(active_names, components=True):
+        red = RunReduction(n, components)
+        for res in ex.map(chunked(blocks), active_names):
             for b in res:
-                accumulate_block(acc, b if acc.n + b.n <= n else b.truncated(n - acc.n))
+                red.add(b)
             bar.update(len(res))
-        out = {}
-        for o in SCALARS:
-            y = acc.scalar_samples(o)
-            out[o] = {"variance": float(np.var(y, ddof=1)), "mean_square": float(np.mean(y**2)), "mean": float(y.mean())}
-        cm = acc.moments.get("components")
-        if cm is not None:
-            out["components"] = np.diagonal(cm.cov, axis1=1, axis2=2)  # (M0, 3) variance of each point's components
-        return out
+        return red.moments()
+
+    def nominal_moments():
+        red = RunReduction(n, components=False)
+        res = [b for chunk in ex.map([blocks[:2]], []) for b in chunk]
+        bar.update(len(res))
+        if len(res) == 1 or _same_block(res[0], res[1]):
+            for _ in blocks:  # every block is block 0: its statistics merged once per block, as before
+                red.add(res[0])
+            bar.update(nblocks - len(res))
+        else:  # a block differs from another without any source: compute every block, as any other row
+            for b in res:
+                red.add(b)
+            for more in ex.map(chunked(blocks[2:]), []):
+                for b in more:
+                    red.add(b)
+                bar.update(len(more))
+        return red.moments()
 
     try:
-        total = moments([s.name for s in engine.sources])
-        nominal = moments([])
+        prefix = getattr(result, "prefix", None)
+        if isinstance(prefix, RunPrefix) and prefix.covers(engine, n):
+            total = prefix.moments()
+            bar.update(nblocks)
+        else:
+            total = moments([s.name for s in engine.sources])
+        nominal = nominal_moments()
         per_source = {s.name: moments([s.name]) for s in engine.sources}
         loo = {}
         if leave_one_out:
             for s in engine.sources:
-                loo[s.name] = moments([t.name for t in engine.sources if t.name != s.name])
+                loo[s.name] = moments([t.name for t in engine.sources if t.name != s.name], components=False)
     finally:
-        ex.close()
+        if executor is None:
+            ex.close()
         bar.close()
     systematic = systematic_sources(engine)
     tables = {}

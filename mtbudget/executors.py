@@ -56,7 +56,15 @@ def run_blocks_from_spec(spec_json: str, blocks: list, active: list | None = Non
             _WORKER_CACHE.clear()
             _WORKER_CACHE[spec_json] = eng
         act = None if active is None else [s for s in eng.sources if s.name in active]
-        return eng.run_blocks(blocks, act)
+        results = eng.run_blocks(blocks, act)
+        # the moments the main process merges, computed here rather than there: the main process merges, logs and
+        # histograms every worker's blocks, so work moved off it keeps it from holding up the workers
+        for r in results:
+            if active is None:  # a run: every vector output's moments (merged and logged)
+                r.vector_moments()
+            else:  # the budget: only the per-point components' co-moments
+                r.component_comoments()
+        return results
 
 
 def in_order(submit, chunks: list, window: int):

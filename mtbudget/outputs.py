@@ -54,6 +54,9 @@ class BlockResult:
     components: np.ndarray | None = None  # (n, M0, 3) um: the compensated machine's error per point and axis
     component_moments: CoMoments | None = None
     fallbacks: int = 0  # trials whose fast identification handed over to full Gauss-Newton
+    # the moments of the vector outputs, computed once (a worker computes them before sending the block; the run
+    # merges them and the run log writes them); never part of a comparison
+    _moments: dict = field(default_factory=dict, init=False, repr=False, compare=False)
 
     def truncated(self, n: int) -> "BlockResult":
         """The first ``n`` trials of the block (a run logs the block it merged, already cut to its trials)."""
@@ -69,14 +72,31 @@ class BlockResult:
                            fallbacks=self.fallbacks)
 
     def vector_moments(self) -> dict:
-        out = {"point_error": self.point_moments if self.point_moments is not None else Moments.of(self.point_error),
-               "parameters": self.parameter_moments if self.parameter_moments is not None else Moments.of(self.parameters)}
-        cm = self.component_moments
-        if cm is None and self.components is not None:
-            cm = CoMoments.of(self.components)
+        """{"point_error": Moments, "parameters": Moments, "components": CoMoments}, those the block knows (a block
+        read back from a log of format 2 knows none: the log's histogram checkpoints hold the run's), computed once."""
+        c = self._moments
+        if "point_error" not in c:
+            c["point_error"] = (self.point_moments if self.point_moments is not None
+                                else None if self.point_error is None else Moments.of(self.point_error))
+        if "parameters" not in c:
+            c["parameters"] = (self.parameter_moments if self.parameter_moments is not None
+                               else None if self.parameters is None else Moments.of(self.parameters))
+        out = {k: c[k] for k in ("point_error", "parameters") if c[k] is not None}
+        cm = self.component_comoments()
         if cm is not None:
             out["components"] = cm
         return out
+
+    def component_comoments(self) -> CoMoments | None:
+        """The co-moments of the per-point components (None when the block knows neither them nor the samples),
+        computed once."""
+        c = self._moments
+        if "components" not in c:
+            cm = self.component_moments
+            if cm is None and self.components is not None:
+                cm = CoMoments.of(self.components)
+            c["components"] = cm
+        return c["components"]
 
 
 def accumulate_block(acc: Accumulator, b: BlockResult):
@@ -107,6 +127,7 @@ class RunResult:
     logged_points: list | None = None  # per-point results of a complete log (replay of a run too long to log trials)
     log_problem: str | None = None  # the run log could not be written (a full disk): what happened, how to resume
     resume_notes: list = field(default_factory=list)  # what a resume recomputed and why (damaged blocks ...)
+    prefix: object = field(default=None, repr=False, compare=False)  # during a run: its first trials for the budget
 
     @property
     def not_converged(self) -> int:

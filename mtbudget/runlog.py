@@ -9,7 +9,9 @@ Layout (docs/runlog.md has every schema):
   says what it was;
 * ``/mtbudget/blocks``: one message per block of trials with the scalar
   outputs of every trial (float64, base64) and the moments of the vector
-  outputs -- everything replay needs, nothing executable;
+  outputs -- everything replay needs, nothing executable (format 2, a run
+  that histograms its per-point errors: the moments of the run so far are in
+  its histogram checkpoints instead, docs/runlog.md);
 * ``/mtbudget/convergence``: trials, mean, std and interval ends of the main
   output after each chunk (Foxglove's Plot panel reads it);
 * ``/mtbudget/points``: ``foxglove.PointCloud`` of the mesh coloured by the
@@ -34,6 +36,7 @@ import io
 import json
 import os
 import platform
+import re
 import socket
 import struct
 import time
@@ -50,7 +53,10 @@ from .stats import CoMoments, Moments
 from .units import factor
 
 FORMAT = "mtbudget-runlog/1.1"  # 1.1: a crc32 in every message, histogram checkpoints
-FORMAT_MAJOR = 1
+#: runs that histogram their per-point errors: blocks without the vector outputs' moments, which the histogram
+#: checkpoints hold for the run so far (a major version: an mtbudget that reads only 1.x refuses it in one line)
+HISTOGRAM_FORMAT = "mtbudget-runlog/2"
+FORMAT_MAJOR = 2
 LEGACY_FORMAT = "mtbudget-runlog/1"  # before checksums: read, unverified
 
 
@@ -81,10 +87,11 @@ SCHEMAS = {
         "block": {"type": "integer"}, "n": {"type": "integer", "description": "trials in the block"},
         "scalars": {"type": "object", "description": "output -> per-trial values in the unit of RunSpec.outputs",
                     "additionalProperties": _arr_schema("per-trial values of one scalar output")},
-        "point_error_moments": {"type": "object", "description": "moments (n, mean, m2, min, max) of the 3-D error per point, um"},
-        "parameter_moments": {"type": "object", "description": "moments of the identified parameters, um or urad"},
+        "point_error_moments": {"type": "object", "description": "moments (n, mean, m2, min, max) of the 3-D error per point, "
+                                                                  "um (format 1.1; format 2: in the histogram checkpoints)"},
+        "parameter_moments": {"type": "object", "description": "moments of the identified parameters, um or urad (format 1.1)"},
         "component_moments": {"type": "object", "description": "n, mean (M0, 3) and co-moments C (M0, 3, 3) of the per-point "
-                                                                "errors per axis, um and um^2"},
+                                                                "errors per axis, um and um^2 (format 1.1)"},
         "components": _arr_schema("(n, 3 M0) per-trial errors per point and axis, um (absent for runs too long to log them)"),
         "not_converged": {"type": "integer", "description": "trials whose identification did not converge"},
         "fallbacks": {"type": "integer", "description": "trials the fast identification handed to full Gauss-Newton"}}},
@@ -113,7 +120,9 @@ SCHEMAS = {
         "high": _arr_schema("(3 M0,) high end of each component's range, um"),
         "counts": {"type": "object", "description": "(3 M0, bins) int64 counts, zlib then base64"},
         "under": {"type": "object", "description": "(3 M0,) counts below the range"},
-        "over": {"type": "object", "description": "(3 M0,) counts above the range"}}},
+        "over": {"type": "object", "description": "(3 M0,) counts above the range"},
+        "moments": {"type": "object", "description": "format 2: the moments of the vector outputs over blocks 0 .. blocks-1 "
+                                                     "(point_error, parameters: n, mean, m2, min, max; components: n, mean, C)"}}},
     "mtbudget.End": {"type": "object", "title": "mtbudget.End", "description": "written last; absent when the run was cut",
                      "properties": {"trials": {"type": "integer"}, "complete": {"type": "boolean"}}},
     "foxglove.Log": {"title": "foxglove.Log", "type": "object", "properties": {
@@ -138,9 +147,16 @@ TOPICS = {
 }
 
 
+class _B64(str):
+    """Base64 text of an array: a string like any other to ``json``, which :func:`_with_crc` puts into the message's
+    JSON text as it is (base64 has no character JSON escapes) instead of having ``json`` scan it."""
+
+    __slots__ = ()
+
+
 def _enc(a: np.ndarray) -> dict:
     a = np.ascontiguousarray(a, dtype="<f8")
-    return {"dtype": "<f8", "shape": list(a.shape), "data": base64.b64encode(a.tobytes()).decode()}
+    return {"dtype": "<f8", "shape": list(a.shape), "data": _B64(base64.b64encode(a.tobytes()).decode())}
 
 
 def _dec(d: dict) -> np.ndarray:
@@ -172,9 +188,43 @@ def _body_crc(topic: str, obj: dict) -> int:
     return zlib.crc32(json.dumps(obj).encode(), zlib.crc32(topic.encode() + b"\n"))
 
 
+#: a base64 text's place in a serialised message: json.dumps renders the placeholder "\x00<i>" as "\u0000<i>"
+_SLOT = re.compile(rb'"\\u0000(\d+)"')
+
+
+def _dumps(body: dict) -> bytes:
+    """``json.dumps(body).encode()``, the same bytes, with the base64 texts of the arrays at the body's top level (a
+    block's per-trial components: 150 kB for 64 trials of the paper's mesh) copied in rather than scanned by ``json``:
+    the body is serialised with a placeholder for each, and the texts are put in their place.  Arrays deeper down
+    (the scalars, the moments) are small and serialised by ``json`` as the strings they are."""
+    texts: list = []
+    skeleton = body
+    for k, v in body.items():
+        if type(v) is dict and type(v.get("data")) is _B64:
+            if skeleton is body:
+                skeleton = dict(body)
+            texts.append(v["data"])
+            skeleton[k] = {**v, "data": f"\x00{len(texts) - 1}"}
+    if not texts:
+        return json.dumps(body).encode()
+    parts = _SLOT.split(json.dumps(skeleton).encode())
+    if len(parts) != 2 * len(texts) + 1 or [int(i) for i in parts[1::2]] != list(range(len(texts))):
+        return json.dumps(body).encode()  # a placeholder that is not ours (never in mtbudget's messages)
+    out = [parts[0]]
+    for i, text in enumerate(texts):
+        out += [b'"', text.encode("ascii"), b'"', parts[2 * i + 2]]
+    return b"".join(out)
+
+
 def _with_crc(topic: str, obj: dict) -> bytes:
+    """The message's JSON with its ``crc32`` as the last field: ``json.dumps({**body, "crc32": crc})``, built from the
+    one serialisation the checksum needs (the body is not serialised twice, its base64 texts not scanned)."""
     body = {k: v for k, v in obj.items() if k != "crc32"}
-    return json.dumps({**body, "crc32": _body_crc(topic, body)}).encode()
+    text = _dumps(body)
+    crc = zlib.crc32(text, zlib.crc32(topic.encode() + b"\n"))
+    if not body:
+        return b'{"crc32": %d}' % crc
+    return text[:-1] + b', "crc32": %d}' % crc
 
 
 def partial_path(path) -> Path:
@@ -281,6 +331,10 @@ class RunLogWriter:
         self.written: set = set()
         self.histogram_every = histogram_every
         self._last_hist = None
+        # a run that logs every trial's per-point errors logs each block's moments too (format 1.1); one that
+        # histograms them (format 2) logs the moments of the run so far with each histogram checkpoint instead
+        self.block_moments = log_components
+        fmt = FORMAT if log_components else HISTOGRAM_FORMAT
         tmp = Path(str(self.path) + ".resume.tmp")
         try:
             self.fh = open(tmp, "wb")
@@ -300,10 +354,10 @@ class RunLogWriter:
                                   data=config_text.encode())
             spec = header["spec"]
             self.w.add_metadata("mtbudget.run", {
-                "format": FORMAT, "mtbudget_version": __version__, "seed": str(spec["seed"]), "trials": str(header["trials"]),
+                "format": fmt, "mtbudget_version": __version__, "seed": str(spec["seed"]), "trials": str(header["trials"]),
                 "host": socket.gethostname(), "platform": platform.platform(), "start_time": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
                 "plugins": json.dumps(header.get("plugins", []))})
-            self._write("/mtbudget/run", {"format": FORMAT, "mtbudget_version": __version__, **header})
+            self._write("/mtbudget/run", {"format": fmt, "mtbudget_version": __version__, **header})
             for b in copy or []:
                 self._write("/mtbudget/blocks", b)
                 self.written.add(int(b["block"]))
@@ -352,28 +406,42 @@ class RunLogWriter:
     def blocks(self, blocks: list, convergence: dict, acc=None):
         """Log merged blocks (those not already in the file) and the convergence row after them; flushed to disk.
 
-        ``acc``: the run's Accumulator; when it histograms the per-point components, its histogram is
-        checkpointed (at most every ``histogram_every`` seconds) so a resume can restore it.
+        ``acc``: the run's Accumulator; when it histograms the per-point components, its histogram and the moments
+        of the vector outputs are checkpointed (at most every ``histogram_every`` seconds) so a resume can restore
+        them.
         """
         for b in blocks:
             if b.block in self.written:
                 continue
-            vm = b.vector_moments()
-            self.write("/mtbudget/blocks", {
-                "block": b.block, "n": b.n, "scalars": {k: _enc(v) for k, v in b.scalars.items()},
-                "point_error_moments": _moments_enc(vm["point_error"]),
-                "parameter_moments": _moments_enc(vm["parameters"]), "not_converged": int(b.not_converged), "fallbacks": int(b.fallbacks),
-                **({"component_moments": _comoments_enc(vm["components"])} if "components" in vm else {}),
-                **({"components": _enc(b.components.reshape(b.n, -1))}
-                   if self.log_components and b.components is not None else {})})
+            msg = {"block": b.block, "n": b.n, "scalars": {k: _enc(v) for k, v in b.scalars.items()}}
+            if self.block_moments:
+                vm = b.vector_moments()
+                msg.update({"point_error_moments": _moments_enc(vm["point_error"]),
+                            "parameter_moments": _moments_enc(vm["parameters"])})
+            msg.update({"not_converged": int(b.not_converged), "fallbacks": int(b.fallbacks)})
+            if self.block_moments:
+                if "components" in vm:
+                    msg["component_moments"] = _comoments_enc(vm["components"])
+                if self.log_components and b.components is not None:
+                    msg["components"] = _enc(b.components.reshape(b.n, -1))
+            self.write("/mtbudget/blocks", msg)
             self.written.add(b.block)
         self.write("/mtbudget/convergence", convergence)
         if acc is not None and acc.vector_hist.get("components") is not None:
             now = time.monotonic()
             if self._last_hist is None or now - self._last_hist >= self.histogram_every:
-                self.write("/mtbudget/histogram", histogram_state(acc))
-                self._last_hist = now
+                self.checkpoint(acc, flush=False)
         self.flush()
+
+    def checkpoint(self, acc, flush: bool = True):
+        """Log the run's histogram checkpoint now (:func:`histogram_state`): a finished run of format 2 ends with one
+        covering every block, which is where replay reads the moments of its vector outputs."""
+        if acc.vector_hist.get("components") is None:
+            return
+        self.write("/mtbudget/histogram", histogram_state(acc, moments=not self.block_moments))
+        self._last_hist = time.monotonic()
+        if flush:
+            self.flush()
 
     def log(self, level: int, message: str):
         t = time.time_ns()
@@ -421,12 +489,24 @@ class RunLogWriter:
             pass
 
 
-def histogram_state(acc) -> dict:
-    """The per-point histogram of a run (ranges, counts) after the blocks merged so far, as a log message."""
+def histogram_state(acc, moments: bool = True) -> dict:
+    """The per-point histogram of a run (ranges, counts) after the blocks merged so far, as a log message; with
+    ``moments``, also the moments of the vector outputs over those blocks (format 2: the blocks do not hold them)."""
     h = acc.vector_hist["components"]
-    return {"blocks": len(acc.blocks), "trials": int(acc.n), "last_block": int(acc.blocks[-1]) if acc.blocks else -1,
-            "bins": int(h.bins), "low": _enc(h.low), "high": _enc(h.high), "counts": _enc_int(h.counts),
-            "under": _enc_int(h.under), "over": _enc_int(h.over)}
+    out = {"blocks": len(acc.blocks), "trials": int(acc.n), "last_block": int(acc.blocks[-1]) if acc.blocks else -1,
+           "bins": int(h.bins), "low": _enc(h.low), "high": _enc(h.high), "counts": _enc_int(h.counts),
+           "under": _enc_int(h.under), "over": _enc_int(h.over)}
+    if moments:
+        out["moments"] = {k: (_comoments_enc(m) if isinstance(m, CoMoments) else _moments_enc(m))
+                          for k, m in acc.moments.items()}
+    return out
+
+
+def moments_from_state(state: dict) -> dict | None:
+    """The moments of the vector outputs a histogram checkpoint holds (format 2), None when it holds none (1.1)."""
+    if "moments" not in state:
+        return None
+    return {k: (_comoments_dec(d) if "C" in d else _moments_dec(d)) for k, d in state["moments"].items()}
 
 
 def _enc_int(a: np.ndarray) -> dict:
@@ -482,17 +562,27 @@ class RunLog:
     def block_results(self) -> list:
         """Logged blocks as BlockResults: scalars exact, the vector outputs known by their moments.
 
-        They merge into a run's statistics (replay, resume) exactly as the blocks they were written from.
+        They merge into a run's statistics (replay, resume) exactly as the blocks they were written from.  A block of
+        format 2 (a run that histograms its per-point errors) carries no moments: the run's so far are in its
+        histogram checkpoints (:meth:`moment_state`).
         """
         out = []
         for b in self.blocks:
             comp = _dec(b["components"]).reshape(b["n"], -1, 3) if "components" in b else None
             cm = _comoments_dec(b["component_moments"]) if "component_moments" in b else None
+            pm = _moments_dec(b["point_error_moments"]) if "point_error_moments" in b else None
+            qm = _moments_dec(b["parameter_moments"]) if "parameter_moments" in b else None
             out.append(BlockResult(b["block"], b["n"], {k: _dec(v) for k, v in b["scalars"].items()}, None, None,
-                                   int(b.get("not_converged", 0)), _moments_dec(b["point_error_moments"]),
-                                   _moments_dec(b["parameter_moments"]), components=comp, component_moments=cm,
+                                   int(b.get("not_converged", 0)), pm, qm, components=comp, component_moments=cm,
                                    fallbacks=int(b.get("fallbacks", 0))))
         return out
+
+    def moment_state(self) -> dict | None:
+        """The last histogram checkpoint that holds the run's moments (format 2) and whose blocks are all in the log,
+        or None."""
+        have = {int(b["block"]) for b in self.blocks}
+        good = [h for h in self.histograms if "moments" in h and all(k in have for k in range(int(h["blocks"])))]
+        return max(good, key=lambda h: h["blocks"], default=None)
 
 
 MAGIC = b"\x89MCAP0\r\n"
@@ -761,7 +851,8 @@ def _check_format(path, fmt):
     if name != "mtbudget-runlog":
         raise RunLogError(f"{path}: format {fmt!r} is not an mtbudget run log")
     if major > FORMAT_MAJOR:
-        raise RunLogError(f"{path}: written by a newer mtbudget (format {fmt}); this version reads {FORMAT}. Upgrade mtbudget.")
+        raise RunLogError(f"{path}: written by a newer mtbudget (format {fmt}); this version reads up to "
+                          f"{HISTOGRAM_FORMAT}. Upgrade mtbudget.")
 
 
 # ------------------------------------------------------------------ placement study logs

@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from . import __version__
-from .budget import attribution, point_lpu
+from .budget import RunPrefix, attribution, point_lpu
 from .config import SimulationConfig, load_config, parse_config
 from .engine import Engine
 from .errors import ConfigError, RunLogError
@@ -99,6 +99,17 @@ def auto_chunk_blocks(n_blocks: int) -> int:
     return min(16, max(4, int(n_blocks) // 64))
 
 
+def chunk_blocks_for(settings: RunSettings, block: int) -> int:
+    """The blocks identified together in a run with these settings: ``settings.chunk_blocks`` when given, else
+    :func:`auto_chunk_blocks` of the run's blocks (an adaptive run's: one batch).  The run log records the value
+    used, and a resume reuses it."""
+    if settings.chunk_blocks:
+        return int(settings.chunk_blocks)
+    trials = settings.trials
+    return auto_chunk_blocks(math.ceil((int(trials) if trials is not None else settings.adaptive_batch or 10_000)
+                                       / int(block)))
+
+
 #: per-point components kept as every trial's values (exact intervals) up to this many numbers, else histograms
 VECTOR_SAMPLE_LIMIT = 25_000_000
 
@@ -153,25 +164,35 @@ def _run(config, settings, *, on_chunk, resume_blocks, engine, host, resume_hist
     keep = settings.keep_samples if settings.keep_samples is not None else (trials is None or int(trials) <= 200_000)
     acc = Accumulator(keep, keep_vector_samples(settings, len(scenario.mesh_rows)))
     if resume_histogram is not None:
-        from .runlog import histogram_from_state
+        from .runlog import histogram_from_state, moments_from_state
 
         if acc.keep_vectors:
             raise RunLogError("a histogram checkpoint was given to a run that keeps every trial's per-point errors")
         acc.vector_hist["components"] = histogram_from_state(resume_histogram)
+        moments = moments_from_state(resume_histogram)
+        if moments is not None:  # format 2: the moments of the resumed blocks' vector outputs (they hold none)
+            if any(b.vector_moments() for b in (resume_blocks or [])):
+                raise RunLogError("resumed blocks carry their moments and the checkpoint holds them too")
+            acc.moments.update(moments)
     result = RunResult(spec, 0, settings.coverage, acc, engine.parameter_names, engine.parameter_units,
                        weights=scenario.weights_report(), mesh=scenario.mesh_points, commanded=scenario.commanded,
                        guf=point_lpu(scenario))
     done = {b.block: b for b in (resume_blocks or [])}
+    resumed = set(done)
+    # the budget's "all sources" row is this run's first attribution_trials trials: collected as they are merged
+    prefix = RunPrefix(engine, settings.attribution_trials) if settings.attribution_trials else None
+    result.prefix = prefix
     ex = Executor(engine, spec, settings.executor, settings.workers, settings.address)
     bar = progress_bar(trials, "Monte Carlo", "trial", settings.progress)
-    chunk_blocks = settings.chunk_blocks or auto_chunk_blocks(
-        math.ceil((int(trials) if trials is not None else settings.adaptive_batch or 10_000) / engine.block))
+    chunk_blocks = chunk_blocks_for(settings, engine.block)
     try:
         def merge(b, target_n):
             """Merge block b, cut to the trials the run still needs; the merged (cut) block is what gets logged."""
             left = target_n - acc.n
             t = b if left >= b.n else b.truncated(left)
             accumulate_block(acc, t)
+            if prefix is not None:
+                prefix.add(t, computed=t.block not in resumed)
             return t
 
         def consume(block_ids, target_n):
@@ -218,13 +239,16 @@ def _run(config, settings, *, on_chunk, resume_blocks, engine, host, resume_hist
                     result.stopped_at_limit = True
                     break
         result.trials = acc.n
+        bar.close()
+        if settings.attribution_trials:
+            # on the run's executor: its workers have built the engine already (a new pool would build it again)
+            result.budget = attribution(engine, result, min(settings.attribution_trials, result.trials),
+                                        ex_kind=settings.executor, workers=settings.workers, address=settings.address,
+                                        chunk_blocks=chunk_blocks, progress=settings.progress, executor=ex)
     finally:
         bar.close()
         ex.close()
-    if settings.attribution_trials:
-        result.budget = attribution(engine, result, min(settings.attribution_trials, result.trials),
-                                    ex_kind=settings.executor, workers=settings.workers, address=settings.address,
-                                    chunk_blocks=chunk_blocks, progress=settings.progress)
+        result.prefix = None  # the run's first trials, kept for the budget only
     return result
 
 
@@ -344,6 +368,9 @@ def _execute(config, settings, *, source, target, force, histogram_every) -> Run
         _refuse_existing(target, force)
         config_text = cfg.path.read_text() if cfg.path else json.dumps(cfg.source)
     settings.validate()
+    # the chunk size the run uses, logged as such (not None for "automatic"): a resume reuses the same value; a log
+    # from before this recorded null, and a resume of it applies the same rule again (chunk_blocks_for)
+    settings = replace(settings, chunk_blocks=chunk_blocks_for(settings, settings.block))
     scenario = build_scenario(cfg, sources=settings.sources)
     eng = Engine(scenario, block=settings.block, seed=settings.seed)
     spec = make_spec(scenario, eng, settings)
@@ -351,11 +378,17 @@ def _execute(config, settings, *, source, target, force, histogram_every) -> Run
     if copy is not None and not keep_vectors:
         # the per-point intervals come from histograms of every trial's per-point errors, which the log does not
         # hold: restore the last histogram checkpoint and recompute the blocks logged after it
-        states = [h for h in old.histograms if all(k in {b["block"] for b in copy} for k in range(h["blocks"]))]
+        # a checkpoint of format 2 holds the moments of the vector outputs (its blocks do not); one of 1.1 does not
+        # (its blocks do)
+        verified = {b["block"]: b for b in copy}
+        states = [h for h in old.histograms if all(k in verified for k in range(h["blocks"])) and
+                  ("moments" in h or all("point_error_moments" in verified[k] for k in range(h["blocks"])))]
         state = max(states, key=lambda h: h["blocks"], default=None)
         upto = state["blocks"] if state is not None else 0
         dropped = sum(1 for b in copy if b["block"] >= upto)
         copy = [b for b in copy if b["block"] < upto]
+        if state is not None and "moments" in state:  # the checkpoint's moments, never the blocks' again
+            copy = [{k: v for k, v in b.items() if not k.endswith("_moments")} for b in copy]
         if state is not None:
             hist = state
         if dropped:
@@ -383,6 +416,8 @@ def _execute(config, settings, *, source, target, force, histogram_every) -> Run
         pm, cm = result.acc.moments.get("point_error"), result.acc.moments.get("components")
         if pm is not None:
             writer.points(scenario.mesh_points, np.asarray(pm.mean), None if cm is None else cm.std)
+        if not keep_vectors:  # format 2: the last checkpoint holds the moments of every block, for replay
+            writer.checkpoint(result.acc, flush=False)
         writer.finish(result_json(result), True, result.trials)
     except BaseException as exc:
         writer.log(4, f"run stopped: {type(exc).__name__}: {exc}")
@@ -414,7 +449,21 @@ def replay(path) -> RunResult:
     h = log.header
     blocks = sorted(log.block_results(), key=lambda b: b.block)
     logged = log.result or {}
+    state = None
+    if any(not b.vector_moments() for b in blocks):
+        # format 2 (a run that histograms its per-point errors): the moments of the vector outputs are those of the
+        # last checkpoint; an interrupted run is replayed up to it (the trials a resume keeps), a finished run's
+        # last checkpoint holds every block
+        from .runlog import moments_from_state
+
+        state = log.moment_state()
+        # its moments, never those of blocks copied from a 1.1 log by a resume again; without a checkpoint (a run cut
+        # before its first), the scalars only
+        blocks = [replace(b, point_moments=None, parameter_moments=None, component_moments=None)
+                  for b in blocks if state is None or b.block < state["blocks"]]
     acc = Accumulator(True, all(b.components is not None for b in blocks))
+    if state is not None:
+        acc.moments.update(moments_from_state(state))
     for b in blocks:
         accumulate_block(acc, b)
     guf = logged.get("guf_points")

@@ -197,3 +197,121 @@ def test_a_resume_written_to_another_path_never_overwrites_another_runs_log(tmp_
     B.unlink()
     with pytest.raises(RunLogError, match="interrupted run is there"):
         execute(SMALL, resume_path=A, log_path=B, progress=False)
+
+
+def test_the_log_records_the_chunk_size_the_run_used(tmp_path, monkeypatch):
+    """Not null for "automatic": the value used (auto_chunk_blocks of the run's blocks), which a resume reuses; a log
+    that recorded null (before this) resumes with the same rule, to the same numbers and convergence rows."""
+    import mtbudget.runlog as runlog
+    from mtbudget.runlog import partial_path
+
+    res = execute(SMALL, trials=80, block=8, attribution_trials=0, log_path=tmp_path / "auto.mcap")
+    assert read_runlog(tmp_path / "auto.mcap").header["settings"]["chunk_blocks"] == 4  # 10 blocks: chunks of 4
+    assert [r["trials"] for r in res.convergence] == [32, 64, 80]
+    execute(SMALL, trials=80, block=8, attribution_trials=0, chunk_blocks=3, log_path=tmp_path / "three.mcap")
+    assert read_runlog(tmp_path / "three.mcap").header["settings"]["chunk_blocks"] == 3
+
+    orig = runlog.RunLogWriter.__init__
+
+    def as_before(self, path, header, *args, **kwargs):  # what an older mtbudget wrote
+        header = {**header, "settings": {**header["settings"], "chunk_blocks": None}}
+        orig(self, path, header, *args, **kwargs)
+
+    monkeypatch.setattr(runlog.RunLogWriter, "__init__", as_before)
+    old = tmp_path / "old.mcap"
+    execute(SMALL, trials=80, block=8, attribution_trials=0, log_path=old)
+    monkeypatch.setattr(runlog.RunLogWriter, "__init__", orig)
+    data = old.read_bytes()
+    old.unlink()
+    partial_path(old).write_bytes(data[: len(data) // 2])
+    assert read_runlog(old).header["settings"]["chunk_blocks"] is None
+    resumed = execute(resume_path=old, progress=False, attribution_trials=0)
+    assert read_runlog(old).header["settings"]["chunk_blocks"] == 4
+    for k in SCALARS:
+        assert np.array_equal(resumed.acc.scalar_samples(k), res.acc.scalar_samples(k)), k
+    assert resumed.convergence[-1] == res.convergence[-1]
+
+
+def _moments_equal(a, b):
+    for k in ("point_error", "parameters", "components"):
+        x, y = a.acc.moments[k], b.acc.moments[k]
+        for f in ("mean", "m2", "C"):
+            if hasattr(x, f):
+                assert np.array_equal(getattr(x, f), getattr(y, f)), (k, f)
+        assert x.n == y.n
+
+
+def _cut_inside_block(path, k):
+    from mtbudget.runlog import partial_path
+
+    data = path.read_bytes()
+    at = [i for i in range(len(data)) if data.startswith(b'"block": %d,' % k, i)][0]
+    path.unlink()
+    partial_path(path).write_bytes(data[:at])
+
+
+def _old_histogram_layout(monkeypatch):
+    """Write logs as format 1.1 did for a run that histograms its per-point errors: every block with its moments,
+    checkpoints without them."""
+    import mtbudget.runlog as runlog
+
+    orig = runlog.RunLogWriter.__init__
+
+    def init(self, *args, **kwargs):
+        orig(self, *args, **kwargs)
+        self.block_moments = True
+
+    monkeypatch.setattr(runlog, "HISTOGRAM_FORMAT", runlog.FORMAT)
+    monkeypatch.setattr(runlog.RunLogWriter, "__init__", init)
+
+
+HIST = dict(trials=96, block=8, chunk_blocks=2, attribution_trials=0, keep_samples=False)
+
+
+def test_a_histogram_run_logs_its_moments_with_its_checkpoints(tmp_path, monkeypatch):
+    """Format 2: blocks without moments (about 4x smaller for the paper's mesh), the moments of the run so far in each
+    histogram checkpoint; replay gives the numbers a format-1.1 log of the same run gives, and the run's own."""
+    new, old = tmp_path / "new.mcap", tmp_path / "old.mcap"
+    full = execute(SMALL, log_path=new, histogram_every=0.0, **HIST)
+    log = read_runlog(new)
+    assert log.metadata["format"] == log.header["format"] == "mtbudget-runlog/2"
+    assert all(not any(k.endswith("moments") for k in b) for b in log.blocks)
+    assert log.histograms[-1]["blocks"] == 12 and "moments" in log.histograms[-1]
+    with monkeypatch.context() as m:
+        _old_histogram_layout(m)
+        execute(SMALL, log_path=old, histogram_every=0.0, **HIST)
+    assert read_runlog(old).header["format"] == "mtbudget-runlog/1.1"
+    assert all("point_error_moments" in b for b in read_runlog(old).blocks)
+    a, b = replay(new), replay(old)
+    assert a.complete and a.trials == b.trials == 96
+    _moments_equal(a, full)
+    _moments_equal(b, full)
+    from mtbudget.report import result_json
+
+    assert json.dumps(result_json(a)) == json.dumps(result_json(b))
+    assert verify(new)["identical"]
+    assert new.stat().st_size < old.stat().st_size
+
+
+@pytest.mark.parametrize("layout", ["format 2", "format 1.1"])
+def test_a_histogram_run_resumes_bit_for_bit_from_either_layout(tmp_path, monkeypatch, layout):
+    from mtbudget.report import result_json
+
+    path = tmp_path / "h.mcap"
+    full = run(load_config(SMALL), **HIST)
+    with monkeypatch.context() as m:
+        if layout == "format 1.1":
+            _old_histogram_layout(m)
+        execute(SMALL, log_path=path, histogram_every=0.0, **HIST)
+    _cut_inside_block(path, 7)
+    cut = read_runlog(path)
+    if layout == "format 2":  # an interrupted run is replayed up to its last checkpoint (what a resume keeps)
+        assert replay(path).trials == 6 * 8 and not replay(path).complete
+    res = execute(resume_path=path, histogram_every=0.0)
+    assert max(h["blocks"] for h in cut.histograms) == 6
+    _moments_equal(res, full)
+    assert json.dumps(res.points()) == json.dumps(full.points())
+    again = replay(path)
+    assert again.complete and read_runlog(path).header["format"] == "mtbudget-runlog/2"
+    _moments_equal(again, full)
+    assert json.dumps(result_json(again)["points"]) == json.dumps(result_json(res)["points"])
