@@ -454,13 +454,10 @@ def _kernel_layout(model: ErrorModel, B: np.ndarray):
     """The compiled chain's coefficient table: Legendre values L (3, K, M) of each axis' orders (zero-padded
     to the largest K), and where each parameter goes in the (axis, component error, order) table: (L, src,
     dst, K); cached per model and basis, as :func:`_axis_layout`."""
-    cache = model.__dict__.setdefault("_kernel_layout_cache", {})
-    key = (id(model.params), B.shape, B.tobytes())
-    hit = cache.get(key)
-    if hit is not None:
-        return hit
-    if len(cache) > 8:
-        cache.clear()
+    return _per_basis(model, "_kernel_layout_cache", B, lambda: _build_kernel_layout(model, B))
+
+
+def _build_kernel_layout(model: ErrorModel, B: np.ndarray):
     layout = _axis_layout(model, B)
     K = max([1] + [lay[1].shape[0] for lay in layout.values()])
     M = B.shape[0]
@@ -474,8 +471,19 @@ def _kernel_layout(model: ErrorModel, B: np.ndarray):
             kind, comp = kc[slot // Ka]
             src.append(int(j))
             dst.append((a * 6 + 3 * kind + comp) * K + slot % Ka)
-    hit = (L, np.array(src, np.intp), np.array(dst, np.intp), K)
-    cache[key] = hit
+    return L, np.array(src, np.intp), np.array(dst, np.intp), K
+
+
+def _per_basis(model: ErrorModel, name: str, B: np.ndarray, build):
+    """``build()``, cached on the model (``model.__dict__[name]``) per parameter list and basis values (a few
+    bases kept: the identification's plan, the mesh, a tool)."""
+    cache = model.__dict__.setdefault(name, {})
+    key = (id(model.params), B.shape, B.tobytes())
+    hit = cache.get(key)
+    if hit is None:
+        if len(cache) > 8:
+            cache.clear()
+        hit = cache[key] = build()
     return hit
 
 
@@ -516,16 +524,13 @@ class _AdjointCompiled:
         self.args, self.kept = args, kept
         self.tool_order = np.array([AXIS_INDEX[a] for a in config.tool], np.int64)
         self.N = args[7].shape[0]
-        cache = model.__dict__.setdefault("_vjp_layout_cache", {})
-        key = (id(model.params), B.shape, B.tobytes())
-        if key not in cache:
-            if len(cache) > 8:
-                cache.clear()
+        def build():
             ref = _Adjoint.layout(model, B)
             params = np.array([(AXIS_INDEX[ref["cols"][k][0]], ref["cols"][k][1], ref["cols"][k][2])
                                for k in ref["col_of"]], np.int64).reshape(-1, 3)
-            cache[key] = (params, ref["basis"])
-        self.params, self.basis = cache[key]
+            return params, ref["basis"]
+
+        self.params, self.basis = _per_basis(model, "_vjp_layout_cache", B, build)
 
     def __call__(self, v: np.ndarray, idx=None) -> np.ndarray:
         from .kernels import chain_vjp
@@ -729,13 +734,10 @@ def _component_groups(model: ErrorModel):
 def _axis_layout(model: ErrorModel, B: np.ndarray):
     """Per axis: the Legendre values of every order used (M, K) and where each parameter goes in the
     (component error, order) coefficient table of that axis; cached per model and basis."""
-    cache = model.__dict__.setdefault("_axis_layout_cache", {})
-    key = (id(model.params), B.shape, B.tobytes())
-    hit = cache.get(key)
-    if hit is not None:
-        return hit
-    if len(cache) > 8:
-        cache.clear()
+    return _per_basis(model, "_axis_layout_cache", B, lambda: _build_axis_layout(model, B))
+
+
+def _build_axis_layout(model: ErrorModel, B: np.ndarray):
     layout = {}
     for axis in AXES:
         groups = [(kind, comp, idx) for ax, kind, comp, idx in _component_groups(model) if ax == axis]
@@ -754,7 +756,6 @@ def _axis_layout(model: ErrorModel, B: np.ndarray):
                 src.append(j)
                 dst.append(g * K + orders.index(model.params[j].order))
         layout[axis] = ([(kind, comp) for kind, comp, _ in groups], L, np.array(src), np.array(dst))
-    cache[key] = layout
     return layout
 
 
