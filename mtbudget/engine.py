@@ -78,8 +78,8 @@ class Engine:
         F_id = np.empty((nb * n, len(rows), 3))
         params = np.zeros((nb * n, base.n_params))
         out_scalars = {k: np.empty(nb * n) for k in SCALARS}
-        not_converged = np.zeros(nb, int)
-        fallbacks = np.zeros(nb, int)
+        not_converged = np.zeros(nb * n, bool)  # per trial: a block cut to a run's last trials counts its own
+        fallbacks = np.zeros(nb * n, bool)
         um = self._um
         for key in np.unique(keys):
             idx = np.flatnonzero(keys == key)
@@ -95,9 +95,9 @@ class Engine:
             else:  # [scales]: the stated nominal expansion at the read temperatures is a known input, (1, M) arrays
                 res = identify(model, meas[idx], sc.noise, strategy, chunk=n, groups=label[idx],
                                fixed=sc.correction or None, iteration_pose=sc.pose)
-            not_converged += np.bincount(label[idx], ~res.converged, minlength=nb).astype(int)
+            not_converged[idx] = ~res.converged
             if res.fallback is not None:
-                fallbacks += np.bincount(label[idx], res.fallback, minlength=nb).astype(int)
+                fallbacks[idx] = res.fallback
             F_id[idx] = sc.evaluate(model, res.theta)
             out_scalars["mean_error_after"][idx] = res.mean_error_after * um
             out_scalars["mean_error_before"][idx] = res.mean_error_before * um
@@ -127,8 +127,9 @@ class Engine:
             sc_b["compensation_rms"] = np.sqrt((e**2).mean(axis=1))
             sc_b["compensation_mean"] = e.mean(axis=1)
             sc_b["compensation_max"] = e.max(axis=1)
-            results.append(BlockResult(b, n, sc_b, e, params[sl].copy(), int(not_converged[i]), components=comp,
-                                       fallbacks=int(fallbacks[i])))
+            results.append(BlockResult(b, n, sc_b, e, params[sl].copy(), int(not_converged[sl].sum()), components=comp,
+                                       fallbacks=int(fallbacks[sl].sum()), trial_not_converged=not_converged[sl].copy(),
+                                       trial_fallbacks=fallbacks[sl].copy()))
         return results
 
     def _options_of(self, src) -> list:

@@ -54,6 +54,10 @@ class BlockResult:
     components: np.ndarray | None = None  # (n, M0, 3) um: the compensated machine's error per point and axis
     component_moments: CoMoments | None = None
     fallbacks: int = 0  # trials whose fast identification handed over to full Gauss-Newton
+    # which trials did not converge / fell back, (n,) bools, when the block was computed here (so that a block cut
+    # to a run's last trials counts its own trials only); a block read back from a log has its counts only
+    trial_not_converged: np.ndarray | None = field(default=None, repr=False, compare=False)
+    trial_fallbacks: np.ndarray | None = field(default=None, repr=False, compare=False)
     # the moments of the vector outputs, computed once (a worker computes them before sending the block; the run
     # merges them and the run log writes them); never part of a comparison
     _moments: dict = field(default_factory=dict, init=False, repr=False, compare=False)
@@ -66,10 +70,13 @@ class BlockResult:
             from .errors import ConfigError
 
             raise ConfigError("a block read back from a log cannot be shortened; resume with the logged trial count")
+        nc, fb = self.trial_not_converged, self.trial_fallbacks
         return BlockResult(self.block, n, {k: v[:n] for k, v in self.scalars.items()}, self.point_error[:n],
-                           self.parameters[:n], self.not_converged,
+                           self.parameters[:n], self.not_converged if nc is None else int(nc[:n].sum()),
                            components=None if self.components is None else self.components[:n],
-                           fallbacks=self.fallbacks)
+                           fallbacks=self.fallbacks if fb is None else int(fb[:n].sum()),
+                           trial_not_converged=None if nc is None else nc[:n],
+                           trial_fallbacks=None if fb is None else fb[:n])
 
     def vector_moments(self) -> dict:
         """{"point_error": Moments, "parameters": Moments, "components": CoMoments}, those the block knows (a block

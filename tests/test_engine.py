@@ -164,3 +164,21 @@ def test_fallbacks_to_gauss_newton_are_counted_and_logged(small, tmp_path):
     assert "solved by full Gauss-Newton" in budget_text(big)
     assert replay(tmp_path / "big.mcap").fallbacks == 32
     assert run(small, trials=32, block=16, attribution_trials=0).fallbacks == 0  # the paper-sized errors stay linear
+
+
+def test_a_run_counts_its_own_trials_only_when_the_last_block_is_cut(small, monkeypatch):
+    """200 trials in blocks of 64: the last block is cut to 8 trials, and the counts of trials that did not converge
+    or fell back are of the 200 trials run, never of the 256 computed (a new user saw "253 of 200 trials")."""
+    import mtbudget.engine as engine_module
+
+    real = engine_module.identify
+
+    def every_trial_fails(*args, **kwargs):
+        res = real(*args, **kwargs)
+        res.converged = np.zeros_like(res.converged)
+        res.fallback = np.ones_like(res.converged)
+        return res
+
+    monkeypatch.setattr(engine_module, "identify", every_trial_fails)
+    res = run(small, trials=200, block=64, attribution_trials=0)
+    assert res.trials == 200 and res.not_converged == 200 and res.fallbacks == 200
