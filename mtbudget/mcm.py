@@ -109,6 +109,17 @@ class Result:
     def trials(self) -> int:
         return int(self.values.shape[0])
 
+    def __repr__(self) -> str:
+        """What the result is, in one line (never the trial values themselves)."""
+        lo, hi = self.interval("symmetric")
+        unit, u = f"{self.units:~P}", self.std_uncertainty.magnitude
+        # y and the interval to the decimal of u's second significant digit (GUM 7.2.6)
+        d = max(0, 1 - math.floor(math.log10(u))) if u > 0 and math.isfinite(u) else 6
+        f = (lambda x: f"{x:.{d}f}") if d <= 12 else (lambda x: f"{x:.6g}")
+        return (f"<mtbudget MCM result: y = {f(self.estimate.magnitude)} {unit}, u(y) = {u:.2g} {unit} (standard "
+                f"uncertainty, k = 1), {100 * self.coverage:g} % probabilistically symmetric coverage interval "
+                f"[{f(lo.magnitude)}, {f(hi.magnitude)}] {unit}; M = {self.trials} trials (JCGM 101)>")
+
     @property
     def estimate(self) -> pint.Quantity:
         if self._mean is None:
@@ -293,22 +304,33 @@ def gum(model, inputs: dict, coverage: float = 0.95, correlations: dict | None =
         col[1 + 2 * i] += h
         col[2 + 2 * i] -= h
         cols[k] = Q_(col, means[k].units)
-    y = _evaluate(model, cols, names)
-    out_units = y.units
-    ym_all = np.broadcast_to(np.asarray(y.magnitude, float).ravel(), (1 + 2 * len(names),))
-    y0m = float(ym_all[0])
-    sens, rows = {}, []
-    for i, k in enumerate(names):
-        sens[k] = float((ym_all[1 + 2 * i] - ym_all[2 + 2 * i]) / (2 * steps[k]))
+    with np.errstate(all="ignore"):  # an overflow here is reported below, naming the input
+        y = _evaluate(model, cols, names)
+        out_units = y.units
+        ym_all = np.broadcast_to(np.asarray(y.magnitude, float).ravel(), (1 + 2 * len(names),))
+        y0m = float(ym_all[0])
+        sens, rows = {}, []
+        for i, k in enumerate(names):
+            sens[k] = float((ym_all[1 + 2 * i] - ym_all[2 + 2 * i]) / (2 * steps[k]))
     R = _correlation_matrix(inputs, names, correlations)
     # uncertainties: inputs as (correlated) ufloats about 0, the output as their linear combination
-    if R is not None:
-        cov = R * np.outer([us[k].magnitude for k in names], [us[k].magnitude for k in names])
-        xs = uncertainties.correlated_values(np.zeros(len(names)), cov, tags=names)
-    else:
-        xs = [uncertainties.ufloat(0.0, us[k].magnitude, tag=k) for k in names]
-    y = y0m + sum(sens[k] * x for k, x in zip(names, xs))
-    uc = float(y.std_dev)
+    try:
+        if R is not None:
+            cov = R * np.outer([us[k].magnitude for k in names], [us[k].magnitude for k in names])
+            xs = uncertainties.correlated_values(np.zeros(len(names)), cov, tags=names)
+        else:
+            xs = [uncertainties.ufloat(0.0, us[k].magnitude, tag=k) for k in names]
+        y = y0m + sum(sens[k] * x for k, x in zip(names, xs))
+        uc = float(y.std_dev)
+    except (OverflowError, ValueError) as exc:  # u or c u beyond double precision: say which input, not where
+        worst = max(names, key=lambda k: abs(sens[k] * us[k].magnitude) if math.isfinite(sens[k]) else math.inf)
+        raise ModelError(f"the law of propagation of uncertainty overflows ({exc}): the contribution of input "
+                         f"{worst!r} (u = {us[worst].magnitude:.3g} {us[worst].units:~}, sensitivity {sens[worst]:.3g}) "
+                         "is beyond double precision; state the inputs in units that keep them in range") from None
+    if not math.isfinite(uc) or not all(math.isfinite(v) for v in sens.values()):
+        bad = [k for k in names if not math.isfinite(sens[k])] or names
+        raise ModelError(f"the law of propagation of uncertainty gives a non-finite u(y) (sensitivity to "
+                         f"{', '.join(repr(k) for k in bad)} not finite): check the model and the inputs' scales")
     denom = 0.0
     for k in names:
         ci_ui = sens[k] * us[k].magnitude

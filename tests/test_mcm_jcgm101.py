@@ -372,3 +372,31 @@ def test_the_estimate_and_u_do_not_depend_on_what_is_asked_first():
     second = propagate(lambda x, y: x * y + x, inputs, trials=300_000, seed=5)
     second.interval("shortest")  # sorts
     assert second.std_uncertainty == u1 and second.estimate == first.estimate
+
+
+def test_an_input_beyond_double_precision_is_one_error_naming_it():
+    """u = 1e300 um: the law of propagation overflows; the error names the input (a new user got an OverflowError from
+    inside the uncertainties package)."""
+    from mtbudget.mcm import ModelError
+
+    with pytest.raises(ModelError, match="'a'.*beyond double precision"):
+        propagate(lambda a, b: a + b, {"a": Normal(1 * ureg.um, 1e300 * ureg.um), "b": Normal(0 * ureg.um, 1 * ureg.um)},
+                  trials=1000)
+    with pytest.raises(ModelError, match="non-finite u"):
+        propagate(lambda a: a * a / (1 * ureg.um), {"a": Normal(1 * ureg.um, 1e200 * ureg.um)}, trials=1000)
+
+
+def test_a_result_says_what_it_is_in_one_line():
+    """repr: the estimate, u with k = 1, the coverage and the unit, to u's second significant digit; never the
+    200 000 trial values (a new user printed a result and got the array)."""
+    import re
+
+    res = propagate(lambda a: a, {"a": Normal(1234.0 * ureg.um, 30.0 * ureg.um)}, trials=200_000, seed=3)
+    text = repr(res)
+    assert len(text) < 300 and "\n" not in text
+    m = re.search(r"y = ([0-9.]+) µm, u\(y\) = ([0-9.]+) µm \(standard uncertainty, k = 1\), 95 % probabilistically "
+                  r"symmetric coverage interval \[([0-9.]+), ([0-9.]+)\] µm; M = 200000 trials", text)
+    assert m, text
+    y, u, lo, hi = map(float, m.groups())
+    assert (y, u) == (1234.0, 30.0)  # N(1234, 30): to u's second digit
+    assert abs(lo - (1234 - 1.96 * 30)) <= 1 and abs(hi - (1234 + 1.96 * 30)) <= 1
