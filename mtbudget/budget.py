@@ -230,7 +230,7 @@ def attribution(engine, result: RunResult, n: int, *, ex_kind="inline", workers=
                         "share": groups.get(g.value, 0.0) / V if V > 0 else 0.0} for g in Group],
         }
     if "components" in total:
-        tables["points"] = point_budget(engine, total, per_source, systematic)
+        tables["points"] = {**point_budget(engine, total, per_source, systematic), "trials": n}
     return tables
 
 

@@ -236,6 +236,9 @@ def budget_text(res: RunResult) -> str:
         lines.append(f"  {'interaction (not additive)':<32} {'':<22} {'':>34} {pb['interaction_share']:7.1%}")
         lines.append(f"  {'total':<32} {'':<22} {_vec(pb['total']['u_rms_over_mesh'], 2):>34} {1:7.1%}")
         lines.append("  by group: " + ", ".join(f"{g['group']} {g['share']:.1%}" for g in pb["groups"]))
+        lines.append(f"  share: of the variance of the per-point errors summed over points and axes, on the budget's "
+                     f"{pb.get('trials', 'first')} trials (the total's u can differ in its last digit from the "
+                     "statement above, which uses every trial)")
         for k in pb.get("systematic", []):
             lines.append(f"  systematic, {k['systematic']} ({', '.join(k['sources'])}): u_i {_vec(k['u_rms_over_mesh'], 2)} "
                          f"{pretty(pb['unit'])} RMS over the mesh (k = 1), {k['share']:.1%}; how each was bounded:")
