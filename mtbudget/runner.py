@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import json
 import math
-import os
 from collections import deque
 from dataclasses import dataclass, replace
 from pathlib import Path

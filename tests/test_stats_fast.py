@@ -12,7 +12,7 @@ import pytest
 
 from mtbudget.outputs import BlockResult
 from mtbudget.runlog import _with_crc
-from mtbudget.stats import Accumulator, CoMoments, Moments, VectorHistogram, interval_indices
+from mtbudget.stats import Accumulator, Moments, VectorHistogram, interval_indices
 
 NAMES = ("a", "b", "c", "d")
 
