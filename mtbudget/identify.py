@@ -777,7 +777,7 @@ def _identify_chunk_chord(model, meas, noise, strategy, theta, pose0, fixed, pha
             key = key_n + (None if Q is None else (Q.tobytes(), Q.shape),)
             if key not in cache:
                 cache[key] = _iteration_matrices(G0, J, nominal_information())[0]
-            return _SameForAll(cache[key])
+            return dict.fromkeys(range(lab.n), cache[key])  # one matrix, every label
         return _iteration_matrices(G0, J, W_bars)
 
     state = {"R": Rk.copy(), "T": pose_k[:, :3].copy(), "theta": theta}
@@ -883,17 +883,6 @@ def _iteration_matrices(G0, J, W_bars):
         KW = W_bar @ K  # (M, 3, 3) @ (M, 3, b): each point's information times its rows
         out[k] = _spd_inverse(K2.T @ KW.reshape(3 * M, -1))
     return out
-
-
-class _SameForAll(dict):
-    """One iteration matrix for every label."""
-
-    def __init__(self, H):
-        super().__init__()
-        self.H = H
-
-    def __missing__(self, key):
-        return self.H
 
 
 def _noise_key(noise) -> tuple:

@@ -350,13 +350,18 @@ def _axis_terms(model: ErrorModel, theta: np.ndarray, B: np.ndarray):
     return out
 
 
-def _squareness(model: ErrorModel, theta: np.ndarray):
+def _squareness_index(model: ErrorModel) -> dict:
+    """{squareness name: its parameter index} of the modelled squareness errors (cached with the parameter list)."""
     cached = model.__dict__.get("_sq_cache")
     if cached is None or cached[0] is not model.params:
         names = [p.name for p in model.params]
         cached = (model.params, {s: names.index(s) for s in SQUARENESS if s in names})
         model.__dict__["_sq_cache"] = cached
-    where = cached[1]
+    return cached[1]
+
+
+def _squareness(model: ErrorModel, theta: np.ndarray):
+    where = _squareness_index(model)
     return {s: (theta[:, where[s], None] if s in where else 0.0) for s in SQUARENESS}
 
 
@@ -422,8 +427,10 @@ def _kernel_inputs(config, model, theta, inputs, B):
     coef = np.zeros((N, 3 * 6 * K))
     coef[:, dst] = theta[:, src]
     sq = np.zeros((N, 3))
-    for c, j in _squareness_columns(model):
-        sq[:, c] = theta[:, j]
+    for c, s in enumerate(SQUARENESS):  # columns sxy, sxz, syz
+        j = _squareness_index(model).get(s)
+        if j is not None:
+            sq[:, c] = theta[:, j]
     pos = []
     for a in AXES:
         p = np.asarray(inputs.effective(a), float)
@@ -442,12 +449,6 @@ def _kernel_axes(config: Configuration):
     return (np.array([AXIS_INDEX[a] for a in reversed(config.tool)], np.int64),
             np.array([AXIS_INDEX[a] for a in config.workpiece], np.int64),
             np.array([float(config.side(a)) for a in AXES]))
-
-
-def _squareness_columns(model: ErrorModel):
-    """[(0 sxy / 1 sxz / 2 syz, parameter index)] of the modelled squareness errors."""
-    names = [p.name for p in model.params]
-    return [(c, names.index(s)) for c, s in enumerate(SQUARENESS) if s in names]
 
 
 def _kernel_layout(model: ErrorModel, B: np.ndarray):
