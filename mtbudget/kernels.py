@@ -30,16 +30,29 @@ def _compiled(f):
 
 
 @_compiled
-def _forward(n, tool_axes, wp_axes, side, px, py, pz, toolT, coef, L, sq, comp, t, v, vin, wout):  # pragma: no cover
+def _rotate(k, c, s, v0, v1, v2):  # pragma: no cover - compiled
+    """(v0, v1, v2) turned right-handed about the axis e_k by the angle whose cosine is c and sine s."""
+    if k == 0:
+        return v0, c * v1 - s * v2, s * v1 + c * v2
+    if k == 1:
+        return c * v0 + s * v2, v1, c * v2 - s * v0
+    return c * v0 - s * v1, s * v0 + c * v1, v2
+
+
+@_compiled
+def _forward(n, tool_axes, wp_axes, side, px, py, pz, toolT, coef, L, sq, rdir, pivot, rcos, rsin, comp, t, v, vin,
+             wout):  # pragma: no cover
     """Trial n of the small-angle chain: its points into ``v`` (3, M), each axis' component errors into
-    ``comp`` (3, 6, M) and translations into ``t`` (3, 3, M); what enters each tool-side axis into ``vin``
-    (3, 3, M) and what leaves each workpiece-side axis into ``wout`` (3, 3, M) (for the adjoint).
+    ``comp`` (A, 6, M) and translations into ``t`` (A, 3, M); what enters each tool-side axis' error motion into
+    ``vin`` (A, 3, M) and what leaves each workpiece-side axis' error motion into ``wout`` (A, 3, M) (for the
+    adjoint).  Axes 0, 1, 2 are X, Y, Z; axes 3 .. A-1 the rotary axes (row a - 3 of rdir, pivot, rcos, rsin).
 
     Every step is a loop over the points on contiguous (M,) rows (which the compiler vectorises)."""
     K = coef.shape[3]
     M = v.shape[1]
+    A = coef.shape[1]
     pos = (px[n if px.shape[0] > 1 else 0], py[n if py.shape[0] > 1 else 0], pz[n if pz.shape[0] > 1 else 0])
-    for a in range(3):
+    for a in range(A):
         for c in range(6):
             row = comp[a, c]
             c0 = coef[n, a, c, 0]
@@ -62,12 +75,25 @@ def _forward(n, tool_axes, wp_axes, side, px, py, pz, toolT, coef, L, sq, comp, 
         t[2, 0, m] = (p2 * sxz) * -side[2] + comp[2, 0, m]
         t[2, 1, m] = (p2 * syz) * -side[2] + comp[2, 1, m]
         t[2, 2, m] = side[2] * p2 + comp[2, 2, m]
+    # a rotary axis: G(v) = p + delta + (I + [eps]x) R(theta) (v - p), so its "translation" is p + delta
+    for a in range(3, A):
+        r = a - 3
+        for i in range(3):
+            for m in range(M):
+                t[a, i, m] = pivot[r, i] + comp[a, i, m]
     for i in range(3):
         for m in range(M):
             v[i, m] = toolT[i, m]
-    # tool side: A(v) = v + eps x v + t, innermost axis first
+    # tool side: A(v) = v + eps x v + t, innermost axis first (a rotary axis turns v about its pivot first)
     for a in tool_axes:
         e0, e1, e2, ta, va = comp[a, 3], comp[a, 4], comp[a, 5], t[a], vin[a]
+        if a >= 3:
+            r = a - 3
+            k = rdir[r]
+            cr, sr = rcos[r, n if rcos.shape[1] > 1 else 0], rsin[r, n if rsin.shape[1] > 1 else 0]
+            q0, q1, q2 = pivot[r, 0], pivot[r, 1], pivot[r, 2]
+            for m in range(M):
+                v[0, m], v[1, m], v[2, m] = _rotate(k, cr[m], sr[m], v[0, m] - q0, v[1, m] - q1, v[2, m] - q2)
         for m in range(M):
             v0, v1, v2 = v[0, m], v[1, m], v[2, m]
             va[0, m], va[1, m], va[2, m] = v0, v1, v2
@@ -75,6 +101,7 @@ def _forward(n, tool_axes, wp_axes, side, px, py, pz, toolT, coef, L, sq, comp, 
             v[1, m] = v1 + (e2[m] * v0 - e0[m] * v2) + ta[1, m]
             v[2, m] = v2 + (e0[m] * v1 - e1[m] * v0) + ta[2, m]
     # workpiece side: B^-1(w) = R^-1 (w - t), R^-1 u = (u - eps x u + eps (eps . u)) / (1 + |eps|^2)
+    # (a rotary axis then turns back about its pivot: p + R(theta)^T u)
     for a in wp_axes:
         e0, e1, e2, ta, wa = comp[a, 3], comp[a, 4], comp[a, 5], t[a], wout[a]
         for m in range(M):
@@ -86,30 +113,44 @@ def _forward(n, tool_axes, wp_axes, side, px, py, pz, toolT, coef, L, sq, comp, 
             v[1, m] = (u1 - (f2 * u0 - f0 * u2) + f1 * dot) / den
             v[2, m] = (u2 - (f0 * u1 - f1 * u0) + f2 * dot) / den
             wa[0, m], wa[1, m], wa[2, m] = v[0, m], v[1, m], v[2, m]
+        if a >= 3:
+            r = a - 3
+            k = rdir[r]
+            cr, sr = rcos[r, n if rcos.shape[1] > 1 else 0], rsin[r, n if rsin.shape[1] > 1 else 0]
+            q0, q1, q2 = pivot[r, 0], pivot[r, 1], pivot[r, 2]
+            for m in range(M):
+                w0, w1, w2 = _rotate(k, cr[m], -sr[m], v[0, m], v[1, m], v[2, m])
+                v[0, m], v[1, m], v[2, m] = w0 + q0, w1 + q1, w2 + q2
 
 
 @_compiled
-def chain_points(tool_axes, wp_axes, side, px, py, pz, tool, coef, L, sq, out, eps, vin, wout):  # pragma: no cover
+def chain_points(tool_axes, wp_axes, side, px, py, pz, tool, coef, L, sq, rdir, pivot, rcos, rsin, out, eps, vin,
+                 wout):  # pragma: no cover
     """The small-angle chain (machine.py's module docstring) for N trials and M points, into ``out`` (N, M, 3).
 
-    tool_axes: axis indices (0 x, 1 y, 2 z) in the order the tool side is applied (innermost first);
-    wp_axes: the workpiece side in order (the axis on the bed first); side: (3,) +1 tool side, -1
-    workpiece side; px, py, pz: effective positions of each axis, (1, M) or (N, M); tool: (M, 3);
-    coef: (N, 3, 6, K) Legendre coefficients of each axis' six component errors (dx, dy, dz, ex, ey, ez),
-    zero where not modelled; L: (3, K, M) Legendre values at each axis' positions; sq: (N, 3) the
-    squareness errors sxy, sxz, syz (zero where not modelled).
+    tool_axes: axis indices (0 x, 1 y, 2 z, 3.. the rotary axes) in the order the tool side is applied
+    (innermost first); wp_axes: the workpiece side in order (the axis on the bed first); side: (A,) +1 tool
+    side, -1 workpiece side; px, py, pz: effective positions of each linear axis, (1, M) or (N, M); tool:
+    (M, 3); coef: (N, A, 6, K) coefficients of each axis' six component errors (dx, dy, dz, ex, ey, ez), zero
+    where not modelled; L: (A, K, M) the basis values (Legendre of a linear axis' position, 1 / cos / sin of a
+    rotary axis' angle) at the points; sq: (N, 3) the squareness errors sxy, sxz, syz (zero where not
+    modelled); rdir: (R,) the direction component of each rotary axis (0 A, 1 B, 2 C), pivot: (R, 3) a point
+    of its line; rcos, rsin: (R, 1 or N, M) cosine and sine of the angle each turns by (its effective angle
+    times the sense of its direction).
 
-    eps, vin, wout: (N, 3, 3, M) to keep for :func:`chain_vjp` each trial's angular errors, what enters each
-    tool-side axis and what leaves each workpiece-side axis; (1, 3, 3, M) to keep nothing (scratch).
+    eps, vin, wout: (N, A, 3, M) to keep for :func:`chain_vjp` each trial's angular errors, what enters each
+    tool-side axis and what leaves each workpiece-side axis; (1, A, 3, M) to keep nothing (scratch).
     """
     N = coef.shape[0]
+    A = coef.shape[1]
     M = tool.shape[0]
     keep = eps.shape[0] == N
-    comp, t, v = np.empty((3, 6, M)), np.empty((3, 3, M)), np.empty((3, M))
+    comp, t, v = np.empty((A, 6, M)), np.empty((A, 3, M)), np.empty((3, M))
     toolT = np.ascontiguousarray(tool.T)
     for n in range(N):
         k = n if keep else 0
-        _forward(n, tool_axes, wp_axes, side, px, py, pz, toolT, coef, L, sq, comp, t, v, vin[k], wout[k])
+        _forward(n, tool_axes, wp_axes, side, px, py, pz, toolT, coef, L, sq, rdir, pivot, rcos, rsin, comp, t, v,
+                 vin[k], wout[k])
         eps[k] = comp[:, 3:]
         for m in range(M):
             out[n, m, 0] = v[0, m]
@@ -119,19 +160,20 @@ def chain_points(tool_axes, wp_axes, side, px, py, pz, tool, coef, L, sq, out, e
 
 
 @_compiled
-def chain_vjp(tool_order, wp_axes, side, px, py, pz, eps, vin, wout, rows, vec, params, basis,
+def chain_vjp(tool_order, wp_axes, side, px, py, pz, rdir, rcos, rsin, eps, vin, wout, rows, vec, params, basis,
               out):  # pragma: no cover - compiled
     """J^T v of the small-angle chain (``machine._Adjoint``), trial by trial, into ``out`` (n, p).
 
     tool_order: the tool-side axes, the one on the bed first (the order the back-propagation visits
-    them); wp_axes, side, px, py, pz as for :func:`chain_points`; eps, vin, wout: what
+    them); wp_axes, side, px, py, pz, rdir, rcos, rsin as for :func:`chain_points`; eps, vin, wout: what
     :func:`chain_points` kept; rows: (n,) the trials (their rows in those arrays); vec: (n, M, 3)
     machine-frame vectors at the points; params: (p, 3) each parameter's axis, kind (0 translation,
     1 rotation, 2 squareness) and component; basis: (p, M) its basis values at the points.
     """
     M = vec.shape[1]
-    g = np.zeros((3, 3, M))  # G_a^T v of each axis
-    h = np.zeros((3, 3, 3, M))  # (axis, kind, component): what each parameter's basis values are summed against
+    A = eps.shape[1]
+    g = np.zeros((A, 3, M))  # G_a^T v of each axis
+    h = np.zeros((A, 3, 3, M))  # (axis, kind, component): what each parameter's basis values are summed against
     u = np.empty((3, M))
     pos = (px, py, pz)
     for q in range(rows.shape[0]):
@@ -139,9 +181,16 @@ def chain_vjp(tool_order, wp_axes, side, px, py, pz, eps, vin, wout, rows, vec, 
         for m in range(M):
             u[0, m], u[1, m], u[2, m] = vec[q, m, 0], vec[q, m, 1], vec[q, m, 2]
         # G_a^T v = Rinv_a^T ... Rinv_wm^T v, Rinv^T u = (u + eps x u + eps (eps . u)) / (1 + |eps|^2)
+        # (a rotary axis' turn back, R(theta)^T, transposed: R(theta), first)
         for j in range(wp_axes.shape[0] - 1, -1, -1):
             a = wp_axes[j]
             e0, e1, e2, ga = eps[n, a, 0], eps[n, a, 1], eps[n, a, 2], g[a]
+            if a >= 3:
+                r = a - 3
+                k = rdir[r]
+                cr, sr = rcos[r, n if rcos.shape[1] > 1 else 0], rsin[r, n if rsin.shape[1] > 1 else 0]
+                for m in range(M):
+                    u[0, m], u[1, m], u[2, m] = _rotate(k, cr[m], sr[m], u[0, m], u[1, m], u[2, m])
             for m in range(M):
                 f0, f1, f2 = e0[m], e1[m], e2[m]
                 u0, u1, u2 = u[0, m], u[1, m], u[2, m]
@@ -151,7 +200,7 @@ def chain_vjp(tool_order, wp_axes, side, px, py, pz, eps, vin, wout, rows, vec, 
                 u[1, m] = (u1 + (f2 * u0 - f0 * u2) + f1 * dot) * den
                 u[2, m] = (u2 + (f0 * u1 - f1 * u0) + f2 * dot) * den
                 ga[0, m], ga[1, m], ga[2, m] = u[0, m], u[1, m], u[2, m]
-        # G_a^T v = R_a-1^T ... R_1^T MW^T v on the tool side, R^T u = u - eps x u
+        # G_a^T v = R_a-1^T ... R_1^T MW^T v on the tool side, R^T u = u - eps x u (a rotary axis then R(theta)^T)
         for j in range(tool_order.shape[0]):
             a = tool_order[j]
             e0, e1, e2, ga = eps[n, a, 0], eps[n, a, 1], eps[n, a, 2], g[a]
@@ -164,9 +213,14 @@ def chain_vjp(tool_order, wp_axes, side, px, py, pz, eps, vin, wout, rows, vec, 
                     u[0, m] = u0 - (f1 * u2 - f2 * u1)
                     u[1, m] = u1 - (f2 * u0 - f0 * u2)
                     u[2, m] = u2 - (f0 * u1 - f1 * u0)
-        for a in range(3):
+            if a >= 3 and not last:
+                r = a - 3
+                k = rdir[r]
+                cr, sr = rcos[r, n if rcos.shape[1] > 1 else 0], rsin[r, n if rsin.shape[1] > 1 else 0]
+                for m in range(M):
+                    u[0, m], u[1, m], u[2, m] = _rotate(k, cr[m], -sr[m], u[0, m], u[1, m], u[2, m])
+        for a in range(A):
             ga, s = g[a], side[a]
-            pa = pos[a][n if pos[a].shape[0] > 1 else 0]
             w = vin[n, a] if s > 0 else wout[n, a]
             for m in range(M):
                 g0, g1, g2 = ga[0, m], ga[1, m], ga[2, m]
@@ -181,9 +235,12 @@ def chain_vjp(tool_order, wp_axes, side, px, py, pz, eps, vin, wout, rows, vec, 
                     h[a, 1, 0, m] = g1 * w2 - g2 * w1
                     h[a, 1, 1, m] = g2 * w0 - g0 * w2
                     h[a, 1, 2, m] = g0 * w1 - g1 * w0
+            if a < 3:
                 # squareness: -position times the translation's column G
-                pm = -pa[m]
-                h[a, 2, 0, m], h[a, 2, 1, m], h[a, 2, 2, m] = g0 * pm, g1 * pm, g2 * pm
+                pa = pos[a][n if pos[a].shape[0] > 1 else 0]
+                for m in range(M):
+                    pm = -pa[m]
+                    h[a, 2, 0, m], h[a, 2, 1, m], h[a, 2, 2, m] = ga[0, m] * pm, ga[1, m] * pm, ga[2, m] * pm
         for j in range(params.shape[0]):
             hr, br = h[params[j, 0], params[j, 1], params[j, 2]], basis[j]
             acc = 0.0

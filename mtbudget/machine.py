@@ -40,16 +40,43 @@ from .errors import ConfigError
 
 AXES = ("x", "y", "z")
 AXIS_INDEX = {"x": 0, "y": 1, "z": 2}
+#: the rotary axes (ISO 841): A about X, B about Y, C about Z; the component of the nominal direction
+ROTARY = ("a", "b", "c")
+ROTARY_INDEX = {"a": 0, "b": 1, "c": 2}
 #: names of the 18 component errors, in parameter order ("dy(x)": straightness of X in Y)
 COMPONENT_ERRORS = tuple(f"{kind}{c}({a})" for a in AXES for kind in ("d", "e") for c in AXES)
+#: the six error motions of each rotary axis ("dx(c)": radial motion of C along X; "ez(c)": its angular
+#: positioning error), in the carrier's frame (the machine frame at all axes zero)
+ROTARY_COMPONENT_ERRORS = tuple(f"{kind}{c}({a})" for a in ROTARY for kind in ("d", "e") for c in AXES)
 SQUARENESS = ("sxy", "sxz", "syz")
 
 
 def parse_error_name(name: str):
-    """Split ``"dy(x)"`` into ``("d", "y", "x")``."""
-    if name not in COMPONENT_ERRORS:
-        raise ConfigError(f"unknown component error {name!r}; expected one of {', '.join(COMPONENT_ERRORS)}")
+    """Split ``"dy(x)"`` into ``("d", "y", "x")`` (also a rotary axis' ``"dx(c)"``)."""
+    if name not in COMPONENT_ERRORS and name not in ROTARY_COMPONENT_ERRORS:
+        raise ConfigError(f"unknown component error {name!r}; expected one of {', '.join(COMPONENT_ERRORS)} "
+                          "(or the same with a rotary axis a, b, c)")
     return name[0], name[1], name[3]
+
+
+def is_rotary(axis: str) -> bool:
+    return axis in ROTARY_INDEX
+
+
+#: the terms of a rotary axis' error motion: "O" the constant (location and zero errors, ISO 230-7), "c<n>" and
+#: "s<n>" the Fourier terms cos(n theta), sin(n theta) of the commanded angle (the angle-dependent component
+#: errors of ISO 230-1); Param.order numbers them 0, 1, 2, 3, 4 ... (O, c1, s1, c2, s2 ...)
+def rotary_term(order: int) -> str:
+    return "O" if order == 0 else f"{'cs'[(order - 1) % 2]}{(order + 1) // 2}"
+
+
+def rotary_location_parameters(axis: str) -> list:
+    """The location and zero errors of a rotary axis (ISO 230-7), as parameter names: the two offsets of its
+    average line perpendicular to it, its two orientation errors and its zero error (``dx(c)[O]`` = EXOC ...)."""
+    k = ROTARY_INDEX[axis]
+    out = [f"d{c}({axis})[O]" for j, c in enumerate(AXES) if j != k]
+    out += [f"e{c}({axis})[O]" for j, c in enumerate(AXES) if j != k]
+    return out + [f"e{AXES[k]}({axis})[O]"]
 
 
 def is_straightness(name: str) -> bool:
@@ -58,29 +85,88 @@ def is_straightness(name: str) -> bool:
 
 
 @dataclass(frozen=True)
+class RotaryAxis:
+    """The nominal geometry of a rotary axis: a point of its average line (mm, machine frame with every axis at
+    zero) and the sense of its nominal direction (+1: +X for A, +Y for B, +Z for C; -1: the opposite).  A
+    commanded angle +theta turns the carried element right-handed about ``sign * e_k`` by theta."""
+
+    letter: str  # "a", "b" or "c"
+    pivot: tuple  # (3,) mm
+    sign: float = 1.0
+
+    @property
+    def index(self) -> int:
+        """The component of the nominal direction (0 for A, 1 for B, 2 for C)."""
+        return ROTARY_INDEX[self.letter]
+
+    @property
+    def direction(self) -> np.ndarray:
+        u = np.zeros(3)
+        u[self.index] = self.sign
+        return u
+
+
+def check_code(code: str) -> str:
+    """The machine code upper-cased, or a ConfigError: X, Y, Z and F once each, and at most one of each rotary
+    letter A, B, C on either side of F."""
+    c = str(code).strip().upper()
+    linear = "".join(ch for ch in c if ch in "FXYZ")
+    rotary = [ch for ch in c if ch in "ABC"]
+    if sorted(linear) != sorted("FXYZ") or len(rotary) != len(set(rotary)) or len(linear) + len(rotary) != len(c):
+        raise ConfigError(
+            f"machine configuration {code!r}: expected the letters X, Y, Z and F once each (for example XFYZ, FXYZ, "
+            "XYFZ), and for a five-axis machine at most one of each rotary letter A, B, C on either side of F "
+            "(CAFXYZ, FXYZCB, CFXYZB)"
+        )
+    return c
+
+
+@dataclass(frozen=True)
 class Configuration:
-    """A 3-axis kinematic configuration such as ``XFYZ``."""
+    """A kinematic configuration such as ``XFYZ`` (3 axes) or ``CAFXYZ`` (five axes: rotary letters on either side
+    of ``F``, each carried by the letter before it reading away from ``F``).  ``rotary``: the geometry of each
+    rotary axis (:class:`RotaryAxis`), in the order a, b, c."""
 
     code: str
     workpiece: tuple  # workpiece-side axes, the one on the bed first
     tool: tuple  # tool-side axes, the one on the bed first
+    rotary: tuple = ()
 
     @classmethod
-    def parse(cls, code: str) -> "Configuration":
-        c = str(code).strip().upper()
-        if sorted(c) != sorted("FXYZ"):
-            raise ConfigError(
-                f"machine configuration {code!r}: expected the letters X, Y, Z and F once each "
-                "(for example XFYZ, FXYZ, XYFZ)"
-            )
+    def parse(cls, code: str, rotary=None) -> "Configuration":
+        """``rotary``: {letter: RotaryAxis} (or a sequence of them) for every rotary letter of the code; required
+        when the code has one (a rotary axis without its pivot and direction has no chain)."""
+        c = check_code(code)
         i = c.index("F")
         workpiece = tuple(ch.lower() for ch in reversed(c[:i]))
         tool = tuple(ch.lower() for ch in c[i + 1 :])
-        return cls(c, workpiece, tool)
+        given = {}
+        for r in (rotary.values() if isinstance(rotary, dict) else rotary or ()):
+            given[r.letter] = r
+        letters = sorted(ch for ch in workpiece + tool if is_rotary(ch))
+        missing = [ch.upper() for ch in letters if ch not in given]
+        if missing:
+            raise ConfigError(f"machine configuration {c!r}: rotary axis {', '.join(missing)} has no pivot and "
+                              f"direction ([rotary.{missing[0]}] pivot, direction)")
+        extra = sorted(set(given) - set(letters))
+        if extra:
+            raise ConfigError(f"machine configuration {c!r} has no rotary axis {', '.join(x.upper() for x in extra)}, "
+                              f"but [rotary.{extra[0].upper()}] describes one")
+        return cls(c, workpiece, tool, tuple(given[ch] for ch in letters))
 
     def side(self, axis: str) -> int:
         """+1 for a tool-side axis, -1 for a workpiece-side axis."""
         return 1 if axis in self.tool else -1
+
+    @property
+    def rotary_letters(self) -> tuple:
+        return tuple(r.letter for r in self.rotary)
+
+    def rotary_axis(self, letter: str) -> RotaryAxis:
+        for r in self.rotary:
+            if r.letter == letter:
+                return r
+        raise KeyError(letter)
 
 
 ALL_CONFIGURATIONS = tuple(
@@ -104,7 +190,7 @@ class Param:
 
 @dataclass
 class ErrorModel:
-    """Parameterisation of the 21 rigid-body errors.
+    """Parameterisation of the 21 rigid-body errors of the linear axes and the error motions of each rotary axis.
 
     ``degrees`` maps each component error to its Legendre degree (0 = not
     modelled).  ``ranges`` gives each axis' normalisation interval.  With
@@ -116,6 +202,14 @@ class ErrorModel:
     the same model space, the angular errors of ``tool_axis`` (the axis that
     carries the tool) then get a constant P0 term: a tilt of the tool holder
     that shows only through tool offsets.
+
+    ``rotary``: {letter: harmonics} of the rotary axes.  Each has its location and zero errors (ISO 230-7: the two
+    offsets of its average line and its two orientation errors perpendicular to it, and its zero error: ``dx(c)[O]``
+    = EXOC, ``dy(c)[O]`` = EYOC, ``ex(c)[O]`` = EAOC, ``ey(c)[O]`` = EBOC, ``ez(c)[O]`` = ECOC), and with
+    harmonics H > 0 the angle-dependent error motions (ISO 230-1 EXC ... ECC) as Fourier terms ``[c1]``, ``[s1]``
+    ... ``[cH]``, ``[sH]`` of the commanded angle; the c1/s1 terms of the radial and tilt motions are left out
+    (they trade with the next element's location errors, FORMAT-3 section 5).  ``angle_unit`` of those terms:
+    the angle-dependent terms are in mm and rad like the others.
     """
 
     ranges: dict
@@ -123,11 +217,14 @@ class ErrorModel:
     squareness: bool = True
     straightness_convention: str = "iso230"  # or "free"
     tool_axis: str | None = None
+    rotary: dict = field(default_factory=dict)  # letter -> harmonics (int >= 0)
     params: list = field(init=False)
 
     def __post_init__(self):
         for name in self.degrees:
             parse_error_name(name)
+            if is_rotary(name[3]):
+                raise ConfigError(f"{name}: a rotary axis' error motions are set by its harmonics, not a degree")
         for a in AXES:
             lo, hi = self.ranges[a]
             used = any(int(d) > 0 for n, d in self.degrees.items() if n[3] == a)
@@ -135,6 +232,11 @@ class ErrorModel:
                 raise ConfigError(f"axis {a}: measured range [{lo}, {hi}] mm is empty; cannot normalise its error functions")
         if self.straightness_convention not in ("iso230", "free"):
             raise ConfigError("straightness_convention must be 'iso230' or 'free'")
+        for r, h in self.rotary.items():
+            if r not in ROTARY_INDEX:
+                raise ConfigError(f"rotary axis {r!r}: expected a, b or c")
+            if int(h) < 0:
+                raise ConfigError(f"rotary axis {r.upper()}: harmonics must be >= 0, got {h}")
         self.params = []
         for name in COMPONENT_ERRORS:
             deg = int(self.degrees.get(name, 0))
@@ -146,13 +248,29 @@ class ErrorModel:
             unit = "mm" if name[0] == "d" else "rad"
             for n in range(first, deg + 1):
                 self.params.append(Param(f"{name}[P{n}]", unit, name, n))
+        for r in ROTARY:
+            if r not in self.rotary:
+                continue
+            k = ROTARY_INDEX[r]
+            H = int(self.rotary[r])
+            for kind in "de":
+                for j, c in enumerate(AXES):
+                    err = f"{kind}{c}({r})"
+                    unit = "mm" if kind == "d" else "rad"
+                    along = j == k  # axial motion / positioning error: no constant location term, but c1/s1
+                    orders = ([] if (kind == "d" and along) else [0])
+                    orders += [o for o in range(1, 2 * H + 1) if along or o > 2]
+                    for o in orders:
+                        self.params.append(Param(f"{err}[{rotary_term(o)}]", unit, err, o))
         if self.squareness:
             for s in SQUARENESS:
                 self.params.append(Param(s, "rad", s, 0))
 
     @classmethod
-    def default(cls, nominal: np.ndarray, max_degree: int = 3, **kw) -> "ErrorModel":
-        """Degrees ``min(max_degree, distinct positions - 1)`` per axis, ranges from the data."""
+    def default(cls, nominal: np.ndarray, max_degree: int = 3, *, angles: dict | None = None, harmonics: int = 0,
+                **kw) -> "ErrorModel":
+        """Degrees ``min(max_degree, distinct positions - 1)`` per axis, ranges from the data; the rotary axes of
+        ``angles`` (letter -> commanded angles) with their location errors and ``harmonics`` Fourier terms."""
         nominal = np.asarray(nominal, float)
         ranges, degrees = {}, {}
         for a in AXES:
@@ -163,6 +281,7 @@ class ErrorModel:
             for kind in "de":
                 for c in AXES:
                     degrees[f"{kind}{c}({a})"] = deg
+        kw.setdefault("rotary", {r: int(harmonics) for r in sorted(angles or {})})
         return cls(ranges=ranges, degrees=degrees, **kw)
 
     @property
@@ -181,11 +300,12 @@ class ErrorModel:
         half = 0.5 * (hi - lo) if hi > lo else 1.0
         return (np.asarray(positions, float) - 0.5 * (lo + hi)) / half
 
-    def basis(self, nominal: np.ndarray) -> np.ndarray:
+    def basis(self, nominal: np.ndarray, angles: dict | None = None) -> np.ndarray:
         """Basis value of every parameter at every point: (M, p).
 
         Squareness columns are 0 here (they act through the effective
-        positions, see :func:`chain`).
+        positions, see :func:`chain`).  A rotary axis' terms are 1 (location errors) and cos/sin of multiples of
+        its commanded angle (``angles``: letter -> (M,) rad).
         """
         nominal = np.asarray(nominal, float)
         M = nominal.shape[0]
@@ -195,6 +315,16 @@ class ErrorModel:
             if p.error in SQUARENESS:
                 continue
             axis = p.error[3]
+            if is_rotary(axis):
+                if p.order == 0:
+                    B[:, j] = 1.0
+                    continue
+                if angles is None or axis not in angles:
+                    raise ConfigError(f"rotary axis {axis.upper()}: no commanded angles for its error motions")
+                n = (p.order + 1) // 2
+                th = np.asarray(angles[axis], float)
+                B[:, j] = np.cos(n * th) if p.order % 2 else np.sin(n * th)
+                continue
             if axis not in cache:
                 cache[axis] = self.normalised(axis, nominal[:, AXIS_INDEX[axis]])
             coef = np.zeros(p.order + 1)
@@ -202,8 +332,10 @@ class ErrorModel:
             B[:, j] = npleg.legval(cache[axis], coef) if p.order else 1.0
         return B
 
-    def from_coefficients(self, coefficients: dict, squareness: dict | None = None) -> np.ndarray:
-        """Parameter vector from ``{"dx(x)": [P1, P2, ...]}`` (mm / rad) and squareness (rad).
+    def from_coefficients(self, coefficients: dict, squareness: dict | None = None,
+                          named: dict | None = None) -> np.ndarray:
+        """Parameter vector from ``{"dx(x)": [P1, P2, ...]}`` (mm / rad) and squareness (rad); ``named``: other
+        parameters by name (a rotary axis' ``dx(c)[O]`` ...), mm / rad.
 
         Terms that the model does not carry (a degree lower than given, or the
         P1 of a straightness under the iso230 convention) must be zero;
@@ -226,20 +358,31 @@ class ErrorModel:
                 theta[names.index(s)] = value
             elif value != 0.0:
                 raise ConfigError(f"squareness {s} is not modelled")
+        for key, value in (named or {}).items():
+            if key in names:
+                theta[names.index(key)] = value
+            elif value != 0.0:
+                raise ConfigError(f"{key} = {value} is not a parameter of this error model")
         return theta
 
     def coefficients(self, theta: np.ndarray) -> tuple[dict, dict]:
-        """Inverse of :meth:`from_coefficients` for one parameter vector."""
+        """Inverse of :meth:`from_coefficients` for one parameter vector (rotary terms by name in the second dict)."""
         coefs, sq = {}, {}
         for j, p in enumerate(self.params):
             if p.is_squareness:
                 sq[p.error] = float(theta[j])
+            elif is_rotary(p.error[3]):
+                sq[p.name] = float(theta[j])
             elif p.order == 0:
                 sq[f"{p.error}[P0]"] = float(theta[j])
             else:
                 lst = coefs.setdefault(p.error, [0.0] * int(self.degrees[p.error]))
                 lst[p.order - 1] = float(theta[j])
         return coefs, sq
+
+    @property
+    def rotary_letters(self) -> tuple:
+        return tuple(r for r in ROTARY if r in self.rotary)
 
 
 def skew_basis() -> np.ndarray:
@@ -288,15 +431,22 @@ class ChainInputs:
 
     nominal: (M, 3) commanded axis positions; tool: (M, 3) tool offset T;
     offset / scale: dict axis -> array broadcastable to (N, M) added to the
-    position / relative scale error of the axis (Eq. 15).
+    position / relative scale error of the axis (Eq. 15); angles: dict rotary
+    letter -> (M,) commanded angles (rad), to which ``offset`` of that letter
+    (rad) adds.
     """
 
     nominal: np.ndarray
     tool: np.ndarray
     offset: dict = field(default_factory=dict)
     scale: dict = field(default_factory=dict)
+    angles: dict = field(default_factory=dict)
 
     def effective(self, axis: str) -> np.ndarray:
+        if is_rotary(axis):
+            th = np.asarray(self.angles[axis], float)[None, :]
+            off = self.offset.get(axis)
+            return np.atleast_2d(th if off is None else th + np.asarray(off))
         p = self.nominal[:, AXIS_INDEX[axis]][None, :]
         off = self.offset.get(axis)
         if off is not None:
@@ -342,7 +492,7 @@ def _axis_terms(model: ErrorModel, theta: np.ndarray, B: np.ndarray):
     """Translational and angular errors per axis: dict axis -> (delta (N,M,3), eps (N,M,3))."""
     N = theta.shape[0]
     M = B.shape[0]
-    out = {a: [np.zeros((N, M, 3)), np.zeros((N, M, 3))] for a in AXES}
+    out = {a: [np.zeros((N, M, 3)), np.zeros((N, M, 3))] for a in AXES + ROTARY}
     for err, idx in _groups(model).items():
         kind, comp, axis = err[0], AXIS_INDEX[err[1]], err[3]
         vals = theta[:, idx] @ B[:, idx].T  # (N, M)
@@ -398,9 +548,11 @@ def chain(
     theta = np.atleast_2d(np.asarray(theta, float))
     N, M = theta.shape[0], inputs.nominal.shape[0]
     if B is None:
-        B = model.basis(inputs.nominal)
+        B = model.basis(inputs.nominal, inputs.angles)
     if not jacobian:
         return chain_points(config, model, theta, inputs, B)
+    if config.rotary:  # the formed Jacobian of a five-axis chain: the matrix form (3 x 3 per point and axis)
+        return chain_reference(config, model, theta, inputs, jacobian=True, B=B, project=project)
     out, terms, t, peff, v_in, w_out = _evaluate(config, model, theta, inputs, B)
     return out, _jacobian(config, model, terms, t, peff, v_in, w_out, B, project, N, M, row_groups)
 
@@ -415,16 +567,26 @@ def chain_points(config: Configuration, model: ErrorModel, theta: np.ndarray, in
 
     args = _kernel_inputs(config, model, theta, inputs, B)
     N, M = theta.shape[0], inputs.nominal.shape[0]
-    scratch = np.empty((1, 3, 3, M))  # nothing kept for the adjoint
+    scratch = np.empty((1, args[8].shape[0], 3, M))  # nothing kept for the adjoint
     return kernel(*args, np.empty((N, M, 3)), scratch, scratch, scratch)
 
 
+def _slots(config: Configuration) -> dict:
+    """The compiled chain's axis numbering: X, Y, Z are 0, 1, 2; the rotary axes follow in the order a, b, c."""
+    out = dict(AXIS_INDEX)
+    for i, r in enumerate(config.rotary_letters):
+        out[r] = 3 + i
+    return out
+
+
 def _kernel_inputs(config, model, theta, inputs, B):
-    """The compiled chain's inputs: (tool axes, workpiece axes, sides, px, py, pz, tool, coef, L, sq)."""
+    """The compiled chain's inputs: (tool axes, workpiece axes, sides, px, py, pz, tool, coef, L, sq, rdir, pivot,
+    rcos, rsin)."""
     N, M = theta.shape[0], inputs.nominal.shape[0]
     tool_axes, wp_axes, side = _kernel_axes(config)
-    L, src, dst, K = _kernel_layout(model, B)
-    coef = np.zeros((N, 3 * 6 * K))
+    L, src, dst, K = _kernel_layout(config, model, B)
+    A = L.shape[0]
+    coef = np.zeros((N, A * 6 * K))
     coef[:, dst] = theta[:, src]
     sq = np.zeros((N, 3))
     for c, s in enumerate(SQUARENESS):  # columns sxy, sxz, syz
@@ -441,45 +603,69 @@ def _kernel_inputs(config, model, theta, inputs, B):
     # C-contiguous, writable float64: one compiled signature whatever the caller's arrays (a read-only view
     # would be another type to numba, and another compilation)
     pos, tool = [np.require(x, np.float64, ["C", "W"]) for x in pos], np.require(tool, np.float64, ["C", "W"])
-    return (tool_axes, wp_axes, side, pos[0], pos[1], pos[2], tool, coef.reshape(N, 3, 6, K), L, sq)
+    rdir, pivot, rcos, rsin = _rotary_inputs(config, inputs, N, M)
+    return (tool_axes, wp_axes, side, pos[0], pos[1], pos[2], tool, coef.reshape(N, A, 6, K), L, sq,
+            rdir, pivot, rcos, rsin)
+
+
+def _rotary_inputs(config, inputs, N, M):
+    """Each rotary axis' direction component (R,), pivot (R, 3), and the cosine and sine (R, 1 or N, M) of the angle
+    it turns by: its effective angle times the sense of its direction."""
+    R = len(config.rotary)
+    rdir = np.array([r.index for r in config.rotary], np.int64)
+    pivot = np.array([r.pivot for r in config.rotary], float).reshape(R, 3)
+    if not R:
+        return rdir, pivot, np.empty((0, 1, M)), np.empty((0, 1, M))
+    th = [np.asarray(inputs.effective(r.letter), float) for r in config.rotary]
+    n = max(t.shape[0] for t in th)
+    th = np.stack([np.broadcast_to(t, (n, M)) for t in th])
+    sign = np.array([r.sign for r in config.rotary])[:, None, None]
+    return rdir, pivot, np.ascontiguousarray(np.cos(th)), np.ascontiguousarray(sign * np.sin(th))
 
 
 def _kernel_axes(config: Configuration):
     """(tool-side axes innermost first, workpiece-side axes in order, side of each axis) as arrays."""
-    return (np.array([AXIS_INDEX[a] for a in reversed(config.tool)], np.int64),
-            np.array([AXIS_INDEX[a] for a in config.workpiece], np.int64),
-            np.array([float(config.side(a)) for a in AXES]))
+    slot = _slots(config)
+    return (np.array([slot[a] for a in reversed(config.tool)], np.int64),
+            np.array([slot[a] for a in config.workpiece], np.int64),
+            np.array([float(config.side(a)) for a in AXES + config.rotary_letters]))
 
 
-def _kernel_layout(model: ErrorModel, B: np.ndarray):
-    """The compiled chain's coefficient table: Legendre values L (3, K, M) of each axis' orders (zero-padded
+def _kernel_layout(config: Configuration, model: ErrorModel, B: np.ndarray):
+    """The compiled chain's coefficient table: basis values L (A, K, M) of each axis' orders (zero-padded
     to the largest K), and where each parameter goes in the (axis, component error, order) table: (L, src,
     dst, K); cached per model and basis, as :func:`_axis_layout`."""
-    return _per_basis(model, "_kernel_layout_cache", B, lambda: _build_kernel_layout(model, B))
+    letters = config.rotary_letters
+    return _per_basis(model, "_kernel_layout_cache", B, lambda: _build_kernel_layout(model, B, letters),
+                      extra=letters)
 
 
-def _build_kernel_layout(model: ErrorModel, B: np.ndarray):
+def _build_kernel_layout(model: ErrorModel, B: np.ndarray, letters: tuple = ()):
     layout = _axis_layout(model, B)
+    slot = dict(AXIS_INDEX, **{r: 3 + i for i, r in enumerate(letters)})
+    missing = [a for a in layout if a not in slot]
+    if missing:
+        raise ConfigError(f"the error model has errors of axis {missing[0].upper()}, which the machine does not have")
     K = max([1] + [lay[1].shape[0] for lay in layout.values()])
     M = B.shape[0]
-    L = np.zeros((3, K, M))
+    L = np.zeros((3 + len(letters), K, M))
     src, dst = [], []
     for axis, (kc, La, s, d) in layout.items():
-        a = AXIS_INDEX[axis]
+        a = slot[axis]
         Ka = La.shape[0]
         L[a, :Ka] = La
-        for j, slot in zip(s, d):  # slot = g * Ka + order index, g the component error's place in kc
-            kind, comp = kc[slot // Ka]
+        for j, slot_ in zip(s, d):  # slot_ = g * Ka + order index, g the component error's place in kc
+            kind, comp = kc[slot_ // Ka]
             src.append(int(j))
-            dst.append((a * 6 + 3 * kind + comp) * K + slot % Ka)
+            dst.append((a * 6 + 3 * kind + comp) * K + slot_ % Ka)
     return L, np.array(src, np.intp), np.array(dst, np.intp), K
 
 
-def _per_basis(model: ErrorModel, name: str, B: np.ndarray, build):
+def _per_basis(model: ErrorModel, name: str, B: np.ndarray, build, extra=None):
     """``build()``, cached on the model (``model.__dict__[name]``) per parameter list and basis values (a few
     bases kept: the identification's plan, the mesh, a tool)."""
     cache = model.__dict__.setdefault(name, {})
-    key = (id(model.params), B.shape, B.tobytes())
+    key = (id(model.params), B.shape, B.tobytes(), extra)
     hit = cache.get(key)
     if hit is None:
         if len(cache) > 8:
@@ -504,15 +690,19 @@ def chain_adjoint(config: Configuration, model: ErrorModel, theta: np.ndarray, i
     """
     theta = np.atleast_2d(np.asarray(theta, float))
     if B is None:
-        B = model.basis(inputs.nominal)
+        B = model.basis(inputs.nominal, inputs.angles)
     if reference:
+        if config.rotary:  # the matrix form's Jacobian, formed: the reference of the compiled operator
+            out, J = chain_reference(config, model, theta, inputs, jacobian=True, B=B)
+            return out, _AdjointFormed(J)
         out, terms, _, peff, v_in, w_out = _evaluate(config, model, theta, inputs, B)
         return out, _Adjoint(config, model, terms, peff, v_in, w_out, B, theta.shape[0])
     from .kernels import chain_points
 
     args = _kernel_inputs(config, model, theta, inputs, B)
     N, M = theta.shape[0], inputs.nominal.shape[0]
-    kept = (np.empty((N, 3, 3, M)), np.empty((N, 3, 3, M)), np.empty((N, 3, 3, M)))  # eps, vin, wout
+    A = args[8].shape[0]
+    kept = (np.empty((N, A, 3, M)), np.empty((N, A, 3, M)), np.empty((N, A, 3, M)))  # eps, vin, wout
     out = chain_points(*args, np.empty((N, M, 3)), *kept)
     return out, _AdjointCompiled(config, model, B, args, kept)
 
@@ -523,15 +713,16 @@ class _AdjointCompiled:
 
     def __init__(self, config, model, B, args, kept):
         self.args, self.kept = args, kept
-        self.tool_order = np.array([AXIS_INDEX[a] for a in config.tool], np.int64)
+        slot = _slots(config)
+        self.tool_order = np.array([slot[a] for a in config.tool], np.int64)
         self.N = args[7].shape[0]
         def build():
             ref = _Adjoint.layout(model, B)
-            params = np.array([(AXIS_INDEX[ref["cols"][k][0]], ref["cols"][k][1], ref["cols"][k][2])
+            params = np.array([(slot[ref["cols"][k][0]], ref["cols"][k][1], ref["cols"][k][2])
                                for k in ref["col_of"]], np.int64).reshape(-1, 3)
             return params, ref["basis"]
 
-        self.params, self.basis = _per_basis(model, "_vjp_layout_cache", B, build)
+        self.params, self.basis = _per_basis(model, "_vjp_layout_cache", B, build, extra=config.rotary_letters)
 
     def __call__(self, v: np.ndarray, idx=None) -> np.ndarray:
         from .kernels import chain_vjp
@@ -549,8 +740,21 @@ class _AdjointCompiled:
         if np.shape(v) != (len(rows), M, 3):
             raise ValueError(f"adjoint: v must have shape ({len(rows)}, {M}, 3), got {np.shape(v)}")
         out = np.empty((len(rows), len(self.params)))
-        return chain_vjp(self.tool_order, wp_axes, side, px, py, pz, *self.kept, rows,
+        rdir, _, rcos, rsin = self.args[10:14]
+        return chain_vjp(self.tool_order, wp_axes, side, px, py, pz, rdir, rcos, rsin, *self.kept, rows,
                          np.require(v, np.float64, ["C", "W"]), self.params, self.basis, out)
+
+
+class _AdjointFormed:
+    """J^T v from a formed Jacobian J (N, M, 3, p): the reference of the compiled operator for a machine with
+    rotary axes (from :func:`chain_reference`)."""
+
+    def __init__(self, J):
+        self.J = J
+
+    def __call__(self, v: np.ndarray, idx=None) -> np.ndarray:
+        J = self.J if idx is None else self.J[np.asarray(idx)]
+        return np.einsum("nmcp,nmc->np", J, v)
 
 
 class _Adjoint:
@@ -740,7 +944,7 @@ def _axis_layout(model: ErrorModel, B: np.ndarray):
 
 def _build_axis_layout(model: ErrorModel, B: np.ndarray):
     layout = {}
-    for axis in AXES:
+    for axis in AXES + model.rotary_letters:
         groups = [(kind, comp, idx) for ax, kind, comp, idx in _component_groups(model) if ax == axis]
         if not groups:
             continue
@@ -930,15 +1134,20 @@ def chain_reference(
     B: np.ndarray | None = None,
     project: np.ndarray | None = None,
 ):
-    """:func:`chain` written with a 3 x 3 matrix per point and axis (the reference; also the exact rotation)."""
+    """:func:`chain` written with a 3 x 3 matrix per point and axis (the reference; also the exact rotation).
+
+    A rotary axis k maps what it carries to its carrier by ``G_k(v) = p_k + delta_k + R_k R_nom(theta_k) (v - p_k)``
+    (FORMAT-3 section 4): the nominal turn about its pivot, then its error motion as a linear axis' (``R_k = I +
+    [eps_k]x``, the zero error being the component of eps_k along the axis).
+    """
     theta = np.atleast_2d(np.asarray(theta, float))
     N, M = theta.shape[0], inputs.nominal.shape[0]
     if B is None:
-        B = model.basis(inputs.nominal)
+        B = model.basis(inputs.nominal, inputs.angles)
     terms = _axis_terms(model, theta, B)
     sq = _squareness(model, theta)
     rot = rotation_exact if exact else rotation_small
-    t, R, peff = {}, {}, {}
+    t, R, peff, Rn, pivot = {}, {}, {}, {}, {}
     for a in AXES:
         p = np.broadcast_to(inputs.effective(a), (N, M))
         peff[a] = p
@@ -951,10 +1160,19 @@ def chain_reference(
             d[:, :, 1] -= p * sq["syz"]
         t[a] = config.side(a) * d + terms[a][0]
         R[a] = rot(terms[a][1])
+    for r in config.rotary:
+        a = r.letter
+        pivot[a] = np.asarray(r.pivot, float)
+        t[a] = pivot[a] + terms[a][0]
+        R[a] = rot(terms[a][1])
+        th = np.broadcast_to(inputs.effective(a), (N, M))
+        Rn[a] = rotation_exact(th[..., None] * r.direction)  # (N, M, 3, 3)
     # tool side: P = A_1(A_2(...A_n(T)))
     v = np.broadcast_to(np.asarray(inputs.tool, float), (N, M, 3)).copy()
     v_in = {}
     for a in reversed(config.tool):
+        if a in Rn:
+            v = np.einsum("nmij,nmj->nmi", Rn[a], v - pivot[a])
         v_in[a] = v
         v = np.einsum("nmij,nmj->nmi", R[a], v) + t[a]
     P = v
@@ -965,6 +1183,8 @@ def chain_reference(
         Rinv[a] = np.swapaxes(R[a], -1, -2) if exact else inverse_small(terms[a][1])
         w = np.einsum("nmij,nmj->nmi", Rinv[a], w - t[a])
         w_out[a] = w
+        if a in Rn:
+            w = np.einsum("nmji,nmj->nmi", Rn[a], w) + pivot[a]
     if not jacobian:
         return w
     if exact:
@@ -973,13 +1193,15 @@ def chain_reference(
     def mul(A, Bm):  # matrix product where None stands for the identity
         return Bm if A is None else A if Bm is None else A @ Bm
 
+    # the linear part of each workpiece-side map (a rotary axis: its turn back after its error motion's inverse)
+    Li = {a: (np.swapaxes(Rn[a], -1, -2) @ Rinv[a] if a in Rn else Rinv[a]) for a in config.workpiece}
     # M_W = R_bm^-1 ... R_b1^-1 (dP_W/dP); suffix products for workpiece axes
     MW = None
     suffix = {}
     for a in reversed(config.workpiece):
         suffix[a] = MW  # product of the inverses after axis a
-        MW = mul(MW, Rinv[a])
-    # tool side prefix products Q_i = R_1 ... R_{i-1}
+        MW = mul(MW, Li[a])
+    # tool side prefix products Q_i = R_1 ... R_{i-1} (a rotary axis' linear part: R_k R_nom)
     dT, dE = {}, {}  # dP_W/dt_a (N,M,3,3), dP_W/deps_a (N,M,3,3)
     Q = None
     for a in config.tool:
@@ -988,9 +1210,9 @@ def chain_reference(
         dT[a] = G
         # column c is G (e_c x v) = -G [v]x e_c
         dE[a] = -(G @ skew(v_in[a]))
-        Q = mul(Q, R[a])
+        Q = mul(Q, R[a] @ Rn[a] if a in Rn else R[a])
     for a in config.workpiece:
-        G = mul(suffix[a], Rinv[a])
+        G = mul(suffix[a], Li[a])
         dT[a] = -G
         dE[a] = G @ skew(w_out[a])
     # dP_W/dtheta[n,m,:,j] = sum_g H[n,m,:,g] C[m,g,j]: H holds the chain's sensitivity to each
