@@ -111,7 +111,7 @@ def _print_identification(folder, as_json=False, max_degree=3, strategy="one-pha
     from .identify import Noise, Strategy, identify
     from .model import MeasurementModel, iso_parameter
     from .recording import read_recording
-    from .units import display, shown_unit
+    from .units import display, pretty as pretty_unit, shown_unit
 
     rec = read_recording(folder, several_stations=True)
     if rec.several_stations:  # all stations at once (docs/recording-format.md, format 2)
@@ -127,8 +127,10 @@ def _print_identification(folder, as_json=False, max_degree=3, strategy="one-pha
     strat = Strategy.one_phase() if strategy == "one-phase" else Strategy.multi_phase()
     res = identify(model, rec.lt, Noise.of(rec), strat, fixed=rec.fixed_inputs())
     u = res.u_theta()[0]
+    held = set(res.identifiability.held or [])
     summary = {
         "recording": rec.name,
+        "machine": model.config.code,
         "points": len(rec),
         "chi2_per_dof": float(res.chi2_per_dof[0]),
         "dof": int(res.dof),
@@ -141,12 +143,26 @@ def _print_identification(folder, as_json=False, max_degree=3, strategy="one-pha
         "pose_units": dict(zip("DLHabd", ["mm"] * 3 + ["rad"] * 3)),
         "parameters": [
             {"name": p.name, "iso": iso_parameter(p.name), "value": float(display(v, p.unit, shown_unit(p.unit))),
-             "uncertainty": float(display(s, p.unit, shown_unit(p.unit))), "unit": shown_unit(p.unit)}
-            for p, v, s in zip(model.errors.params, res.theta[0], u)
+             "uncertainty": float(display(s, p.unit, shown_unit(p.unit))), "unit": shown_unit(p.unit),
+             **({"datum": True} if j in held else {})}
+            for j, (p, v, s) in enumerate(zip(model.errors.params, res.theta[0], u))
         ],
         "not_identifiable": [[{"parameter": n, "iso": iso_parameter(n), "weight": w} for n, w in combo]
                              for combo in res.identifiability.combinations()],
     }
+    if model.rotary:  # five-axis: the rotary geometry read, and the datum applied (docs/model.md)
+        summary["rotary"] = {r.letter.upper(): {"pivot_mm": list(map(float, r.pivot)),
+                                                "direction": f"{'+' if r.sign > 0 else '-'}{'xyz'[r.index]}"}
+                             for r in model.config.rotary}
+        summary["tracker_mount"] = rec.mount
+        summary["datum"] = {
+            "held": [iso_parameter(model.errors.names[j]) for j in res.identifiability.held or []],
+            "rule": "held at 0, one per direction the plan cannot identify: the zero error of the rotary axis that "
+                    "carries the workpiece (the table's angular zero is the tracker's); a rotary axis' tilt about "
+                    "the direction of the rotary axis carrying it (reported as the carrier's zero error); the "
+                    "rotary axes' location offsets, nearest the bed first; the tool offsets are exact",
+            "weights_unit": "um or urad of each parameter per um or urad of the held one",
+        }
     if as_json:
         click.echo(json.dumps(summary, indent=1))
         return summary
@@ -156,10 +172,25 @@ def _print_identification(folder, as_json=False, max_degree=3, strategy="one-pha
                f"{summary['mean_error_after_um']:.2f} µm after compensation (paper Eq. 27, fit residuals)")
     click.echo(f"  maximum residual          {summary['max_residual_um']:.2f} µm")
     click.echo(f"  {rec.thermal_correction}")
-    if summary["not_identifiable"]:
+    if summary["not_identifiable"] and held:
+        click.echo("  not identifiable from this plan: each line is a combination the data cannot see; its first "
+                   "parameter is held at 0 (the datum, docs/model.md) and each other one is identified as its own "
+                   "value minus its weight times the held one's (weights in um or urad per um or urad; ISO "
+                   "230-1/230-7 names, mtbudget's in brackets):")
+        for combo in res.identifiability.combinations():
+            click.echo("    " + " ".join(f"{w:+.3g}*{iso_parameter(n)} ({n})" for n, w in combo))
+    elif summary["not_identifiable"]:
         click.echo("  not identifiable from this plan (held at their initial value; ISO 230-1 names, mtbudget's in brackets):")
         for combo in res.identifiability.combinations():
             click.echo("    " + " ".join(f"{w:+.2f}*{iso_parameter(n)} ({n})" for n, w in combo))
+    if model.rotary:
+        rows = [(iso_parameter(p.name), float(display(v, p.unit, shown_unit(p.unit))),
+                 float(display(s_, p.unit, shown_unit(p.unit))), shown_unit(p.unit), j in held)
+                for j, (p, v, s_) in enumerate(zip(model.errors.params, res.theta[0], u)) if p.name.endswith("[O]")]
+        click.echo("  rotary axes' location and zero errors (ISO 230-7; u is the standard uncertainty, k = 1):")
+        for name, v, s_, unit, h in rows:
+            click.echo(f"    {name:<6} {v:+10.2f} {pretty_unit(unit):<5}" + ("  held at 0 (datum)" if h else
+                                                                           f"  u = {s_:.2g} {pretty_unit(unit)}"))
     return summary
 
 
@@ -178,7 +209,9 @@ def identify(recording, example, as_json, max_degree, strategy):
     RECORDING is a folder with recording.toml and points.csv. Prints the
     chi-square per degree of freedom, the paper's mean volumetric error
     (Eq. 27) before and after compensation, and which error combinations the
-    plan cannot identify.
+    plan cannot identify. A five-axis recording (format 3: rotary axes A, B,
+    C) also gives each rotary axis' location and zero errors (ISO 230-7
+    names: EXOC, EAOA ...) and the datum the plan needs (docs/model.md).
     """
     from .config import example_recording
 

@@ -134,20 +134,33 @@ class Identifiability:
     singular_values: np.ndarray
     null_space: np.ndarray  # (p, k) in scaled geometric parameters
     pose_identifiable: bool
+    #: the datum of a machine with rotary axes: the parameters held at zero (indices), one per null direction
+    #: (:func:`datum_parameters`); None: the minimum-norm convention (three-axis machines)
+    held: list | None = None
 
     @property
     def identifiable(self) -> int:
         return self.n_params - self.null_space.shape[1]
 
     def combinations(self, threshold: float = 0.2, top: int = 6) -> list[list[tuple[str, float]]]:
-        """Each non-identifiable direction as [(parameter, weight), ...] (scaled, unit norm)."""
+        """Each non-identifiable direction as [(parameter, weight), ...] (scaled: um and urad).  Under a datum
+        (``held``) each direction has weight 1 on its held parameter and 0 on the other held ones, so it reads
+        "what the held parameter would absorb"; otherwise unit norm."""
         out = []
         if self.null_space.size == 0:
+            return out
+        N = self.null_space
+        if self.held is not None:
+            B = N @ np.linalg.inv(N[self.held, :])
+            for k in range(B.shape[1]):
+                v = B[:, k]
+                idx = [self.held[k]] + [i for i in np.argsort(-np.abs(v)) if i != self.held[k]
+                                        and abs(v[i]) >= 0.02][: top - 1]
+                out.append([(self.names[i], float(v[i])) for i in idx])
             return out
         # rotate the basis to something readable: reduced row echelon-like via QR with pivoting
         from scipy.linalg import qr
 
-        N = self.null_space
         _, _, piv = qr(N.T, pivoting=True)
         B = N @ np.linalg.inv(N[piv[: N.shape[1]], :])  # unit weight on pivot parameters
         for k in range(B.shape[1]):
@@ -399,12 +412,68 @@ def _read_only(*arrays):
     return arrays
 
 
+def datum_parameters(model: MeasurementModel, null: np.ndarray, active: np.ndarray | None = None) -> list:
+    """The datum of a machine with rotary axes: which parameters are held at zero, one per direction of the null
+    space ``null`` (p, k) the plan at hand leaves (computed, never assumed), chosen by the rule of
+    docs/model.md ("Five-axis machines: the datum"), in this order of preference:
+
+    1. the zero error of the workpiece-side rotary axis that carries the workpiece (and the tracker on it): the
+       table's angular zero is the tracker's;
+    2. a rotary axis' orientation error about the direction of the rotary axis that carries it: reported as the
+       carrier's zero error, which a controller corrects;
+    3. the location offsets of the rotary axes, the one nearest the bed first (a constant offset of the tool or
+       of the linear axes' zero is theirs: the tool offsets are exact);
+    4. any other parameter, in the model's order.
+
+    A parameter is taken when it makes the held set see one more null direction (its row of ``null`` is not in
+    the span of the rows taken), so the held parameters fix every null direction exactly once."""
+    from .machine import AXES, ROTARY_INDEX
+
+    p, k = null.shape
+    if k == 0:
+        return []
+    names = model.errors.names
+    where = {n: j for j, n in enumerate(names)}
+    cfg = model.config
+    order = []
+    if cfg.workpiece and cfg.workpiece[-1] in ROTARY_INDEX:
+        r = cfg.workpiece[-1]
+        order.append(f"e{AXES[ROTARY_INDEX[r]]}({r})[O]")
+    for side in (cfg.workpiece, cfg.tool):
+        for carrier, carried in zip(side, side[1:]):
+            if carrier in ROTARY_INDEX and carried in ROTARY_INDEX:
+                order.append(f"e{AXES[ROTARY_INDEX[carrier]]}({carried})[O]")
+    chain_order = list(cfg.workpiece) + list(cfg.tool)
+    for r in sorted((a for a in chain_order if a in ROTARY_INDEX), key=lambda a: min(
+            cfg.workpiece.index(a) if a in cfg.workpiece else 99, cfg.tool.index(a) if a in cfg.tool else 99)):
+        order += [f"d{c}({r})[O]" for c in AXES]
+    prefer = [where[n] for n in order if n in where]
+    prefer += [j for j in range(p) if j not in prefer]
+    if active is not None:
+        prefer = [j for j in prefer if active[j]]
+    held: list = []
+    scale = np.abs(null).max()
+    for j in prefer:
+        rows = null[held + [j], :]
+        if np.linalg.matrix_rank(rows, tol=1e-6 * scale) == len(held) + 1:
+            held.append(j)
+            if len(held) == k:
+                break
+    return held
+
+
 def _phase(model, cache, active, rank_tol):
     """(identifiability, basis Q) of the active parameters: the SVDs, once per model, mask and rank tolerance."""
     key = ("phase", active.tobytes(), float(rank_tol))
     if key not in cache:
         ident = analyse(model, active, rank_tol)
-        Q = range_basis(active, ident.null_space)
+        if model.rotary:  # the datum rule: held parameters, the others free (docs/model.md)
+            ident.held = datum_parameters(model, ident.null_space, active)
+            free = active.copy()
+            free[ident.held] = False
+            Q = np.eye(active.size)[:, free]
+        else:
+            Q = range_basis(active, ident.null_space)
         _read_only(ident.null_space, ident.singular_values, Q)
         cache[key] = (ident, Q)
     return cache[key]
@@ -439,7 +508,8 @@ def _check_inputs(model: MeasurementModel, meas: np.ndarray, cache: dict | None 
                 raise IdentificationError(
                     f"{name} has degree {deg} but axis {a} is measured at only {npos} distinct position(s); "
                     f"at most degree {max(npos - 1, 0)} can be identified (lower it in the error model)")
-    pts = nominal + model.plan.tool
+    # the nominal tool points in the tracker's (workpiece) frame: a five-axis plan turns them with its rotary axes
+    pts = model.machine_points(np.zeros((1, model.n_params)))[0] if model.rotary else nominal + model.plan.tool
     sv = np.linalg.svd(pts - pts.mean(0), compute_uv=False)
     if sv[1] <= 1e-9 * max(sv[0], 1e-12):
         raise IdentificationError("all measured points lie on one line: the tracker rotation about it cannot be identified")

@@ -15,7 +15,8 @@ import numpy as np
 
 from . import tracker as lt
 from .errors import ConfigError
-from .machine import AXES, AXIS_INDEX, ChainInputs, Configuration, ErrorModel, chain, parse_error_name
+from .machine import (AXES, AXIS_INDEX, ROTARY, ROTARY_INDEX, ChainInputs, Configuration, ErrorModel, chain, is_rotary,
+                      parse_error_name, rotary_term)
 from .plan import Plan, Scale
 
 # ----------------------------------------------------------------------------- ISO 230-1 names (the one map)
@@ -35,7 +36,8 @@ def iso_name(internal: str) -> str:
     """ISO 230-1 name of a component error: ``dy(x)`` -> ``EYX``, ``ez(y)`` -> ``ECY`` (yaw of Y), ``sxy`` -> ``EC(0X)Y``.
 
     ``E`` + the direction of the error (X, Y, Z for a translation, A, B, C for a rotation about X, Y, Z)
-    + the moving axis.  The one map of mtbudget's names onto ISO 230-1's (docs/compensation.md).
+    + the moving axis.  The one map of mtbudget's names onto ISO 230-1's (docs/compensation.md).  A rotary
+    axis' error motions likewise: ``dx(c)`` -> ``EXC`` (radial motion of C along X), ``ez(c)`` -> ``ECC``.
     """
     if internal in SQUARENESS_ISO:
         return SQUARENESS_ISO[internal][0]
@@ -44,12 +46,28 @@ def iso_name(internal: str) -> str:
 
 
 def iso_parameter(name: str) -> str:
-    """ISO 230-1 name of a model parameter: ``dy(x)[P2]`` -> ``EYX[P2]``, ``sxy`` -> ``EC(0X)Y``; others unchanged."""
+    """ISO 230-1 name of a model parameter: ``dy(x)[P2]`` -> ``EYX[P2]``, ``sxy`` -> ``EC(0X)Y``; a rotary axis'
+    location and zero errors by their ISO 230-7 names (``dx(c)[O]`` -> ``EXOC``, ``ez(c)[O]`` -> ``ECOC``) and its
+    Fourier terms as ``EXC[c2]``; others unchanged."""
     base, sep, rest = name.partition("[")
     try:
-        return iso_name(base) + sep + rest
+        iso = iso_name(base)
     except ConfigError:  # not a component error (pose, a plugin's parameter): keep its own name
         return name
+    if rest == "O]" and is_rotary(base[3]):
+        return iso[:2] + "O" + iso[2:]
+    return iso + sep + rest
+
+
+def parameter_from_iso(text: str) -> str | None:
+    """The internal name of an ISO 230-1/230-7 parameter name (``EXOC`` -> ``dx(c)[O]``; ``E0C``-style zeros read as
+    letter O too), or None."""
+    t = str(text).strip()
+    if len(t) == 4 and t[0].upper() == "E" and t[2] in "O0" and t[3].lower() in ROTARY_INDEX:
+        d, ax = t[1].upper(), t[3].lower()
+        comp = {"X": "dx", "Y": "dy", "Z": "dz", "A": "ex", "B": "ey", "C": "ez"}.get(d)
+        return None if comp is None else f"{comp}({ax})[O]"
+    return None
 
 #: every model input a perturbation may target: key -> (internal unit, shape after the trial axis)
 #: ("M" is the number of measured points, "p" the number of geometric parameters)
@@ -57,6 +75,9 @@ MODEL_INPUTS = {
     "axis_offset.x": ("mm", ("M",)),
     "axis_offset.y": ("mm", ("M",)),
     "axis_offset.z": ("mm", ("M",)),
+    "axis_offset.a": ("rad", ("M",)),  # rotary axes (five-axis machines): added to the commanded angle
+    "axis_offset.b": ("rad", ("M",)),
+    "axis_offset.c": ("rad", ("M",)),
     "axis_scale.x": ("", ("M",)),
     "axis_scale.y": ("", ("M",)),
     "axis_scale.z": ("", ("M",)),
@@ -75,14 +96,23 @@ class MeasurementModel:
     plan: Plan
 
     def __post_init__(self):
-        self.inputs = ChainInputs(self.plan.nominal, self.plan.tool)
-        self.B = self.errors.basis(self.plan.nominal)
+        self.inputs = ChainInputs(self.plan.nominal, self.plan.tool, angles=self.plan.angles)
+        self.B = self.errors.basis(self.plan.nominal, self.plan.angles)
 
     @classmethod
     def for_plan(cls, machine: str, plan: Plan, max_degree: int = 3, **kw) -> "MeasurementModel":
-        config = Configuration.parse(machine)
+        """The model of ``machine`` (a code; a five-axis machine's rotary geometry comes with the plan,
+        ``plan.rotary``) with the default error model of the plan."""
+        config = Configuration.parse(machine, plan.rotary or None)
         kw.setdefault("tool_axis", config.tool[-1] if config.tool else None)
+        if config.rotary:
+            kw.setdefault("angles", plan.angles)
         return cls(config, ErrorModel.default(plan.nominal, max_degree=max_degree, **kw), plan)
+
+    @property
+    def rotary(self) -> bool:
+        """Whether the machine has rotary axes."""
+        return bool(self.config.rotary)
 
     @property
     def n_points(self) -> int:
@@ -104,8 +134,9 @@ class MeasurementModel:
             theta = theta + pert["geometry"]
         inp = ChainInputs(
             self.plan.nominal, self.plan.tool,
-            offset={a: pert[f"axis_offset.{a}"] for a in AXES if f"axis_offset.{a}" in pert},
+            offset={a: pert[f"axis_offset.{a}"] for a in AXES + ROTARY if f"axis_offset.{a}" in pert},
             scale={a: pert[f"axis_scale.{a}"] for a in AXES if f"axis_scale.{a}" in pert},
+            angles=self.plan.angles,
         )
         out = chain(self.config, self.errors, theta, inp, exact=exact, jacobian=jacobian, B=self.B, project=project)
         if "point_offset" in pert:
@@ -144,8 +175,7 @@ def thermal_scale(plan: Plan, cte: dict, reference: float, fixed_point: dict | N
 
 def reversal_offset(plan: Plan, reversal: dict) -> dict:
     """``axis_offset`` of a reversal ``{axis: B (mm)}``: the axis stops B/2 short of its target."""
-    return {f"axis_offset.{a}": (-plan.direction[:, AXIS_INDEX[a]] * b / 2.0)[None, :]
-            for a, b in reversal.items() if b}
+    return {f"axis_offset.{a}": (-plan.direction_of(a) * b / 2.0)[None, :] for a, b in reversal.items() if b}
 
 
 def drift_offset(plan: Plan, velocity) -> dict:

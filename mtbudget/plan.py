@@ -13,7 +13,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .errors import ConfigError
-from .machine import AXES, AXIS_INDEX
+from .machine import AXES, AXIS_INDEX, is_rotary
 
 T20 = 293.15  # K
 
@@ -56,9 +56,20 @@ class Plan:
     temperature: dict = field(default_factory=dict)  # column -> (M,) K
     sensors: list = field(default_factory=list)
     scales: dict = field(default_factory=dict)  # axis -> Scale: the nominal expansion to correct (none: no correction)
+    # five-axis machines: the commanded angle of each rotary axis (letter -> (M,) rad), the direction from which it
+    # last approached it (letter -> (M,) +1/-1) and its nominal geometry (letter -> machine.RotaryAxis)
+    angles: dict = field(default_factory=dict)
+    angle_direction: dict = field(default_factory=dict)
+    rotary: dict = field(default_factory=dict)
 
     def __len__(self):
         return len(self.point)
+
+    def direction_of(self, axis: str) -> np.ndarray:
+        """The approach direction (+1/-1) of a linear or rotary axis at every point."""
+        if is_rotary(axis):
+            return np.asarray(self.angle_direction.get(axis, np.ones(len(self))), float)
+        return self.direction[:, AXIS_INDEX[axis]]
 
     def axis_temperature(self, axis: str, reference: float = T20) -> np.ndarray:
         """Temperature of an axis at each point (K).
@@ -85,7 +96,8 @@ class Plan:
         return Plan(
             self.point[mask], self.run[mask], self.time[mask], self.nominal[mask], self.direction[mask],
             self.tool[mask], {k: v[mask] for k, v in self.temperature.items()}, list(self.sensors),
-            dict(self.scales),
+            dict(self.scales), {k: v[mask] for k, v in self.angles.items()},
+            {k: v[mask] for k, v in self.angle_direction.items()}, dict(self.rotary),
         )
 
     def nominal_expansion(self, reference: float = T20) -> dict:
@@ -133,6 +145,7 @@ def build_plan(
     stop_time: float = 12.0,
     tool_change_time: float = 120.0,
     start_direction: float = 1.0,
+    rotary: dict | None = None,
 ) -> Plan:
     """Sequence the mesh into passes and time it with Eq. 4.
 
@@ -143,8 +156,16 @@ def build_plan(
     approach direction of an axis is the sign of its last move (it keeps the
     previous sign when the axis does not move); it starts at
     ``start_direction``.
+
+    Five-axis machines: ``points`` (M0, 3 + R) carries the commanded angles (rad) of the rotary axes of
+    ``rotary`` ({letter: machine.RotaryAxis}, in the order a, b, c) after x, y, z; a rotary move costs the stop
+    time only (its angular feed is not modelled), and its approach direction is the sign of its last move.
     """
     points = np.asarray(points, float)
+    letters = sorted(rotary or {})
+    if points.ndim != 2 or points.shape[1] != 3 + len(letters):
+        raise ConfigError(f"plan points must have 3 + {len(letters)} columns (x, y, z and the rotary axes' angles), "
+                          f"got shape {points.shape}")
     if feed <= 0 or stop_time < 0:
         raise ConfigError("feed must be > 0 and stop time >= 0")
     M0 = len(points)
@@ -158,23 +179,27 @@ def build_plan(
     point = np.concatenate(rows_point)
     run = np.concatenate(rows_run)
     tool = np.concatenate(rows_tool)
-    nominal = points[point]
+    full = points[point]
+    nominal = np.ascontiguousarray(full[:, :3])
     M = len(point)
     time = np.zeros(M)
-    direction = np.zeros((M, 3))
-    last_dir = np.full(3, float(start_direction))
+    direction = np.zeros((M, full.shape[1]))
+    last_dir = np.full(full.shape[1], float(start_direction))
     t = 0.0
     for i in range(M):
         if i > 0:
-            move = nominal[i] - nominal[i - 1]
-            t += np.linalg.norm(move) / feed + stop_time
+            move = full[i] - full[i - 1]
+            t += np.linalg.norm(move[:3]) / feed + stop_time
             if np.any(tool[i] != tool[i - 1]):
                 t += tool_change_time
             nz = move != 0
             last_dir[nz] = np.sign(move[nz])
         time[i] = t
         direction[i] = last_dir
-    return Plan(point.astype(int), run.astype(int), time, nominal, direction, tool)
+    angles = {r: np.ascontiguousarray(full[:, 3 + k]) for k, r in enumerate(letters)}
+    angle_direction = {r: np.ascontiguousarray(direction[:, 3 + k]) for k, r in enumerate(letters)}
+    return Plan(point.astype(int), run.astype(int), time, nominal, np.ascontiguousarray(direction[:, :3]), tool,
+                angles=angles, angle_direction=angle_direction, rotary=dict(rotary or {}))
 
 
 def verification_time(path_length: float, feed: float, stop_time: float, n: int) -> float:

@@ -34,7 +34,9 @@ except ModuleNotFoundError:  # pragma: no cover
 FORMAT = "mtbudget-recording/1"
 #: several stations (docs/recording-format.md, "Format 2: several stations")
 FORMAT2 = "mtbudget-recording/2"
-FORMATS = (FORMAT, FORMAT2)
+#: five-axis machines: format 2 plus rotary axes (docs/recording-format.md, "Format 3: rotary axes")
+FORMAT3 = "mtbudget-recording/3"
+FORMATS = (FORMAT, FORMAT2, FORMAT3)
 _HEADER = re.compile(r"^\s*([A-Za-z_][A-Za-z0-9_]*)\s*(?:\[(.*)\])?\s*$")
 _NAME = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*$")
 
@@ -80,7 +82,14 @@ UNCERTAINTIES = {
 ATTACHED_TO = ("x axis", "y axis", "z axis", "air")
 #: keys of recording.toml this version reads (others are kept in Recording.extra)
 KNOWN_KEYS = ("format", "name", "machine", "description", "reference_temperature", "tracker", "machine_tool",
-              "sensors", "scales", "ignore_columns", "stations")
+              "sensors", "scales", "ignore_columns", "stations", "rotary")
+#: format 3: the commanded angle of each rotary axis and, optionally, the direction it last approached from
+ROTARY_COLUMNS = {r: ("[angle]", "rad") for r in "abc"}
+ROTARY_DIRECTIONS = {f"dir_{r}": None for r in "abc"}
+#: format 3: the keys of a [rotary.<A|B|C>] table, and where the tracker stands
+ROTARY_KEYS = ("pivot", "direction", "description")
+TRACKER_MOUNTS = ("table", "bed")
+MAX_ANGLE = 200.0 * math.pi  # rad: 100 turns; beyond, a commanded angle is a unit or typing mistake
 #: format 2 only: the columns a recording from several stations adds
 COLUMNS_V2 = {"station": None, "lt_range": ("[length]", "mm")}
 #: a station's measurement kind: "xyz" (a laser tracker: range and two angles, Cartesian in its own frame) or
@@ -157,6 +166,12 @@ class Recording:
     stations: list = field(default_factory=list)  # [Station]: format 2's [[stations]]; empty: one xyz station
     lt_range: np.ndarray | None = None  # (M,) mm: the range of every row of a range station, else NaN
     format_version: int = 1
+    mount: str = "table"  # format 3: where the tracker stands ("table": on the workpiece side, moving with it)
+
+    @property
+    def rotary(self) -> dict:
+        """The rotary axes' nominal geometry (letter -> machine.RotaryAxis); empty for a three-axis machine."""
+        return self.plan.rotary
 
     def __len__(self):
         return len(self.plan)
@@ -397,13 +412,14 @@ def read_recording(folder, *, max_rows: int = MAX_ROWS, max_columns: int = MAX_C
     if fmt is None:
         raise RecordingError(f"missing 'format' key; expected format = \"{FORMAT}\"", toml_path, key="format")
     if fmt not in FORMATS:
-        raise RecordingError(f"unsupported format {fmt!r:.60}; this version reads {FORMAT!r} and {FORMAT2!r}",
-                             toml_path, key="format")
+        raise RecordingError(f"unsupported format {fmt!r:.60}; this version reads {FORMAT!r}, {FORMAT2!r} and "
+                             f"{FORMAT3!r}", toml_path, key="format")
     version = FORMATS.index(fmt) + 1
     tr = _table(meta, "tracker", toml_path)
     mt = _table(meta, "machine_tool", toml_path)
     _no_misspelt_keys(meta, KNOWN_KEYS, "", toml_path)
-    _no_misspelt_keys(tr, ("angular", "distance", "distance_per_length"), "tracker.", toml_path)
+    _no_misspelt_keys(tr, ("angular", "distance", "distance_per_length") + (("mount",) if version >= 3 else ()),
+                      "tracker.", toml_path)
     _no_misspelt_keys(mt, ("repeatability",), "machine_tool.", toml_path)
     angular = _uncertainty(tr, "tracker.angular", toml_path)
     distance = _uncertainty(tr, "tracker.distance", toml_path)
@@ -415,7 +431,8 @@ def read_recording(folder, *, max_rows: int = MAX_ROWS, max_columns: int = MAX_C
     scales = _scales(meta, toml_path, sensors)
     if version == 1 and "stations" in meta:
         raise RecordingError(f"[[stations]] needs format = \"{FORMAT2}\" (several stations)", toml_path, key="stations")
-    stations = _stations(meta, toml_path, angular, distance, dpl) if version == 2 else []
+    stations = _stations(meta, toml_path, angular, distance, dpl) if version == 2 or (
+        version == 3 and "stations" in meta) else []
     ignored = meta.get("ignore_columns", [])
     if not isinstance(ignored, list) or not all(isinstance(c, str) for c in ignored):
         raise RecordingError("expected a list of column names", toml_path, key="ignore_columns")
@@ -425,17 +442,34 @@ def read_recording(folder, *, max_rows: int = MAX_ROWS, max_columns: int = MAX_C
     machine = _string(meta, "machine", toml_path, "XFYZ")
     name = _string(meta, "name", toml_path, folder.name)
     description = _string(meta, "description", toml_path, "")
-    from .machine import Configuration
+    from .machine import Configuration, check_code
 
     try:
-        Configuration.parse(machine)
+        code = check_code(machine)
     except Exception as exc:
         raise RecordingError(str(exc), toml_path, key="machine") from None
+    letters = sorted(ch.lower() for ch in code if ch in "ABC")
+    if letters and version < 3:
+        raise RecordingError(f"machine {code!r} has rotary axes ({', '.join(x.upper() for x in letters)}): that needs "
+                             f"format = \"{FORMAT3}\" with a [rotary.{letters[0].upper()}] table per rotary axis",
+                             toml_path, key="format")
+    if version < 3 and "rotary" in meta:
+        raise RecordingError(f"[rotary] tables need format = \"{FORMAT3}\" (rotary axes)", toml_path, key="rotary")
+    rotary = _rotary(meta, toml_path, code, letters) if version >= 3 else {}
+    mount = _string(tr, "mount", toml_path, "table") if version >= 3 else "table"
+    if mount not in TRACKER_MOUNTS:
+        raise RecordingError(f"unknown tracker mount {mount!r:.40}; expected one of {', '.join(TRACKER_MOUNTS)}",
+                             toml_path, key="tracker.mount")
+    config = Configuration.parse(code, rotary)
+    if mount == "bed" and config.workpiece:
+        raise RecordingError(f"a tracker on the bed with the reflector in the spindle sees none of the workpiece-side "
+                             f"axes of {code} ({', '.join(a.upper() for a in config.workpiece)}): their errors would be "
+                             "invisible; stand it on the table (mount = \"table\")", toml_path, key="tracker.mount")
 
     try:
         columns, temps, unused = _read_points(csv_path, sensors, ignored=set(ignored), max_rows=max_rows,
                                               max_columns=max_columns, encoding=encoding, stations=stations or None,
-                                              toml_path=toml_path)
+                                              toml_path=toml_path, rotary=letters if version >= 3 else None)
     except OSError as exc:
         raise RecordingError(f"cannot read the file ({exc.strerror or type(exc).__name__})", csv_path) from None
     n = len(columns["point"])
@@ -463,6 +497,9 @@ def read_recording(folder, *, max_rows: int = MAX_ROWS, max_columns: int = MAX_C
         temperature=temps,
         sensors=sensors,
         scales=scales,
+        angles={r: columns[r] for r in letters},
+        angle_direction={r: columns.get(f"dir_{r}", np.ones(n)) for r in letters},
+        rotary=rotary,
     )
     return Recording(
         name=name,
@@ -472,8 +509,49 @@ def read_recording(folder, *, max_rows: int = MAX_ROWS, max_columns: int = MAX_C
         angular=angular, distance=distance, distance_per_length=dpl, repeatability=repeat,
         reference_temperature=tref, description=description,
         extra={k: v for k, v in meta.items() if k not in KNOWN_KEYS}, path=folder, unused_columns=unused,
-        station=station, stations=stations, lt_range=lt_range, format_version=version,
+        station=station, stations=stations, lt_range=lt_range, format_version=version, mount=mount,
     )
+
+
+def _rotary(meta, path, code: str, letters: list) -> dict:
+    """Format 3's ``[rotary.<A|B|C>]`` tables: {letter: machine.RotaryAxis}, one per rotary letter of the code."""
+    from .machine import RotaryAxis
+
+    tables = meta.get("rotary", {})
+    if not isinstance(tables, dict):
+        raise RecordingError("expected tables [rotary.A], [rotary.B], [rotary.C]", path, key="rotary")
+    for key in tables:
+        if str(key).lower() not in letters or str(key) != str(key).upper():
+            raise RecordingError(f"[rotary.{key}] describes a rotary axis machine {code!r} does not have"
+                                 + (f" (its rotary axes: {', '.join(x.upper() for x in letters)})" if letters else
+                                    " (no rotary axis)"), path, key=f"rotary.{key}")
+    out = {}
+    for r in letters:
+        R = r.upper()
+        t = tables.get(R)
+        if t is None:
+            raise RecordingError(f"machine {code!r} has a rotary axis {R} but no [rotary.{R}] table (pivot, direction)",
+                                 path, key=f"rotary.{R}")
+        if not isinstance(t, dict):
+            raise RecordingError("expected a table with pivot and direction", path, key=f"rotary.{R}")
+        _no_misspelt_keys(t, ROTARY_KEYS, f"rotary.{R}.", path)
+        piv = t.get("pivot")
+        if not isinstance(piv, list) or len(piv) != 3:
+            raise RecordingError("expected a list of three lengths, e.g. pivot = [\"0 mm\", \"-20 mm\", \"-80 mm\"]",
+                                 path, key=f"rotary.{R}.pivot")
+        pivot = tuple(_quantity(v, path=path, key=f"rotary.{R}.pivot[{i}]", dim="[length]", unit="mm")
+                      for i, v in enumerate(piv))
+        for i, v in enumerate(pivot):
+            if abs(v) > MAX_LENGTH:
+                raise RecordingError(f"{v:g} mm is not a plausible position (at most {MAX_LENGTH:g} mm)", path,
+                                     key=f"rotary.{R}.pivot[{i}]")
+        d = t.get("direction")
+        want = {"a": "x", "b": "y", "c": "z"}[r]
+        if not isinstance(d, str) or d.strip().lower() not in (f"+{want}", f"-{want}", want):
+            raise RecordingError(f"direction {d!r:.40} does not match axis {R}: {R} turns about {want.upper()}, so its "
+                                 f"direction is \"+{want}\" or \"-{want}\"", path, key=f"rotary.{R}.direction")
+        out[r] = RotaryAxis(r, pivot, -1.0 if d.strip().startswith("-") else 1.0)
+    return out
 
 
 def _stations(meta, path, angular, distance, dpl) -> list:
@@ -624,7 +702,7 @@ def _bad_cell(text, path, line, column):
 
 
 def _read_points(csv_path: Path, sensors, *, ignored=frozenset(), max_rows=MAX_ROWS, max_columns=MAX_COLUMNS,
-                 encoding="utf-8", stations=None, toml_path=None):
+                 encoding="utf-8", stations=None, toml_path=None, rotary=None):
     try:
         ascii_compatible = "\n,.-+0123456789eE".encode(encoding) == b"\n,.-+0123456789eE"
     except (LookupError, UnicodeError):
@@ -645,6 +723,9 @@ def _read_points(csv_path: Path, sensors, *, ignored=frozenset(), max_rows=MAX_R
         required = [c for c in COLUMNS if "xyz" in kinds or not c.startswith("lt_")]
         required += (["lt_range"] if "range" in kinds else []) + (["station"] if len(stations) > 1 else [])
         optional = ("lt_x", "lt_y", "lt_z", "lt_range")
+    if rotary is not None:  # format 3: every rotary axis' angle column; its approach direction may be given
+        columns = {**columns, **ROTARY_COLUMNS, **ROTARY_DIRECTIONS}
+        required = list(required) + list(rotary)
     with open(csv_path, "rb") as fh:
         lines = _Lines(fh, csv_path, encoding)
         reader = csv.reader(lines, strict=True)
@@ -653,7 +734,7 @@ def _read_points(csv_path: Path, sensors, *, ignored=frozenset(), max_rows=MAX_R
             if header is None:
                 raise RecordingError("empty file (no header line)", csv_path, line=1)
             parsed, targets, unused = _parse_header(header, csv_path, temp_cols, ignored, max_columns, columns,
-                                                    required, stations is not None)
+                                                    required, stations is not None, rotary)
             lines.header = header
             values = {name: array("d") for name in targets.values()}
             appends = [(j, values[name].append, header[j]) for j, name in targets.items()]
@@ -687,7 +768,7 @@ def _read_points(csv_path: Path, sensors, *, ignored=frozenset(), max_rows=MAX_R
         raise RecordingError(f"{len(rows)} data row{'s' if len(rows) > 1 else ''}; a recording needs at least {MIN_ROWS} "
                              "(the tracker pose alone has 6 unknowns)", csv_path, line=rows[-1])
     out, temps = _convert(parsed, {k: np.frombuffer(v, dtype=float) for k, v in values.items()}, rows, csv_path,
-                          temp_cols, columns)
+                          temp_cols, columns, rotary or ())
     if stations is not None:
         _check_stations(out, parsed, rows, csv_path, stations, toml_path)
     return out, temps, unused
@@ -743,7 +824,7 @@ def _unit_names(u) -> list:
 
 
 def _parse_header(header, csv_path, temp_cols, ignored, max_columns, columns=COLUMNS, required=None,
-                  format2=False):
+                  format2=False, rotary=None):
     """{name: (index, unit, header text)} of the columns, {index: name} of the columns to parse, and the
     names of the columns left out of the model."""
     if len(header) > max_columns:
@@ -764,6 +845,15 @@ def _parse_header(header, csv_path, temp_cols, ignored, max_columns, columns=COL
         if name in COLUMNS_V2 and not format2:
             raise RecordingError(f"a {name} column needs format 2 (several stations): format = \"{FORMAT2}\" and "
                                  "[[stations]] tables in recording.toml", csv_path, line=1, column=h)
+        axis = name[-1] if name in ROTARY_COLUMNS or name in ROTARY_DIRECTIONS else None
+        if axis is not None and rotary is None:
+            raise RecordingError(f"a {name} column is the {'angle' if name == axis else 'approach direction'} of a "
+                                 f"rotary axis {axis.upper()}: that needs format = \"{FORMAT3}\" and a machine code "
+                                 f"with {axis.upper()}", csv_path, line=1, column=h)
+        if axis is not None and axis not in rotary:
+            raise RecordingError(f"column {name!r} belongs to a rotary axis {axis.upper()}, which the machine does not "
+                                 f"have" + (f" (its rotary axes: {', '.join(x.upper() for x in rotary)})" if rotary
+                                            else ""), csv_path, line=1, column=h)
         parsed[name] = (j, unit, h)
     for name in list(COLUMNS if required is None else required) + sorted(temp_cols):
         if name not in parsed:
@@ -791,6 +881,10 @@ def _parse_header(header, csv_path, temp_cols, ignored, max_columns, columns=COL
             if spec is not None and u.dimensionality != ureg.Unit(spec[1]).dimensionality:
                 raise RecordingError(f"unit {unit!r} has dimension {u.dimensionality}, expected {spec[0]}", csv_path,
                                      line=1, column=h)
+            if spec is not None and spec[0] == "[angle]" and Q_(1.0, u).to_root_units().units != ureg.radian:
+                raise RecordingError(f"unit {unit!r} is not an angle; the angle of a rotary axis needs an angle unit "
+                                     f"such as '{name} [deg]', '{name} [rad]' or '{name} [arcmin]'", csv_path, line=1,
+                                     column=h)
             if name in temp_cols and any(n.startswith("delta_") for n in _unit_names(u)):
                 raise RecordingError(f"unit {unit!r} is a temperature difference; a sensor column holds absolute "
                                      f"temperatures, e.g. '{name} [degC]' or '{name} [K]'", csv_path, line=1, column=h)
@@ -801,7 +895,7 @@ def _parse_header(header, csv_path, temp_cols, ignored, max_columns, columns=COL
     return parsed, targets, unused
 
 
-def _convert(parsed, values, rows, csv_path, temp_cols, columns=COLUMNS):
+def _convert(parsed, values, rows, csv_path, temp_cols, columns=COLUMNS, rotary=()):
     """Columns in internal units, checked against their meaning: indices, signs, time order, plausible ranges."""
     out, temps = {}, {}
 
@@ -827,7 +921,7 @@ def _convert(parsed, values, rows, csv_path, temp_cols, columns=COLUMNS):
         if bad.size:
             fail(name, bad[0], f"value {v[bad[0]]:g} is not finite in internal units")
         (temps if name in temp_cols else out)[name] = conv
-    for name in ("dir_x", "dir_y", "dir_z"):
+    for name in ("dir_x", "dir_y", "dir_z") + tuple(f"dir_{r}" for r in rotary if f"dir_{r}" in out):
         bad = np.flatnonzero((out[name] != 1.0) & (out[name] != -1.0))
         if bad.size:
             fail(name, bad[0], f"direction must be +1 or -1, got {out[name][bad[0]]:g}")
@@ -844,6 +938,11 @@ def _convert(parsed, values, rows, csv_path, temp_cols, columns=COLUMNS):
         bad = np.flatnonzero(np.abs(out[name]) > MAX_LENGTH)
         if bad.size:
             fail(name, bad[0], f"{out[name][bad[0]]:g} mm is not a plausible position (at most {MAX_LENGTH:g} mm)")
+    for name in rotary:
+        bad = np.flatnonzero(np.abs(out[name]) > MAX_ANGLE)
+        if bad.size:
+            fail(name, bad[0], f"{np.degrees(out[name][bad[0]]):g} deg is not a plausible commanded angle (at most "
+                               f"{np.degrees(MAX_ANGLE):g} deg)")
     t = out["time"]
     bad = np.flatnonzero((t < 0) | (t > MAX_TIME))
     if bad.size:
@@ -872,6 +971,13 @@ def _convert(parsed, values, rows, csv_path, temp_cols, columns=COLUMNS):
         fail("x", k, f"point {int(out['point'][k])} is at ({', '.join(f'{c:g}' for c in nominal[k])}) mm here and at "
                      f"({', '.join(f'{c:g}' for c in nominal[k0])}) mm on line {rows[k0]}; one point index is one "
                      "nominal position")
+    for name in rotary:
+        turned = np.flatnonzero(out[name] != out[name][first[inverse.ravel()]])
+        if turned.size:
+            k = turned[0]
+            k0 = first[inverse.ravel()[k]]
+            fail(name, k, f"point {int(out['point'][k])} has {name} = {np.degrees(out[name][k]):g} deg here and "
+                          f"{np.degrees(out[name][k0]):g} deg on line {rows[k0]}; one point index is one nominal pose")
     key = [out["point"], out["run"], t, out["tool_x"], out["tool_y"], out["tool_z"]]
     if "station" in out:  # several stations may measure one point at one time (simultaneous interferometers)
         key.append(out["station"])
@@ -918,10 +1024,12 @@ def write_recording(rec: Recording, folder, *, truth: dict | None = None) -> Pat
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
     p = rec.plan
-    v2 = rec.format_version == 2 or bool(rec.stations)
+    v3 = rec.format_version == 3 or bool(p.angles)
+    v2 = not v3 and (rec.format_version == 2 or bool(rec.stations))
+    letters = sorted(p.angles)
     stations = rec.station_list()
     lines = [
-        f'format = "{FORMAT2 if v2 else FORMAT}"',
+        f'format = "{FORMAT3 if v3 else FORMAT2 if v2 else FORMAT}"',
         f"name = {_toml_string(rec.name)}",
         f"machine = {_toml_string(rec.machine)}",
         f"description = {_toml_string(rec.description)}",
@@ -931,6 +1039,7 @@ def write_recording(rec: Recording, folder, *, truth: dict | None = None) -> Pat
         f'angular = "{display(rec.angular, "rad", "urad"):.9g} urad"',
         f'distance = "{display(rec.distance, "mm", "um"):.9g} um"',
         f'distance_per_length = "{display(rec.distance_per_length, "", "um/m"):.9g} um/m"',
+        *([f"mount = {_toml_string(rec.mount)}"] if v3 else []),
         "",
         "[machine_tool]",
         f'repeatability = "{display(rec.repeatability, "mm", "um"):.9g} um"',
@@ -942,7 +1051,11 @@ def write_recording(rec: Recording, folder, *, truth: dict | None = None) -> Pat
     for axis, sc in sorted(p.scales.items()):
         lines += ["", f"[scales.{axis}]", f'cte = "{display(sc.cte, "1/K", "um/(m*K)"):.9g} um/(m*K)"',
                   f'fixed_point = "{sc.fixed_point:.6f} mm"']
-    if v2:
+    for r in letters:
+        ax = p.rotary[r]
+        lines += ["", f"[rotary.{r.upper()}]", "pivot = [" + ", ".join(f'"{v:.6f} mm"' for v in ax.pivot) + "]",
+                  f'direction = "{"+" if ax.sign > 0 else "-"}{"xyz"[ax.index]}"']
+    if v2 or (v3 and rec.stations):
         for st in stations:
             lines += ["", "[[stations]]", f"id = {int(st.id)}", f'kind = "{st.kind}"']
             if st.kind == "xyz":
@@ -956,7 +1069,9 @@ def write_recording(rec: Recording, folder, *, truth: dict | None = None) -> Pat
     kinds = {st.kind for st in stations}
     header = ["point", "run", "time [s]", "x [mm]", "y [mm]", "z [mm]", "dir_x", "dir_y", "dir_z",
               "tool_x [mm]", "tool_y [mm]", "tool_z [mm]"]
-    header += (["station"] if v2 else []) + (["lt_x [mm]", "lt_y [mm]", "lt_z [mm]"] if "xyz" in kinds else [])
+    header += [f"{r} [deg]" for r in letters] + [f"dir_{r}" for r in letters if r in p.angle_direction]
+    several = v2 or (v3 and bool(rec.stations))
+    header += (["station"] if several else []) + (["lt_x [mm]", "lt_y [mm]", "lt_z [mm]"] if "xyz" in kinds else [])
     header += ["lt_range [mm]"] if "range" in kinds else []
     header += [f"{c} [degC]" for c in tcols]
     sid = rec.station_ids()
@@ -972,7 +1087,9 @@ def write_recording(rec: Recording, folder, *, truth: dict | None = None) -> Pat
             vals += [f"{v:.6f}" for v in p.nominal[i]]
             vals += [str(int(v)) for v in p.direction[i]]
             vals += [f"{v:.6f}" for v in p.tool[i]]
-            if v2:
+            vals += [f"{np.degrees(p.angles[r][i]):.9f}" for r in letters]
+            vals += [str(int(p.angle_direction[r][i])) for r in letters if r in p.angle_direction]
+            if several:
                 vals.append(str(int(sid[i])))
             if "xyz" in kinds:
                 vals += [cell(v) for v in rec.lt[i]]
