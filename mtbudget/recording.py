@@ -473,6 +473,17 @@ def read_recording(folder, *, max_rows: int = MAX_ROWS, max_columns: int = MAX_C
     except OSError as exc:
         raise RecordingError(f"cannot read the file ({exc.strerror or type(exc).__name__})", csv_path) from None
     n = len(columns["point"])
+    for r in letters:  # a rotary axis seen at one angle: its location errors are a rigid motion of the tracker
+        turns = np.unique(np.round(np.mod(columns[r], 2 * np.pi), 9) % np.round(2 * np.pi, 9))
+        if turns.size < 2:
+            from .machine import rotary_location_parameters
+            from .model import iso_parameter
+
+            lost = ", ".join(iso_parameter(q) for q in rotary_location_parameters(r))
+            raise RecordingError(f"rotary axis {r.upper()} is commanded to one angle only ({np.degrees(turns[0]):g} "
+                                 f"deg): its location and zero errors ({lost}) then act as a rigid motion of the "
+                                 "tracker and cannot be identified; measure it at three or more angles", csv_path,
+                                 column=r)
     lt_cols = [columns.get(c, np.full(n, np.nan)) for c in ("lt_x", "lt_y", "lt_z")]
     station = lt_range = None
     if version == 2:
