@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from .errors import ConfigError
-from .machine import AXES, COMPONENT_ERRORS, SQUARENESS, Configuration
+from .machine import AXES, COMPONENT_ERRORS, ROTARY_INDEX, SQUARENESS, Configuration, RotaryAxis, check_code
 from .plan import Plan, Scale, Sensor, build_plan, mesh
 from .recording import ATTACHED_TO, COLUMNS, CTE_RANGE, MAX_TIME, UNCERTAINTIES, uncertainty_problem
 from .units import ABSOLUTE_TEMPERATURE, to_internal
@@ -122,12 +122,13 @@ class Reader:
 SCHEMA = {
     "": ("format", "name", "description", "machine", "reference_temperature", "seed", "mesh", "plan", "tracker",
          "machine_tool", "geometric_errors", "sensors", "effects", "placement", "sources", "weights", "measurand",
-         "stations", "scales"),
+         "stations", "scales", "rotary"),
     "mesh": ("x", "y", "z", "step", "step_x", "step_y", "step_z"),
     "plan": ("runs", "tools", "feed", "stop_time", "tool_change_time", "station_change_time"),
-    "tracker": ("D", "L", "H", "a", "b", "d", "angular", "distance", "distance_per_length"),
-    "machine_tool": ("repeatability", "max_degree", "cte"),
-    "geometric_errors": ("seed", "translational", "angular", "squareness", "coefficients"),
+    "tracker": ("D", "L", "H", "a", "b", "d", "angular", "distance", "distance_per_length", "mount"),
+    "machine_tool": ("repeatability", "max_degree", "cte", "rotary_harmonics"),
+    "geometric_errors": ("seed", "translational", "angular", "squareness", "coefficients", "rotary_location",
+                         "rotary_orientation", "rotary_zero", "rotary"),
     "sensors": ("column", "attached_to", "position", "start", "rate", "noise", "cycle_amplitude", "cycle_period",
                 "cycle_phase"),
     "effects": ("thermal", "reversal", "drift"),
@@ -138,7 +139,12 @@ SCHEMA = {
     # [scales.<axis>]: the nominal expansion of each axis scale, simulated and corrected (as recording.toml's [scales])
     "scales": AXES,
     "scales.<axis>": ("cte", "fixed_point"),
+    # [rotary.<A|B|C>]: a five-axis machine's rotary axes (as recording.toml's format 3) and the angles the plan visits
+    "rotary": ("A", "B", "C"),
+    "rotary.<axis>": ("pivot", "direction", "angles", "description"),
 }
+#: at most this many commanded angles per rotary axis in a plan
+MAX_ROTARY_ANGLES = 72
 #: the tables that are arrays of tables ([[sensors]], [[stations]]): checked entry by entry
 ARRAY_TABLES = ("sensors", "stations")
 #: at most this many stations in one verification (each adds 6 or 4 unknowns and a pass over the plan)
@@ -220,8 +226,25 @@ class SimulationConfig:
     #: verification corrects (about each fixed point, at the read axis temperatures); empty: none (the nominal
     #: expansion taken as perfectly corrected, the thermal sources drawing only the deviations about the axis zero)
     scales: dict = field(default_factory=dict)
+    #: five-axis machines ([rotary.<A|B|C>]): {letter: machine.RotaryAxis}, the commanded angles (rad) the plan
+    #: visits for each (every combination of them with every mesh point), and the error motions' Fourier terms
+    rotary: dict = field(default_factory=dict)
+    rotary_angles: dict = field(default_factory=dict)
+    rotary_harmonics: int = 0
+    mount: str = "table"
     source: dict = field(default_factory=dict)  # the raw TOML (for logging)
     path: Path | None = None
+
+    def mesh_points(self) -> np.ndarray:
+        """The plan's nominal poses, (M0, 3 + R): the linear mesh (x fastest) at every combination of the rotary
+        axes' angles (the last rotary letter fastest), one pose after the other."""
+        pts = mesh(self.mesh_ranges, self.mesh_step)
+        letters = sorted(self.rotary)
+        if not letters:
+            return pts
+        grids = np.meshgrid(*[np.asarray(self.rotary_angles[r], float) for r in letters], indexing="ij")
+        poses = np.stack([g.ravel() for g in grids], axis=1)  # (P, R)
+        return np.concatenate([np.tile(pts, (len(poses), 1)), np.repeat(poses, len(pts), axis=0)], axis=1)
 
     def stated(self, key: str) -> bool:
         """Whether the configuration itself states ``key`` ("tracker.angular"), rather than leaving its default."""
@@ -237,10 +260,11 @@ class SimulationConfig:
 
     def plan(self, rng: np.random.Generator | None = None) -> Plan:
         """Build the plan (mesh, passes, timing) and its sensor readings."""
-        pts = mesh(self.mesh_ranges, self.mesh_step)
+        pts = self.mesh_points()
         # several stations measure the plan one after the other: station k's runs are k*runs+1 .. (k+1)*runs
         runs = self.runs * max(1, len(self.stations))
-        plan = build_plan(pts, self.tools, runs, self.feed, self.stop_time, self.tool_change_time)
+        plan = build_plan(pts, self.tools, runs, self.feed, self.stop_time, self.tool_change_time,
+                          rotary=self.rotary or None)
         if len(self.stations) > 1:  # each move to the next station takes station_change_time
             plan.time = plan.time + (plan.run - 1) // self.runs * self.station_change_time
         rng = rng or np.random.default_rng(self.seed)
@@ -330,6 +354,57 @@ def _scales(r: "Reader", sensors: list) -> dict:
                               "correcting the scale's expansion needs its temperature")
         out[a] = Scale(cte, x0)
     return out
+
+
+def _rotary(r: "Reader", code: str) -> tuple[dict, dict]:
+    """[rotary.<A|B|C>] pivot, direction, angles: ({letter: RotaryAxis}, {letter: commanded angles (rad)}), one table
+    per rotary letter of the machine code, none for another."""
+    letters = sorted(ch.lower() for ch in code if ch in "ABC")
+    tables = r.sub("rotary") if r.has("rotary") else Reader({}, r.path, "rotary.")
+    for key in tables.data:
+        if str(key).lower() not in letters:
+            raise ConfigError(f"{tables.where(key)}: machine {code!r} has no rotary axis {key}" +
+                              (f" (its rotary axes: {', '.join(x.upper() for x in letters)})" if letters else ""))
+    geometry, angles = {}, {}
+    for a in letters:
+        A = a.upper()
+        if not tables.has(A):
+            raise ConfigError(f"{tables.where(A)}: machine {code!r} has a rotary axis {A} but no [rotary.{A}] table "
+                              "(pivot, direction, angles)")
+        t = tables.sub(A)
+        t.check_keys(SCHEMA["rotary.<axis>"], f"[rotary.{A}]")
+        piv = t.raw("pivot")
+        if not (isinstance(piv, list) and len(piv) == 3):
+            raise ConfigError(f"{t.where('pivot')}: expected [x, y, z], a point of the axis' average line in the machine "
+                              "frame with every axis at zero, e.g. [\"0 mm\", \"-20 mm\", \"-80 mm\"]")
+        pivot = tuple(to_unit(v, "mm", f"{t.where('pivot')}[{i}]") for i, v in enumerate(piv))
+        if max(abs(v) for v in pivot) > MAX_LENGTH:
+            raise ConfigError(f"{t.where('pivot')}: beyond {MAX_LENGTH:g} mm")
+        want = "xyz"[ROTARY_INDEX[a]]
+        d = t.raw("direction", f"+{want}")
+        if not isinstance(d, str) or d.strip().lower() not in (f"+{want}", f"-{want}", want):
+            raise ConfigError(f"{t.where('direction')}: {d!r:.40} does not match axis {A}: {A} turns about "
+                              f"{want.upper()}, so its direction is \"+{want}\" or \"-{want}\"")
+        geometry[a] = RotaryAxis(a, pivot, -1.0 if d.strip().startswith("-") else 1.0)
+        vals = t.raw("angles")
+        if not (isinstance(vals, list) and vals):
+            raise ConfigError(f"{t.where('angles')}: expected the commanded angles the plan visits, e.g. [\"0 deg\", "
+                              "\"90 deg\", \"180 deg\", \"270 deg\"]")
+        if len(vals) > MAX_ROTARY_ANGLES:
+            raise ConfigError(f"{t.where('angles')}: {len(vals)} angles; at most {MAX_ROTARY_ANGLES}")
+        ang = [to_unit(v, "rad", f"{t.where('angles')}[{i}]") for i, v in enumerate(vals)]
+        if max(abs(v) for v in ang) > 200 * np.pi:
+            raise ConfigError(f"{t.where('angles')}: beyond 100 turns; not a commanded angle")
+        distinct = np.unique(np.round(np.mod(ang, 2 * np.pi), 9) % np.round(2 * np.pi, 9))
+        if distinct.size < 2:
+            from .machine import rotary_location_parameters
+            from .model import iso_parameter
+
+            lost = ", ".join(iso_parameter(q) for q in rotary_location_parameters(a))
+            raise ConfigError(f"{t.where('angles')}: one angle only: the location and zero errors of {A} ({lost}) then "
+                              "act as a rigid motion of the tracker and cannot be identified; give three or more")
+        angles[a] = ang
+    return geometry, angles
 
 
 def _stations(raw: list, path) -> list:
@@ -429,9 +504,11 @@ def parse_config(data: dict, path=None) -> SimulationConfig:
             raise ConfigError(f"{r.where(name)}: expected a string, got {r.raw(name)!r}")
     machine = str(r.raw("machine", "XFYZ"))
     try:
-        Configuration.parse(machine)
+        machine = check_code(machine)
     except ConfigError as exc:
         raise ConfigError(f"{r.where('machine')}: {exc}") from None
+    rotary, rotary_angles = _rotary(r, machine)
+    cfg = Configuration.parse(machine, rotary)
     m = r.sub("mesh", required=True)
     ranges, step = {}, {}
     for a in AXES:
@@ -450,6 +527,7 @@ def parse_config(data: dict, path=None) -> SimulationConfig:
         if (ranges[a][1] - ranges[a][0]) / step[a] > MAX_MESH_POINTS:
             raise ConfigError(f"{m.where(key)}: more than {MAX_MESH_POINTS} steps along {a}")
     n_mesh = int(np.prod([round((ranges[a][1] - ranges[a][0]) / step[a]) + 1 for a in AXES]))
+    n_mesh *= int(np.prod([len(v) for v in rotary_angles.values()])) if rotary_angles else 1
     if n_mesh > MAX_MESH_POINTS:
         raise ConfigError(f"{m.where('step')}: {n_mesh} mesh points; at most {MAX_MESH_POINTS} (the scenario holds a "
                           f"{3 * n_mesh} x {3 * n_mesh} matrix)")
@@ -486,6 +564,14 @@ def parse_config(data: dict, path=None) -> SimulationConfig:
         if (low is None and not plan_times[key] > 0) or (low is not None and plan_times[key] < low):
             raise ConfigError(f"{pl.where(key)}: must be {'positive' if low is None else 'zero or positive'}")
     tr = r.sub("tracker", required=True)
+    mount = tr.raw("mount", "table")
+    if mount not in ("table", "bed"):
+        raise ConfigError(f"{tr.where('mount')}: expected \"table\" (the tracker on the workpiece side, moving with it) "
+                          f"or \"bed\", got {mount!r:.40}")
+    if mount == "bed" and cfg.workpiece:
+        raise ConfigError(f"{tr.where('mount')}: a tracker on the bed with the reflector in the spindle sees none of the "
+                          f"workpiece-side axes of {machine} ({', '.join(a.upper() for a in cfg.workpiece)}); stand it "
+                          "on the table (mount = \"table\")")
     stations = _stations(data.get("stations", []), path)
     if stations:
         stated = [k for k in POSE_KEYS if tr.has(k)]
@@ -527,6 +613,23 @@ def parse_config(data: dict, path=None) -> SimulationConfig:
         geometric["squareness"] = ge.quantity("squareness", "rad", "30 urad")
         if min(geometric["translational"] + geometric["angular"] + [geometric["squareness"]]) < 0:
             raise ConfigError(f"{ge.where('')[:-1]}: a standard deviation must not be negative")
+    for key, unit, default in (("rotary_location", "mm", "20 um"), ("rotary_orientation", "rad", "30 urad"),
+                               ("rotary_zero", "rad", "30 urad")):
+        geometric[key] = ge.quantity(key, unit, default)
+        if geometric[key] < 0:
+            raise ConfigError(f"{ge.where(key)}: a standard deviation must not be negative")
+    if ge.has("rotary"):  # explicit location and zero errors by their ISO 230-7 names
+        from .model import parameter_from_iso
+
+        rt = ge.sub("rotary")
+        named = {}
+        for iso, v in rt.data.items():
+            internal = parameter_from_iso(iso)
+            if internal is None or internal[3] not in rotary:
+                raise ConfigError(f"{rt.where(iso)}: not a location or zero error of this machine's rotary axes "
+                                  f"(ISO 230-7 names such as EXOC, EYOC, EAOC, EBOC, ECOC for C)")
+            named[internal] = rt.quantity(iso, "mm" if internal[0] == "d" else "rad")
+        geometric["rotary"] = named
     tref = r.quantity("reference_temperature", "K", "20 degC", absolute_temperature=True)
     sensors = []
     sensors_raw = data.get("sensors", [])
@@ -618,6 +721,11 @@ def parse_config(data: dict, path=None) -> SimulationConfig:
         measurand_tool=measurand_tool,
         stations=stations,
         scales=scales,
+        rotary=rotary,
+        rotary_angles=rotary_angles,
+        rotary_harmonics=mt.number("rotary_harmonics", 0, int, low=0, high=6) if rotary else
+        mt.number("rotary_harmonics", 0, int, low=0, high=0),
+        mount=mount,
         max_degree=mt.number("max_degree", 3, int, low=1, high=9),
         geometric=geometric,
         sensors=sensors,

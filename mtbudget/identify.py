@@ -412,6 +412,17 @@ def _read_only(*arrays):
     return arrays
 
 
+def null_coordinates(ident: Identifiability, theta_scaled: np.ndarray) -> np.ndarray:
+    """The coordinates c of what the identification cannot see in scaled parameters ``theta_scaled`` (p,): the
+    identified parameters are ``theta - null_space @ c`` (scaled).  Minimum norm: the orthogonal projection
+    ``null_space^T theta``; under a datum (``ident.held``): the held parameters' values, ``solve(null_space[held],
+    theta[held])``."""
+    N = ident.null_space
+    if ident.held is None:
+        return N.T @ theta_scaled
+    return np.linalg.solve(N[ident.held, :], theta_scaled[ident.held])
+
+
 def datum_parameters(model: MeasurementModel, null: np.ndarray, active: np.ndarray | None = None) -> list:
     """The datum of a machine with rotary axes: which parameters are held at zero, one per direction of the null
     space ``null`` (p, k) the plan at hand leaves (computed, never assumed), chosen by the rule of

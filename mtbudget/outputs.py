@@ -130,6 +130,7 @@ class RunResult:
     log: object = None
     mesh: np.ndarray | None = None  # (M0, 3) nominal tool points of the mesh, machine frame (mm)
     commanded: np.ndarray | None = None  # (M0, 3) commanded axis positions of the mesh points (mm)
+    angles: dict | None = None  # five-axis: {letter: (M0,) commanded angle of each rotary axis (deg)} at the mesh points
     guf: dict | None = None  # law of propagation per point: {"estimate": (M0, 3) um, "cov": (M0, 3, 3) um^2}
     logged_points: list | None = None  # per-point results of a complete log (replay of a run too long to log trials)
     log_problem: str | None = None  # the run log could not be written (a full disk): what happened, how to resume
@@ -167,6 +168,8 @@ class RunResult:
         k = t_factor(self.coverage, float("inf"))
         for i in range(M0):
             e = {"point": i, "nominal": {"value": self.commanded[i].tolist(), "unit": "mm"},
+                 **({"angles": {"value": {r: float(v[i]) for r, v in self.angles.items()}, "unit": "deg"}}
+                    if self.angles else {}),
                  "mean": {"value": cm.mean[i].tolist(), "unit": POINT_UNIT},
                  "u": {"value": u[i].tolist(), "unit": POINT_UNIT},
                  "covariance": {"value": cm.cov[i].tolist(), "unit": f"{POINT_UNIT}^2"}}

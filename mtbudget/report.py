@@ -144,6 +144,16 @@ def measurand_at_tool(m: dict | None) -> str:
     return text
 
 
+def _angles(point: dict) -> str:
+    """A five-axis point's commanded angles (", a, c = (-90, 0) deg"), empty for three axes."""
+    a = point.get("angles")
+    if not a:
+        return ""
+    letters = sorted(a["value"])
+    vals = ", ".join(f"{a['value'][r]:g}" for r in letters)
+    return f", {', '.join(letters)} = ({vals}) {a['unit']}"
+
+
 def points_summary(pts: list) -> dict:
     """Volume summaries of the per-point statement: per axis, the RMS over the mesh of u, the largest u and where."""
     u = np.array([p["u"]["value"] for p in pts])  # (M0, 3)
@@ -153,6 +163,7 @@ def points_summary(pts: list) -> dict:
            "u_rms_over_mesh": np.sqrt((u**2).mean(axis=0)).tolist(),
            "u_max": u.max(axis=0).tolist(), "u_min": u.min(axis=0).tolist(),
            "worst_point": {"point": worst, "nominal": pts[worst]["nominal"], "u": pts[worst]["u"]["value"],
+                           **({"angles": pts[worst]["angles"]} if "angles" in pts[worst] else {}),
                            "mean": pts[worst]["mean"]["value"]},
            "bias_rms_over_mesh": np.sqrt((mean**2).mean(axis=0)).tolist()}
     c8 = [v["passed"] for p in pts for v in p.get("clause8", [])]
@@ -192,8 +203,8 @@ def point_lines(res: RunResult) -> list:
         lines.append(f"    {label:<48}" + "".join(f"{x:9.{nd}f}" for x in half.max(axis=0))
                      + f"   (coverage {percent(res.coverage)}; a normal would give k = {k:.2f})")
     w = sm["worst_point"]
-    lines.append(f"  worst point #{w['point']} at x, y, z = {_vec(w['nominal']['value'], 0)} mm: u = {_vec(w['u'], nd)} {u}, "
-                 f"mean (bias) {_vec(w['mean'], nd)} {u}")
+    lines.append(f"  worst point #{w['point']} at x, y, z = {_vec(w['nominal']['value'], 0)} mm{_angles(w)}: u = "
+                 f"{_vec(w['u'], nd)} {u}, mean (bias) {_vec(w['mean'], nd)} {u}")
     if "clause8" in sm:
         c = sm["clause8"]
         lines.append(f"  GUF vs MCM per point and axis (JCGM 101 clause 8, 2 significant digits): {c['passed']} of {c['of']} "
@@ -606,14 +617,14 @@ def run_report(res: RunResult, folder, tolerance_um: float | None = None, charac
                f"| largest half-width of the {percent(res.coverage)} interval | " + " | ".join(f"{x:.{nd}f}" for x in half.max(axis=0)) + " |",
                "| RMS of the mean (bias) | " + " | ".join(f"{x:.{nd}f}" for x in sm["bias_rms_over_mesh"]) + " |", ""]
         w = sm["worst_point"]
-        md.append(f"Worst point: #{w['point']} at x, y, z = {_vec(w['nominal']['value'], 0)} mm, u = {_vec(w['u'], nd)} "
-                  f"{pretty(sm['unit'])}.")
+        md.append(f"Worst point: #{w['point']} at x, y, z = {_vec(w['nominal']['value'], 0)} mm{_angles(w)}, u = "
+                  f"{_vec(w['u'], nd)} {pretty(sm['unit'])}.")
         md += ["", "## Every point", "",
                f"| point | x, y, z commanded [mm] | mean x, y, z [{pretty(sm['unit'])}] | u x, y, z [{pretty(sm['unit'])}] | "
                f"{percent(res.coverage)} interval x | y | z |", "| --- | --- | --- | --- | --- | --- | --- |"]
         for q in pts:
             iv = q["interval"]
-            md.append(f"| {q['point']} | {_vec(q['nominal']['value'], 0)} | {_vec(q['mean']['value'], nd)} | "
+            md.append(f"| {q['point']} | {_vec(q['nominal']['value'], 0)}{_angles(q)} | {_vec(q['mean']['value'], nd)} | "
                       f"{_vec(q['u']['value'], nd)} | " + " | ".join(
                           f"[{lo:.{nd}f}, {hi:.{nd}f}]" for lo, hi in zip(iv["low"], iv["high"])) + " |")
         md += ["", f"Intervals: {pts[0]['interval']['kind']}, {pts[0]['interval']['method']}."]

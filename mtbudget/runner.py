@@ -175,7 +175,7 @@ def _run(config, settings, *, on_chunk, resume_blocks, engine, host, resume_hist
             acc.moments.update(moments)
     result = RunResult(spec, 0, settings.coverage, acc, engine.parameter_names, engine.parameter_units,
                        weights=scenario.weights_report(), mesh=scenario.mesh_points, commanded=scenario.commanded,
-                       guf=point_lpu(scenario))
+                       angles=scenario.commanded_angles or None, guf=point_lpu(scenario))
     done = {b.block: b for b in (resume_blocks or [])}
     resumed = set(done)
     # the budget's "all sources" row is this run's first attribution_trials trials: collected as they are merged
@@ -399,6 +399,8 @@ def _execute(config, settings, *, source, target, force, histogram_every) -> Run
               "outputs": {k: v[0] for k, v in SCALARS.items()}, "parameter_names": eng.parameter_names,
               "parameter_units": eng.parameter_units, "mesh": scenario.mesh_points.tolist(),
               "mesh_unit": "mm", "commanded": scenario.commanded.tolist(), "weights": scenario.weights_report(),
+              **({"commanded_angles": {r: v.tolist() for r, v in scenario.commanded_angles.items()},
+                  "commanded_angles_unit": "deg"} if scenario.commanded_angles else {}),
               "settings": {k: (list(getattr(settings, k)) if k == "adaptive_outputs" else getattr(settings, k))
                            for k in RESUMED_SETTINGS}}
     writer = RunLogWriter(target, header, config_text, log_components=keep_vectors, copy=copy, histogram=hist,
@@ -471,6 +473,8 @@ def replay(path) -> RunResult:
                     budget=logged.get("budget", {}), complete=log.complete, weights=h.get("weights"),
                     mesh=np.asarray(h["mesh"]) if h.get("mesh") else None,
                     commanded=np.asarray(h["commanded"]) if h.get("commanded") else None,
+                    angles={r: np.asarray(v) for r, v in h["commanded_angles"].items()} if h.get("commanded_angles")
+                    else None,
                     guf=None if guf is None else {"estimate": np.asarray(guf["estimate"]), "cov": np.asarray(guf["cov"])},
                     logged_points=logged.get("points"))
     res.log = log

@@ -34,7 +34,8 @@ import numpy as np
 from .config import PHYSICAL_INPUTS, WEIGHT_KEYS, SimulationConfig
 from .contracts import Context, TARGETS
 from .errors import ConfigError, PluginError
-from .identify import Noise
+from .identify import Noise, null_coordinates
+from .machine import AXIS_INDEX, ROTARY_INDEX, is_rotary
 from . import tracker as lt
 from .model import MeasurementModel
 from .plan import Plan
@@ -117,13 +118,19 @@ class Scenario:
         """The model the verification identifies with (ISO 230-1 convention), cached per degree."""
         d = self.config.max_degree if max_degree is None else int(max_degree)
         if d not in self._id_models:
-            self._id_models[d] = MeasurementModel.for_plan(self.config.machine, self.plan, max_degree=d)
+            self._id_models[d] = MeasurementModel.for_plan(self.config.machine, self.plan, max_degree=d,
+                                                           **_rotary_kw(self.config))
         return self._id_models[d]
 
     @property
     def commanded(self) -> np.ndarray:
         """(M0, 3) commanded axis positions x, y, z of the mesh points (mm)."""
         return self.plan.nominal[self.mesh_rows]
+
+    @property
+    def commanded_angles(self) -> dict:
+        """Five-axis: {letter: (M0,) commanded angle of each rotary axis at the mesh points (deg)}; empty otherwise."""
+        return {r: np.degrees(v[self.mesh_rows]) for r, v in sorted(self.plan.angles.items())}
 
     @property
     def tool(self) -> np.ndarray:
@@ -141,15 +148,19 @@ class Scenario:
         key = ("at tool", id(model))
         if key not in self._cache:  # the model is kept beside its copy so that its id is not reused
             self._cache[key] = (model, MeasurementModel(model.config, model.errors,
-                                                        _tool_plan(self.commanded, self.measurand_tool)))
+                                                        _tool_plan(self.commanded, self.measurand_tool, self.plan,
+                                                                   self.mesh_rows)))
         return self._cache[key][1].machine_points(theta, jacobian=jacobian)
 
     def identifiability(self):
         """What the verification can identify (:func:`mtbudget.identify.analyse` of ``id_model``), computed once."""
         if "identifiability" not in self._cache:
-            from .identify import analyse
+            from .identify import analyse, datum_parameters
 
-            self._cache["identifiability"] = analyse(self.id_model)
+            ident = analyse(self.id_model)
+            if self.id_model.rotary:  # the datum the identification applies (identify._phase)
+                ident.held = datum_parameters(self.id_model, ident.null_space)
+            self._cache["identifiability"] = ident
         return self._cache["identifiability"]
 
     def cached(self, key, make):
@@ -191,7 +202,12 @@ class Scenario:
                 return None
             scale = scale_vector(model)
             sd = np.array([prior_std(self.config, p) for p in model.errors.params]) * scale
-            C = Nz.T @ (sd[:, None] ** 2 * Nz)
+            held = self.identifiability().held
+            if held is None:  # minimum norm: the coordinates are the orthogonal projection N^T theta
+                C = Nz.T @ (sd[:, None] ** 2 * Nz)
+            else:  # a datum: the coordinates are the held parameters' values mapped by N[held]^-1
+                K = np.linalg.inv(Nz[held, :])
+                C = K @ (sd[held, None] ** 2 * K.T)
             L = np.linalg.cholesky(C + 1e-12 * np.trace(C) * np.eye(len(C)))
             self._cache["prior"] = (Nz / scale[:, None], L)
         return self._cache["prior"]
@@ -258,20 +274,27 @@ def truth_model(config: SimulationConfig, plan: Plan, richer: bool = False) -> M
     """Error model used to *simulate*: free straightness convention (P1 terms allowed); one degree above the
     identification's when a model-form source draws the terms the identification cannot represent."""
     return MeasurementModel.for_plan(config.machine, plan, max_degree=config.max_degree + int(richer),
-                                     straightness_convention="free")
+                                     straightness_convention="free", **_rotary_kw(config))
+
+
+def _rotary_kw(config: SimulationConfig) -> dict:
+    """The error model's rotary options of a five-axis configuration (none for three axes: the same model as ever)."""
+    return {"harmonics": config.rotary_harmonics} if config.rotary else {}
 
 
 def machine_parameters(config: SimulationConfig, model: MeasurementModel) -> np.ndarray:
     """The simulated machine's geometric parameters: explicit, or drawn from the generation functions."""
     g = config.geometric
     if "coefficients" in g:
-        return model.errors.from_coefficients(g["coefficients"], g.get("squareness", {}))
+        return model.errors.from_coefficients(g["coefficients"], g.get("squareness", {}), g.get("rotary"))
     rng = np.random.default_rng(g.get("seed", 1))
     theta = np.zeros(model.n_params)
     for j, p in enumerate(model.errors.params):
-        if p.order > config.max_degree:  # the model-form terms: drawn by their source, not part of this machine
+        if p.order > config.max_degree and not is_rotary(p.error[3]):  # the model-form terms: drawn by their source
             continue
         theta[j] = rng.normal(0.0, prior_std(config, p))
+    for name, value in (g.get("rotary") or {}).items():  # stated location and zero errors replace the draws
+        theta[model.errors.index(name)] = value
     return theta
 
 
@@ -283,6 +306,12 @@ def prior_std(config: SimulationConfig, param) -> float | None:
         return None
     if param.is_squareness:
         return g["squareness"]
+    if is_rotary(param.error[3]):  # location, orientation and zero errors; a quarter of them per Fourier term
+        if param.error[0] == "d":
+            sd = g["rotary_location"]
+        else:
+            sd = g["rotary_zero"] if AXIS_INDEX[param.error[1]] == ROTARY_INDEX[param.error[3]] else g["rotary_orientation"]
+        return sd if param.order == 0 else sd / 4.0
     stds = g["translational"] if param.unit == "mm" else g["angular"]
     return stds[min(param.order, len(stds)) - 1]
 
@@ -352,8 +381,14 @@ def select_sources(config: SimulationConfig, host: PluginHost, names: list | Non
     if names is not None:
         for n in names:
             check_name(n, "sources")
+    five_axis = bool(getattr(config, "rotary", None))
+    if not five_axis:  # a source of rotary axes only has nothing to act on in a three-axis machine
+        for n in list(enable or []) + list(settings.get("add", [])):
+            if n in available and _rotary_only(available[n]):
+                raise ConfigError(f"{config.where('sources')}: source {n!r} acts on rotary axes (A, B, C), which "
+                                  f"machine {config.machine!r} does not have")
     if enable is None:
-        chosen = [n for n, s in available.items() if not s.opt_in]
+        chosen = [n for n, s in available.items() if not s.opt_in and (five_axis or not _rotary_only(s))]
         chosen += [n for n in list(settings.get("add", [])) + list(effects) if n not in chosen]
     else:
         chosen = list(enable) + [n for n in effects if n not in enable]
@@ -379,6 +414,14 @@ def select_sources(config: SimulationConfig, host: PluginHost, names: list | Non
         if problem:
             raise ConfigError(f"{config.where('sources.' + s.name)}: {problem}")
     return srcs, drawn
+
+
+#: the model inputs of rotary axes only (a source that targets nothing else applies to five-axis machines only)
+ROTARY_INPUTS = frozenset({"axis_offset.a", "axis_offset.b", "axis_offset.c"})
+
+
+def _rotary_only(src) -> bool:
+    return bool(src.targets) and set(src.targets) <= ROTARY_INPUTS
 
 
 def _resolve_links(config: SimulationConfig, sources: list, tables: dict) -> dict:
@@ -459,7 +502,7 @@ def build_scenario(config: SimulationConfig, host: PluginHost | None = None, sou
     tool = None
     if config.measurand_tool is not None and not np.allclose(config.measurand_tool, plan.tool[mesh_rows[0]]):
         tool = np.asarray(config.measurand_tool, float)
-        at_tool = MeasurementModel(truth.config, truth.errors, _tool_plan(plan.nominal[mesh_rows], tool))
+        at_tool = MeasurementModel(truth.config, truth.errors, _tool_plan(plan.nominal[mesh_rows], tool, plan, mesh_rows))
         mesh_points = at_tool.machine_points(np.zeros(truth.n_params))[0]
     correction = {k: _read_only(v[None, :]) for k, v in plan.nominal_expansion(config.reference_temperature).items()}
     sc = Scenario(config, plan, truth, theta, pose, noise, drawn, srcs, context, mesh_rows, mesh_points,
@@ -481,6 +524,9 @@ def _stations(config: SimulationConfig, plan: Plan, noise: Noise):
     stations = [Station(k + 1, spec.kind, own(spec, "angular") if spec.kind == "xyz" else None, own(spec, "distance"),
                         own(spec, "distance_per_length"), spec.description) for k, spec in enumerate(config.stations)]
     P = plan.nominal + plan.tool  # the nominal tool points (an error-free XFYZ machine) the stations measure
+    if plan.angles:  # a five-axis plan: the nominal tool points in the table frame, turned by the rotary axes
+        m = MeasurementModel.for_plan(config.machine, plan, max_degree=1)
+        P = m.machine_points(np.zeros(m.n_params))[0]
     for k, spec in enumerate(config.stations):
         where = config.where(f"stations[{k}]." + ("D, L, H" if spec.kind == "xyz" else "position"))
         d = float(np.sqrt(((P - spec.tracker_pose[:3]) ** 2).sum(axis=1)).min())
@@ -513,8 +559,7 @@ def _unidentified_source(sc: Scenario, host: PluginHost):
     scale = scale_vector(model)
     names = sc.truth.errors.names
     theta_id = np.array([sc.theta[names.index(n)] if n in names else 0.0 for n in model.errors.names])
-    Nz = N * scale[:, None]  # orthonormal, scaled parameters
-    c = Nz.T @ (theta_id * scale)
+    c = null_coordinates(sc.identifiability(), theta_id * scale)
     sc.null_bias = sc.evaluate(model, (N @ c)[None])[0] - zero
     settings = sc.config.source.get("sources", {}) if isinstance(sc.config.source, dict) else {}
     if "unidentified_at_tool" not in settings.get("disable", []) and all(s.name != "unidentified_at_tool"
@@ -524,11 +569,15 @@ def _unidentified_source(sc: Scenario, host: PluginHost):
             sc.sources = list(sc.sources) + [available["unidentified_at_tool"]]
 
 
-def _tool_plan(commanded: np.ndarray, tool: np.ndarray) -> Plan:
-    """A plan of the mesh points at one tool offset: where the compensated machine is evaluated."""
+def _tool_plan(commanded: np.ndarray, tool: np.ndarray, like: Plan | None = None, rows=None) -> Plan:
+    """A plan of the mesh points at one tool offset: where the compensated machine is evaluated (a five-axis plan
+    keeps the mesh rows' angles and rotary geometry, from ``like`` at ``rows``)."""
     M0 = len(commanded)
+    extra = {}
+    if like is not None and like.angles:
+        extra = {"angles": {k: v[rows] for k, v in like.angles.items()}, "rotary": dict(like.rotary)}
     return Plan(np.arange(M0), np.ones(M0, int), np.zeros(M0), np.asarray(commanded, float), np.ones((M0, 3)),
-                np.tile(np.asarray(tool, float), (M0, 1)))
+                np.tile(np.asarray(tool, float), (M0, 1)), **extra)
 
 
 def _read_only(a: np.ndarray) -> np.ndarray:

@@ -467,6 +467,91 @@ class InUse(Source):
         off = rng.standard_normal((n, M, 3)) * R - side * B / 2.0 + dcte * dT * pos
         return {"measurand_offset": off}
 
+
+# ----------------------------------------------------------------------------- rotary axes (five-axis machines)
+#: the model inputs of the rotary axes: added to each one's commanded angle (rad)
+ROTARY_TARGETS = ("axis_offset.a", "axis_offset.b", "axis_offset.c")
+
+
+def _rotary_letters(ctx) -> list:
+    """The rotary axes of the context's plan (a, b, c that the machine has), in that order."""
+    return sorted(getattr(ctx.plan, "angles", {}) or {})
+
+
+class RotaryRepeatability(Source):
+    """Angular positioning repeatability of each rotary axis at every point: normal, u = R (ISO 230-2 applied to a
+    rotary axis, one standard deviation of repeated positioning).  Default 10 urad (about 2 arcsec), a
+    direct-drive table of a 1 m-class machining centre."""
+
+    name = "rotary_repeatability"
+    group = Group.MACHINE_TOOL
+    distribution = "normal"
+    targets = ROTARY_TARGETS
+    parameters = {"R": Q_(10.0, "urad")}
+    nonnegative = ("R",)
+
+    def standard_uncertainty(self):
+        return self.parameters["R"].to("urad")
+
+    def sample_internal(self, n, rng, ctx):
+        u = self.value("R", "rad")
+        return {f"axis_offset.{r}": normal0(rng, u, (n, ctx.n_points)) for r in _rotary_letters(ctx)}
+
+
+class RotaryReversal(Source):
+    """Reversal (lost motion) of each rotary axis, rectangular in [0, B_max] per verification: approaching from
+    either side the axis stops B/2 short of its commanded angle (the rotary counterpart of ``backlash``).  Default
+    B_max 20 urad (about 4 arcsec)."""
+
+    name = "rotary_reversal"
+    group = Group.MACHINE_TOOL
+    distribution = "rectangular [0, B_max]"
+    targets = ROTARY_TARGETS
+    parameters = {"B_max": Q_(20.0, "urad")}
+    nonnegative = ("B_max",)
+
+    def standard_uncertainty(self):
+        return (self.parameters["B_max"] / math.sqrt(12)).to("urad")
+
+    def _prepare(self, ctx):
+        return self.value("B_max", "rad"), {r: -ctx.plan.direction_of(r)[None, :] for r in _rotary_letters(ctx)}
+
+    def sample_internal(self, n, rng, ctx):
+        bmax, minus_direction = self.remembered(_key(self, ctx), lambda: self._prepare(ctx))
+        return {f"axis_offset.{r}": md * (rng.uniform(0, bmax, (n, 1)) / 2) for r, md in minus_direction.items()}
+
+
+class RotaryEncoder(Source):
+    """Angular positioning error of each rotary axis left by its encoder and its mounting (eccentricity: once per
+    revolution; ellipticity: twice): ``E1 sin(theta + phi1) + E2 sin(2 theta + phi2)``, each amplitude rectangular
+    in [0, E_max] and each phase uniform, drawn per verification.  A constant part is the zero error the
+    verification identifies; what varies with the angle is not (unless ``rotary_harmonics`` models it).  Default
+    E_max 10 urad (about 2 arcsec)."""
+
+    name = "rotary_encoder"
+    group = Group.MACHINE_TOOL
+    distribution = "two harmonics, amplitudes rectangular [0, E_max], uniform phases"
+    targets = ROTARY_TARGETS
+    parameters = {"E_max": Q_(10.0, "urad")}
+    nonnegative = ("E_max",)
+
+    def standard_uncertainty(self):
+        # the error at a random angle: each harmonic's amplitude E (rectangular [0, E_max], E[E^2] = E_max^2 / 3)
+        # times a sine of uniform phase (mean square 1/2), two of them
+        return (self.parameters["E_max"] * math.sqrt(2 / 6)).to("urad")
+
+    def _prepare(self, ctx):
+        return self.value("E_max", "rad"), {r: ctx.plan.angles[r][None, :] for r in _rotary_letters(ctx)}
+
+    def sample_internal(self, n, rng, ctx):
+        emax, angles = self.remembered(_key(self, ctx), lambda: self._prepare(ctx))
+        out = {}
+        for r, th in angles.items():
+            amp = rng.uniform(0, emax, (2, n, 1))
+            phase = rng.uniform(0, 2 * np.pi, (2, n, 1))
+            out[f"axis_offset.{r}"] = amp[0] * np.sin(th + phase[0]) + amp[1] * np.sin(2 * th + phase[1])
+        return out
+
 SOURCES = (TemperatureSensorCalibration, CTEUncertainty, EnvironmentalVariation, TemperatureDrift, Backlash,
            Repeatability, ControlError, GeometricErrorUncertainty) + EFFECTS
 
@@ -587,7 +672,8 @@ class AxisPolynomialEffect(Source):
         return {"point_offset": np.tile(disp, (n, 1, 1))}
 
 
-SOURCES = SOURCES + (SpindleGrowthEffect, ColumnTiltEffect, ToolLengthErrorEffect, AxisPolynomialEffect, InUse, UnidentifiedAtTool)
+SOURCES = SOURCES + (SpindleGrowthEffect, ColumnTiltEffect, ToolLengthErrorEffect, AxisPolynomialEffect, InUse, UnidentifiedAtTool,
+                     RotaryRepeatability, RotaryReversal, RotaryEncoder)
 
 
 @hookimpl
