@@ -381,8 +381,9 @@ def make_recording(folder, kind: str = "CAFXYZ", *, linear_errors: bool = False,
         "parameter_units": "um for d* terms and EXO*/EYO*/EZO*; urad for e* terms, squareness and EAO*/EBO*/ECO*",
         "plan": {"description": _plan_text(plan_spec, kind), "rows": M, "spec": _jsonable(plan_spec)},
     }
-    (folder / "truth.json").write_text(json.dumps(truth, indent=1) + "\n")
-    return truth
+    text = json.dumps(truth, indent=1) + "\n"
+    (folder / "truth.json").write_text(text)
+    return json.loads(text)  # exactly what truth.json holds
 
 
 def _plan_text(spec, kind) -> str:
