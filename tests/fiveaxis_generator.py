@@ -444,3 +444,61 @@ def _write_csv(path, plan, lt, machine_code, rotary_dir_columns, sensors):
             if sensors:
                 row += ["20.000"] * 4
             w.writerow(row)
+
+
+# ---------------------------------------------------------------------------------------------- identifiability
+def setup_of(truth: dict):
+    """(Machine, plan, ranges, pose) of a recording from its truth.json alone."""
+    kind = truth["kind"]
+    m = Machine(kind, {L: r["pivot_mm"] for L, r in truth["rotary"].items()},
+                {L: r["direction"] for L, r in truth["rotary"].items()})
+    plan = make_plan(truth["plan"]["spec"], kind)
+    return m, plan, plan_ranges(plan), np.array([truth["tracker_pose"][k] for k in ("D", "L", "H", "a", "b", "d")])
+
+
+def iso_convention_names(machine: str, degree: dict) -> list:
+    """Rotary ISO names, squareness and the linear terms under the ISO 230-1 convention (no straightness P1; P0
+    angular terms of the last tool-side linear axis): the parameter set an identification would use."""
+    lin = [L.lower() for L in split(machine)[1] if L not in ROTARY]
+    out = all_rotary_names(machine) + ["sxy", "sxz", "syz"]
+    for a in "xyz":
+        for kind in "de":
+            for c in "xyz":
+                first = 2 if (kind == "d" and c != a) else (0 if (kind == "e" and lin and a == lin[-1]) else 1)
+                out += [f"{kind}{c}({a})[P{n}]" for n in range(first, degree[a] + 1)]
+    return out
+
+
+def known_parameter(name: str, machine: str) -> bool:
+    """Whether the generator's model has a parameter of this name (ISO rotary, Legendre linear, squareness)."""
+    if name in all_rotary_names(machine) or name in ("sxy", "sxz", "syz"):
+        return True
+    return (len(name) >= 9 and name[0] in "de" and name[1] in "xyz" and name[2] == "(" and name[3] in "xyz"
+            and name[4:7] == ")[P" and name[-1] == "]" and name[7:-1].isdigit())
+
+
+def jacobian(truth: dict, names: list, h: float = 1.0) -> np.ndarray:
+    """d lt / d (names in um / urad, then the tracker pose in um and urad), (3 M, n + 6), in um per unit, by
+    central differences of the generator's own chain at zero errors (noise-free)."""
+    m, plan, ranges, pose0 = setup_of(truth)
+
+    def lt(params, pose):
+        return to_tracker(m.table_points(plan, params, ranges), pose).ravel()
+
+    cols = [(lt({n: h}, pose0) - lt({n: -h}, pose0)) / (2 * h) for n in names]
+    for j in range(6):
+        dp = np.zeros(6)
+        dp[j] = 1e-3 if j < 3 else 1e-6
+        cols.append((lt({}, pose0 + dp) - lt({}, pose0 - dp)) / 2)
+    return np.stack(cols, axis=1) * 1e3
+
+
+def null_space(truth: dict, names: list, rtol: float = 1e-9, J=None) -> np.ndarray:
+    """The machine-parameter part (n, k) of the null directions of the plan (parameters `names` plus the tracker
+    pose), from the generator's own Jacobian: singular values below rtol times the largest."""
+    J = jacobian(truth, names) if J is None else J
+    scale = np.linalg.norm(J, axis=0)
+    scale[scale == 0] = 1.0  # a parameter that moves nothing: its own null direction
+    _, s, Vt = np.linalg.svd(J / scale, full_matrices=False)  # unit columns: the threshold is about geometry
+    V = Vt[s < rtol * s[0]].T
+    return (V / scale[:, None])[:len(names)]  # back to um / urad coordinates
