@@ -388,8 +388,9 @@ def make_recording(folder, kind: str = "CAFXYZ", *, linear_errors: bool = False,
 
 def _plan_text(spec, kind) -> str:
     parts = [f"{len(spec['x'])}x{len(spec['y'])}x{len(spec['z'])} linear grid"]
-    parts += [f"{L} in {list(spec['angles'][L])} deg" for L in rotary_letters(kind)]
-    parts.append(f"tools {[list(t) for t in spec['tools']]} mm (one run each)")
+    parts += [f"{L} in [{', '.join(f'{float(v):.4g}' for v in spec['angles'][L])}] deg" for L in rotary_letters(kind)]
+    tools = ", ".join("(" + ", ".join(f"{float(v):.4g}" for v in t) + ")" for t in spec["tools"])
+    parts.append(f"tools [{tools}] mm (one run each)")
     return " x ".join(parts)
 
 
@@ -444,6 +445,39 @@ def _write_csv(path, plan, lt, machine_code, rotary_dir_columns, sensors):
             if sensors:
                 row += ["20.000"] * 4
             w.writerow(row)
+
+
+# ---------------------------------------------------------------------------------------------- other machines
+def random_overrides(rng, kind: str) -> dict:
+    """Another machine and plan: pivots, magnitudes, angles, grid, tools and tracker drawn at random."""
+    if kind == "CAFXYZ":
+        pivots = {"A": (0.0, rng.uniform(-60, 60), rng.uniform(-150, -30)),
+                  "C": (rng.uniform(-80, 80), rng.uniform(-80, 80), rng.uniform(-20, 20))}
+        amax = rng.choice([60.0, 90.0, 110.0])
+        nc = int(rng.integers(3, 6))
+        angles = {"A": tuple(np.linspace(-amax, amax, rng.integers(3, 6))),
+                  "C": tuple(rng.uniform(0, 90) + np.arange(nc) * 360.0 / nc)}
+        pose = (rng.uniform(-900, -500), rng.uniform(-300, 300), rng.uniform(0, 300))
+    else:
+        pivots = {"C": (rng.uniform(-5, 5), rng.uniform(-5, 5), rng.uniform(200, 400)),
+                  "B": (rng.uniform(-10, 10), 0.0, rng.uniform(80, 200))}
+        bmax = rng.choice([45.0, 60.0, 90.0])
+        nc = int(rng.integers(3, 6))
+        angles = {"B": tuple(np.linspace(-bmax, bmax, rng.integers(3, 6))),
+                  "C": tuple(rng.uniform(0, 90) + np.arange(nc) * 360.0 / nc)}
+        pose = (rng.uniform(-1200, -700), rng.uniform(-400, 400), rng.uniform(0, 500))
+    grid = {a: tuple(np.linspace(lo, lo + span, rng.integers(3, 5)))
+            for a, lo, span in (("x", rng.uniform(-300, 0), rng.uniform(200, 500)),
+                                ("y", rng.uniform(-300, 0), rng.uniform(200, 500)),
+                                ("z", rng.uniform(0, 200), rng.uniform(100, 300)))}
+    tools = [(0.0, 0.0, -rng.uniform(80, 150)), (0.0, 0.0, -rng.uniform(180, 300))]
+    if kind == "FXYZCB" or rng.random() < 0.5:
+        tools.append((rng.uniform(-60, 60), rng.uniform(-60, 60), -rng.uniform(100, 250)))
+    f = rng.uniform(0.3, 3.0)
+    return {"pivots": pivots, "plan": {**grid, "angles": angles, "tools": tuple(tools)},
+            "tracker_pose": (*pose, rng.uniform(-0.01, 0.01), rng.uniform(-0.01, 0.01), rng.uniform(-np.pi, np.pi)),
+            "rotary_magnitude": {k: (lo * f, hi * f) for k, (lo, hi) in ROTARY_MAGNITUDE.items()}}
+
 
 
 # ---------------------------------------------------------------------------------------------- identifiability

@@ -115,37 +115,6 @@ def test_the_comparison_can_fail(case):
 
 
 # ------------------------------------------------------------------------------------------- recordings not seen
-def random_overrides(rng, kind: str) -> dict:
-    """Another machine and plan: pivots, magnitudes, angles, grid, tools and tracker drawn at random."""
-    if kind == "CAFXYZ":
-        pivots = {"A": (0.0, rng.uniform(-60, 60), rng.uniform(-150, -30)),
-                  "C": (rng.uniform(-80, 80), rng.uniform(-80, 80), rng.uniform(-20, 20))}
-        amax = rng.choice([60.0, 90.0, 110.0])
-        nc = int(rng.integers(3, 7))
-        angles = {"A": tuple(np.linspace(-amax, amax, rng.integers(3, 7))),
-                  "C": tuple(rng.uniform(0, 90) + np.arange(nc) * 360.0 / nc)}
-        pose = (rng.uniform(-900, -500), rng.uniform(-300, 300), rng.uniform(0, 300))
-    else:
-        pivots = {"C": (rng.uniform(-5, 5), rng.uniform(-5, 5), rng.uniform(200, 400)),
-                  "B": (rng.uniform(-10, 10), 0.0, rng.uniform(80, 200))}
-        bmax = rng.choice([45.0, 60.0, 90.0])
-        nc = int(rng.integers(3, 7))
-        angles = {"B": tuple(np.linspace(-bmax, bmax, rng.integers(3, 7))),
-                  "C": tuple(rng.uniform(0, 90) + np.arange(nc) * 360.0 / nc)}
-        pose = (rng.uniform(-1200, -700), rng.uniform(-400, 400), rng.uniform(0, 500))
-    grid = {a: tuple(np.linspace(lo, lo + span, rng.integers(3, 5)))
-            for a, lo, span in (("x", rng.uniform(-300, 0), rng.uniform(200, 500)),
-                                ("y", rng.uniform(-300, 0), rng.uniform(200, 500)),
-                                ("z", rng.uniform(0, 200), rng.uniform(100, 300)))}
-    tools = [(0.0, 0.0, -rng.uniform(80, 150)), (0.0, 0.0, -rng.uniform(180, 300))]
-    if kind == "FXYZCB" or rng.random() < 0.5:
-        tools.append((rng.uniform(-60, 60), rng.uniform(-60, 60), -rng.uniform(100, 250)))
-    f = rng.uniform(0.3, 3.0)
-    return {"pivots": pivots, "plan": {**grid, "angles": angles, "tools": tuple(tools)},
-            "tracker_pose": (*pose, rng.uniform(-0.01, 0.01), rng.uniform(-0.01, 0.01), rng.uniform(-np.pi, np.pi)),
-            "rotary_magnitude": {k: (lo * f, hi * f) for k, (lo, hi) in g.ROTARY_MAGNITUDE.items()}}
-
-
 #: MTBUDGET_FIVEAXIS_SEED=<int> draws another campaign (the seed is printed on failure)
 CAMPAIGN_SEED = int(os.environ.get("MTBUDGET_FIVEAXIS_SEED", "926"))
 
@@ -160,7 +129,7 @@ def test_recordings_not_seen(tmp_path):
     for i in range(8):
         kind = g.KINDS[i % 2]
         seed = int(rng.integers(1 << 31))
-        over = random_overrides(np.random.default_rng(seed), kind)
+        over = g.random_overrides(np.random.default_rng(seed), kind)
         null, linear = i in (6, 7), i % 4 >= 2
         truth = g.make_recording(tmp_path / f"r{i}", kind, linear_errors=linear, null=null, seed=seed, **over)
         result = identify(tmp_path / f"r{i}")
