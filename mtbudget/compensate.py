@@ -9,7 +9,7 @@ what a controller or a report needs on a grid the user sets:
   identification covariance: ``cov(f) = B cov_theta B^T`` through the Legendre basis ``B``;
 * per axis, the positioning deviation along the axis on a reference line (the other axes at the
   centre of their measured range, the plan's first tool), from the kinematic chain (so the
-  Abbe effect of the angular errors on that line is in it), relative to its first grid point,
+  Abbe effect of the angular errors on that line is in it), zero at the axis' reference point,
   with its standard uncertainty ``(J - J_0) cov_theta (J - J_0)^T``; and the mean reversal
   value of the axis (ISO 230-2 ``B``, from the recording's bidirectional approaches), which the
   directional controller tables carry;
