@@ -405,7 +405,7 @@ def run_cmd(config, trials, seed, coverage, executor, workers, address, attribut
         click.echo(f"note: resume: {n}", err=True)
     if res.log_problem:
         click.echo(f"warning: {res.log_problem}", err=True)
-        click.get_current_context().exit(1)  # a failed verdict, not bad input (2)
+        raise SystemExit(1)
 
 
 @main.command()
@@ -455,7 +455,7 @@ def replay(runlog, verify, as_json):
             click.echo(f"NOT identical: {len(v['mismatches'])} differences")
             for m in v["mismatches"][:20]:
                 click.echo(f"  {m}")
-            click.get_current_context().exit(1)  # a failed verdict, not bad input (2)
+            raise SystemExit(1)
         return
     res = do_replay(runlog)
     if as_json:
