@@ -9,6 +9,7 @@ The real-controller round trip is tests/test_controller_linuxcnc.py (marker ``co
 from __future__ import annotations
 
 import dataclasses
+import json
 import re
 from decimal import Decimal
 
@@ -19,7 +20,6 @@ from click.testing import CliRunner
 from mtbudget.cli import main
 from mtbudget.compensate import (CompensationError, build_table, check_export, export, find_exporter, grid,
                                  verdict)
-from mtbudget.config import example_recording
 from mtbudget.recording import read_recording
 
 AXES = "xyz"
@@ -55,7 +55,6 @@ def test_check_of_a_plan_approaching_from_one_side_has_no_traceback(one_sided, t
                                     str(tmp_path / "f"), "--check", "--json"])
     assert res.exception is None or isinstance(res.exception, SystemExit), res.exception
     assert res.exit_code == 0, res.output
-    import json
 
     body = json.loads(res.stdout)
     z = body["iso230_2"]["z"]
