@@ -698,9 +698,11 @@ def export(table: CompensationTable, exporter, path) -> list:
     if exporter.max_entries is not None:
         for a, t in table.axes.items():
             if len(t.positions) > exporter.max_entries:
+                why = getattr(exporter, "max_entries_source", "")
                 raise CompensationError(
                     f"--step {table.step:g} mm gives {len(t.positions)} entries on axis {a.upper()}; format "
-                    f"{exporter.name!r} accepts at most {exporter.max_entries} per axis: use a larger --step")
+                    f"{exporter.name!r} accepts at most {exporter.max_entries} per axis" + (f" ({why})" if why else "") +
+                    ": use a larger --step")
     # a built-in exporter's further limits and required options: one line naming the limit, before anything is written
     refusal = call(exporter, "limit_error", table) if callable(getattr(exporter, "limit_error", None)) else None
     if refusal:

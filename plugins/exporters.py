@@ -90,6 +90,7 @@ class LinuxCnc(Exporter):
     suffix = ".comp"
     per_axis = True
     max_entries = 256  # "Currently the limit inside LinuxCNC is for 256 triplets per joint"
+    max_entries_source = "LinuxCNC: 256 triplets per joint, INI configuration COMP_FILE"
     convention = ("LinuxCNC INI configuration, [JOINT_n] COMP_FILE and COMP_FILE_TYPE (docs/src/config/ini-config.adoc); "
                   "loader usrmotLoadComp (src/emc/motion/usrmotintf.cc), use in compute_screw_comp and motor_pos_cmd "
                   "(src/emc/motion/control.c): trims in machine units added to the joint command, linear between "
@@ -125,6 +126,7 @@ class BeckhoffLsec(Exporter):
     suffix = ".lis"
     per_axis = True
     max_entries = 1499  # kw_nr_max must be smaller than kw.ssfk.max_points (P-COMP-00059, default 1500)
+    max_entries_source = "TwinCAT CNC: kw_nr_max must be smaller than kw.ssfk.max_points, P-COMP-00059, default 1500"
     convention = ("Beckhoff Information System, TwinCAT CNC axis compensation: leadscrew error compensation "
                   "kw.ssfk.* (P-COMP-00017 unit, -00018 interval, -00019 kw_startpos, -00020 kw_nr_max, -00021 "
                   "bilateral, -00023 table[i].pos, -00024 table[i].neg, -00025 table[i].setpoint) and its example "
@@ -321,6 +323,7 @@ class HeidenhainTnc(Exporter):
     suffix = ".com"
     per_axis = True
     max_entries = 256  # TNC 407/415/425 technical manual, module 9095: "more than 256 entries" is an error
+    max_entries_source = "HEIDENHAIN: at most 256 entries per .COM table, module 9095"
     convention = ("HEIDENHAIN technical manuals, nonlinear axis error compensation: TNC 407/415/425 (243 020), "
                   "section 'Non-linear axis error compensation' (.COM tables assigned per axis in a .CMA file, one line "
                   "active, at most 256 entries, sign of the linear compensation: 'positive when the table travels too "
