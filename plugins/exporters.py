@@ -35,6 +35,14 @@ from mtbudget.hookspecs import hookimpl
 _AXIS_NUMBER = {"x": 1, "y": 2, "z": 3}
 
 
+def _zero(table, a) -> str:
+    """Where axis ``a``'s tables are zero, in words: its reference point, or the table end nearest it."""
+    t, ref = table.axes[a], table.reference_point.get(a, 0.0)
+    if t.zero_at == ref:
+        return f"zero at the reference point {a.upper()} = {ref:g} mm"
+    return f"zero at {a.upper()} = {t.zero_at:g} mm, the table end nearest the reference point {ref:g} mm (held there)"
+
+
 def _f(v, nd=4):
     return "" if v is None or not np.isfinite(v) else f"{v:.{nd}f}"
 
@@ -107,7 +115,7 @@ class LinuxCnc(Exporter):
             rows = "".join(f"{n:.6f} {f:.6f} {r:.6f}\n" for n, f, r in zip(t.positions, fwd, rev))
             notes = [f"mtbudget: joint compensation of axis {a.upper()} from recording {table.recording!r}, machine units mm",
                      "columns: nominal, forward trim, reverse trim (COMP_FILE_TYPE = 1); trim = -(ISO 230-2 deviation)",
-                     f"zero at the reference point {t.zero_at:g} mm; the table covers {t.positions[0]:g}..{t.positions[-1]:g} mm "
+                     f"{_zero(table, a)}; the table covers {t.positions[0]:g}..{t.positions[-1]:g} mm "
                      "and its end values hold beyond",
                      "activate in the INI file, section of this joint (trivial kinematics: joint = axis):",
                      f"  [JOINT_{j}] COMP_FILE = {p.name}   COMP_FILE_TYPE = 1   BACKLASH = 0 (the reversal is in the "
@@ -152,8 +160,8 @@ class BeckhoffLsec(Exporter):
                      "# for Beckhoff TwinCAT CNC (the ISG kernel, TF5200) only: not for TwinCAT NC PTP, whose "
                      "compensation is additive, the opposite sign",
                      "# values = actual - setpoint (ISO 230-2 deviation) in 0.1 um; the CNC subtracts them",
-                     f"# on the line {', '.join(f'{b} = {v:g} mm' for b, v in t.reference.items())}; zero at the reference "
-                     f"point {t.zero_at:g} mm; set kopf.log_achs_nr to the logical axis number of your configuration",
+                     f"# on the line {', '.join(f'{b} = {v:g} mm' for b, v in t.reference.items())}; {_zero(table, a)}",
+                     "# set kopf.log_achs_nr to the logical axis number of your configuration",
                      "# activate: enter this list for the axis in the start-up list, set lr_param.ssfk = 1 (P-AXIS-00175) "
                      "in the axis parameter list, set the axis' own backlash compensation to 0 (the reversal is in "
                      "pos/neg), restart; the compensation acts once the axis is homed",
@@ -246,8 +254,7 @@ class Siemens840d(Exporter):
         head = [f"; mtbudget: compensation of recording {table.recording!r} ({table.machine}) for the {self.control}; "
                 "values and positions in mm",
                 "; machine axes AX1, AX2, AX3 = X, Y, Z: rename them to your configuration",
-                "; zero at the reference point of each axis: " +
-                ", ".join(f"{a.upper()} {t.zero_at:g} mm" for a, t in table.axes.items()),
+                *[f"; {_zero(table, a)}" for a in table.axes],
                 "; machine-data names as in the K3 function manual (840D sl 03/2013); check them in your edition"]
         lines = ["%_N_AX_EEC_INI", *head,
                  "; LEC: mean bidirectional positioning deviation on each axis' reference line",
@@ -374,8 +381,7 @@ class HeidenhainTnc(Exporter):
             "BACKLASH column: the deviation measured moving in the negative direction (our reading of the MANUALplus 620 "
             "manual: 'enter the compensation values measured in the negative direction of traverse in the BACKLASH "
             "column'); UNVERIFIED whether the control takes it as that value or as the difference to the axis column",
-            "reference: " + ", ".join(f"{a.upper()} zero at {t.zero_at:g} mm" for a, t in table.axes.items()) +
-            " (AXISPOS counts from the machine datum)",
+            "reference: " + "; ".join(_zero(table, a) for a in table.axes) + " (AXISPOS counts from the machine datum)",
             "activate: copy the .COM and .CMA files to the control's table folder, enter the .CMA as the active "
             "assignment, set the axis' backlash compensation MP_backLash to 0 (the reversal is in BACKLASH: a value "
             "there compensates it twice), restart; check one axis with a single test value before use",
