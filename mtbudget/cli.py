@@ -234,14 +234,24 @@ def identify(recording, example, as_json, max_degree, strategy):
                    "with the same suffix.")
 @click.option("--step", default="50 mm", show_default=True, help="Grid step of the tables along every axis.")
 @click.option("--check", is_flag=True,
-              help="Read the written tables back and apply them to the simulated machine of the recording's truth.json.")
+              help="Read the written tables back and apply them to the simulated machine of the recording's truth.json; "
+                   "ends with a verdict per axis and cross table: improved, worse or under-covered.")
+@click.option("--strict", is_flag=True, help="With --check: exit with code 1 when an axis or cross table gets worse.")
+@click.option("--reference", "reference", multiple=True, metavar="AXIS=LENGTH",
+              help="Reference point of an axis, where its tables are zero (repeatable, e.g. --reference \"x=500 mm\"); "
+                   "default 0 mm, the machine zero, for every axis.")
+@click.option("--siemens-cec-sign", type=click.Choice(["error", "correction"]), default=None,
+              help="Required with siemens-840d / siemens-828d: what a $AN_CEC entry is, the measured error (a positive "
+                   "value moves the axis in -, as LEC) or the correction added to the setpoint; no Siemens text found "
+                   "states it: docs/compensation.md gives a one-value test on the machine.")
 @click.option("--max-degree", type=click.IntRange(min=1, max=9), default=3, show_default=True,
               help="Legendre degree of each error function.")
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object (the table, ISO 230-2 figures, the check).")
 @click.option("--report", "report_dir", type=click.Path(file_okay=False, path_type=Path), default=None,
               help="Also write compensation.md and a self-contained compensation.html into this folder: the tables, "
                    "ISO 230-2 figures, the fit residual against U (k = 2) with its figure, and the check.")
-def compensate(recording, example, fmt, out, step, check, max_degree, as_json, report_dir):
+def compensate(recording, example, fmt, out, step, check, strict, reference, siemens_cec_sign, max_degree, as_json,
+               report_dir):
     """Identify a recording and write its compensation tables for a controller.
 
     RECORDING is a folder with recording.toml and points.csv. The geometric
@@ -255,8 +265,8 @@ def compensate(recording, example, fmt, out, step, check, max_degree, as_json, r
     compensation against the uncertainty the table states. Conventions and
     sources of each format: docs/compensation.md.
     """
-    from .compensate import (build_table, check_export, check_json, export, find_exporter, parse_step,
-                             table_text)
+    from .compensate import (build_table, check_export, check_json, check_worse, export, find_exporter,
+                             parse_reference, parse_step, table_text)
     from .progress import note
     from .config import example_recording
     from .recording import read_recording
@@ -264,9 +274,11 @@ def compensate(recording, example, fmt, out, step, check, max_degree, as_json, r
     if recording is None and example is None:
         raise click.UsageError("give a RECORDING folder or --example NAME")
     step_mm = parse_step(step)
+    ref_point = parse_reference(reference)
     exporter = find_exporter(fmt)
     rec = read_recording(example_recording(example) if example else recording)
-    table = build_table(rec, step_mm, max_degree=max_degree)
+    table = build_table(rec, step_mm, max_degree=max_degree, reference_point=ref_point)
+    table.options["siemens_cec_sign"] = siemens_cec_sign
     written = export(table, exporter, out)
     result = check_export(table, rec, exporter, written) if check else None
     if report_dir is not None:
@@ -279,8 +291,10 @@ def compensate(recording, example, fmt, out, step, check, max_degree, as_json, r
         if result is not None:
             body["check"] = check_json(result)
         click.echo(json.dumps(body, indent=1))
-        return
-    click.echo(table_text(table, written, exporter, result))
+    else:
+        click.echo(table_text(table, written, exporter, result))
+    if strict and result is not None and check_worse(result):
+        click.get_current_context().exit(1)  # a failed verdict, not bad input (2)
 
 
 @main.command("plugins")

@@ -9,7 +9,7 @@ what a controller or a report needs on a grid the user sets:
   identification covariance: ``cov(f) = B cov_theta B^T`` through the Legendre basis ``B``;
 * per axis, the positioning deviation along the axis on a reference line (the other axes at the
   centre of their measured range, the plan's first tool), from the kinematic chain (so the
-  Abbe effect of the angular errors on that line is in it), relative to its first grid point,
+  Abbe effect of the angular errors on that line is in it), zero at the axis' reference point,
   with its standard uncertainty ``(J - J_0) cov_theta (J - J_0)^T``; and the mean reversal
   value of the axis (ISO 230-2 ``B``, from the recording's bidirectional approaches), which the
   directional controller tables carry;
@@ -41,6 +41,8 @@ DEFAULT_STEP_MM = 50.0
 MAX_GRID = 100_000  # entries per axis of the neutral table (controller limits are the exporters')
 MODEL_DRAWS = 4000  # Monte Carlo draws over cov_theta for the uncertainty of the model's E, M, A
 MAX_ROUNDING_UM = 0.1  # --check: a read-back entry further than this from the table is a mismatch, not a rounding
+GRID_RESOLUTION_MM = 1e-3  # grid positions and steps are whole micrometres, so a printed MIN + N STEP = MAX exactly
+STATED_COVERAGE = 0.95  # --check: at least this fraction of a line's points within 2u (k = 2) or it is under-covered
 
 CONVENTIONS = {
     "names": "ISO 230-1: E<error direction><axis>: EXX positioning of X, EYX/EZX straightness of X in Y/Z, "
@@ -55,7 +57,9 @@ CONVENTIONS = {
                        "the angular errors of the axis carrying the tool include a constant P0 (tool-holder tilt)",
     "positioning": "per axis, the deviation along the axis on the reference line (other axes at the centre of "
                    "their range, the plan's first tool), from the kinematic chain (Abbe effects on that line "
-                   "included), zero at the first grid point; forward = approach in the + direction",
+                   "included), zero at the axis' reference point (--reference, default the machine zero 0 mm; a "
+                   "reference point outside the table: zero at the nearest end, whose value the controller holds "
+                   "there); forward = approach in the + direction",
     "reversal": "ISO 230-2 reversal value B = mean deviation approaching in + minus in -, averaged over the "
                 "targets of the recording; forward = mean + B/2, reverse = mean - B/2",
     "uncertainty": "standard uncertainty (k = 1): identification covariance through the basis "
@@ -147,7 +151,7 @@ class Iso230_2:
 
 @dataclass
 class AxisTable:
-    """The positioning table of one axis (um, positions in mm), datum at the first grid point."""
+    """The positioning table of one axis (um, positions in mm), zero at the axis' reference point (``zero_at``)."""
 
     axis: str
     positions: np.ndarray
@@ -159,6 +163,7 @@ class AxisTable:
     reference: dict  # other axis -> mm
     tool: np.ndarray  # (3,) mm
     note: str = ""
+    zero_at: float = float("nan")  # mm: where the table is zero (the reference point, clamped to the table)
 
     @property
     def forward(self):
@@ -176,7 +181,7 @@ class AxisTable:
 
 @dataclass
 class CrossTable:
-    """Deviation of the line of ``axis`` in the direction of ``output`` (um), datum at its first grid point.
+    """Deviation of the line of ``axis`` in the direction of ``output`` (um), zero at ``axis``' reference point.
 
     ISO sign (tool relative to workpiece, actual - nominal); through the chain, so straightness, squareness
     (X the reference) and the Abbe effect of the angular errors on that line are in it.  What a sag / cross
@@ -222,7 +227,7 @@ class ResidualAxis:
 class CompensationTable:
     recording: str
     machine: str
-    step: float  # mm
+    step: float  # mm (the largest step asked for; each axis' own spacing is positions[1] - positions[0])
     functions: list
     squareness: list
     axes: dict  # axis -> AxisTable
@@ -231,6 +236,8 @@ class CompensationTable:
     conventions: dict = field(default_factory=lambda: dict(CONVENTIONS))
     notes: list = field(default_factory=list)
     cross: dict = field(default_factory=dict)  # ISO name (EYX ...) -> CrossTable
+    reference_point: dict = field(default_factory=dict)  # axis -> mm, where the tables are zero (as asked)
+    options: dict = field(default_factory=dict)  # exporter options (siemens_cec_sign ...), docs/compensation.md
     residual: dict = field(default_factory=dict)  # axis -> ResidualAxis (the compensated machine at the recording)
     # the identification behind the table (internal units: mm, rad), for the check and for propagation
     model: object = field(default=None, repr=False)
@@ -249,6 +256,7 @@ class CompensationTable:
             "recording": self.recording,
             "machine": self.machine,
             "grid_step_mm": self.step,
+            "reference_point_mm": self.reference_point,
             "conventions": self.conventions,
             "identification": self.identification,
             "iso230_1_names": {f.internal: f.iso for f in self.functions} | {s.internal: s.iso for s in self.squareness},
@@ -262,7 +270,8 @@ class CompensationTable:
                                 "u": _list(t.u), "forward": _list(t.forward), "reverse": _list(t.reverse),
                                 "u_directional": _list(t.u_directional), "reversal_B": _num(t.reversal),
                                 "u_reversal_B": _num(t.u_reversal), "reversal_source": t.reversal_source,
-                                "reference_mm": t.reference, "tool_mm": t.tool.tolist(), "note": t.note}
+                                "reference_mm": t.reference, "zero_at_mm": t.zero_at, "tool_mm": t.tool.tolist(),
+                                "note": t.note}
                             for a, t in self.axes.items()},
             "iso230_2": {a: {k: (v.to_dict() if v is not None else None) for k, v in d.items()}
                          for a, d in self.iso230_2.items()},
@@ -388,15 +397,22 @@ def parse_step(text) -> float:
 
 
 def grid(lo: float, hi: float, step: float) -> np.ndarray:
-    """Equidistant points from lo to hi, both included, spaced at most ``step`` (the table covers the measured
-    range; the step is shortened, if needed, so that equal intervals fill the range: the equidistant controller
-    tables, Siemens ``$AA_ENC_COMP_STEP`` and ``$AN_CEC_STEP``, need one spacing from MIN to MAX)."""
+    """Equidistant points covering lo..hi, spaced at most ``step``, on whole micrometres.
+
+    n = ceil((hi - lo) / step) equal intervals; their spacing is (hi - lo) / n rounded up to a whole micrometre and
+    the first point is lo rounded down to one, so every position and the spacing have at most three decimals in mm:
+    printed with three decimals, MIN + n STEP = MAX holds exactly (the equidistant controller tables, Siemens
+    ``$AA_ENC_COMP_STEP`` and ``$AN_CEC_STEP``, need (MAX - MIN) / STEP to be an integer).  The last point lies at
+    most n um beyond hi."""
     if not step > 0:
         raise CompensationError(f"grid step must be positive, got {step} mm")
     n = max(1, int(np.ceil((hi - lo) / step - 1e-9)))
     if n + 1 > MAX_GRID:
         raise CompensationError(f"a step of {step:g} mm gives {n + 1} points over {hi - lo:g} mm; at most {MAX_GRID}")
-    return lo + (hi - lo) * np.arange(n + 1) / n
+    um = round(1.0 / GRID_RESOLUTION_MM)
+    start = int(np.floor(lo * um + 1e-6))
+    spacing = max(1, int(np.ceil((hi * um - start) / n - 1e-6)))
+    return (start + spacing * np.arange(n + 1)) / um
 
 
 def line_points(axis: str, positions, reference: dict) -> np.ndarray:
@@ -430,9 +446,41 @@ def line_deviation(config, errors, theta, cov, axis: str, positions, reference: 
 
 
 # ----------------------------------------------------------------------------- the table from a recording
+def _at(g, M, x):
+    """The rows of ``M`` (G, ...) linearly interpolated at ``x`` on the ascending positions ``g`` (as a controller
+    interpolates a table), ``x`` within g[0]..g[-1]."""
+    j = int(np.clip(np.searchsorted(g, x, side="right") - 1, 0, len(g) - 2))
+    w = (x - g[j]) / (g[j + 1] - g[j])
+    return (1.0 - w) * M[j] + w * M[j + 1]
+
+
+def parse_reference(items) -> dict:
+    """``--reference`` values such as ``"x=500 mm"`` -> {axis: mm}; a one-line error otherwise."""
+    from .units import to_internal
+
+    out = {}
+    for item in items or ():
+        axis, sep, value = str(item).partition("=")
+        axis = axis.strip().lower()
+        if not sep or axis not in AXES:
+            raise CompensationError(f"--reference: {item!r} must be AXIS=LENGTH with AXIS one of x, y, z, "
+                                    "for example \"x=500 mm\"")
+        v = to_internal(value.strip(), "mm", where=f"--reference {axis}", error=CompensationError)
+        if np.ndim(v) != 0 or not np.isfinite(v):
+            raise CompensationError(f"--reference: {item!r} must be one finite length")
+        out[axis] = float(v)
+    return out
+
+
 def build_table(rec, step: float = DEFAULT_STEP_MM, max_degree: int = 3, reference: dict | None = None,
-                identified=None) -> CompensationTable:
-    """Identify ``rec`` and sample its error functions and positioning tables on a grid of ``step`` mm."""
+                identified=None, reference_point: dict | None = None) -> CompensationTable:
+    """Identify ``rec`` and sample its error functions and positioning tables on a grid of ``step`` mm.
+
+    ``reference``: the positions of the other axes on each axis' reference line (default: the centre of their
+    range).  ``reference_point``: axis -> mm where that axis' tables (positioning and the cross tables along it)
+    are zero, the position the controller references the axis at (default 0 mm, the machine zero, for every axis:
+    a recording states no home position); outside the table, zero at the nearest end (the value a controller
+    holds beyond its table)."""
     from .units import display
 
     model, res = identified if identified is not None else identify_recording(rec, max_degree)
@@ -447,6 +495,13 @@ def build_table(rec, step: float = DEFAULT_STEP_MM, max_degree: int = 3, referen
     reference = {**centre, **(reference or {})}
     tool = np.asarray(rec.plan.tool[0], float)
     notes = [rec.thermal_correction]
+    ref_point = {a: 0.0 for a in AXES} | dict(reference_point or {})
+    zero_at = {a: float(np.clip(ref_point[a], grids[a][0], grids[a][-1])) for a in AXES}
+    for a in AXES:
+        if zero_at[a] != ref_point[a]:
+            notes.append(f"the reference point of {a.upper()} ({ref_point[a]:g} mm) is outside its table "
+                         f"({grids[a][0]:g}..{grids[a][-1]:g} mm): its tables are zero at {zero_at[a]:g} mm, whose "
+                         "value the controller holds at the reference point")
 
     # error functions: f = B theta_g, cov f = B cov_gg B^T, ISO sign per axis side
     functions = []
@@ -483,6 +538,10 @@ def build_table(rec, step: float = DEFAULT_STEP_MM, max_degree: int = 3, referen
     for a in AXES:
         others = {b: reference[b] for b in AXES if b != a}
         e, u, D = line_deviation(config, errors, theta, cov, a, grids[a], reference, tool)
+        ED = np.column_stack([e, D])
+        ED = ED - _at(grids[a], ED, zero_at[a])  # zero at the reference point, as the controller interpolates
+        e, D = ED[:, 0], ED[:, 1:]
+        u = np.sqrt(np.maximum(np.einsum("gp,pq,gq->g", D, cov, D), 0.0))
         note = ""
         if null.shape[1] and np.max(np.abs(D @ null)) > 1e-6:  # > 1 nm per um or urad of a null direction
             note = "depends on a combination the plan cannot identify: its uncertainty is understated"
@@ -495,18 +554,24 @@ def build_table(rec, step: float = DEFAULT_STEP_MM, max_degree: int = 3, referen
         B, uB = _reversal_estimate(r_rec)
         src = ("ISO 230-2 mean reversal value of the recording" if r_rec.figures else
                f"none: {r_rec.note}; the directional entries equal the mean")
-        axes[a] = AxisTable(a, grids[a], display(e, "mm", "um"), display(u, "mm", "um"), B, uB, src, others, tool, note)
+        axes[a] = AxisTable(a, grids[a], display(e, "mm", "um"), display(u, "mm", "um"), B, uB, src, others, tool, note,
+                            zero_at[a])
         # model: the identified line at the recording's targets, the table's reversal, the stated repeatability
         targets = r_rec.targets
+        if len(targets) < 2:  # not bidirectional (a plan approaching from one side): the model at all its targets
+            targets = np.unique(np.round(pa, 6))
         e_t, _, D_t = line_deviation(config, errors, theta, cov, a, targets, reference, tool, datum=grids[a][0])
         e_t = display(e_t, "mm", "um")
         s_stated = float(display(rec.repeatability, "mm", "um"))
         tt = np.concatenate([targets, targets])
         dd = np.concatenate([np.ones(len(targets)), -np.ones(len(targets))])
         r_mod = iso230_2(a, tt, dd, np.concatenate([e_t + B / 2, e_t - B / 2]), source="model", s=s_stated)
-        r_mod.uncertainty = _model_uncertainty(D_t, cov, theta, B, uB, s_stated, a, targets)
-        r_mod.note = (f"identified model on the reference line; reversal = the table's B; s = the stated "
-                      f"repeatability {s_stated:g} um")
+        if r_mod.figures:
+            r_mod.uncertainty = _model_uncertainty(D_t, cov, theta, B, uB, s_stated, a, targets)
+            r_mod.note = (f"identified model on the reference line; reversal = the table's B; s = the stated "
+                          f"repeatability {s_stated:g} um")
+            if not r_rec.figures:
+                r_mod.note += "; at every target of the recording (approached from one side only), B = 0"
         iso[a] = {"recording": r_rec, "model": r_mod}
         # cross (sag) tables: the deviation of a's line in the other two directions
         for b in AXES:
@@ -516,6 +581,7 @@ def build_table(rec, step: float = DEFAULT_STEP_MM, max_degree: int = 3, referen
             raw[(a, b)] = (grids[a], np.column_stack([eb, Db]))
     raw = frame_convention(raw)
     for (a, b), (g, ED) in raw.items():
+        ED = ED - _at(g, ED, zero_at[a])  # zero at the input axis' reference point
         eb, Db = ED[:, 0], ED[:, 1:]
         ub = np.sqrt(np.maximum(np.einsum("gp,pq,gq->g", Db, cov, Db), 0.0))
         cnote = ""
@@ -530,7 +596,7 @@ def build_table(rec, step: float = DEFAULT_STEP_MM, max_degree: int = 3, referen
                      "not_identifiable": [[{"parameter": n, "iso": iso_name(n.split("[")[0]) if "(" in n else n,
                                             "weight": w} for n, w in c] for c in ident.combinations()]}
     return CompensationTable(rec.name, rec.machine, float(step), functions, squareness, axes, iso, ident_summary,
-                             notes=notes, cross=cross, residual=residual_against_u(rec, res),
+                             notes=notes, cross=cross, residual=residual_against_u(rec, res), reference_point=ref_point,
                              model=model, theta=theta, cov_theta=cov)
 
 
@@ -632,9 +698,15 @@ def export(table: CompensationTable, exporter, path) -> list:
     if exporter.max_entries is not None:
         for a, t in table.axes.items():
             if len(t.positions) > exporter.max_entries:
+                why = getattr(exporter, "max_entries_source", "")
                 raise CompensationError(
                     f"--step {table.step:g} mm gives {len(t.positions)} entries on axis {a.upper()}; format "
-                    f"{exporter.name!r} accepts at most {exporter.max_entries} per axis: use a larger --step")
+                    f"{exporter.name!r} accepts at most {exporter.max_entries} per axis" + (f" ({why})" if why else "") +
+                    ": use a larger --step")
+    # a built-in exporter's further limits and required options: one line naming the limit, before anything is written
+    refusal = call(exporter, "limit_error", table) if callable(getattr(exporter, "limit_error", None)) else None
+    if refusal:
+        raise CompensationError(f"format {exporter.name!r}: {refusal}")
     path = Path(path)
     try:
         path.parent.mkdir(parents=True, exist_ok=True)  # as report, diagnose --report and simulate do
@@ -717,12 +789,14 @@ _SIEMENS_AXES = {"AX1": "x", "AX2": "y", "AX3": "z", "X1": "x", "Y1": "y", "Z1":
 _SIEMENS_LINE = re.compile(r"^\$(AA_ENC_COMP|AN_CEC)(_[A-Z_]+)?\[([^\]]*)\]\s*=\s*(\S+)")
 
 
-def read_siemens(paths) -> dict:
-    """SINUMERIK 840D sl LEC ($AA_ENC_COMP...) and sag compensation ($AN_CEC...) programs (K3 function manual).
+def read_siemens(paths, cec_sign: str = "error") -> dict:
+    """SINUMERIK 840D sl / 828D LEC ($AA_ENC_COMP...) and sag compensation ($AN_CEC...) programs (K3 function manual).
 
-    Equidistant tables: position of interpolation point N = MIN + N STEP, MIN..MAX; values in mm; the
+    Equidistant tables: position of interpolation point N = MIN + N STEP, MIN..MAX; values in mm; the LEC
     compensation value acts like a measured error ("a positive compensation value causes the machine axis to
-    move in the negative direction"), so the trim added to the command is minus it.  CEC tables with
+    move in the negative direction"), so the trim added to the command is minus it.  A $AN_CEC entry is applied
+    with the sign the user declared the control uses (``cec_sign``: "error" as the LEC, "correction": added to
+    the output axis' setpoint as it is); no Siemens text found states it.  CEC tables with
     $AN_CEC_DIRECTION = 1 / -1 act in one direction of travel of the base axis only; 0 in both; the output
     axis gets the value at the base axis' setpoint; a table with input = output axis adds to that axis."""
     lec, cec = {}, {}
@@ -746,9 +820,18 @@ def read_siemens(paths) -> dict:
                 else:
                     d[attr] = value
 
+    if cec_sign not in ("error", "correction"):
+        raise CompensationError(f"--check: the $AN_CEC sign must be 'error' or 'correction', not {cec_sign!r}")
+    cec_trim = -1.0 if cec_sign == "error" else 1.0
+
     def points(d, prefix):
-        step, lo, hi = (float(d[f"{prefix}{k}"]) for k in ("_STEP", "_MIN", "_MAX"))
-        n = int(round((hi - lo) / step))
+        from decimal import Decimal
+
+        step, lo, hi = (Decimal(d[f"{prefix}{k}"]) for k in ("_STEP", "_MIN", "_MAX"))
+        n = (hi - lo) / step
+        if n != n.to_integral_value():  # the control needs MIN + N STEP = MAX
+            raise CompensationError(f"{paths[0]}: (MAX - MIN) / STEP = ({hi} - {lo}) / {step} is not an integer")
+        n, step, lo = int(n), float(step), float(lo)
         vals = np.array([d["values"].get(i, 0.0) for i in range(n + 1)])
         return lo + step * np.arange(n + 1), vals
 
@@ -763,7 +846,7 @@ def read_siemens(paths) -> dict:
         direction = int(d.get("_DIRECTION", "0"))
         if a == b:
             base = out.setdefault(a, [pos, np.zeros(len(pos)), np.zeros(len(pos))])
-            add = -np.interp(base[0], pos, v)
+            add = cec_trim * np.interp(base[0], pos, v)
             if direction >= 0:
                 base[1] = base[1] + add
             if direction <= 0:
@@ -771,7 +854,7 @@ def read_siemens(paths) -> dict:
         else:
             if direction != 0:
                 raise CompensationError(f"{paths[0]}: a direction-dependent cross table ({a} -> {b}) is not read here")
-            cross[(a, b)] = (pos, -v)
+            cross[(a, b)] = (pos, cec_trim * v)
     res = {a: tuple(v) for a, v in out.items()}
     res["cross"] = cross
     return res
@@ -832,12 +915,14 @@ READERS = {
     "neutral-csv": ("all", read_neutral_csv),
     "neutral-json": ("all", read_neutral_json),
     "siemens-840d": ("files", read_siemens),
+    "siemens-828d": ("files", read_siemens),
     "heidenhain-tnc": ("files", read_heidenhain),
 }
 
 
-def read_back(exporter, written: list) -> dict:
-    """axis -> (positions mm, trim forward mm, trim reverse mm) from the files an exporter wrote."""
+def read_back(exporter, written: list, options: dict | None = None) -> dict:
+    """axis -> (positions mm, trim forward mm, trim reverse mm) from the files an exporter wrote; ``options``: the
+    table's exporter options (the Siemens $AN_CEC sign the user declared)."""
     if exporter.name not in READERS:
         raise CompensationError(f"--check has no independent reader for format {exporter.name!r}; "
                                 f"it can check {', '.join(sorted(READERS))}")
@@ -845,6 +930,8 @@ def read_back(exporter, written: list) -> dict:
     if kind == "all":
         return fn(written[0])
     if kind == "files":
+        if fn is read_siemens:
+            return fn(list(written), (options or {}).get("siemens_cec_sign") or "error")
         return fn(list(written))
     out = {}
     for p in written:
@@ -876,9 +963,15 @@ class AxisCheck:
         with np.errstate(divide="ignore", invalid="ignore"):
             return np.where(self.u > 0, self.after / self.u, np.where(np.abs(self.after) < 1e-3, 0.0, np.inf))
 
+    @property
+    def verdict(self) -> str:
+        """worse: ISO 230-2 E after > before; under-covered: fewer than 95 % of the points within 2u; else improved."""
+        return verdict(self.iso_before.figures["E"], self.iso_after.figures["E"], self.z, self.rounding)
+
     def to_dict(self) -> dict:
         z = self.z
-        return {"axis": self.axis, "points": int(self.positions.size), "max_abs_before_um": float(np.abs(self.before).max()),
+        return {"axis": self.axis, "verdict": self.verdict, "points": int(self.positions.size),
+                "max_abs_before_um": float(np.abs(self.before).max()),
                 "max_abs_after_um": float(np.abs(self.after).max()), "max_abs_z": float(np.abs(z).max()),
                 "rms_z": float(np.sqrt(np.mean(z**2))), "within_2u": float(np.mean(np.abs(z) <= 2)),
                 "format_rounding_um": self.rounding,
@@ -898,13 +991,42 @@ class CrossCheck:
     u: np.ndarray
     rounding: float = 0.0
 
-    def to_dict(self) -> dict:
+    @property
+    def z(self):
         with np.errstate(divide="ignore", invalid="ignore"):
-            z = np.where(self.u > 0, self.after / self.u, np.where(np.abs(self.after) < 1e-3, 0.0, np.inf))
-        return {"iso": self.iso, "input_axis": self.axis, "output_axis": self.output, "points": int(self.positions.size),
+            return np.where(self.u > 0, self.after / self.u, np.where(np.abs(self.after) < 1e-3, 0.0, np.inf))
+
+    @property
+    def verdict(self) -> str:
+        """worse: largest |deviation| after > before; under-covered: fewer than 95 % within 2u; else improved."""
+        return verdict(np.abs(self.before).max(), np.abs(self.after).max(), self.z, self.rounding)
+
+    def to_dict(self) -> dict:
+        z = self.z
+        return {"iso": self.iso, "verdict": self.verdict, "input_axis": self.axis, "output_axis": self.output,
+                "points": int(self.positions.size),
                 "max_abs_before_um": float(np.abs(self.before).max()), "max_abs_after_um": float(np.abs(self.after).max()),
                 "max_abs_z": float(np.abs(z).max()), "within_2u": float(np.mean(np.abs(z) <= 2)),
                 "format_rounding_um": self.rounding}
+
+
+VERDICTS = ("improved", "worse", "under-covered")
+
+
+def verdict(before: float, after: float, z, rounding: float = 0.0) -> str:
+    """One line's verdict in --check: "worse" when its error figure after compensation exceeds the one before
+    (by more than the format's rounding), "under-covered" when fewer than :data:`STATED_COVERAGE` of its points
+    lie within 2u (k = 2, the coverage the table's uncertainty claims), "improved" otherwise."""
+    if after > before + rounding + 1e-6:
+        return "worse"
+    if np.mean(np.abs(np.asarray(z)) <= 2.0) < STATED_COVERAGE:
+        return "under-covered"
+    return "improved"
+
+
+def check_worse(check: dict) -> list:
+    """The lines (axes and cross tables) --check found worse after compensation."""
+    return [k for group in ("axes", "cross") for k, c in check.get(group, {}).items() if c.verdict == "worse"]
 
 
 def _truth_frame(table, config, terr, theta_t) -> dict:
@@ -935,7 +1057,7 @@ def _present_effect(v) -> bool:
 def _check_line(config, terr, axis: str, t: AxisTable, grid: np.ndarray, component: int):
     """Where --check looks along ``axis``'s reference line: the grid points and midway between them, their tool
     points and tools, and the error-free machine's ``component`` there (mm)."""
-    pts = np.sort(np.concatenate([grid, 0.5 * (grid[1:] + grid[:-1])]))
+    pts = np.unique(np.concatenate([grid, 0.5 * (grid[1:] + grid[:-1]), [t.zero_at]]))
     lp = line_points(axis, pts, t.reference)
     tool = np.broadcast_to(t.tool, lp.shape).copy()
     nominal = chain(config, terr, np.zeros((1, len(terr.params))), ChainInputs(lp, tool))[0, :, component]
@@ -965,7 +1087,7 @@ def check_export(table: CompensationTable, rec, exporter, written: list) -> dict
     theta_t, _, effects = parameters_from_truth(truth, _M)
     reversal = effects.get("reversal", {})
     config = Configuration.parse(rec.machine)
-    tables = dict(read_back(exporter, written))
+    tables = dict(read_back(exporter, written, table.options))
     cross_tables = tables.pop("cross", {})
     truth_lines = None
     out = {"format": exporter.name, "files": [str(p) for p in written], "axes": {}, "cross": {},
@@ -982,15 +1104,15 @@ def check_export(table: CompensationTable, rec, exporter, written: list) -> dict
         for comp in (np.zeros(len(pts)), interpolate(pos_tab, trim, pts)):
             P = chain(config, terr, theta_t[None], ChainInputs(lp, tool, offset={b: comp[None, :]}))
             rows.append((P[0, :, kb] - nominal) * 1e3)
-        datum = np.argmin(np.abs(pts - g[0]))
+        datum = int(np.argmin(np.abs(pts - t.zero_at)))  # the reference point, where the tables are zero
         before, after = (r - r[datum] for r in rows)
         if truth_lines is None:  # the true machine in the same frame convention as the tables
             truth_lines = _truth_frame(table, config, terr, theta_t)
         pts_g, rot = truth_lines[(a, b)]
         shift = np.interp(pts, pts_g, rot)
-        before, after = before - shift, after - shift
+        before, after = before - (shift - shift[datum]), after - (shift - shift[datum])
         _, u_line, _ = line_deviation(table.model.config, table.model.errors, table.theta, table.cov_theta, a, pts,
-                                      {**t.reference, a: 0.0}, t.tool, datum=g[0], component=b)
+                                      {**t.reference, a: 0.0}, t.tool, datum=t.zero_at, component=b)
         q = float(np.max(np.abs(interpolate(pos_tab, trim, g) * 1e3 + c.deviation)))
         if q > MAX_ROUNDING_UM:
             out.setdefault("mismatch", {})[c.iso] = q
@@ -1010,12 +1132,12 @@ def check_export(table: CompensationTable, rec, exporter, written: list) -> dict
             for arr, comp in ((before, 0.0), (after, interpolate(pos_tab, trim, pts))):
                 P = chain(config, terr, theta_t[None], ChainInputs(lp, tool, offset={a: (lost + np.broadcast_to(comp, pts.shape))[None, :]}))
                 arr[row] = (P[0, :, k] - nominal) * 1e3
-        datum = np.argmin(np.abs(pts - g[0]))
+        datum = int(np.argmin(np.abs(pts - t.zero_at)))  # the reference point, where the table is zero
         for arr in (before, after):
             arr -= 0.5 * (arr[0, datum] + arr[1, datum])
-        # the table's stated uncertainty at these points (relative to its datum), directional
+        # the table's stated uncertainty at these points (relative to its reference point), directional
         _, u_line, _ = line_deviation(table.model.config, table.model.errors, table.theta, table.cov_theta, a, pts,
-                                      {**t.reference, a: 0.0}, t.tool, datum=g[0])
+                                      {**t.reference, a: 0.0}, t.tool, datum=t.zero_at)
         # the format's own rounding, measured on the read-back at the grid points (rectangular, half-width q)
         q = max(float(np.max(np.abs(interpolate(pos_tab, trim_f, g) * 1e3 + t.forward))),
                 float(np.max(np.abs(interpolate(pos_tab, trim_r, g) * 1e3 + t.reverse))))
@@ -1064,12 +1186,12 @@ def table_text(table: CompensationTable, written: list, exporter, check: dict | 
              f"{idn['chi2_per_dof']:.3f}, {idn['points']} points, grid step {table.step:g} mm",
              f"  format {exporter.name}: {exporter.description}",
              *[f"  wrote {p}" for p in written],
-             "", ("positioning tables (um, k = 1; zero at the first grid point; forward = approach in +; "
+             "", ("positioning tables (um, k = 1; zero at the axis' reference point; forward = approach in +; "
                   "reversal B as ISO 230-2: mean up minus mean down, -1 x the lost motion diagnose reports):")]
     for a, t in table.axes.items():
         ref = ", ".join(f"{b} = {v:g} mm" for b, v in t.reference.items())
-        lines.append(f"  {a.upper()}: {len(t.positions)} entries {t.positions[0]:g}..{t.positions[-1]:g} mm on the line "
-                     f"{ref}; range of the mean deviation {np.ptp(t.deviation):.2f} um, largest u {t.u.max():.2f} um; "
+        lines.append(f"  {a.upper()}: {len(t.positions)} entries {t.positions[0]:g}..{t.positions[-1]:g} mm, zero at "
+                     f"{t.zero_at:g} mm, on the line {ref}; range of the mean deviation {np.ptp(t.deviation):.2f} um, largest u {t.u.max():.2f} um; "
                      f"reversal B {t.reversal:+.2f} ({t.u_reversal:.2f}) um")
         if t.note:
             lines.append(f"     note: {t.note}")
@@ -1086,7 +1208,7 @@ def table_text(table: CompensationTable, written: list, exporter, check: dict | 
         lines.append(f"  {s.iso:<8} ({s.internal}) squareness {s.value:+8.2f} urad u {uu}")
     if table.cross:
         lines += ["", "cross (sag) tables: deviation of each axis' line in the other directions (um, k = 1; zero at the "
-                      "first grid point; squareness and Abbe effects on the line included):"]
+                      "input axis' reference point; squareness and Abbe effects on the line included):"]
         for c in table.cross.values():
             lines.append(f"  {c.iso} ({c.output.upper()} as a function of {c.axis.upper()}): range {np.ptp(c.deviation):6.2f} um, "
                          f"largest u {c.u.max():5.2f} um" + (f"  [{c.note}]" if c.note else ""))
@@ -1103,22 +1225,32 @@ def table_text(table: CompensationTable, written: list, exporter, check: dict | 
                          f"{d['max_abs_after_um']:5.2f}  max |e|/u {d['max_abs_z']:4.2f}  rms e/u {d['rms_z']:4.2f}  "
                          f"within 2u {d['within_2u']:.0%}  | ISO 230-2 E {c.iso_before.figures['E']:.2f} -> "
                          f"{c.iso_after.figures['E']:.2f}, B {c.iso_before.figures['B']:.2f} -> "
-                         f"{c.iso_after.figures['B']:.2f}")
+                         f"{c.iso_after.figures['B']:.2f}  | {c.verdict.upper()}")
         for k, c in check.get("cross", {}).items():
             d = c.to_dict()
             lines.append(f"  {k} ({c.output.upper()} on the {c.axis.upper()} line): before max |e| {d['max_abs_before_um']:6.2f}  "
                          f"after max |e| {d['max_abs_after_um']:5.2f}  max |e|/u {d['max_abs_z']:4.2f}  "
-                         f"within 2u {d['within_2u']:.0%}")
+                         f"within 2u {d['within_2u']:.0%}  | {c.verdict.upper()}")
         for a, q in check.get("mismatch", {}).items():
             lines.append(f"  MISMATCH on {a.upper()}: the read-back entries differ from the table by up to {q:.3g} um")
         if check["ignored"]:
             lines.append(f"  (truth.json also has {', '.join(check['ignored'])}: not applied, the check is at the "
                          "reference temperature and in the machine frame)")
+        lines += ["", verdict_line(check)]
     return "\n".join(lines)
+
+
+def verdict_line(check: dict) -> str:
+    """The check's last line: the verdict of every line, and what the verdicts mean."""
+    per = [f"{k.upper() if len(k) == 1 else k} {c.verdict}" for group in ("axes", "cross")
+           for k, c in check.get(group, {}).items()]
+    return ("verdict: " + ", ".join(per) + " (worse: the error figure after compensation, ISO 230-2 E for an axis, "
+            "the largest |deviation| for a cross table, exceeds the one before; under-covered: fewer than 95 % of "
+            "the points within 2u, k = 2; improved: neither)")
 
 
 def check_json(check: dict) -> dict:
     return {"format": check["format"], "files": check["files"], "ignored": check["ignored"],
-            "mismatch": check.get("mismatch", {}),
+            "mismatch": check.get("mismatch", {}), "worse": check_worse(check),
             "axes": {a: c.to_dict() for a, c in check["axes"].items()},
             "cross": {k: c.to_dict() for k, c in check.get("cross", {}).items()}}

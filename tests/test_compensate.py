@@ -189,8 +189,12 @@ def test_neutral_uncertainties_against_an_independent_monte_carlo(null):
 # ----------------------------------------------------------------------------- the controller files, read back here
 def parse_linuxcnc(path):
     """LinuxCNC COMP_FILE_TYPE 1 as the INI docs describe it: 'nominal forward reverse' per line, ascending."""
-    rows = [tuple(map(float, line.split())) for line in path.read_text().splitlines()]
-    assert all(len(r) == 3 for r in rows), "every line must be a triplet (the loader stops at the first other line)"
+    lines = path.read_text().splitlines()
+    table = [ln for ln in lines if not ln.startswith("#")]
+    # the loader stops at the first line that is not a triplet: the notes must all come after the table
+    assert lines[:len(table)] == table and all(ln.startswith("# ") for ln in lines[len(table):])
+    rows = [tuple(map(float, line.split())) for line in table]
+    assert all(len(r) == 3 for r in rows), "every table line must be a triplet"
     return np.array(rows)
 
 
@@ -306,7 +310,8 @@ def test_compensate_command(tmp_path):
                                     "--check", "--step", "100 mm"])
     assert res.exit_code == 0, res.output
     assert "wrote" in res.output and "check:" in res.output and "EC(0X)Y" in res.output and "ISO 230-2" in res.output
-    assert len((tmp_path / "m_x.comp").read_text().splitlines()) == 5  # 800..1200 every 100 mm
+    rows = [ln for ln in (tmp_path / "m_x.comp").read_text().splitlines() if not ln.startswith("#")]
+    assert len(rows) == 5  # 800..1200 every 100 mm
     res = CliRunner().invoke(main, ["compensate", "--example", "null", "--format", "neutral-json", "--out",
                                     str(tmp_path / "t.json"), "--json"])
     body = json.loads(res.stdout)

@@ -82,9 +82,12 @@ def siemens_table(kv, values_key, index):
     return lo + step * np.arange(n + 1), np.array(vals)
 
 
-def test_siemens_tables_read_back_against_the_model(tmp_path, reversal):
+@pytest.mark.parametrize("cec_sign", ["error", "correction"])
+def test_siemens_tables_read_back_against_the_model(tmp_path, reversal, cec_sign):
     rec, table = reversal
+    table.options["siemens_cec_sign"] = cec_sign
     eec, cec = export(table, find_exporter("siemens-840d"), tmp_path / "comp.ini")
+    sgn = 1.0 if cec_sign == "error" else -1.0  # a $AN_CEC entry: the error, or the correction = -error
     assert eec.name == "comp_eec.ini" and cec.name == "comp_cec.ini"
     lec, sag = parse_siemens(eec.read_text()), parse_siemens(cec.read_text())
     lines = model_lines(table)
@@ -106,7 +109,7 @@ def test_siemens_tables_read_back_against_the_model(tmp_path, reversal):
         direction = int(sag[("AN_CEC_DIRECTION", i)])
         assert sag[("AN_CEC_IS_MODULO", i)] == "0" and sag[("AN_CEC_MULT_BY_TABLE", i)] == "0"
         pos, val = siemens_table(sag, "AN_CEC", i)
-        seen[(a, b, direction)] = (pos, val * 1e3)
+        seen[(a, b, direction)] = (pos, sgn * val * 1e3)
     for a in AXES:  # the reversal: + direction B/2, - direction -B/2, B of the recording (x_up - x_down)
         B = reversal_by_hand(rec, table, a)
         np.testing.assert_allclose(seen[(a, a, 1)][1], B / 2, atol=2e-3)
@@ -134,8 +137,8 @@ def parse_tnc_table(text):
 def test_heidenhain_tables_read_back_against_the_model(tmp_path, reversal):
     rec, table = reversal
     written = export(table, find_exporter("heidenhain-tnc"), tmp_path / "mill.com")
-    assert [p.name for p in written] == ["mill_x.com", "mill_y.com", "mill_z.com", "mill.cma"]
-    begin, head, rows = parse_tnc_table(written[-1].read_text())
+    assert [p.name for p in written] == ["mill_x.com", "mill_y.com", "mill_z.com", "mill.cma", "mill_notes.txt"]
+    begin, head, rows = parse_tnc_table(written[3].read_text())
     assert head == ["NR", "X", "Y", "Z", "ACTIVE"] and len(rows) == 1 and rows[0]["ACTIVE"] == "*"
     lines = model_lines(table)
     for a in AXES:
@@ -161,6 +164,7 @@ def test_heidenhain_tables_read_back_against_the_model(tmp_path, reversal):
 @pytest.mark.parametrize("fmt", ["siemens-840d", "heidenhain-tnc"])
 def test_round_trip_positioning_and_sag(tmp_path, null, fmt):
     rec, table = null
+    table.options["siemens_cec_sign"] = "error"
     ex = find_exporter(fmt)
     check = check_export(table, rec, ex, export(table, ex, tmp_path / f"t{ex.suffix}"))
     assert not check.get("mismatch")
@@ -178,6 +182,7 @@ def test_round_trip_positioning_and_sag(tmp_path, null, fmt):
 
 def test_round_trip_catches_a_siemens_file_with_the_wrong_sign(tmp_path, null):
     rec, table = null
+    table.options["siemens_cec_sign"] = "error"
     ex = find_exporter("siemens-840d")
     eec, cec = export(table, ex, tmp_path / "t.ini")
     text = cec.read_text()
