@@ -239,6 +239,8 @@ class CompensationTable:
     reference_point: dict = field(default_factory=dict)  # axis -> mm, where the tables are zero (as asked)
     options: dict = field(default_factory=dict)  # exporter options (siemens_cec_sign ...), docs/compensation.md
     residual: dict = field(default_factory=dict)  # axis -> ResidualAxis (the compensated machine at the recording)
+    #: five-axis: the rotary axes' location and zero errors (ISO 230-7) with u (k = 1); held ones by the datum
+    rotary: list = field(default_factory=list)
     # the identification behind the table (internal units: mm, rad), for the check and for propagation
     model: object = field(default=None, repr=False)
     theta: np.ndarray | None = field(default=None, repr=False)
@@ -282,6 +284,12 @@ class CompensationTable:
                 "what": "residual = measured - identified model at the recording's points (machine frame), against "
                         "U = 2 u of that residual from the stated tracker noise and repeatability (k = 2, about 95 %)",
                 "axes": {a: r.summary() for a, r in self.residual.items()}},
+            **({"rotary_location_errors": {
+                "what": "each rotary axis' location and zero errors (ISO 230-7), in its carrier's frame (the machine "
+                        "frame with every axis at zero): the offsets of its average line (um) and its orientation and "
+                        "zero errors (urad, rotations about +X, +Y, +Z); u is the standard uncertainty (k = 1); a "
+                        "parameter held by the datum is 0 with no u (docs/model.md)",
+                "values": self.rotary}} if self.rotary else {}),
             "notes": self.notes,
         }
 
@@ -415,6 +423,13 @@ def grid(lo: float, hi: float, step: float) -> np.ndarray:
     return (start + spacing * np.arange(n + 1)) / um
 
 
+def chain_inputs(config, pts, tool, offset=None) -> ChainInputs:
+    """The chain's inputs on a line of the linear axes; a five-axis machine's rotary axes at their zero angle (the
+    tables of the linear axes are those of the machine with every rotary axis at zero)."""
+    M = len(pts)
+    return ChainInputs(pts, tool, offset=offset or {}, angles={r: np.zeros(M) for r in config.rotary_letters})
+
+
 def line_points(axis: str, positions, reference: dict) -> np.ndarray:
     pts = np.zeros((len(positions), 3))
     for b in AXES:
@@ -434,7 +449,7 @@ def line_deviation(config, errors, theta, cov, axis: str, positions, reference: 
     datum = positions[0] if datum is None else float(datum)
     pos = np.concatenate([[datum], positions])
     pts = line_points(axis, pos, reference)
-    inp = ChainInputs(pts, np.broadcast_to(np.asarray(tool, float), pts.shape).copy())
+    inp = chain_inputs(config, pts, np.broadcast_to(np.asarray(tool, float), pts.shape).copy())
     P, J = chain(config, errors, np.asarray(theta, float)[None], inp, jacobian=True)
     P0 = chain(config, errors, np.zeros((1, len(errors.params))), inp)
     k = AXIS_INDEX[component or axis]
@@ -591,13 +606,29 @@ def build_table(rec, step: float = DEFAULT_STEP_MM, max_degree: int = 3, referen
         cross[f"E{b.upper()}{a.upper()}"] = CrossTable(f"E{b.upper()}{a.upper()}", a, b, g,
                                                        display(eb, "mm", "um"), display(ub, "mm", "um"), cnote)
 
+    rotary = []
+    held = set(ident.held or [])
+    for j, p in enumerate(errors.params):
+        if p.name.endswith("[O]"):
+            unit_i, unit_d = ("mm", "um") if p.unit == "mm" else ("rad", "urad")
+            kind = ("location" if p.name[0] == "d" else
+                    "zero" if AXIS_INDEX[p.error[1]] == "abc".index(p.error[3]) else "orientation")
+            rotary.append({"iso": iso_parameter(p.name), "mtbudget": p.name, "axis": p.error[3].upper(), "kind": kind,
+                           "unit": unit_d, "value": _num(display(theta[j], unit_i, unit_d)),
+                           "u": None if j in held else _num(display(np.sqrt(max(cov[j, j], 0.0)), unit_i, unit_d)),
+                           "identifiable": j not in held, **({"datum": True} if j in held else {})})
+    if rotary:
+        notes.append("five-axis: the linear axes' tables are those of the machine with every rotary axis at zero; the "
+                     "rotary axes' location and zero errors (ISO 230-7: " + ", ".join(r["iso"] for r in rotary) +
+                     ") are not axis tables: enter them in the controller's kinematic description (neutral-json and "
+                     "neutral-csv list them with u)")
     ident_summary = {"chi2_per_dof": float(res.chi2_per_dof[0]), "dof": int(res.dof), "points": len(rec),
                      "converged": bool(res.converged[0]),
                      "not_identifiable": [[{"parameter": n, "iso": iso_name(n.split("[")[0]) if "(" in n else n,
                                             "weight": w} for n, w in c] for c in ident.combinations()]}
     return CompensationTable(rec.name, rec.machine, float(step), functions, squareness, axes, iso, ident_summary,
                              notes=notes, cross=cross, residual=residual_against_u(rec, res), reference_point=ref_point,
-                             model=model, theta=theta, cov_theta=cov)
+                             model=model, theta=theta, cov_theta=cov, rotary=rotary)
 
 
 #: the rigid rotation of a small-angle frame change omega on the line of axis a, direction b: slope (omega x e_a)_b
@@ -1036,7 +1067,7 @@ def _truth_frame(table, config, terr, theta_t) -> dict:
     for a, t in table.axes.items():
         g = t.positions
         lp = line_points(a, g, t.reference)
-        inp = ChainInputs(lp, np.broadcast_to(t.tool, lp.shape).copy())
+        inp = chain_inputs(config, lp, np.broadcast_to(t.tool, lp.shape).copy())
         dev = (chain(config, terr, theta_t[None], inp) - chain(config, terr, np.zeros((1, len(terr.params))), inp))[0]
         for b in AXES:
             if b != a:
@@ -1060,7 +1091,7 @@ def _check_line(config, terr, axis: str, t: AxisTable, grid: np.ndarray, compone
     pts = np.unique(np.concatenate([grid, 0.5 * (grid[1:] + grid[:-1]), [t.zero_at]]))
     lp = line_points(axis, pts, t.reference)
     tool = np.broadcast_to(t.tool, lp.shape).copy()
-    nominal = chain(config, terr, np.zeros((1, len(terr.params))), ChainInputs(lp, tool))[0, :, component]
+    nominal = chain(config, terr, np.zeros((1, len(terr.params))), chain_inputs(config, lp, tool))[0, :, component]
     return pts, lp, tool, nominal
 
 
@@ -1078,15 +1109,20 @@ def check_export(table: CompensationTable, rec, exporter, written: list) -> dict
     if rec.path is None or not truth_path.is_file():
         raise CompensationError("--check needs the truth.json of a simulated recording (mtbudget simulate writes it); "
                                 f"{str(rec.path or rec.name)!r} has none")
-    truth = json.loads(truth_path.read_text())
-    terr = truth_error_model(rec.plan, truth["geometric_errors"]["coefficients"])
+    try:
+        truth = json.loads(truth_path.read_text())
+        terr = truth_error_model(rec.plan, truth["geometric_errors"]["coefficients"],
+                                 (truth.get("rotary_axes") or {}).get("errors"))
+    except (ValueError, KeyError, TypeError, AttributeError) as exc:
+        raise CompensationError(f"{truth_path}: not a truth.json mtbudget simulate writes ({type(exc).__name__}: "
+                                f"{str(exc)[:80]}); --check needs one") from None
 
     class _M:  # parameters_from_truth reads model.errors only
         errors = terr
 
     theta_t, _, effects = parameters_from_truth(truth, _M)
     reversal = effects.get("reversal", {})
-    config = Configuration.parse(rec.machine)
+    config = Configuration.parse(rec.machine, rec.plan.rotary or None)
     tables = dict(read_back(exporter, written, table.options))
     cross_tables = tables.pop("cross", {})
     truth_lines = None
@@ -1102,7 +1138,7 @@ def check_export(table: CompensationTable, rec, exporter, written: list) -> dict
         pts, lp, tool, nominal = _check_line(config, terr, a, t, g, kb)
         rows = []
         for comp in (np.zeros(len(pts)), interpolate(pos_tab, trim, pts)):
-            P = chain(config, terr, theta_t[None], ChainInputs(lp, tool, offset={b: comp[None, :]}))
+            P = chain(config, terr, theta_t[None], chain_inputs(config, lp, tool, offset={b: comp[None, :]}))
             rows.append((P[0, :, kb] - nominal) * 1e3)
         datum = int(np.argmin(np.abs(pts - t.zero_at)))  # the reference point, where the tables are zero
         before, after = (r - r[datum] for r in rows)
@@ -1130,7 +1166,8 @@ def check_export(table: CompensationTable, rec, exporter, written: list) -> dict
         for row, d, trim in ((0, 1.0, trim_f), (1, -1.0, trim_r)):
             lost = -d * B_true / 2.0  # the simulator's reversal: the axis stops B/2 short of its target
             for arr, comp in ((before, 0.0), (after, interpolate(pos_tab, trim, pts))):
-                P = chain(config, terr, theta_t[None], ChainInputs(lp, tool, offset={a: (lost + np.broadcast_to(comp, pts.shape))[None, :]}))
+                P = chain(config, terr, theta_t[None], chain_inputs(config, lp, tool, offset={
+                    a: (lost + np.broadcast_to(comp, pts.shape))[None, :]}))
                 arr[row] = (P[0, :, k] - nominal) * 1e3
         datum = int(np.argmin(np.abs(pts - t.zero_at)))  # the reference point, where the table is zero
         for arr in (before, after):

@@ -22,6 +22,7 @@ from . import tracker as lt
 from .contracts import Source, check_internal, check_sample, has_internal_sample, internal_unit
 from .errors import PluginError
 from .machine import COMPONENT_ERRORS
+from .model import iso_parameter, parameter_from_iso
 from .model import from_targets
 from .plugins import call
 from .recording import Recording
@@ -176,6 +177,8 @@ def simulate_recording(scenario: Scenario, seed: int | None = None, trial: int =
     if scenario.stations:  # format 2: the station of every row, each station's stated uncertainties, the ranges
         several = {"station": np.array(scenario.row_station), "stations": list(scenario.stations),
                    "lt_range": sim.ranges[i].copy(), "format_version": 2}
+    if scenario.plan.angles:  # a five-axis machine: format 3, the tracker's mount
+        several = {**several, "format_version": 3, "mount": cfg.mount}
     rec = Recording(
         name=cfg.name, machine=cfg.machine, plan=scenario.plan, lt=sim[0][i].copy(), angular=noise.angular,
         distance=noise.distance, distance_per_length=noise.distance_per_length, repeatability=noise.repeatability,
@@ -189,6 +192,7 @@ def truth_dict(scenario: Scenario, seed: int, trial: int, pose_offset: np.ndarra
     """What a simulated recording holds, in display units (the ``truth.json`` beside it)."""
     model = scenario.truth
     coefs, sq = model.errors.coefficients(scenario.theta)
+    rotary = {k: sq.pop(k) for k in list(sq) if k[3:4] in ("a", "b", "c") and "(" in k}  # five-axis: the rotary axes' terms, by name
     by_name = {s.name: s for s in scenario.sources}
 
     def fixed(name, pattern, unit):
@@ -231,6 +235,18 @@ def truth_dict(scenario: Scenario, seed: int, trial: int, pose_offset: np.ndarra
                   "dist_ppm": display(scenario.noise.distance_per_length, "", "ppm"),
                   "repeat_um": display(scenario.noise.repeatability, "mm", "um")},
         "squareness_urad": {k: display(v, "rad", "urad") for k, v in sq.items()},
+        **({"rotary_axes": {
+            "convention": "each rotary axis' pivot (mm, machine frame with every axis at zero) and direction; its "
+                          "location and zero errors by ISO 230-7 name (um for offsets, urad for orientation and zero "
+                          "errors: rotations about +X, +Y, +Z) and any Fourier term of its error motions "
+                          "(mtbudget name, e.g. dx(c)[c2], um or urad), in its carrier's frame (docs/model.md)",
+            "geometry": {r.upper(): {"pivot_mm": list(map(float, ax.pivot)),
+                                     "direction": f"{'+' if ax.sign > 0 else '-'}{'xyz'[ax.index]}"}
+                         for r, ax in sorted(scenario.plan.rotary.items())},
+            "errors": {(iso_parameter(k) if k.endswith("[O]") else k): display(v, "mm" if k[0] == "d" else "rad",
+                                                                               "um" if k[0] == "d" else "urad")
+                       for k, v in rotary.items()},
+        }} if rotary or scenario.plan.rotary else {}),
         "geometric_errors": {
             "basis": "Legendre P1..Pn of the axis position normalised to [-1, 1] over the measured range; um for d*, urad for e*",
             "coefficients": {k: display(list(v), "mm" if k[0] == "d" else "rad", "um" if k[0] == "d" else "urad")
@@ -243,7 +259,12 @@ def parameters_from_truth(truth: dict, model) -> tuple[np.ndarray, np.ndarray, d
     """(theta, pose, effects) in internal units from a ``truth.json`` dictionary."""
     co = {k: display(list(vs), "um" if k[0] == "d" else "urad", "mm" if k[0] == "d" else "rad")
           for k, vs in truth["geometric_errors"]["coefficients"].items()}
-    theta = model.errors.from_coefficients(co, {k: display(v, "urad", "rad") for k, v in truth.get("squareness_urad", {}).items()})
+    named = {}
+    for k, v in ((truth.get("rotary_axes") or {}).get("errors") or {}).items():  # five-axis: by ISO or mtbudget name
+        name = parameter_from_iso(k) or k
+        named[name] = display(v, "um" if name[0] == "d" else "urad", "mm" if name[0] == "d" else "rad")
+    theta = model.errors.from_coefficients(co, {k: display(v, "urad", "rad") for k, v in truth.get("squareness_urad", {}).items()},
+                                           {k: v for k, v in named.items() if k in model.errors.names})
     tp = truth["tracker_pose"]
     pose = np.array([tp[k] for k in "DLHabd"], float)
     e = truth.get("effects", {})
@@ -255,11 +276,18 @@ def parameters_from_truth(truth: dict, model) -> tuple[np.ndarray, np.ndarray, d
     return theta, pose, effects
 
 
-def truth_error_model(plan, degrees_from: dict):
-    """An error model able to hold a truth.json (free convention, its degrees)."""
+def truth_error_model(plan, degrees_from: dict, rotary_terms: dict | None = None):
+    """An error model able to hold a truth.json (free convention, its degrees; a five-axis plan's rotary axes with
+    as many Fourier terms as ``rotary_terms`` (truth.json's rotary_axes.errors) names)."""
     from .machine import ErrorModel
 
     base = ErrorModel.default(plan.nominal, straightness_convention="free")
     deg = {k: len(v) for k, v in degrees_from.items()}
-    return ErrorModel(ranges=base.ranges, degrees={**{k: 0 for k in base.degrees}, **deg}, straightness_convention="free")
+    harmonics = {}
+    for r in sorted(plan.angles):
+        orders = [int(k.split("[")[1][1:-1]) for k in (rotary_terms or {}) if k[3:4] == r and "[" in k and
+                  k.split("[")[1][:1] in "cs"]
+        harmonics[r] = max(orders, default=0)
+    return ErrorModel(ranges=base.ranges, degrees={**{k: 0 for k in base.degrees}, **deg}, straightness_convention="free",
+                      rotary=harmonics)
 

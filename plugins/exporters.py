@@ -76,6 +76,9 @@ class NeutralCsv(Exporter):
         for c in getattr(table, "cross", {}).values():
             for p, v, u in zip(c.positions, c.deviation, c.u):
                 rows.append(f"cross,{c.iso},line,{c.axis},{p:.4f},{_f(v)},{_f(u)},um,1")
+        for r in getattr(table, "rotary", []):  # five-axis: ISO 230-7 location and zero errors (datum: no u)
+            rows.append(f"rotary_{r['kind']},{r['iso']},{r['mtbudget']},{r['axis'].lower()},,{_f(r['value'])},"
+                        f"{_f(r['u'])},{r['unit']},{int(r['identifiable'])}")
         path.write_text("\n".join(head + rows) + "\n")
         return [path]
 
