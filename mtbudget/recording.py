@@ -486,7 +486,7 @@ def read_recording(folder, *, max_rows: int = MAX_ROWS, max_columns: int = MAX_C
                                  column=r)
     lt_cols = [columns.get(c, np.full(n, np.nan)) for c in ("lt_x", "lt_y", "lt_z")]
     station = lt_range = None
-    if version == 2:
+    if stations:  # format 2, or format 3 with [[stations]]
         station = columns["station"].astype(np.int64) if "station" in columns else np.full(n, stations[0].id, np.int64)
         lt_range = columns.get("lt_range", np.full(n, np.nan))
         if len(stations) > 1 or stations[0].kind != "xyz":

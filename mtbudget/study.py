@@ -227,6 +227,8 @@ def placement(scenario: Scenario, tests: int | None = None, seed: int | None = N
     cfg = scenario.config
     s = placement_settings(scenario, tests, directions, eq23)
     pts = mesh(cfg.mesh_ranges, cfg.mesh_step) + np.asarray(cfg.tools[0])[None, :]
+    if cfg.rotary:  # a five-axis machine, tracker on the table: the tool points in the table frame at every pose
+        pts = np.asarray(scenario.mesh_points, float)
     ss = np.random.SeedSequence(cfg.seed if seed is None else seed)
     out = {"settings": {"tests": s.tests, "candidates": s.candidates,
                         "angular_mean_urad": display(s.angular_mean, "rad", "urad"),
