@@ -96,7 +96,7 @@ def _check(folder: Path, truth: dict, entry: dict) -> bool:
     nulls = null_problems(result, truth)
     chi2 = result["chi2_per_dof"]
     ok = 0.8 <= chi2 <= 1.25 and max(zs, default=0) <= 3 and not unnamed
-    entry["check"] = {"chi2_per_dof": chi2, "max_abs_z": max(zs, default=0.0), "beyond_3u": sum(z > 3 for z in zs),
+    entry["check"] = {"chi2_per_dof": float(chi2), "max_abs_z": float(max(zs, default=0.0)), "beyond_3u": int(sum(z > 3 for z in zs)),
                       "unnamed": unnamed, "null_space": nulls, "wall_s": wall}
     print(f"  chi2/dof {chi2:.3f}, largest |z| {max(zs, default=0):.2f} of {len(zs)} rotary checks "
           f"({sum(z > 3 for z in zs)} beyond 3), {len(result.get('not_identifiable', []))} combinations named"

@@ -166,8 +166,9 @@ def linear_axis(letter, pos, params, ranges, side):
 class Machine:
     """A five-axis machine of the generator: chain code, rotary pivots (mm) and directions."""
 
-    def __init__(self, machine: str, pivots: dict, directions: dict):
+    def __init__(self, machine: str, pivots: dict, directions: dict, error_rotation: str = "exact"):
         self.machine = machine
+        self.error_rotation = error_rotation  # "exact" Rot(w), or "small" I + [w]x (a diagnostic, not the truth)
         self.work, self.tool = split(machine)
         self.pivots = {L: np.asarray(p, float) for L, p in pivots.items()}
         self.directions = dict(directions)
@@ -184,6 +185,10 @@ class Machine:
             theta = np.radians(plan["angles"][letter])
             R_nom = Rotation.from_rotvec(theta[:, None] * u)
             delta, w = rotary_errors(letter, params)
+            if self.error_rotation == "small":
+                E = np.eye(3) + np.array([[0, -w[2], w[1]], [w[2], 0, -w[0]], [-w[1], w[0], 0]])
+                return ((lambda v: p + delta + R_nom.apply(v - p) @ E.T),
+                        (lambda v: p + R_nom.inv().apply(np.linalg.solve(E, (v - p - delta).T).T)))
             R = Rotation.from_rotvec(w) * R_nom  # Rot(w) R_u(theta): applied as R_nom first
             return (lambda v: p + delta + R.apply(v - p)), (lambda v: p + R.inv().apply(v - p - delta))
         pos = plan["xyz"][:, AXIS_INDEX[letter.lower()]]
@@ -292,14 +297,14 @@ def make_recording(folder, kind: str = "CAFXYZ", *, linear_errors: bool = False,
     name, description.
     """
     preset = PRESETS.get(kind, {})
-    known = {"pivots", "directions", "tracker_pose", "plan", "rotary", "linear", "rotary_magnitude", "linear_scale",
+    known = {"error_rotation", "pivots", "directions", "tracker_pose", "plan", "rotary", "linear", "rotary_magnitude", "linear_scale",
              "noise", "noise_free", "rotary_dir_columns", "sensors", "name", "description"}
     unknown = set(overrides) - known
     if unknown:
         raise TypeError(f"unknown overrides {sorted(unknown)}")
     pivots = overrides.get("pivots", preset.get("pivots"))
     directions = overrides.get("directions", preset.get("directions"))
-    machine = Machine(kind, pivots or {}, directions or {})
+    machine = Machine(kind, pivots or {}, directions or {}, overrides.get("error_rotation", "exact"))
     pose = tuple(float(v) for v in overrides.get("tracker_pose", preset.get("tracker_pose")))
     plan_spec = overrides.get("plan", preset.get("plan"))
     plan = make_plan(plan_spec, kind)
@@ -410,7 +415,7 @@ def _write_toml(path, name, machine_code, description, noise, machine: Machine, 
              "[machine_tool]", f'repeatability = "{noise["repeatability"] * 1e3:g} um"', ""]
     for L in rotary_letters(machine_code):
         p = machine.pivots[L]
-        lines += [f"[rotary.{L}]", "pivot = [" + ", ".join(f'"{v:g} mm"' for v in p) + "]",
+        lines += [f"[rotary.{L}]", "pivot = [" + ", ".join(f'"{float(v):.17g} mm"' for v in p) + "]",
                   f'direction = "{machine.directions[L]}"', ""]
     if sensors:
         for col, att in (("T_x", "x axis"), ("T_y", "y axis"), ("T_z", "z axis"), ("T_air", "air")):
@@ -438,7 +443,7 @@ def _write_csv(path, plan, lt, machine_code, rotary_dir_columns, sensors):
         for i in range(len(plan["point"])):
             row = [int(plan["point"][i]), int(plan["run"][i]), f"{plan['time'][i]:.4f}"]
             row += [_fmt(v) for v in plan["xyz"][i]] + [1, 1, 1]
-            row += [_fmt(plan["angles"][L][i]) for L in letters]
+            row += [f"{plan['angles'][L][i]:.9f}" for L in letters]  # 1e-9 deg: below 1e-11 mm per mm of lever
             if rotary_dir_columns:
                 row += [1] * len(letters)
             row += [_fmt(v) for v in plan["tool"][i]] + [_fmt(v) for v in lt[i]]
