@@ -13,7 +13,8 @@ recordings with perfect rotary axes.  OUT/manifest.json lists what each holds.
 --check then runs `python -m mtbudget identify <folder> --json` on each and prints chi2 per dof and the largest
 |z| of the rotary parameters through their identifiable combinations (tests/fiveaxis_check.py; k = 1
 uncertainties as identify states them), with the count beyond 3; the exit status is 1 if any recording fails
-the issue's criteria (chi2/dof outside [0.8, 1.25], |z| > 3 or a non-identifiable parameter left unnamed).
+the issue's criteria (chi2/dof outside [0.8, 1.25], |z| > 3 or a non-identifiable parameter left unnamed) or if
+not_identifiable is not the null space of the generator's own Jacobian for that plan.
 """
 
 from __future__ import annotations
@@ -95,7 +96,7 @@ def _check(folder: Path, truth: dict, entry: dict) -> bool:
     unnamed = [n for n, z, text in rows if z is None and text != "named in not_identifiable"]
     nulls = null_problems(result, truth)
     chi2 = result["chi2_per_dof"]
-    ok = 0.8 <= chi2 <= 1.25 and max(zs, default=0) <= 3 and not unnamed
+    ok = 0.8 <= chi2 <= 1.25 and max(zs, default=0) <= 3 and not unnamed and not nulls
     entry["check"] = {"chi2_per_dof": float(chi2), "max_abs_z": float(max(zs, default=0.0)), "beyond_3u": int(sum(z > 3 for z in zs)),
                       "unnamed": unnamed, "null_space": nulls, "wall_s": wall}
     print(f"  chi2/dof {chi2:.3f}, largest |z| {max(zs, default=0):.2f} of {len(zs)} rotary checks "
