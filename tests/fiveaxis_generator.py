@@ -38,7 +38,7 @@ from numpy.polynomial import legendre
 from scipy.spatial.transform import Rotation
 
 FORMAT = "mtbudget-recording/3"
-KINDS = ("CAFXYZ", "FXYZCB")
+KINDS = ("CAFXYZ", "FXYZCB")  # the two; PRESETS also has the table-head CFXYZB
 ROTARY = "ABC"
 AXIS_INDEX = {"A": 0, "B": 1, "C": 2, "x": 0, "y": 1, "z": 2}
 NOISE = {"angular": 5e-6, "distance": 4e-3, "distance_per_length": 0.8e-6, "repeatability": 1.5e-3}  # rad, mm, -, mm
@@ -62,6 +62,14 @@ PRESETS = {
         "directions": {"C": "+z", "B": "+y"},
         "tracker_pose": (-900.0, 250.0, 300.0, 0.0015, -0.0006, 0.25),
         "plan": {"x": (-200.0, 0.0, 200.0), "y": (-150.0, 0.0, 150.0), "z": (-100.0, 0.0, 100.0),
+                 "angles": {"C": (0.0, 90.0, 180.0, 270.0), "B": (-60.0, -30.0, 0.0, 30.0, 60.0)},
+                 "tools": ((0.0, 0.0, -100.0), (40.0, 0.0, -180.0))},
+    },
+    "CFXYZB": {  # table-head: C table on the bed (tracker on it), B head on Z
+        "pivots": {"C": (30.0, -10.0, 0.0), "B": (0.0, 0.0, 150.0)},
+        "directions": {"C": "+z", "B": "+y"},
+        "tracker_pose": (-700.0, 250.0, 150.0, -0.002, 0.0004, -0.30),
+        "plan": {"x": (-150.0, 0.0, 150.0), "y": (-150.0, 0.0, 150.0), "z": (100.0, 200.0, 300.0),
                  "angles": {"C": (0.0, 90.0, 180.0, 270.0), "B": (-60.0, -30.0, 0.0, 30.0, 60.0)},
                  "tools": ((0.0, 0.0, -100.0), (40.0, 0.0, -180.0))},
     },
@@ -463,6 +471,14 @@ def random_overrides(rng, kind: str) -> dict:
         angles = {"A": tuple(np.linspace(-amax, amax, rng.integers(3, 6))),
                   "C": tuple(rng.uniform(0, 90) + np.arange(nc) * 360.0 / nc)}
         pose = (rng.uniform(-900, -500), rng.uniform(-300, 300), rng.uniform(0, 300))
+    elif kind == "CFXYZB":
+        pivots = {"C": (rng.uniform(-80, 80), rng.uniform(-80, 80), rng.uniform(-20, 20)),
+                  "B": (rng.uniform(-10, 10), 0.0, rng.uniform(80, 200))}
+        bmax = rng.choice([45.0, 60.0, 90.0])
+        nc = int(rng.integers(3, 6))
+        angles = {"B": tuple(np.linspace(-bmax, bmax, rng.integers(3, 6))),
+                  "C": tuple(rng.uniform(0, 90) + np.arange(nc) * 360.0 / nc)}
+        pose = (rng.uniform(-900, -500), rng.uniform(-300, 300), rng.uniform(0, 300))
     else:
         pivots = {"C": (rng.uniform(-5, 5), rng.uniform(-5, 5), rng.uniform(200, 400)),
                   "B": (rng.uniform(-10, 10), 0.0, rng.uniform(80, 200))}
@@ -476,7 +492,7 @@ def random_overrides(rng, kind: str) -> dict:
                                 ("y", rng.uniform(-300, 0), rng.uniform(200, 500)),
                                 ("z", rng.uniform(0, 200), rng.uniform(100, 300)))}
     tools = [(0.0, 0.0, -rng.uniform(80, 150)), (0.0, 0.0, -rng.uniform(180, 300))]
-    if kind == "FXYZCB" or rng.random() < 0.5:
+    if kind in ("FXYZCB", "CFXYZB") or rng.random() < 0.5:
         tools.append((rng.uniform(-60, 60), rng.uniform(-60, 60), -rng.uniform(100, 250)))
     f = rng.uniform(0.3, 3.0)
     return {"pivots": pivots, "plan": {**grid, "angles": angles, "tools": tuple(tools)},

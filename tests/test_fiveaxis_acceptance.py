@@ -186,3 +186,17 @@ def test_a_weakly_identifiable_combination_keeps_an_honest_uncertainty(tmp_path)
     result = identify(tmp_path)
     bad = problems(result, truth, g.all_rotary_names("FXYZCB"))
     assert not bad, "\n".join(bad)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("random_machine", [False, True])
+def test_a_table_head_machine(tmp_path, random_machine):
+    """CFXYZB (C table on the bed with the tracker, B head on Z), beyond the issue's two set-ups: the same
+    criteria, the null space computed for the plan."""
+    seed = 2621 + random_machine
+    over = g.random_overrides(np.random.default_rng(seed + 1), "CFXYZB") if random_machine else {}
+    truth = g.make_recording(tmp_path, "CFXYZB", linear_errors=True, seed=seed, **over)
+    result = identify(tmp_path)
+    assert CHI2_PER_DOF[0] <= result["chi2_per_dof"] <= CHI2_PER_DOF[1]
+    bad = problems(result, truth, g.all_rotary_names("CFXYZB")) + null_problems(result, truth)
+    assert not bad, "\n".join(bad)
