@@ -38,7 +38,7 @@ from numpy.polynomial import legendre
 from scipy.spatial.transform import Rotation
 
 FORMAT = "mtbudget-recording/3"
-KINDS = ("CAFXYZ", "FXYZCB")
+KINDS = ("CAFXYZ", "FXYZCB")  # the issue's two; PRESETS also has the table-head CFXYZB
 ROTARY = "ABC"
 AXIS_INDEX = {"A": 0, "B": 1, "C": 2, "x": 0, "y": 1, "z": 2}
 NOISE = {"angular": 5e-6, "distance": 4e-3, "distance_per_length": 0.8e-6, "repeatability": 1.5e-3}  # rad, mm, -, mm
@@ -62,6 +62,14 @@ PRESETS = {
         "directions": {"C": "+z", "B": "+y"},
         "tracker_pose": (-900.0, 250.0, 300.0, 0.0015, -0.0006, 0.25),
         "plan": {"x": (-200.0, 0.0, 200.0), "y": (-150.0, 0.0, 150.0), "z": (-100.0, 0.0, 100.0),
+                 "angles": {"C": (0.0, 90.0, 180.0, 270.0), "B": (-60.0, -30.0, 0.0, 30.0, 60.0)},
+                 "tools": ((0.0, 0.0, -100.0), (40.0, 0.0, -180.0))},
+    },
+    "CFXYZB": {  # table-head: C table on the bed (tracker on it), B head on Z
+        "pivots": {"C": (30.0, -10.0, 0.0), "B": (0.0, 0.0, 150.0)},
+        "directions": {"C": "+z", "B": "+y"},
+        "tracker_pose": (-700.0, 250.0, 150.0, -0.002, 0.0004, -0.30),
+        "plan": {"x": (-150.0, 0.0, 150.0), "y": (-150.0, 0.0, 150.0), "z": (100.0, 200.0, 300.0),
                  "angles": {"C": (0.0, 90.0, 180.0, 270.0), "B": (-60.0, -30.0, 0.0, 30.0, 60.0)},
                  "tools": ((0.0, 0.0, -100.0), (40.0, 0.0, -180.0))},
     },
@@ -166,8 +174,9 @@ def linear_axis(letter, pos, params, ranges, side):
 class Machine:
     """A five-axis machine of the generator: chain code, rotary pivots (mm) and directions."""
 
-    def __init__(self, machine: str, pivots: dict, directions: dict):
+    def __init__(self, machine: str, pivots: dict, directions: dict, error_rotation: str = "exact"):
         self.machine = machine
+        self.error_rotation = error_rotation  # "exact" Rot(w), or "small" I + [w]x (a diagnostic, not the truth)
         self.work, self.tool = split(machine)
         self.pivots = {L: np.asarray(p, float) for L, p in pivots.items()}
         self.directions = dict(directions)
@@ -184,6 +193,10 @@ class Machine:
             theta = np.radians(plan["angles"][letter])
             R_nom = Rotation.from_rotvec(theta[:, None] * u)
             delta, w = rotary_errors(letter, params)
+            if self.error_rotation == "small":
+                E = np.eye(3) + np.array([[0, -w[2], w[1]], [w[2], 0, -w[0]], [-w[1], w[0], 0]])
+                return ((lambda v: p + delta + R_nom.apply(v - p) @ E.T),
+                        (lambda v: p + R_nom.inv().apply(np.linalg.solve(E, (v - p - delta).T).T)))
             R = Rotation.from_rotvec(w) * R_nom  # Rot(w) R_u(theta): applied as R_nom first
             return (lambda v: p + delta + R.apply(v - p)), (lambda v: p + R.inv().apply(v - p - delta))
         pos = plan["xyz"][:, AXIS_INDEX[letter.lower()]]
@@ -292,14 +305,14 @@ def make_recording(folder, kind: str = "CAFXYZ", *, linear_errors: bool = False,
     name, description.
     """
     preset = PRESETS.get(kind, {})
-    known = {"pivots", "directions", "tracker_pose", "plan", "rotary", "linear", "rotary_magnitude", "linear_scale",
+    known = {"error_rotation", "pivots", "directions", "tracker_pose", "plan", "rotary", "linear", "rotary_magnitude", "linear_scale",
              "noise", "noise_free", "rotary_dir_columns", "sensors", "name", "description"}
     unknown = set(overrides) - known
     if unknown:
         raise TypeError(f"unknown overrides {sorted(unknown)}")
     pivots = overrides.get("pivots", preset.get("pivots"))
     directions = overrides.get("directions", preset.get("directions"))
-    machine = Machine(kind, pivots or {}, directions or {})
+    machine = Machine(kind, pivots or {}, directions or {}, overrides.get("error_rotation", "exact"))
     pose = tuple(float(v) for v in overrides.get("tracker_pose", preset.get("tracker_pose")))
     plan_spec = overrides.get("plan", preset.get("plan"))
     plan = make_plan(plan_spec, kind)
@@ -410,7 +423,7 @@ def _write_toml(path, name, machine_code, description, noise, machine: Machine, 
              "[machine_tool]", f'repeatability = "{noise["repeatability"] * 1e3:g} um"', ""]
     for L in rotary_letters(machine_code):
         p = machine.pivots[L]
-        lines += [f"[rotary.{L}]", "pivot = [" + ", ".join(f'"{v:g} mm"' for v in p) + "]",
+        lines += [f"[rotary.{L}]", "pivot = [" + ", ".join(f'"{float(v):.17g} mm"' for v in p) + "]",
                   f'direction = "{machine.directions[L]}"', ""]
     if sensors:
         for col, att in (("T_x", "x axis"), ("T_y", "y axis"), ("T_z", "z axis"), ("T_air", "air")):
@@ -438,7 +451,7 @@ def _write_csv(path, plan, lt, machine_code, rotary_dir_columns, sensors):
         for i in range(len(plan["point"])):
             row = [int(plan["point"][i]), int(plan["run"][i]), f"{plan['time'][i]:.4f}"]
             row += [_fmt(v) for v in plan["xyz"][i]] + [1, 1, 1]
-            row += [_fmt(plan["angles"][L][i]) for L in letters]
+            row += [f"{plan['angles'][L][i]:.9f}" for L in letters]  # 1e-9 deg: below 1e-11 mm per mm of lever
             if rotary_dir_columns:
                 row += [1] * len(letters)
             row += [_fmt(v) for v in plan["tool"][i]] + [_fmt(v) for v in lt[i]]
@@ -458,6 +471,14 @@ def random_overrides(rng, kind: str) -> dict:
         angles = {"A": tuple(np.linspace(-amax, amax, rng.integers(3, 6))),
                   "C": tuple(rng.uniform(0, 90) + np.arange(nc) * 360.0 / nc)}
         pose = (rng.uniform(-900, -500), rng.uniform(-300, 300), rng.uniform(0, 300))
+    elif kind == "CFXYZB":
+        pivots = {"C": (rng.uniform(-80, 80), rng.uniform(-80, 80), rng.uniform(-20, 20)),
+                  "B": (rng.uniform(-10, 10), 0.0, rng.uniform(80, 200))}
+        bmax = rng.choice([45.0, 60.0, 90.0])
+        nc = int(rng.integers(3, 6))
+        angles = {"B": tuple(np.linspace(-bmax, bmax, rng.integers(3, 6))),
+                  "C": tuple(rng.uniform(0, 90) + np.arange(nc) * 360.0 / nc)}
+        pose = (rng.uniform(-900, -500), rng.uniform(-300, 300), rng.uniform(0, 300))
     else:
         pivots = {"C": (rng.uniform(-5, 5), rng.uniform(-5, 5), rng.uniform(200, 400)),
                   "B": (rng.uniform(-10, 10), 0.0, rng.uniform(80, 200))}
@@ -471,7 +492,7 @@ def random_overrides(rng, kind: str) -> dict:
                                 ("y", rng.uniform(-300, 0), rng.uniform(200, 500)),
                                 ("z", rng.uniform(0, 200), rng.uniform(100, 300)))}
     tools = [(0.0, 0.0, -rng.uniform(80, 150)), (0.0, 0.0, -rng.uniform(180, 300))]
-    if kind == "FXYZCB" or rng.random() < 0.5:
+    if kind in ("FXYZCB", "CFXYZB") or rng.random() < 0.5:
         tools.append((rng.uniform(-60, 60), rng.uniform(-60, 60), -rng.uniform(100, 250)))
     f = rng.uniform(0.3, 3.0)
     return {"pivots": pivots, "plan": {**grid, "angles": angles, "tools": tuple(tools)},

@@ -25,7 +25,7 @@ import pytest
 from click.testing import CliRunner
 
 import fiveaxis_generator as g
-from fiveaxis_check import compare, estimates, null_problems, problems
+from fiveaxis_check import compare, estimates, null_problems, problems, unknown_parameters
 from mtbudget.cli import main
 from mtbudget.errors import MtbudgetError
 from mtbudget.recording import read_recording
@@ -98,6 +98,9 @@ def test_every_rotary_parameter_is_within_3u_of_the_truth_or_named(case):
 
 def test_not_identifiable_is_the_null_space_of_the_plan(case):
     name, truth, result = case
+    unknown = unknown_parameters(result, truth["kind"])
+    if unknown:
+        pytest.skip(f"parameters the generator's model does not have: {unknown[:5]}")
     bad = null_problems(result, truth)
     assert not bad, f"{name}:\n" + "\n".join(bad)
 
@@ -169,4 +172,34 @@ def test_a_reversed_direction_keeps_the_iso_parameters_machine_frame(tmp_path):
     result = identify(tmp_path)
     assert CHI2_PER_DOF[0] <= result["chi2_per_dof"] <= CHI2_PER_DOF[1]
     bad = problems(result, truth, g.all_rotary_names("CAFXYZ"))
+    assert not bad, "\n".join(bad)
+
+
+@pytest.mark.slow
+def test_a_weakly_identifiable_combination_keeps_an_honest_uncertainty(tmp_path):
+    """A head-head machine whose B pivot is 3 mm off the C axis (make_five_axis.py --random --seed 7, recording
+    13): ECOC - ECOB is then identifiable only through that offset (0.3 nm per urad), its standard uncertainty is
+    about 1.3 mrad (the generator's exact-rotation Jacobian, and mtbudget's own with exact=True, at the estimate).
+    The small-angle matrices I + [e]x stretch lengths by |e|^2 / 2, which at estimates of some hundred urad adds
+    curvature of the same order as the true signal: on 2026-11-25 identify stated 240 urad and landed 4.7 of
+    those from the truth, although the truth's chi-square is within the expected 61 of the minimum."""
+    seed = 1753345572
+    truth = g.make_recording(tmp_path, "FXYZCB", seed=seed,
+                             **g.random_overrides(np.random.default_rng(seed + 1), "FXYZCB"))
+    result = identify(tmp_path)
+    bad = problems(result, truth, g.all_rotary_names("FXYZCB"))
+    assert not bad, "\n".join(bad)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("random_machine", [False, True])
+def test_a_table_head_machine(tmp_path, random_machine):
+    """CFXYZB (C table on the bed with the tracker, B head on Z), beyond the issue's two set-ups: the same
+    criteria, the null space computed for the plan."""
+    seed = 2621 + random_machine
+    over = g.random_overrides(np.random.default_rng(seed + 1), "CFXYZB") if random_machine else {}
+    truth = g.make_recording(tmp_path, "CFXYZB", linear_errors=True, seed=seed, **over)
+    result = identify(tmp_path)
+    assert CHI2_PER_DOF[0] <= result["chi2_per_dof"] <= CHI2_PER_DOF[1]
+    bad = problems(result, truth, g.all_rotary_names("CFXYZB")) + null_problems(result, truth)
     assert not bad, "\n".join(bad)

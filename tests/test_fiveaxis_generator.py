@@ -105,7 +105,7 @@ def lt_of(rows):
     return np.array([[float(r[f"lt_{c} [mm]"]) for c in "xyz"] for r in rows])
 
 
-@pytest.mark.parametrize("kind", g.KINDS)
+@pytest.mark.parametrize("kind", list(g.PRESETS))
 def test_zero_errors_give_the_nominal_pose_by_a_second_route(tmp_path, kind):
     truth = g.make_recording(tmp_path, kind, null=True, noise_free=True, seed=3)
     assert all(v == 0 for v in truth["parameters"].values())
@@ -130,7 +130,7 @@ def test_cafxyz_nominal_by_hand(tmp_path):
         assert np.allclose(lt, [float(r[f"lt_{k} [mm]"]) for k in "xyz"], atol=2e-6)
 
 
-@pytest.mark.parametrize("kind", g.KINDS)
+@pytest.mark.parametrize("kind", list(g.PRESETS))
 def test_every_error_at_once_agrees_with_the_second_route(tmp_path, kind):
     truth = g.make_recording(tmp_path, kind, linear_errors=True, noise_free=True, seed=11,
                              linear_scale={"d": 0.05, "e": 200e-6, "squareness": 300e-6})  # large: visible terms
