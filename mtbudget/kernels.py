@@ -40,6 +40,17 @@ def _rotate(k, c, s, v0, v1, v2):  # pragma: no cover - compiled
 
 
 @_compiled
+def _rot2(f0, f1, f2, u0, u1, u2, sgn):  # pragma: no cover - compiled
+    """A rotary axis' error rotation to second order, ``u + sgn f x u + (f (f . u) - |f|^2 u) / 2`` (sgn +1: the
+    rotation by f; -1: by -f, its inverse to second order; the transposes are the same with -sgn)."""
+    d = f0 * u0 + f1 * u1 + f2 * u2
+    q = f0 * f0 + f1 * f1 + f2 * f2
+    return (u0 + sgn * (f1 * u2 - f2 * u1) + 0.5 * (f0 * d - q * u0),
+            u1 + sgn * (f2 * u0 - f0 * u2) + 0.5 * (f1 * d - q * u1),
+            u2 + sgn * (f0 * u1 - f1 * u0) + 0.5 * (f2 * d - q * u2))
+
+
+@_compiled
 def _forward(n, tool_axes, wp_axes, side, px, py, pz, toolT, coef, L, sq, rdir, pivot, rcos, rsin, comp, t, v, vin,
              wout):  # pragma: no cover
     """Trial n of the small-angle chain: its points into ``v`` (3, M), each axis' component errors into
@@ -75,7 +86,7 @@ def _forward(n, tool_axes, wp_axes, side, px, py, pz, toolT, coef, L, sq, rdir, 
         t[2, 0, m] = (p2 * sxz) * -side[2] + comp[2, 0, m]
         t[2, 1, m] = (p2 * syz) * -side[2] + comp[2, 1, m]
         t[2, 2, m] = side[2] * p2 + comp[2, 2, m]
-    # a rotary axis: G(v) = p + delta + (I + [eps]x) R(theta) (v - p), so its "translation" is p + delta
+    # a rotary axis: G(v) = p + delta + R2(eps) R(theta) (v - p), R2 the rotation to second order (_rot2): its "translation" is p + delta
     for a in range(3, A):
         r = a - 3
         for i in range(3):
@@ -93,7 +104,11 @@ def _forward(n, tool_axes, wp_axes, side, px, py, pz, toolT, coef, L, sq, rdir, 
             cr, sr = rcos[r, n if rcos.shape[1] > 1 else 0], rsin[r, n if rsin.shape[1] > 1 else 0]
             q0, q1, q2 = pivot[r, 0], pivot[r, 1], pivot[r, 2]
             for m in range(M):
-                v[0, m], v[1, m], v[2, m] = _rotate(k, cr[m], sr[m], v[0, m] - q0, v[1, m] - q1, v[2, m] - q2)
+                v0, v1, v2 = _rotate(k, cr[m], sr[m], v[0, m] - q0, v[1, m] - q1, v[2, m] - q2)
+                va[0, m], va[1, m], va[2, m] = v0, v1, v2
+                w0, w1, w2 = _rot2(e0[m], e1[m], e2[m], v0, v1, v2, 1.0)
+                v[0, m], v[1, m], v[2, m] = w0 + ta[0, m], w1 + ta[1, m], w2 + ta[2, m]
+            continue
         for m in range(M):
             v0, v1, v2 = v[0, m], v[1, m], v[2, m]
             va[0, m], va[1, m], va[2, m] = v0, v1, v2
@@ -104,6 +119,18 @@ def _forward(n, tool_axes, wp_axes, side, px, py, pz, toolT, coef, L, sq, rdir, 
     # (a rotary axis then turns back about its pivot: p + R(theta)^T u)
     for a in wp_axes:
         e0, e1, e2, ta, wa = comp[a, 3], comp[a, 4], comp[a, 5], t[a], wout[a]
+        if a >= 3:  # the error rotation's inverse to second order; what enters it is kept (for the adjoint)
+            r = a - 3
+            k = rdir[r]
+            cr, sr = rcos[r, n if rcos.shape[1] > 1 else 0], rsin[r, n if rsin.shape[1] > 1 else 0]
+            q0, q1, q2 = pivot[r, 0], pivot[r, 1], pivot[r, 2]
+            for m in range(M):
+                u0, u1, u2 = v[0, m] - ta[0, m], v[1, m] - ta[1, m], v[2, m] - ta[2, m]
+                wa[0, m], wa[1, m], wa[2, m] = u0, u1, u2
+                w0, w1, w2 = _rot2(e0[m], e1[m], e2[m], u0, u1, u2, -1.0)
+                w0, w1, w2 = _rotate(k, cr[m], -sr[m], w0, w1, w2)
+                v[0, m], v[1, m], v[2, m] = w0 + q0, w1 + q1, w2 + q2
+            continue
         for m in range(M):
             u0, u1, u2 = v[0, m] - ta[0, m], v[1, m] - ta[1, m], v[2, m] - ta[2, m]
             f0, f1, f2 = e0[m], e1[m], e2[m]
@@ -113,14 +140,6 @@ def _forward(n, tool_axes, wp_axes, side, px, py, pz, toolT, coef, L, sq, rdir, 
             v[1, m] = (u1 - (f2 * u0 - f0 * u2) + f1 * dot) / den
             v[2, m] = (u2 - (f0 * u1 - f1 * u0) + f2 * dot) / den
             wa[0, m], wa[1, m], wa[2, m] = v[0, m], v[1, m], v[2, m]
-        if a >= 3:
-            r = a - 3
-            k = rdir[r]
-            cr, sr = rcos[r, n if rcos.shape[1] > 1 else 0], rsin[r, n if rsin.shape[1] > 1 else 0]
-            q0, q1, q2 = pivot[r, 0], pivot[r, 1], pivot[r, 2]
-            for m in range(M):
-                w0, w1, w2 = _rotate(k, cr[m], -sr[m], v[0, m], v[1, m], v[2, m])
-                v[0, m], v[1, m], v[2, m] = w0 + q0, w1 + q1, w2 + q2
 
 
 @_compiled
@@ -173,6 +192,7 @@ def chain_vjp(tool_order, wp_axes, side, px, py, pz, rdir, rcos, rsin, eps, vin,
     M = vec.shape[1]
     A = eps.shape[1]
     g = np.zeros((A, 3, M))  # G_a^T v of each axis
+    gd = np.zeros((A, 3, M))  # a workpiece-side rotary axis: the cotangent at its error rotation's output
     h = np.zeros((A, 3, 3, M))  # (axis, kind, component): what each parameter's basis values are summed against
     u = np.empty((3, M))
     pos = (px, py, pz)
@@ -190,7 +210,12 @@ def chain_vjp(tool_order, wp_axes, side, px, py, pz, rdir, rcos, rsin, eps, vin,
                 k = rdir[r]
                 cr, sr = rcos[r, n if rcos.shape[1] > 1 else 0], rsin[r, n if rsin.shape[1] > 1 else 0]
                 for m in range(M):
-                    u[0, m], u[1, m], u[2, m] = _rotate(k, cr[m], sr[m], u[0, m], u[1, m], u[2, m])
+                    u0, u1, u2 = _rotate(k, cr[m], sr[m], u[0, m], u[1, m], u[2, m])
+                    gd[a, 0, m], gd[a, 1, m], gd[a, 2, m] = u0, u1, u2
+                    u0, u1, u2 = _rot2(e0[m], e1[m], e2[m], u0, u1, u2, 1.0)  # R2(-eps)^T
+                    u[0, m], u[1, m], u[2, m] = u0, u1, u2
+                    ga[0, m], ga[1, m], ga[2, m] = u0, u1, u2
+                continue
             for m in range(M):
                 f0, f1, f2 = e0[m], e1[m], e2[m]
                 u0, u1, u2 = u[0, m], u[1, m], u[2, m]
@@ -210,9 +235,12 @@ def chain_vjp(tool_order, wp_axes, side, px, py, pz, rdir, rcos, rsin, eps, vin,
                 ga[0, m], ga[1, m], ga[2, m] = u0, u1, u2
                 if not last:
                     f0, f1, f2 = e0[m], e1[m], e2[m]
-                    u[0, m] = u0 - (f1 * u2 - f2 * u1)
-                    u[1, m] = u1 - (f2 * u0 - f0 * u2)
-                    u[2, m] = u2 - (f0 * u1 - f1 * u0)
+                    if a >= 3:  # R2(eps)^T
+                        u[0, m], u[1, m], u[2, m] = _rot2(f0, f1, f2, u0, u1, u2, -1.0)
+                    else:
+                        u[0, m] = u0 - (f1 * u2 - f2 * u1)
+                        u[1, m] = u1 - (f2 * u0 - f0 * u2)
+                        u[2, m] = u2 - (f0 * u1 - f1 * u0)
             if a >= 3 and not last:
                 r = a - 3
                 k = rdir[r]
@@ -222,6 +250,22 @@ def chain_vjp(tool_order, wp_axes, side, px, py, pz, rdir, rcos, rsin, eps, vin,
         for a in range(A):
             ga, s = g[a], side[a]
             w = vin[n, a] if s > 0 else wout[n, a]
+            if a >= 3:  # a rotary axis' second-order error rotation: translation as above, rotation with its terms
+                e0, e1, e2 = eps[n, a, 0], eps[n, a, 1], eps[n, a, 2]
+                gg = ga if s > 0 else gd[a]
+                for m in range(M):
+                    g0, g1, g2 = ga[0, m], ga[1, m], ga[2, m]
+                    h[a, 0, 0, m], h[a, 0, 1, m], h[a, 0, 2, m] = s * g0, s * g1, s * g2
+                    c0, c1, c2 = gg[0, m], gg[1, m], gg[2, m]
+                    w0, w1, w2 = w[0, m], w[1, m], w[2, m]
+                    f0, f1, f2 = e0[m], e1[m], e2[m]
+                    fg, fw, wg = f0 * c0 + f1 * c1 + f2 * c2, f0 * w0 + f1 * w1 + f2 * w2, w0 * c0 + w1 * c1 + w2 * c2
+                    # d/deps of R2(+-eps) w, transposed, applied to g: +-(w x g) ... (tool: w x g; workpiece: g x w)
+                    x0, x1, x2 = s * (w1 * c2 - w2 * c1), s * (w2 * c0 - w0 * c2), s * (w0 * c1 - w1 * c0)
+                    h[a, 1, 0, m] = x0 + 0.5 * (fg * w0 + fw * c0 - 2.0 * wg * f0)
+                    h[a, 1, 1, m] = x1 + 0.5 * (fg * w1 + fw * c1 - 2.0 * wg * f1)
+                    h[a, 1, 2, m] = x2 + 0.5 * (fg * w2 + fw * c2 - 2.0 * wg * f2)
+                continue
             for m in range(M):
                 g0, g1, g2 = ga[0, m], ga[1, m], ga[2, m]
                 # translation: dP/dt_a = +G (tool side) or -G (workpiece side)

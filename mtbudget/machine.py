@@ -415,6 +415,28 @@ def inverse_small(eps: np.ndarray) -> np.ndarray:
     return Rinv / (1.0 + (eps * eps).sum(-1))[..., None, None]
 
 
+def rotation_second(eps: np.ndarray) -> np.ndarray:
+    """A rotary axis' error rotation to second order, ``I + [eps]x + [eps]x^2 / 2`` (eps (..., 3)): lengths kept to
+    O(|eps|^4), where Eq. 6's ``I + [eps]x`` stretches them by |eps|^2 / 2 (a rotary axis' zero and orientation
+    errors reach hundreds of urad, and a weakly identifiable combination of them needs the curvature right)."""
+    S = skew(eps)
+    R = S + 0.5 * (S @ S)
+    R[..., 0, 0] += 1.0
+    R[..., 1, 1] += 1.0
+    R[..., 2, 2] += 1.0
+    return R
+
+
+def _second_order_derivative(eps: np.ndarray, v: np.ndarray, sgn: float) -> np.ndarray:
+    """d/deps of ``rotation_second(sgn * eps) @ v``: ``-sgn [v]x + (eps v^T + (eps . v) I - 2 v eps^T) / 2``
+    (..., 3, 3)."""
+    D = -sgn * skew(v) + 0.5 * (eps[..., :, None] * v[..., None, :] - 2.0 * v[..., :, None] * eps[..., None, :])
+    dot = (eps * v).sum(-1)
+    for c in range(3):
+        D[..., c, c] += 0.5 * dot
+    return D
+
+
 def rotation_exact(eps: np.ndarray) -> np.ndarray:
     """Exact rotation ``expm([eps]x)`` (Rodrigues) for eps (..., 3)."""
     th = np.linalg.norm(eps, axis=-1)[..., None, None]
@@ -1137,8 +1159,9 @@ def chain_reference(
     """:func:`chain` written with a 3 x 3 matrix per point and axis (the reference; also the exact rotation).
 
     A rotary axis k maps what it carries to its carrier by ``G_k(v) = p_k + delta_k + R_k R_nom(theta_k) (v - p_k)``
-    (FORMAT-3 section 4): the nominal turn about its pivot, then its error motion as a linear axis' (``R_k = I +
-    [eps_k]x``, the zero error being the component of eps_k along the axis).
+    (FORMAT-3 section 4): the nominal turn about its pivot, then its error motion as a linear axis', its rotation to
+    second order (``R_k = I + [eps_k]x + [eps_k]x^2 / 2``, :func:`rotation_second`; the zero error is the component
+    of eps_k along the axis).
     """
     theta = np.atleast_2d(np.asarray(theta, float))
     N, M = theta.shape[0], inputs.nominal.shape[0]
@@ -1164,7 +1187,7 @@ def chain_reference(
         a = r.letter
         pivot[a] = np.asarray(r.pivot, float)
         t[a] = pivot[a] + terms[a][0]
-        R[a] = rot(terms[a][1])
+        R[a] = rotation_exact(terms[a][1]) if exact else rotation_second(terms[a][1])
         th = np.broadcast_to(inputs.effective(a), (N, M))
         Rn[a] = rotation_exact(th[..., None] * r.direction)  # (N, M, 3, 3)
     # tool side: P = A_1(A_2(...A_n(T)))
@@ -1178,10 +1201,14 @@ def chain_reference(
     P = v
     # workpiece side: P_W = B_m^-1(...B_1^-1(P))
     w = P
-    Rinv, w_out = {}, {}
+    Rinv, w_out, w_in = {}, {}, {}
     for a in config.workpiece:
-        Rinv[a] = np.swapaxes(R[a], -1, -2) if exact else inverse_small(terms[a][1])
-        w = np.einsum("nmij,nmj->nmi", Rinv[a], w - t[a])
+        if exact:
+            Rinv[a] = np.swapaxes(R[a], -1, -2)
+        else:  # Eq. 6's closed-form inverse; a rotary axis' second-order rotation by -eps
+            Rinv[a] = rotation_second(-terms[a][1]) if a in Rn else inverse_small(terms[a][1])
+        w_in[a] = w - t[a]
+        w = np.einsum("nmij,nmj->nmi", Rinv[a], w_in[a])
         w_out[a] = w
         if a in Rn:
             w = np.einsum("nmji,nmj->nmi", Rn[a], w) + pivot[a]
@@ -1208,13 +1235,14 @@ def chain_reference(
         G = mul(MW, Q)
         G = np.broadcast_to(np.eye(3), (N, M, 3, 3)) if G is None else G
         dT[a] = G
-        # column c is G (e_c x v) = -G [v]x e_c
-        dE[a] = -(G @ skew(v_in[a]))
+        # column c is G (e_c x v) = -G [v]x e_c (a rotary axis: the derivative of its second-order rotation)
+        dE[a] = G @ _second_order_derivative(terms[a][1], v_in[a], 1.0) if a in Rn else -(G @ skew(v_in[a]))
         Q = mul(Q, R[a] @ Rn[a] if a in Rn else R[a])
     for a in config.workpiece:
         G = mul(suffix[a], Li[a])
         dT[a] = -G
-        dE[a] = G @ skew(w_out[a])
+        dE[a] = (G @ skew(w_out[a]) if a not in Rn else
+                 mul(suffix[a], np.swapaxes(Rn[a], -1, -2)) @ _second_order_derivative(terms[a][1], w_in[a], -1.0))
     # dP_W/dtheta[n,m,:,j] = sum_g H[n,m,:,g] C[m,g,j]: H holds the chain's sensitivity to each
     # component error (and squareness), C the basis values; one batched BLAS product forms it.
     H, C = [], _basis_map(model, B)
