@@ -174,3 +174,50 @@ def test_bad_rotary_configuration_is_one_line(tmp_path, edit, pattern):
         parse_config(raw)
     msg = str(exc.value)
     assert "\n" not in msg and re.search(pattern, msg), msg
+
+
+def test_simulate_identify_compensate_a_five_axis_recording(tmp_path):
+    """simulate writes format 3 with the rotary truth; identify reads it back within its u (every parameter not held
+    by the datum); compensate lists the same rotary location errors with u in neutral-json and neutral-csv."""
+    import json
+
+    cfg = tmp_path / "five.toml"
+    # no linear-axis errors: the identification states the rotary errors in the frame the linear axes define (ISO
+    # 230-1's convention: X's line, the XY plane), which a simulated straightness P1 would turn (docs/model.md)
+    cfg.write_text(bundled_config("five_axis_cafxyz").read_text().replace(
+        'disable = ["approximation_degree"]', 'enable = ["tracker_noise", "repeatability"]').replace(
+        'translational = ["8 um", "3 um"]', 'translational = ["0 um", "0 um"]').replace(
+        'angular = ["20 urad", "8 urad"]', 'angular = ["0 urad", "0 urad"]').replace(
+        'squareness = "30 urad"', 'squareness = "0 urad"'))
+    out = tmp_path / "sim"
+    r = CliRunner().invoke(main, ["simulate", str(cfg), "--out", str(out)])
+    assert r.exit_code == 0, r.output
+    assert 'format = "mtbudget-recording/3"' in (out / "recording.toml").read_text()
+    truth = json.loads((out / "truth.json").read_text())["rotary_axes"]["errors"]
+    r = CliRunner().invoke(main, ["identify", str(out), "--json"])
+    assert r.exit_code == 0, r.output
+    ident = json.loads(r.output)
+    held = set(ident["datum"]["held"])
+    assert {"ECOC", "EAOC"} <= held and all(h[:3] in ("ECY", "ECZ") for h in held - {"ECOC", "EAOC"})
+    by_iso = {p["iso"]: p for p in ident["parameters"]}
+    # each parameter's identified value is its truth minus what the held ones' truths map onto it
+    combos = {c[0]["iso"]: {e["iso"]: e["weight"] for e in c} for c in ident["not_identifiable"]}
+    for iso, t in truth.items():
+        p = by_iso[iso]
+        if iso in held:
+            assert p["value"] == 0 and p.get("datum")
+            continue
+        expect = t - sum(w.get(iso, 0.0) * truth[h] for h, w in combos.items() if h in truth)
+        assert abs(p["value"] - expect) < 4 * p["uncertainty"] + 0.05, (iso, p, expect)
+    js = tmp_path / "c.json"
+    r = CliRunner().invoke(main, ["compensate", str(out), "--format", "neutral-json", "--out", str(js)])
+    assert r.exit_code == 0, r.output
+    rot = {v["iso"]: v for v in json.loads(js.read_text())["rotary_location_errors"]["values"]}
+    assert set(rot) == set(truth)
+    for iso, v in rot.items():
+        assert v["value"] == pytest.approx(by_iso[iso]["value"], abs=1e-9)
+        assert (v["u"] is None) == (iso in held)
+    csv = tmp_path / "c.csv"
+    r = CliRunner().invoke(main, ["compensate", str(out), "--format", "neutral-csv", "--out", str(csv)])
+    assert r.exit_code == 0, r.output
+    assert sum(line.startswith("rotary_") for line in csv.read_text().splitlines()) == len(truth)
