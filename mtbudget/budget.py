@@ -349,24 +349,120 @@ CHARACTERISTICS = ("component", "max")
 
 
 def conformance(res: RunResult, tolerance_um: float, characteristic: str = "component") -> dict:
-    """ISO 14253-1 decision for a tolerance T on the compensated machine's error, with the rule stated.
+    """ISO 14253-1 decision for a tolerance T on the compensated machine's error, with the rule and its scope stated.
 
-    characteristic "component": each error component (x, y, z) at each mesh
-    point must lie within [-T, T]; conformance is proven at a point and axis
-    when its coverage interval (the run's coverage probability) lies inside
-    the zone (acceptance zone: |mean| <= T - U with U the interval's
-    half-width), non-conformance when it lies outside, undecided otherwise.
-    characteristic "max": the largest 3-D error over the mesh (compensation_max)
-    must not exceed T; decided on the upper end of its coverage interval.
+    characteristic "component": every error component (x, y, z) at every mesh point must lie within [-T, T].  The
+    verdict is for the whole machine (``scope`` "machine", :func:`machine_conformance`): a statement at the run's
+    coverage probability p about all point-axes at once, from the distribution of the largest |component| over the
+    mesh.  The per-point decisions stay beside it under ``per_point`` (``scope`` "per point"): conformance proven at
+    a point and axis when its own coverage interval lies inside the zone; they are not a statement about the
+    machine (225 intervals of 95 % each do not make a 95 % statement about all 225).
+    characteristic "max": the largest 3-D error over the mesh (compensation_max) must not exceed T; decided on the
+    upper end of its coverage interval (scope "machine").
     """
     if characteristic not in CHARACTERISTICS:
         raise ValueError(f"characteristic must be one of {CHARACTERISTICS}")
-    out = _conformance(res, tolerance_um, characteristic)
+    if characteristic == "max":
+        out = _conformance(res, tolerance_um, characteristic)
+    else:
+        pp = _conformance(res, tolerance_um, characteristic)
+        out = machine_conformance(res, tolerance_um)
+        if out is None:  # a log without the per-trial figures of the machine: the per-point decisions alone, said so
+            out = {**pp, "scope": "per point", "per_point": pp,
+                   "statement": pp["statement"] + " No decision for the whole machine: this run log does not hold the "
+                                                  "largest error component of each trial (run it again)."}
+        else:
+            out["per_point"] = pp
+            out["statement"] += " Per point (each point-axis on its own interval, not a statement about the machine): " + \
+                pp["statement"]
     in_use = bool(((res.spec or {}).get("measurand") or {}).get("in_use"))
     out["refers_to"] = ("the compensated machine in use (repeatability, reversal and thermal residual included)"
                         if in_use else "the compensated machine as the verification sees it (not its use: add the "
                                        "source in_use for a tolerance on positioning in use)")
     out["statement"] += f" The decision refers to {out['refers_to']}."
+    return out
+
+
+def _order_quantile(y: np.ndarray, prob: float) -> float:
+    """The prob-quantile of values y as JCGM 101 7.7.1 reads one: the q-th smallest, q = the integer part of prob M + 1/2."""
+    M = y.shape[0]
+    q = min(max(int(prob * M + 0.5), 1), M)
+    return float(np.partition(y, q - 1)[q - 1])
+
+
+def _quantiles(res: RunResult, name: str, probs) -> list:
+    """Quantiles of a per-trial figure of the run: order statistics of every trial, or its histogram's."""
+    y = res.acc.scalar_samples(name)
+    if y is not None:
+        return [_order_quantile(y, p) for p in probs]
+    h = res.acc.scalar_hist
+    return h.quantiles(np.asarray(probs, float), rows=[res.acc.scalar_names.index(name)])[0].tolist()
+
+
+def machine_conformance(res: RunResult, tolerance_um: float) -> dict | None:
+    """The whole machine against a tolerance T on every error component at every mesh point (scope "machine").
+
+    The figure decided on is m = max over points and axes of |e|, per trial (``largest_abs_component``): every
+    component lies within +-T exactly when m <= T.  Conformance is proven when P(m <= T) >= p, i.e. the p-quantile
+    of m (the upper end of the one-sided coverage interval [0, m_p]) is within T; non-conformance when
+    P(m > T) >= p, i.e. its (1 - p)-quantile exceeds T; undecided otherwise.  Beside it: the probability that every
+    component is within +-T (the fraction of trials), the same quantile per axis, and, when the run kept every
+    trial's components, the simultaneous band over all point-axes (the hyperrectangular coverage region of JCGM 102
+    7.7.3: y_j +- k u_j with k the p-quantile of max_j |e_j - y_j| / u_j).  None when the run's blocks do not hold
+    the figure (a log written before it existed).
+    """
+    if "largest_abs_component" not in res.acc.scalar_names:
+        return None
+    p, T = res.coverage, float(tolerance_um)
+    lo, hi = _quantiles(res, "largest_abs_component", [1 - p, p])
+    axes = [_quantiles(res, f"largest_abs_component_{a}", [p])[0] for a in "xyz"]
+    y = res.acc.scalar_samples("largest_abs_component")
+    prob = None if y is None else float(np.mean(y <= T))
+    verdict = "conforms" if hi <= T else "does not conform" if lo > T else "undecided"
+    band = simultaneous_band(res, T)
+    P = "" if prob is None else f"; the probability that every component lies within ±{T:g} µm is {prob:.3f}"
+    return {"characteristic": "every error component (x, y, z) at every mesh point after compensation, all at once",
+            "scope": "machine",
+            "rule": f"ISO 14253-1 guarded acceptance for the whole machine: conformance proven when, with probability "
+                    f"at least {percent(p)}, every component at every point lies within [-T, T] (the {percent(p)} "
+                    f"quantile of the largest |component| over the mesh is within T); non-conformance when, with "
+                    f"probability at least {percent(p)}, some component lies outside (its {percent(1 - p)} quantile "
+                    f"exceeds T); undecided otherwise",
+            "tolerance": T, "unit": "um", "coverage": p, "verdict": verdict,
+            "largest_abs_component": {"quantile": hi, "lower_quantile": lo, "per_axis_quantile": axes,
+                                      "probability_within": prob, "unit": "um", "trials": res.acc.n,
+                                      "what": f"the {percent(p)} quantile (and the {percent(1 - p)} quantile) of the "
+                                              "largest |error component| over the mesh, per trial; per axis: of the "
+                                              "largest |x|, |y|, |z| error"},
+            "simultaneous_band": band,
+            "statement": (f"Whole machine, tolerance ±{T:g} µm on every component at every point: the largest "
+                          f"|component| over the mesh is at most {hi:.1f} µm with probability {percent(p)} (per axis "
+                          f"x, y, z: {axes[0]:.1f}, {axes[1]:.1f}, {axes[2]:.1f} µm){P}: the compensated machine "
+                          f"{verdict}.")}
+
+
+def simultaneous_band(res: RunResult, tolerance_um: float | None = None) -> dict | None:
+    """The simultaneous coverage band over every point-axis (JCGM 102 7.7.3's hyperrectangular region) when the
+    run kept every trial's components: {"k", "coverage", "half_width" (per point-axis, um), "largest_extent"
+    (max_j |y_j| + k u_j), "verdict" against the tolerance}; None otherwise."""
+    parts = res.acc.vector_samples.get("components")
+    if not parts:
+        return None
+    Y = np.concatenate(parts)  # (M, 3 M0) um
+    ym, u = Y.mean(axis=0), Y.std(axis=0, ddof=1)
+    ok = u > 0
+    t = (np.abs(Y[:, ok] - ym[ok]) / u[ok]).max(axis=1)
+    k = _order_quantile(t, res.coverage)
+    half = k * u
+    extent = float((np.abs(ym) + half).max())
+    out = {"k": k, "coverage": res.coverage, "unit": "um", "half_width": half.tolist(), "largest_extent": extent,
+           "what": f"y_j ± k u_j at every point-axis j, k the {percent(res.coverage)} quantile of the largest "
+                   "standardised deviation over the mesh per trial (JCGM 102 7.7.3, hyperrectangular region)"}
+    if tolerance_um is not None:
+        T = float(tolerance_um)
+        lo, hi = ym - half, ym + half
+        out["verdict"] = ("conforms" if extent <= T else
+                          "does not conform" if bool(np.any((hi < -T) | (lo > T))) else "undecided")
     return out
 
 
@@ -378,6 +474,7 @@ def _conformance(res: RunResult, tolerance_um: float, characteristic: str) -> di
         lo, hi = s["symmetric"]
         verdict = "conforms" if hi <= T else "does not conform" if lo > T else "undecided"
         return {"characteristic": "largest 3-D error over the mesh after compensation (compensation_max)",
+                "scope": "machine",
                 "rule": f"ISO 14253-1 guarded acceptance: conformance proven when the upper end of the {percent(p)} coverage "
                         f"interval is within the tolerance; non-conformance when its lower end exceeds it",
                 "tolerance": T, "unit": "um", "coverage": p, "interval": [lo, hi], "verdict": verdict,
@@ -392,7 +489,8 @@ def _conformance(res: RunResult, tolerance_um: float, characteristic: str) -> di
     inside = (lo >= -T) & (hi <= T)
     outside = (hi < -T) | (lo > T)
     n = lo.size
-    return {"characteristic": "each error component (x, y, z) at each mesh point after compensation",
+    return {"characteristic": "each error component (x, y, z) at each mesh point after compensation, each on its own",
+            "scope": "per point",
             "rule": f"ISO 14253-1 guarded acceptance per point and axis: conformance proven where the {percent(p)} coverage "
                     f"interval lies within [-T, T] (for a symmetric interval: |mean| <= T - U, U its half-width), "
                     f"non-conformance where it lies outside",
@@ -400,7 +498,7 @@ def _conformance(res: RunResult, tolerance_um: float, characteristic: str) -> di
             "conforming": int(inside.sum()), "nonconforming": int(outside.sum()),
             "undecided": int(n - inside.sum() - outside.sum()), "of": n,
             "verdict": "conforms" if inside.all() else "does not conform" if outside.any() else "undecided",
-            "statement": (f"Tolerance ±{T:g} µm on each axis at each point: conformance proven at {int(inside.sum())} of "
+            "statement": (f"Tolerance ±{T:g} µm on each axis at each point, per point: conformance proven at {int(inside.sum())} of "
                           f"{n} point-axes, non-conformance at {int(outside.sum())}, undecided at "
                           f"{int(n - inside.sum() - outside.sum())} (largest guard band U = {U.max():.1f} µm, "
                           f"{percent(p)} coverage).")}

@@ -645,7 +645,10 @@ def run_report(res: RunResult, folder, tolerance_um: float | None = None, charac
     if tolerance_um is not None:
         conf = conformance(res, tolerance_um, characteristic)
         md += ["", "## Decision (ISO 14253-1)", "", f"Characteristic: {conf['characteristic']}.", "",
-               f"Rule: {conf['rule']}.", "", f"**{conf['statement']}**"]
+               f"Scope of the verdict: {'the whole machine' if conf['scope'] == 'machine' else 'each point-axis on its own'}.",
+               "", f"Rule: {conf['rule']}.", "", f"**{conf['statement']}**"]
+        if conf.get("per_point") and conf["scope"] == "machine":
+            md += ["", f"Per point (scope: each point-axis on its own, not the machine): {conf['per_point']['rule']}."]
         data["conformance"] = conf
     if compensation:  # CompensationTable.to_dict() (with "check"), where a compensation is available
         md += compensation_lines(compensation)

@@ -24,7 +24,7 @@ from .config import SimulationConfig, load_config, parse_config
 from .engine import Engine
 from .errors import ConfigError, RunLogError
 from .executors import EXECUTORS, Executor, one_blas_thread
-from .outputs import MAIN_OUTPUT, SCALARS, RunResult, accumulate_block
+from .outputs import MACHINE_SCALARS, MAIN_OUTPUT, SCALARS, RunResult, accumulate_block
 from .plugins import PluginHost
 from .progress import progress_bar
 from .scenario import Scenario, build_scenario
@@ -396,7 +396,7 @@ def _execute(config, settings, *, source, target, force, histogram_every) -> Run
     plugins = [{"name": s.plugin, "source": s.name, "package": s.dist_name, "version": s.dist_version}
                for s in eng.sources]
     header = {"spec": spec, "trials": settings.trials, "plugins": plugins, "sources": [s.name for s in eng.sources],
-              "outputs": {k: v[0] for k, v in SCALARS.items()}, "parameter_names": eng.parameter_names,
+              "outputs": {k: v[0] for k, v in {**SCALARS, **MACHINE_SCALARS}.items()}, "parameter_names": eng.parameter_names,
               "parameter_units": eng.parameter_units, "mesh": scenario.mesh_points.tolist(),
               "mesh_unit": "mm", "commanded": scenario.commanded.tolist(), "weights": scenario.weights_report(),
               "settings": {k: (list(getattr(settings, k)) if k == "adaptive_outputs" else getattr(settings, k))
