@@ -345,6 +345,122 @@ def point_lpu(scenario) -> dict:
     return {"estimate": y0, "cov": blocks}
 
 
+#: sources whose input covariance the GUF states in closed form: the identification's own noise model (paper Eq. 23
+#: plus a per-point, per-axis normal in the machine frame), with the second moments the Monte Carlo draws
+CLOSED_FORM_SOURCES = ("tracker_noise", "repeatability", "control_error")
+
+
+def _closed_form_noise(sources) -> tuple:
+    """(Noise with the second moments the active sources draw, the names covered): the tracker's angular u is drawn
+    per trial from |N(mean, sd)| (a hierarchical noise), so its effective variance is E[u^2] = mean^2 + sd^2; the
+    repeatability and the control error are both per-point normals of each axis, so their variances add."""
+    from .identify import Noise
+
+    on = {s.name: s for s in sources}
+    ang = dist = dpl = r2 = 0.0
+    covered = []
+    t = on.get("tracker_noise")
+    if t is not None:
+        ang = math.hypot(t.value("angular_mean", "rad"), t.value("angular_sd", "rad"))
+        dist, dpl = t.value("distance", "mm"), t.value("distance_per_length", "")
+        covered.append("tracker_noise")
+    for name, key in (("repeatability", "R"), ("control_error", "C")):
+        if name in on:
+            r2 += on[name].value(key, "mm") ** 2
+            covered.append(name)
+    return Noise(ang, dist, dpl, math.sqrt(r2)), covered
+
+
+def point_guf(scenario, draws: int = 1024, seed: int = 0, h: float = 2e-4) -> dict:
+    """The law of propagation for the per-point measurand on the same inputs as the Monte Carlo (JCGM 101 clause 8
+    can then validate where the model is near-linear).
+
+    One first-order model of every trial: e = Pi (F_true + offset - F_id(theta_hat(y))) at the mesh points, linearised
+    about the noise-free verification: the identification (with the stated weights, as every trial) by central
+    differences in the measured coordinates (step ``h`` mm), the identified field by its Jacobian.  Its inputs are
+    those the Monte Carlo draws, source by source (independent, so their covariances add):
+
+    * the tracker noise, the repeatability and the control error in closed form (:func:`_closed_form_noise`: the
+      tracker's hierarchical angular noise by E[u^2] = mean^2 + sd^2, not the stated mean);
+    * every other active source with a first-order effect (reflector centring, thermal, backlash ...): its own
+      draws (``draws`` of them, its own stream) pushed through the same linear model, which is the law of
+      propagation with the source's input covariance evaluated from its distribution by sampling; their mean
+      moves the estimate (f at the inputs' expectations, to first order);
+    * the optimisation-strategy sources (a discrete choice of the identification) have no first-order effect;
+    * at a [measurand] tool the unidentifiable part's prior, as :func:`point_lpu`.
+
+    With [[stations]] it is :func:`point_lpu` (the stated noise only), said in ``basis``.
+    Returns {"estimate": (M0, 3) um, "cov": (M0, 3, 3) um^2, "basis": {...}}.
+    """
+    from .identify import identify
+    from .simulate import simulate_block
+    from .units import factor
+
+    sc = scenario
+    if sc.stations:
+        out = point_lpu(sc)
+        out["basis"] = {"closed_form": ["the stated noise of every station (identification covariance)"],
+                        "sampled": [], "no_first_order_effect": [],
+                        "note": "with [[stations]] the GUF is the identification covariance of the stated noise; "
+                                "sources without a stated weight are in the MCM only"}
+        return out
+    um = factor("mm", "um")
+    fixed = sc.correction or None
+    nominal = simulate_block(sc, 0, 1, seed, active=[])
+    meas0, th0 = np.asarray(nominal[0]), np.asarray(nominal[1])  # (1, M, 3) mm, (1, p)
+    M = meas0.shape[1]
+    E = np.eye(3 * M).reshape(3 * M, M, 3) * h
+    res = identify(sc.id_model, np.concatenate([meas0, meas0 + E, meas0 - E]), sc.noise, fixed=fixed)
+    G = ((res.theta[1:1 + 3 * M] - res.theta[1 + 3 * M:]) / (2 * h)).T  # (p, 3 M): d theta_hat / d y
+    F_id, J = sc.evaluate(sc.id_model, res.theta[:1], jacobian=True)
+    M0 = F_id.shape[1]
+    P = sc.rigid_free
+    S = -(P @ J[0].reshape(3 * M0, -1)) @ G  # (3 M0, 3 M): d e / d y
+    F_true0 = sc.evaluate(sc.truth, th0)[0]
+    if sc.null_bias is not None:
+        F_true0 = F_true0 - sc.null_bias
+    y0 = P @ (F_true0 - F_id[0]).reshape(-1)
+    # closed form: S blockdiag(C_i) S^T, per point
+    noise, covered = _closed_form_noise(sc.sources)
+    C = sc.id_model.covariance(meas0[0], noise.angular, noise.distance, noise.distance_per_length,
+                               noise.repeatability)  # (M, 3, 3) tracker frame, mm^2
+    Sb = S.reshape(M0, 3, M, 3)
+    cov = np.einsum("aimk,mkl,ajml->aij", Sb, C, Sb)
+    m = sc.context.measurand
+    if m is not None:  # at a tool the verification did not use: the unidentifiable errors' prior
+        Gu = P @ m["unidentified_field"][:, sc.mesh_rows].reshape(m["unidentified_field"].shape[0], -1).T
+        cov = cov + np.einsum("aik,ajk->aij", Gu.reshape(M0, 3, -1), Gu.reshape(M0, 3, -1))
+    sampled, skipped = [], []
+    shift = np.zeros(3 * M0)
+    for src in sc.sources:
+        if src.name in covered or src.name == "unidentified_at_tool":
+            continue
+        sim = simulate_block(sc, 0, draws, seed, active=[src])
+        if sim[2]:  # a discrete choice of the identification's settings
+            skipped.append(src.name)
+            continue
+        dF = sc.evaluate(sc.truth, np.asarray(sim[1])) - sc.evaluate(sc.truth, th0)
+        if sim.measurand_offset is not None:
+            dF = dF + sim.measurand_offset[:, sc.mesh_rows]
+        de = dF.reshape(draws, -1) @ P.T + (np.asarray(sim[0]) - meas0).reshape(draws, -1) @ S.T  # (draws, 3 M0)
+        if not np.any(de):
+            skipped.append(src.name)
+            continue
+        mean = de.mean(axis=0)
+        d = (de - mean).reshape(draws, M0, 3)
+        cov = cov + np.einsum("nai,naj->aij", d, d) / (draws - 1)
+        shift += mean
+        sampled.append(src.name)
+    basis = {"closed_form": covered + (["unidentified_at_tool (prior)"] if m is not None else []),
+             "sampled": sampled, "draws": draws, "no_first_order_effect": skipped,
+             "note": "GUF on the same inputs as the MCM: the identification and compensation linearised about the "
+                     "noise-free verification; the tracker noise (angular u by E[u^2] of its hierarchical draw), "
+                     "repeatability and control error in closed form" +
+                     (f"; {', '.join(sampled)}: their own draws ({draws} each) through the same linear model"
+                      if sampled else "")}
+    return {"estimate": ((y0 + shift) * um).reshape(M0, 3), "cov": cov * um**2, "basis": basis}
+
+
 CHARACTERISTICS = ("component", "max")
 
 

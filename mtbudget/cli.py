@@ -325,8 +325,9 @@ def plugins_cmd(config, as_json):
 @main.command("run")
 @click.argument("config", required=False, type=click.Path(dir_okay=False, path_type=Path))
 @click.option("--trials", type=click.IntRange(min=0), default=1000, show_default=True,
-              help="Monte Carlo trials (at least 2); 0 runs the adaptive procedure of JCGM 101 7.9 on the main output "
-                   "(two significant digits: expect tens of thousands of trials; at most 10^6).")
+              help="Monte Carlo trials (at least 2); 0 runs the adaptive procedure of JCGM 101 7.9 on every point-axis of the "
+                   "measurand (u and interval ends) and the main output "
+                   "(two significant digits: expect hundreds of thousands of trials; at most 10^6).")
 @click.option("--seed", type=click.IntRange(min=0), default=None, help="Seed of the run (default: the config's seed).")
 @click.option("--coverage", type=click.FloatRange(0, 1, min_open=True, max_open=True), default=0.95, show_default=True,
               help="Coverage probability of the intervals.")

@@ -143,6 +143,7 @@ class RunResult:
     budget: dict = field(default_factory=dict)  # output -> budget table
     complete: bool = True
     stopped_at_limit: bool = False  # adaptive run that hit max_trials before reaching its tolerance
+    adaptive: dict | None = None  # adaptive run: what stabilised at how many trials (report.adaptive_line)
     weights: dict | None = None  # stated identification weights when they differ from what the run draws
     log_path: object = None
     log: object = None

@@ -20,6 +20,8 @@ def result_json(res: RunResult) -> dict:
            "not_converged": res.not_converged, "fallbacks": res.fallbacks, "outputs": {}, "budget": res.budget, "convergence": res.convergence}
     if res.weights:
         out["weights"] = res.weights
+    if getattr(res, "adaptive", None):
+        out["adaptive"] = res.adaptive
     for k, v in res.outputs().items():
         out["outputs"][k] = {"unit": v["unit"], "description": v["description"], "mean": v["mean"], "std": v["std"],
                              "symmetric": list(v["symmetric"]), "shortest": None if v["shortest"] is None else list(v["shortest"])}
@@ -42,6 +44,8 @@ def result_json(res: RunResult) -> dict:
     if res.guf is not None:
         out["guf_points"] = {"estimate": np.asarray(res.guf["estimate"]).tolist(), "cov": np.asarray(res.guf["cov"]).tolist(),
                              "unit": "um", "cov_unit": "um**2"}
+        if res.guf.get("basis"):
+            out["guf_points"]["basis"] = res.guf["basis"]
     return out
 
 
@@ -158,8 +162,9 @@ def points_summary(pts: list) -> dict:
     c8 = [v["passed"] for p in pts for v in p.get("clause8", [])]
     if c8:
         out["clause8"] = {"passed": int(sum(c8)), "of": len(c8),
-                          "note": "GUF: the identification covariance (stated tracker noise and repeatability) "
-                                  "propagated to each point; sources without a stated weight are in the MCM only"}
+                          "note": "GUF on the same inputs as the MCM: the identification and compensation "
+                                  "linearised about the noise-free verification, every source with a first-order "
+                                  "effect (guf_points.basis says how each entered)"}
     return out
 
 
@@ -196,19 +201,41 @@ def point_lines(res: RunResult) -> list:
                  f"mean (bias) {_vec(w['mean'], nd)} {u}")
     if "clause8" in sm:
         c = sm["clause8"]
+        a = getattr(res, "adaptive", None) or {}
+        if a.get("point_axes") and a["point_axes_stable"] == a["point_axes"]:
+            why = ("the MCM's u and interval ends are stable to that tolerance (adaptive run): where the GUF is not "
+                   "validated the output's distribution is not the normal the GUF assumes (non-linearity, a "
+                   "hierarchical or non-normal input); quote the MCM there")
+        else:
+            why = ("the MCM's interval ends are not known to that tolerance unless the run is adaptive: for a statement "
+                   "to sign, run `mtbudget run --trials 0` (adaptive on every point-axis, JCGM 101 7.9)")
         lines.append(f"  GUF vs MCM per point and axis (JCGM 101 clause 8, 2 significant digits): {c['passed']} of {c['of']} "
-                     f"validated; {c['note']}; with few trials the MCM intervals themselves are not stable to that "
-                     f"tolerance: for a statement to sign, run `mtbudget run --trials 0` (adaptive, JCGM 101 7.9) and "
-                     f"quote u and the intervals once they are validated")
+                     f"validated; {c['note']}; {why}")
     lines.append("  every point and axis: mtbudget run --json (\"points\"), or the report's table")
     return lines
+
+
+def adaptive_line(a: dict) -> str:
+    """The adaptive run's final line: what stabilised, at how many trials."""
+    what = []
+    if a.get("point_axes") is not None:
+        what.append(f"{a['point_axes_stable']} of {a['point_axes']} point-axes of the measurand (u and the "
+                    f"{100 * a['coverage']:g} % interval ends)")
+    what += [f"{o} ({'stable' if ok else 'not stable'})" for o, ok in a.get("outputs_stable", {}).items()]
+    head = ("stopped at its trial limit before every quantity was stable" if a.get("stopped_at_limit") else
+            "every quantity stable")
+    return (f"Adaptive Monte Carlo (JCGM 101 7.9): {head} at {a['trials']} trials ({a['batches']} batches of "
+            f"{a['batch_trials']}), to {a['ndig']} significant digits of each u: " + "; ".join(what)
+            + (f". Note: {a['note']}" if a.get("note") else ""))
 
 
 def budget_text(res: RunResult) -> str:
     lines = []
     status = "" if res.complete else "  (INCOMPLETE: partial results)"
     lines.append(f"Monte Carlo: {res.trials} trials, coverage probability {percent(res.coverage)}, seed {res.spec.get('seed')}{status}")
-    if getattr(res, "stopped_at_limit", False):
+    if getattr(res, "adaptive", None):
+        lines.append("  " + adaptive_line(res.adaptive))
+    elif getattr(res, "stopped_at_limit", False):
         lines.append("  note: the adaptive run stopped at its trial limit before reaching its numerical tolerance")
     if res.fallbacks:
         lines.append(f"  note: {res.fallbacks} of {res.trials} trials left the linear range of the fast identification "

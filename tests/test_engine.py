@@ -125,7 +125,8 @@ def test_adaptive_run_stops_at_its_tolerance(small):
     from mtbudget.stats import numerical_tolerance
 
     # one significant digit keeps the test short: two need ~40 000 trials here (the interval ends converge slowly)
-    res = run(small, trials=None, block=32, adaptive_batch=256, attribution_trials=0, max_trials=20_000, ndig=1)
+    res = run(small, trials=None, block=32, adaptive_batch=256, attribution_trials=0, max_trials=20_000, ndig=1,
+              adaptive_outputs=("compensation_rms",))  # the scalar alone (the measurand: test_adaptive_measurand.py)
     assert not res.stopped_at_limit and res.trials % 256 == 0 and res.trials >= 512
     y = res.acc.scalar_samples("compensation_rms")
     batches = y.reshape(-1, 256)
