@@ -356,7 +356,7 @@ def plugins_cmd(config, as_json):
 @click.option("--quiet", is_flag=True, help="No progress bars.")
 def run_cmd(config, trials, seed, coverage, executor, workers, address, attribution_trials, log_path, force, resume_path,
             block, adaptive_batch, as_json, quiet):
-    """Monte Carlo uncertainty of a verification, with its budget.
+    """Monte Carlo uncertainty of a planned verification (a priori, a virtual experiment), with its budget.
 
     CONFIG is a TOML configuration (default: the built-in paper study). Each
     trial draws every enabled uncertainty source (see `mtbudget plugins
@@ -516,9 +516,12 @@ def diagnose_cmd(recording, example, as_json, report_dir, alpha, max_degree, qui
               help="What the tolerance applies to: each error component at each point (component), or the largest "
                    "3-D error over the mesh (max).")
 def report(runlog, out, tolerance, characteristic):
-    """Write an uncertainty statement (Markdown and HTML) from a run log.
+    """Write the uncertainty evaluation of a run (Markdown and HTML) from its run log.
 
-    The report reads like a calibration certificate: the measurand (the
+    A run is an a priori evaluation: a virtual experiment of the planned
+    verification on the assumed machine of its configuration (stated at the
+    top of the report), not the certificate of a verification carried out.
+    The report gives the kind of statement, the measurand (the
     error of the compensated machine at each mesh point, per axis), the
     conditions (configuration, machine, mesh, tracker, sources, seed,
     versions), the result (u per axis over the mesh, the worst point, the

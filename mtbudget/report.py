@@ -16,7 +16,8 @@ from .outputs import MAIN_OUTPUT, SCALARS, RunResult
 
 
 def result_json(res: RunResult) -> dict:
-    out = {"trials": res.trials, "coverage": res.coverage, "complete": res.complete, "seed": res.spec.get("seed"),
+    out = {"statement_kind": statement_kind(res),
+           "trials": res.trials, "coverage": res.coverage, "complete": res.complete, "seed": res.spec.get("seed"),
            "not_converged": res.not_converged, "fallbacks": res.fallbacks, "outputs": {}, "budget": res.budget, "convergence": res.convergence}
     if res.weights:
         out["weights"] = res.weights
@@ -47,6 +48,60 @@ def result_json(res: RunResult) -> dict:
         if res.guf.get("basis"):
             out["guf_points"]["basis"] = res.guf["basis"]
     return out
+
+
+def assumed_machine(cfg: dict) -> str:
+    """The machine a run assumes, in one sentence, from its configuration (the truth every trial simulates)."""
+    ge = cfg.get("geometric_errors") or {}
+    if ge.get("coefficients"):
+        errors = f"its geometric errors the {len(ge['coefficients'])} explicit coefficients of [geometric_errors.coefficients]"
+    else:
+        tr, an = ge.get("translational") or [], ge.get("angular") or []
+        errors = ("its geometric errors drawn once from the generation functions ([geometric_errors] seed "
+                  f"{ge.get('seed', cfg.get('seed', '-'))}: Legendre coefficients of orders 1, 2, 3 with standard deviations "
+                  f"{', '.join(map(str, tr)) or 'the defaults'} (translational) and {', '.join(map(str, an)) or 'the defaults'} "
+                  f"(angular), squareness {ge.get('squareness', 'the default')})")
+    effects = cfg.get("effects") or {}
+    physics = f"; physics added to it: {', '.join(sorted(effects))} ([effects])" if effects else ""
+    return (f"a machine of kinematic chain {cfg.get('machine', 'XFYZ')} with {errors}, the same machine in every trial, at "
+            f"{cfg.get('reference_temperature', '20 degC')} reference temperature{physics}")
+
+
+def statement_kind(res) -> dict:
+    """What kind of statement a run is: an a priori (virtual-experiment) evaluation of a planned verification on
+    an assumed machine, with that machine stated and the GUF agreement as the evidence that the Monte Carlo here
+    is a propagation of distributions of a near-linear model."""
+    cfg = (res.spec or {}).get("config") or {}
+    out = {"kind": "a priori",
+           "name": "virtual-experiment evaluation of a planned verification",
+           "what": ("every trial simulates the planned verification (plan, tracker station, sources) of an assumed "
+                    "machine, identifies it as the real verification would and compensates it: the spread is what "
+                    "this verification plan would achieve on that machine (a virtual experiment, VE-DA in Wübbeler "
+                    "et al., Metrology 2021), not the uncertainty of a verification that was carried out (that is an "
+                    "a posteriori evaluation of its recording, which `run` does not make)"),
+           "assumed_machine": assumed_machine(cfg)}
+    pts = res.points() if hasattr(res, "points") else None
+    if pts and "guf_u" in pts[0]:
+        r = np.array([m / g for p in pts for m, g in zip(p["u"]["value"], p["guf_u"]["value"]) if g > 0])
+        c8 = [v["passed"] for p in pts for v in p.get("clause8", [])]
+        if r.size:
+            out["evidence"] = {"u_mcm_over_u_guf": {"median": float(np.median(r)), "min": float(r.min()),
+                                                    "max": float(r.max())},
+                               "clause8_validated": int(sum(c8)), "of": len(c8),
+                               "what": "the law of propagation on the same inputs (guf_points.basis) against the "
+                                       "Monte Carlo, per point-axis: where they agree the model is near-linear and "
+                                       "the run is the propagation of the stated input distributions"}
+    return out
+
+
+def statement_kind_line(k: dict) -> str:
+    ev = k.get("evidence")
+    tail = ""
+    if ev:
+        r = ev["u_mcm_over_u_guf"]
+        tail = (f" Evidence: u(MCM)/u(GUF on the same inputs) median {r['median']:.3f} ({r['min']:.3f}-{r['max']:.3f}) "
+                f"over the point-axes; clause 8 validated at {ev['clause8_validated']} of {ev['of']}.")
+    return (f"Kind of statement: A PRIORI, a {k['name']}: {k['what']}. Assumed machine: {k['assumed_machine']}.{tail}")
 
 
 #: the per-point measurand in one sentence (docs/measurand.md has the definition)
@@ -232,6 +287,7 @@ def adaptive_line(a: dict) -> str:
 def budget_text(res: RunResult) -> str:
     lines = []
     status = "" if res.complete else "  (INCOMPLETE: partial results)"
+    lines.append(statement_kind_line(statement_kind(res)))
     lines.append(f"Monte Carlo: {res.trials} trials, coverage probability {percent(res.coverage)}, seed {res.spec.get('seed')}{status}")
     if getattr(res, "adaptive", None):
         lines.append("  " + adaptive_line(res.adaptive))
@@ -607,7 +663,9 @@ def run_report(res: RunResult, folder, tolerance_um: float | None = None, charac
     folder.mkdir(parents=True, exist_ok=True)
     figs = _figures(res, folder)
     data = result_json(res)
-    md = ["# mtbudget uncertainty statement", ""]
+    kind = data["statement_kind"]
+    md = ["# mtbudget a priori uncertainty evaluation of a planned verification (virtual experiment)", "",
+          "## Kind of statement", "", md_escape(statement_kind_line(kind)), ""]
     if not res.complete:
         md += ["**INCOMPLETE run: partial results.**", ""]
     mt = measurand_text(res)
@@ -702,6 +760,6 @@ def run_report(res: RunResult, folder, tolerance_um: float | None = None, charac
     captions = {**CAPTIONS, **{k: v[1] for k, v in (extra_figures or {}).items()}}
     md += ["", "## Figures", ""] + [f"![{md_escape(captions.get(k, k))}]({p.name})" for k, p in figs.items()]
     (folder / "report.md").write_text("\n".join(md) + "\n")
-    write_html(md, folder, folder / "report.html", "mtbudget uncertainty statement")
+    write_html(md, folder, folder / "report.html", "mtbudget a priori uncertainty evaluation (virtual experiment)")
     (folder / "results.json").write_text(__import__("json").dumps(data, indent=1))
     return {"markdown": folder / "report.md", "html": folder / "report.html", "figures": figs}

@@ -49,3 +49,17 @@ def test_the_machine_figures_come_from_the_components():
     assert b.scalars["largest_abs_component_y"].tolist() == [2.0, 0.1]
     assert b.scalars["largest_abs_component"].tolist() == [3.0, 4.0]
     assert b.truncated(1).scalars["largest_abs_component"].tolist() == [3.0]
+
+
+def test_a_run_says_it_is_an_a_priori_evaluation_of_an_assumed_machine(paper, tmp_path):
+    from mtbudget.report import budget_text, result_json, run_report
+
+    k = result_json(paper)["statement_kind"]
+    assert k["kind"] == "a priori" and "virtual" in k["name"]
+    assert "seed 7" in k["assumed_machine"] and "15 um, 8 um, 4 um" in k["assumed_machine"]  # the paper's truth
+    assert 0.97 < k["evidence"]["u_mcm_over_u_guf"]["median"] < 1.03
+    assert budget_text(paper).startswith("Kind of statement: A PRIORI")
+    run_report(paper, tmp_path, 60.0)
+    md = (tmp_path / "report.md").read_text()
+    assert md.startswith("# mtbudget a priori uncertainty evaluation") and "Assumed machine" in md
+    assert "Scope of the verdict: the whole machine" in md
