@@ -3,9 +3,9 @@
 Budget attribution: the model is non-linear, so contributions are measured,
 not linearised.  For each source the same trials are run with that source
 alone ("one at a time", OAT): its variance V_i.  The budget lists
-u_i(y) = sqrt(V_i), the source's own standard uncertainty u(x_i) where it has
-one, the effective sensitivity c_i = u_i(y) / u(x_i), and the share
-V_i / V.  What the contributions do not explain, V - sum V_i, is reported as
+u_i(y) = sqrt(V_i) (``u_i``; ``rms_i`` for a budget by mean square), the source's own standard
+uncertainty u(x_i) where it has one, and the share V_i / V.  No sensitivity coefficient: a source moves many inputs
+at once (every point, both angles), so none is defined.  What the contributions do not explain, V - sum V_i, is reported as
 the interaction term, so the table adds up exactly.  Optionally the
 leave-one-out variant (V - V_without_i) is computed too.  The same trials
 (common random numbers: each source's stream depends on seed, block and
@@ -194,18 +194,21 @@ def attribution(engine, result: RunResult, n: int, *, ex_kind="inline", workers=
     tables = {}
     for o, (unit, _) in SCALARS.items():
         basis = "mean_square" if o in MEAN_SQUARE_OUTPUTS else "variance"
+        # what the square root of a contribution is: a root-mean-square contribution for a mean-square budget (of a
+        # figure such as compensation_rms, whose "std" under outputs is another quantity), a standard deviation for a
+        # variance budget; no sensitivity coefficient: every source moves many inputs (all points, both angles ...),
+        # so no single input exists to be sensitive to
+        yk, tk, ck = (("rms_i", "rms_total", "rms_combined") if basis == "mean_square" else
+                      ("u_i", "u_total", "u_combined"))
         rows = []
         V = total[o][basis]
         for s in engine.sources:
             v = per_source[s.name][o][basis]
             ux = call(s, "standard_uncertainty")
-            u_y = math.sqrt(max(v, 0.0))
+            y_i = math.sqrt(max(v, 0.0))
             row = {"source": s.name, "group": Group(s.group).value, "plugin": s.plugin, "distribution": s.distribution,
                    "u_x": None if ux is None else {"value": float(ux.magnitude), "unit": f"{ux.units:~}"},
-                   "contribution": v, "u_y": u_y, "share": v / V if V > 0 else 0.0}
-            if ux is not None and ux.magnitude:
-                row["sensitivity"] = {"value": u_y / float(ux.magnitude),
-                                      "unit": f"{unit}/({ux.units:~})" if unit else f"1/({ux.units:~})"}
+                   "contribution": v, yk: y_i, "share": v / V if V > 0 else 0.0}
             if leave_one_out:
                 row["loo"] = V - loo[s.name][o][basis]
             row.update(systematic.get(s.name, {}))
@@ -216,15 +219,19 @@ def attribution(engine, result: RunResult, n: int, *, ex_kind="inline", workers=
         # law of propagation over the (independent) source contributions, through `uncertainties`
         comb = 0.0
         for r in rows:
-            if r["u_y"] > 0:
-                comb = comb + uncertainties.ufloat(0.0, r["u_y"], tag=r["source"])
+            if r[yk] > 0:
+                comb = comb + uncertainties.ufloat(0.0, r[yk], tag=r["source"])
         tables[o] = {
-            "unit": unit, "trials": n, "basis": basis, "total": V, "u_total": math.sqrt(max(V, 0.0)),
+            "unit": unit, "trials": n, "basis": basis,
+            "keys": (f"contribution: the {basis.replace('_', ' ')} of {o} with that source alone ({unit}^2); {yk}: its "
+                     f"square root ({unit}{', a root-mean-square contribution, not a standard uncertainty' if basis == 'mean_square' else ', a standard deviation'}); "
+                     f"{tk}: the square root of the total; {ck}: the root sum of squares of the {yk}"),
+            "total": V, tk: math.sqrt(max(V, 0.0)),
             "sum_of_contributions": sum(r["contribution"] for r in rows),
             "interaction": V - sum(r["contribution"] for r in rows),
             "nominal": nominal[o][basis],
             "nominal_value": nominal[o]["mean"],
-            "u_combined": float(getattr(comb, "std_dev", 0.0)),
+            ck: float(getattr(comb, "std_dev", 0.0)),
             "rows": rows,
             "groups": [{"group": g.value, "contribution": groups.get(g.value, 0.0),
                         "share": groups.get(g.value, 0.0) / V if V > 0 else 0.0} for g in Group],

@@ -16,9 +16,9 @@ from .stats import Accumulator, CoMoments, Moments, clause8
 #: scalar outputs per trial: name -> (unit, description)
 SCALARS = {
     "compensation_rms": ("um", "root mean square over the mesh of the error left after compensation (true minus identified field, rigid-body part removed)"),
-    "compensation_mean": ("um", "mean over the mesh of the error left after compensation (true minus identified field, rigid-body part removed)"),
+    "compensation_mean": ("um", "mean over the mesh of the error left after compensation (true minus identified field, rigid-body part removed; paper Eq. 27 read as the compensated machine)"),
     "compensation_max": ("um", "largest error left after compensation over the mesh"),
-    "mean_error_after": ("um", "paper Eq. 27 after compensation: mean distance between measured and compensated points"),
+    "mean_error_after": ("um", "paper Eq. 27 read as the fit residual after compensation: mean distance between measured and compensated points"),
     "mean_error_before": ("um", "paper Eq. 27 before compensation: mean distance between measured and nominal points"),
     "max_residual": ("um", "largest residual distance after compensation"),
     "chi2_per_dof": ("", "weighted residuals against the stated uncertainties"),

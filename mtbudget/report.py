@@ -284,6 +284,15 @@ def adaptive_line(a: dict) -> str:
             + (f". Note: {a['note']}" if a.get("note") else ""))
 
 
+def _root_i(row: dict) -> float:
+    """A budget row's square-rooted contribution, whatever its table's basis (rms_i, u_i; u_y in older logs)."""
+    return next(row[k] for k in ("rms_i", "u_i", "u_y") if k in row)
+
+
+def _root_total(table: dict) -> float:
+    return next(table[k] for k in ("rms_total", "u_total") if k in table)
+
+
 def budget_text(res: RunResult) -> str:
     lines = []
     status = "" if res.complete else "  (INCOMPLETE: partial results)"
@@ -342,11 +351,11 @@ def budget_text(res: RunResult) -> str:
         lines.append(f"  {'source':<32} {'group':<22} {'u(x_i)':>14} {'RMS_i':>8} {'share':>7}")
         for r in sorted(b["rows"], key=lambda r: -r["contribution"]):
             ux = "-" if r["u_x"] is None else f"{r['u_x']['value']:.3g} {pretty(r['u_x']['unit'])}"
-            lines.append(f"  {r['source']:<32} {r['group']:<22} {ux:>14} {r['u_y']:8.3f} {r['share']:7.1%}")
+            lines.append(f"  {r['source']:<32} {r['group']:<22} {ux:>14} {_root_i(r):8.3f} {r['share']:7.1%}")
         lines.append(f"  {'interaction (not additive)':<32} {'':<22} {'':>14} "
                      f"{math.copysign(math.sqrt(abs(b['interaction'])), b['interaction']):8.3f} "
                      f"{(b['interaction'] / b['total'] if b['total'] else 0):7.1%}")
-        lines.append(f"  {'total':<32} {'':<22} {'':>14} {b['u_total']:8.3f} {1:7.1%}")
+        lines.append(f"  {'total':<32} {'':<22} {'':>14} {_root_total(b):8.3f} {1:7.1%}")
         lines.append("  by group: " + ", ".join(f"{g['group']} {g['share']:.1%}" for g in b["groups"]))
     if getattr(res, "log_path", None):
         lines.append("")
@@ -753,9 +762,9 @@ def run_report(res: RunResult, folder, tolerance_um: float | None = None, charac
                f"| source | group | u(x_i) | RMS_i [{pretty(b['unit'])}] | share |", "| --- | --- | --- | --- | --- |"]
         for r in sorted(b["rows"], key=lambda r: -r["contribution"]):
             ux = "-" if r["u_x"] is None else f"{r['u_x']['value']:.3g} {pretty(r['u_x']['unit'])}"
-            md.append(f"| {r['source']} | {r['group']} | {ux} | {r['u_y']:.3f} | {r['share']:.1%} |")
+            md.append(f"| {r['source']} | {r['group']} | {ux} | {_root_i(r):.3f} | {r['share']:.1%} |")
         md.append(f"| interaction | | | | {b['interaction'] / b['total'] if b['total'] else 0:.1%} |")
-        md.append(f"| **total** | | | {b['u_total']:.3f} | 100 % |")
+        md.append(f"| **total** | | | {_root_total(b):.3f} | 100 % |")
     figs.update({k: v[0] for k, v in (extra_figures or {}).items()})
     captions = {**CAPTIONS, **{k: v[1] for k, v in (extra_figures or {}).items()}}
     md += ["", "## Figures", ""] + [f"![{md_escape(captions.get(k, k))}]({p.name})" for k, p in figs.items()]
