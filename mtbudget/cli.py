@@ -188,6 +188,46 @@ def identify(recording, example, as_json, max_degree, strategy):
     _print_identification(folder, as_json, max_degree, strategy)
 
 
+@main.command("posterior")
+@click.argument("recording", required=False, type=click.Path(file_okay=False, path_type=Path))
+@click.option("--example", type=click.Choice(["null", "thermal_x", "reversal_y", "tracker_drift"]),
+              help="Use a bundled example recording instead of a folder.")
+@click.option("--trials", type=click.IntRange(min=2), default=2000, show_default=True,
+              help="Monte Carlo trials around the identified errors.")
+@click.option("--seed", type=click.IntRange(min=0), default=1, show_default=True)
+@click.option("--coverage", type=click.FloatRange(0, 1, min_open=True, max_open=True), default=0.95, show_default=True)
+@click.option("--noise", type=click.Choice(["stated", "estimated"]), default="stated", show_default=True,
+              help="The recording's stated noise, or scaled by sqrt(chi2/dof) of the fit (the noise it estimated).")
+@click.option("--max-degree", type=click.IntRange(min=1, max=9), default=3, show_default=True)
+@click.option("--json", "as_json", is_flag=True, help="Print the statement as one JSON object.")
+@click.option("--out", "out", type=click.Path(file_okay=False, path_type=Path), default=None,
+              help="Also write posterior.json and posterior.md into this folder.")
+def posterior_cmd(recording, example, trials, seed, coverage, noise, max_degree, as_json, out):
+    """The a posteriori statement of a recorded verification.
+
+    The uncertainty of the compensated machine that this verification
+    identified: a Monte Carlo around the identified errors with the
+    recording's stated noise (or the noise the fit estimated), each trial
+    identified as the recording was, with the identification covariance
+    propagated linearly beside it as the check. A `run` on a configuration is
+    the a priori statement of a planned verification; this is the statement
+    of a verification carried out.
+    """
+    from .config import example_recording
+    from .posterior import posterior, posterior_text
+
+    if recording is None and example is None:
+        raise click.UsageError("give a RECORDING folder or --example NAME")
+    folder = example_recording(example) if example else recording
+    p = posterior(folder, trials=trials, seed=seed, coverage=coverage, noise=noise, max_degree=max_degree)
+    click.echo(json.dumps(p, indent=1) if as_json else posterior_text(p))
+    if out is not None:
+        out.mkdir(parents=True, exist_ok=True)
+        (out / "posterior.json").write_text(json.dumps(p, indent=1))
+        (out / "posterior.md").write_text("# mtbudget a posteriori uncertainty statement\n\n```\n" + posterior_text(p)
+                                          + "\n```\n")
+
+
 @main.command("compensate")
 @click.argument("recording", required=False, type=click.Path(file_okay=False, path_type=Path))
 @click.option("--example", type=click.Choice(["null", "thermal_x", "reversal_y", "tracker_drift"]),
