@@ -128,7 +128,11 @@ def accumulate_block(acc: Accumulator, b: BlockResult):
     """Merge one block into the run's statistics (scalars exactly, vector outputs by their moments,
     the per-point components also by their samples or a histogram for their intervals)."""
     vectors = None if b.components is None else {"components": b.components.reshape(b.n, -1)}
-    acc.add(b.block, b.n, b.scalars, b.vector_moments(), b.not_converged, vectors, b.fallbacks)
+    scalars = b.scalars
+    if acc.scalar_names and tuple(scalars) != acc.scalar_names and set(acc.scalar_names) <= set(scalars):
+        # a run resumed from a log written before MACHINE_SCALARS existed: its outputs, those of its first blocks
+        scalars = {k: scalars[k] for k in acc.scalar_names}
+    acc.add(b.block, b.n, scalars, b.vector_moments(), b.not_converged, vectors, b.fallbacks)
 
 
 @dataclass

@@ -63,3 +63,16 @@ def test_a_run_says_it_is_an_a_priori_evaluation_of_an_assumed_machine(paper, tm
     md = (tmp_path / "report.md").read_text()
     assert md.startswith("# mtbudget a priori uncertainty evaluation") and "Assumed machine" in md
     assert "Scope of the verdict: the whole machine" in md
+
+
+def test_blocks_of_an_older_log_and_new_blocks_merge_on_the_older_outputs():
+    from mtbudget.outputs import accumulate_block
+    from mtbudget.stats import Accumulator
+
+    comp = np.ones((2, 2, 3))
+    old = BlockResult(0, 2, {"compensation_rms": np.zeros(2)}, np.zeros((2, 2)), np.zeros((2, 1)))  # no components
+    new = BlockResult(1, 2, {"compensation_rms": np.ones(2)}, np.zeros((2, 2)), np.zeros((2, 1)), components=comp)
+    acc = Accumulator()
+    accumulate_block(acc, old)
+    accumulate_block(acc, new)
+    assert acc.scalar_names == ("compensation_rms",) and acc.n == 4
