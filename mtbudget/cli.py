@@ -201,7 +201,7 @@ def identify(recording, example, as_json, max_degree, strategy):
 @click.option("--max-degree", type=click.IntRange(min=1, max=9), default=3, show_default=True)
 @click.option("--json", "as_json", is_flag=True, help="Print the statement as one JSON object.")
 @click.option("--out", "out", type=click.Path(file_okay=False, path_type=Path), default=None,
-              help="Also write posterior.json and posterior.md into this folder.")
+              help="Also write posterior.md, a self-contained posterior.html and posterior.json into this folder.")
 def posterior_cmd(recording, example, trials, seed, coverage, noise, max_degree, as_json, out):
     """The a posteriori statement of a recorded verification.
 
@@ -222,10 +222,11 @@ def posterior_cmd(recording, example, trials, seed, coverage, noise, max_degree,
     p = posterior(folder, trials=trials, seed=seed, coverage=coverage, noise=noise, max_degree=max_degree)
     click.echo(json.dumps(p, indent=1) if as_json else posterior_text(p))
     if out is not None:
-        out.mkdir(parents=True, exist_ok=True)
-        (out / "posterior.json").write_text(json.dumps(p, indent=1))
-        (out / "posterior.md").write_text("# mtbudget a posteriori uncertainty statement\n\n```\n" + posterior_text(p)
-                                          + "\n```\n")
+        from .report import posterior_report
+
+        paths = posterior_report(p, out)
+        if not as_json:  # stdout stays one JSON object
+            click.echo(f"wrote {paths['markdown']}, {paths['html']} and {paths['json']}")
 
 
 @main.command("compensate")

@@ -772,3 +772,41 @@ def run_report(res: RunResult, folder, tolerance_um: float | None = None, charac
     write_html(md, folder, folder / "report.html", "mtbudget a priori uncertainty evaluation (virtual experiment)")
     (folder / "results.json").write_text(__import__("json").dumps(data, indent=1))
     return {"markdown": folder / "report.md", "html": folder / "report.html", "figures": figs}
+
+
+def posterior_report(p: dict, folder) -> dict:
+    """posterior.md, posterior.html (self-contained) and posterior.json for an a posteriori statement
+    (:func:`mtbudget.posterior.posterior`)."""
+    import json as _json
+
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    k, s, i = p["statement_kind"], p["summary"], p["identification"]
+    r = s["u_over_u_linear"]
+    md = ["# mtbudget a posteriori uncertainty statement", "", "## Kind of statement", "",
+          md_escape(f"A POSTERIORI: the {k['name']} (recording {k['recording']}, points.csv sha256 "
+                    f"{k.get('points_csv_sha256') or '-'}). {k['what'][0].upper() + k['what'][1:]}."), "",
+          "## Measurand", "", md_escape(p["measurand"][0].upper() + p["measurand"][1:]) +
+          f" ({p['not_identifiable']} combination(s) not identifiable).", "",
+          "## Identification", "",
+          md_escape(f"chi2/dof {i['chi2_per_dof']:.3f} on {i['dof']} degrees of freedom; noise: {i['noise']} "
+                    f"(scale {i['noise_scale']:.3f}); {i['thermal_correction']}."), "",
+          "## Result", "",
+          f"Standard uncertainty u (k = 1) from {p['trials']} Monte Carlo trials (seed {p['seed']}); values in µm.", "",
+          "| summary over the mesh | x | y | z |", "| --- | --- | --- | --- |",
+          "| RMS of u | " + " | ".join(f"{x:.2f}" for x in s["u_rms_over_mesh"]) + " |",
+          "| largest u | " + " | ".join(f"{x:.2f}" for x in s["u_max"]) + " |", "",
+          f"Check: u(MCM) / u(identification covariance propagated linearly) median {r['median']:.3f} "
+          f"({r['min']:.3f}-{r['max']:.3f}) over the point-axes.", "",
+          "## Every point", "",
+          f"| point | x, y, z commanded [mm] | mean x, y, z [µm] | u x, y, z [µm] | u linear x, y, z [µm] | "
+          f"{percent(p['coverage'])} interval x | y | z |", "| --- | --- | --- | --- | --- | --- | --- | --- |"]
+    for q in p["points"]:
+        iv = q["interval"]
+        md.append(f"| {q['point']} | {_vec(q['nominal']['value'], 0)} | {_vec(q['mean']['value'], 2)} | "
+                  f"{_vec(q['u']['value'], 2)} | {_vec(q['u_linear']['value'], 2)} | "
+                  + " | ".join(f"[{lo:.2f}, {hi:.2f}]" for lo, hi in zip(iv["low"], iv["high"])) + " |")
+    (folder / "posterior.md").write_text("\n".join(md) + "\n")
+    write_html(md, folder, folder / "posterior.html", "mtbudget a posteriori uncertainty statement")
+    (folder / "posterior.json").write_text(_json.dumps(p, indent=1))
+    return {"markdown": folder / "posterior.md", "html": folder / "posterior.html", "json": folder / "posterior.json"}

@@ -69,6 +69,8 @@ def test_posterior_command(tmp_path):
     assert r.exit_code == 0, r.output
     data = json.loads(r.output)
     assert data["statement_kind"]["kind"] == "a posteriori"
-    assert (tmp_path / "posterior.md").read_text().startswith("# mtbudget a posteriori")
+    md = (tmp_path / "posterior.md").read_text()
+    assert md.startswith("# mtbudget a posteriori") and md.count("\n| ") >= 75 + 2  # a row per point
+    assert (tmp_path / "posterior.html").exists() and json.loads((tmp_path / "posterior.json").read_text())["points"]
     r = CliRunner().invoke(main, ["posterior", "--example", "null", "--trials", "256", "--noise", "estimated"])
     assert r.exit_code == 0 and "A POSTERIORI" in r.output and "sqrt(chi2/dof)" in r.output
