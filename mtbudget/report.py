@@ -677,6 +677,8 @@ def run_report(res: RunResult, folder, tolerance_um: float | None = None, charac
           "## Kind of statement", "", md_escape(statement_kind_line(kind)), ""]
     if not res.complete:
         md += ["**INCOMPLETE run: partial results.**", ""]
+    if data.get("adaptive"):
+        md += [md_escape(adaptive_line(data["adaptive"])) + ".", ""]
     mt = measurand_text(res)
     md += ["## Measurand", "", md_escape(mt[0].upper() + mt[1:]) + ".", ""]
     md += provenance_lines(res)
