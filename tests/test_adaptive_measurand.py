@@ -50,12 +50,6 @@ def test_the_adaptive_run_stops_on_every_point_axis():
     assert result_json(res)["adaptive"]["point_axes_stable"] == 81
 
 
-def tracker_config(sd):
-    raw = copy.deepcopy(load_config().source)  # the paper's configuration
-    raw["sources"] = {"enable": ["tracker_noise"], "tracker_noise": {"angular_sd": sd}}
-    return parse_config(raw)
-
-
 def test_guf_uses_the_second_moment_of_the_hierarchical_angular_noise():
     """u_angle ~ |N(20, 3)| urad has E[u^2] = 20^2 + 3^2 = 409 urad^2: the GUF of that draw is the GUF of a constant
     u_angle = sqrt(409) urad, with the identification's weights the same (stated apart in [weights])."""
