@@ -221,6 +221,47 @@ def identify(recording, example, as_json, max_degree, strategy):
     _print_identification(folder, as_json, max_degree, strategy)
 
 
+@main.command("posterior")
+@click.argument("recording", required=False, type=click.Path(file_okay=False, path_type=Path))
+@click.option("--example", type=click.Choice(["null", "thermal_x", "reversal_y", "tracker_drift"]),
+              help="Use a bundled example recording instead of a folder.")
+@click.option("--trials", type=click.IntRange(min=2), default=2000, show_default=True,
+              help="Monte Carlo trials around the identified errors.")
+@click.option("--seed", type=click.IntRange(min=0), default=1, show_default=True)
+@click.option("--coverage", type=click.FloatRange(0, 1, min_open=True, max_open=True), default=0.95, show_default=True)
+@click.option("--noise", type=click.Choice(["stated", "estimated"]), default="stated", show_default=True,
+              help="The recording's stated noise, or scaled by sqrt(chi2/dof) of the fit (the noise it estimated).")
+@click.option("--max-degree", type=click.IntRange(min=1, max=9), default=3, show_default=True)
+@click.option("--json", "as_json", is_flag=True, help="Print the statement as one JSON object.")
+@click.option("--out", "out", type=click.Path(file_okay=False, path_type=Path), default=None,
+              help="Also write posterior.md, a self-contained posterior.html and posterior.json into this folder.")
+def posterior_cmd(recording, example, trials, seed, coverage, noise, max_degree, as_json, out):
+    """The a posteriori statement of a recorded verification.
+
+    The uncertainty of the compensated machine that this verification
+    identified: a Monte Carlo around the identified errors with the
+    recording's stated noise (or the noise the fit estimated), each trial
+    identified as the recording was, with the identification covariance
+    propagated linearly beside it as the check. A `run` on a configuration is
+    the a priori statement of a planned verification; this is the statement
+    of a verification carried out.
+    """
+    from .config import example_recording
+    from .posterior import posterior, posterior_text
+
+    if recording is None and example is None:
+        raise click.UsageError("give a RECORDING folder or --example NAME")
+    folder = example_recording(example) if example else recording
+    p = posterior(folder, trials=trials, seed=seed, coverage=coverage, noise=noise, max_degree=max_degree)
+    click.echo(json.dumps(p, indent=1) if as_json else posterior_text(p))
+    if out is not None:
+        from .report import posterior_report
+
+        paths = posterior_report(p, out)
+        if not as_json:  # stdout stays one JSON object
+            click.echo(f"wrote {paths['markdown']}, {paths['html']} and {paths['json']}")
+
+
 @main.command("compensate")
 @click.argument("recording", required=False, type=click.Path(file_okay=False, path_type=Path))
 @click.option("--example", type=click.Choice(["null", "thermal_x", "reversal_y", "tracker_drift"]),
@@ -372,8 +413,9 @@ def plugins_cmd(config, as_json):
 @main.command("run")
 @click.argument("config", required=False, type=click.Path(dir_okay=False, path_type=Path))
 @click.option("--trials", type=click.IntRange(min=0), default=1000, show_default=True,
-              help="Monte Carlo trials (at least 2); 0 runs the adaptive procedure of JCGM 101 7.9 on the main output "
-                   "(two significant digits: expect tens of thousands of trials; at most 10^6).")
+              help="Monte Carlo trials (at least 2); 0 runs the adaptive procedure of JCGM 101 7.9 on every point-axis of the "
+                   "measurand (u and interval ends) and the main output "
+                   "(two significant digits: expect hundreds of thousands of trials; at most 10^6).")
 @click.option("--seed", type=click.IntRange(min=0), default=None, help="Seed of the run (default: the config's seed).")
 @click.option("--coverage", type=click.FloatRange(0, 1, min_open=True, max_open=True), default=0.95, show_default=True,
               help="Coverage probability of the intervals.")
@@ -402,7 +444,7 @@ def plugins_cmd(config, as_json):
 @click.option("--quiet", is_flag=True, help="No progress bars.")
 def run_cmd(config, trials, seed, coverage, executor, workers, address, attribution_trials, log_path, force, resume_path,
             block, adaptive_batch, as_json, quiet):
-    """Monte Carlo uncertainty of a verification, with its budget.
+    """Monte Carlo uncertainty of a planned verification (a priori, a virtual experiment), with its budget.
 
     CONFIG is a TOML configuration (default: the built-in paper study). Each
     trial draws every enabled uncertainty source (see `mtbudget plugins
@@ -562,9 +604,12 @@ def diagnose_cmd(recording, example, as_json, report_dir, alpha, max_degree, qui
               help="What the tolerance applies to: each error component at each point (component), or the largest "
                    "3-D error over the mesh (max).")
 def report(runlog, out, tolerance, characteristic):
-    """Write an uncertainty statement (Markdown and HTML) from a run log.
+    """Write the uncertainty evaluation of a run (Markdown and HTML) from its run log.
 
-    The report reads like a calibration certificate: the measurand (the
+    A run is an a priori evaluation: a virtual experiment of the planned
+    verification on the assumed machine of its configuration (stated at the
+    top of the report), not the certificate of a verification carried out.
+    The report gives the kind of statement, the measurand (the
     error of the compensated machine at each mesh point, per axis), the
     conditions (configuration, machine, mesh, tracker, sources, seed,
     versions), the result (u per axis over the mesh, the worst point, the
@@ -667,16 +712,17 @@ def _verification(config, trials, out, quiet, attribution_trials):
     run_report(res, out / "report", extra_figures={k: (p, STUDY_CAPTIONS.get(k, k)) for k, p in figs.items()})
     summ = verification_summary(res)
     (out / "verification.json").write_text(json.dumps(summ, indent=1, default=float))
-    fm = summ["final_mean_error_um"]
+    fm = summ["mean_error_after_um"]
     click.echo(budget_text(res))
-    ec = summ["eq27_compensated_um"]
-    click.echo(f"\nfinal mean volumetric error (Eq. 27), read as the compensated machine's error per verification: "
+    ec = summ["compensation_mean_um"]
+    click.echo(f"\npaper Eq. 27 read as the compensated machine's error (compensation_mean, per verification): "
                f"mean {ec['mean']:.2f} µm, sigma {ec['sigma']:.2f} µm, mean + 2 sigma {ec['mean_plus_2sigma']:.2f} µm; "
-               f"largest point error below {ec['max_p95']:.1f} µm in 95 % of the verifications (paper: 13.77, 5.02, "
-               f"23.81 µm, about 50 µm)")
-    click.echo(f"  read as the fit residual: mean {fm['mean']:.2f} µm, sigma {fm['sigma']:.2f} µm, 95 % below "
-               f"{fm['p95']:.2f} µm, largest residual {summ['max_residual_um']['max']:.1f} µm "
-               f"(every reading: the side-by-side tables of `study all`, docs/paper-reproduction.md)")
+               f"largest point error (compensation_max) below {ec['max_p95']:.1f} µm in 95 % of the verifications "
+               f"(paper: 13.77, 5.02, 23.81 µm, about 50 µm)")
+    click.echo(f"  paper Eq. 27 read as the fit residual (mean_error_after): mean {fm['mean']:.2f} µm, sigma "
+               f"{fm['sigma']:.2f} µm, 95 % below {fm['p95']:.2f} µm; largest residual (max_residual) "
+               f"{summ['max_residual_um']['max']:.1f} µm (every reading: the side-by-side tables of `study all`, "
+               "docs/paper-reproduction.md)")
     click.echo(f"  report: {out / 'report' / 'report.html'}; figures: {', '.join(p.name for p in figs.values())}")
 
 

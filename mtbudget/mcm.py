@@ -14,6 +14,13 @@ The GUF side uses the ``uncertainties`` package for the law of propagation
 (first order, correlations included) with sensitivity coefficients from
 central differences of the model at the input expectations, and
 Welch-Satterthwaite for the effective degrees of freedom.
+
+Several outputs (JCGM 102): a model that returns a dict of named Quantity arrays gets a :class:`MultiResult`:
+``names``, ``outputs[name]`` (each the univariate :class:`Result` above, with its own GUF and budget),
+``covariance`` and ``correlation`` (numpy arrays in the order of ``names``), ``gum`` (:class:`MultiGUF`: the
+sensitivity matrix C_x and U_y = C_x U_x C_x^T, JCGM 102 6.2), ``region(kind)`` (hyperellipsoidal or
+hyperrectangular coverage regions, JCGM 102 7.7; ``gum.region`` the GUF's, 6.5) and ``validate()`` (clause 8 for
+several outputs, :class:`MultiValidation`).  Every output is computed from the same trials (the same input draws).
 """
 
 from __future__ import annotations
@@ -27,7 +34,7 @@ import uncertainties
 
 from .distributions import Distribution, Normal, t_factor
 from .errors import ModelError
-from .stats import AdaptiveStop, batch_row, clause8, shortest_interval, symmetric_interval
+from .stats import AdaptiveStop, batch_row, clause8, percent, shortest_interval, symmetric_interval
 from .units import Q_
 
 
@@ -267,12 +274,15 @@ def _correlation_matrix(inputs: dict, names: list, correlations: dict | None):
     return R
 
 
-def _evaluate(model, arrays: dict, names: list) -> pint.Quantity:
+def _evaluate(model, arrays: dict, names: list) -> pint.Quantity | dict:
+    """The model's value: a Quantity, or a dict of named outputs (JCGM 102) as the model returned it."""
     try:
         y = model(**arrays)
     except pint.DimensionalityError as exc:
         units = ", ".join(f"{k} [{v.units:~}]" for k, v in arrays.items())
         raise ModelError(f"the model's units do not fit its inputs ({exc}); inputs: {units}") from None
+    if isinstance(y, dict):
+        return y
     if not isinstance(y, pint.Quantity):
         y = Q_(np.asarray(y, float))
     return y
@@ -288,15 +298,12 @@ def _check_nan(y: np.ndarray, arrays: dict):
                          f"the first (trial {first}) had inputs {vals}")
 
 
-def gum(model, inputs: dict, coverage: float = 0.95, correlations: dict | None = None) -> tuple[GUFResult, list]:
-    """Law of propagation (GUM 5.1/5.2) with numerical sensitivities and Welch-Satterthwaite."""
-    names = list(inputs)
+def _guf_points(inputs: dict, names: list):
+    """The model's arguments for the GUF: one evaluation on 1 + 2 n values (column 0 the expectations, columns
+    1 + 2 i and 2 + 2 i input i moved by +h and -h), as the Monte Carlo evaluates it; (arguments, steps)."""
     means = {k: inputs[k].mean for k in names}
     us = {k: inputs[k].gum_std for k in names}
-    # the model at the expectations and, for each input, at +-h: one evaluation on 1 + 2 n values (column 0 the
-    # expectations, columns 1 + 2 i and 2 + 2 i input i moved by +h and -h), as the Monte Carlo evaluates it
-    steps = {}
-    cols = {}
+    steps, cols = {}, {}
     for i, k in enumerate(names):
         u = us[k].magnitude
         steps[k] = h = u * 1e-4 if u > 0 else max(abs(means[k].magnitude) * 1e-8, 1e-12)
@@ -304,15 +311,40 @@ def gum(model, inputs: dict, coverage: float = 0.95, correlations: dict | None =
         col[1 + 2 * i] += h
         col[2 + 2 * i] -= h
         cols[k] = Q_(col, means[k].units)
+    return cols, steps
+
+
+def _central(y: pint.Quantity, names: list, steps: dict):
+    """(units, y at the expectations, {input: central-difference sensitivity}) from the model's values at the
+    GUF points (:func:`_guf_points`)."""
+    n = 1 + 2 * len(names)
+    ym = np.asarray(y.magnitude, float)
+    if ym.size not in (1, n):
+        raise ModelError(f"the model must return one value per trial, shape ({n},) for {n} trials; got shape "
+                         f"{ym.shape} (several outputs: return a dict of named outputs, JCGM 102)")
+    ym_all = np.broadcast_to(ym.ravel(), (n,))
+    sens = {k: float((ym_all[1 + 2 * i] - ym_all[2 + 2 * i]) / (2 * steps[k])) for i, k in enumerate(names)}
+    return y.units, float(ym_all[0]), sens
+
+
+def gum(model, inputs: dict, coverage: float = 0.95, correlations: dict | None = None) -> tuple[GUFResult, list]:
+    """Law of propagation (GUM 5.1/5.2) with numerical sensitivities and Welch-Satterthwaite."""
+    names = list(inputs)
+    cols, steps = _guf_points(inputs, names)
     with np.errstate(all="ignore"):  # an overflow here is reported below, naming the input
         y = _evaluate(model, cols, names)
-        out_units = y.units
-        ym_all = np.broadcast_to(np.asarray(y.magnitude, float).ravel(), (1 + 2 * len(names),))
-        y0m = float(ym_all[0])
-        sens, rows = {}, []
-        for i, k in enumerate(names):
-            sens[k] = float((ym_all[1 + 2 * i] - ym_all[2 + 2 * i]) / (2 * steps[k]))
-    R = _correlation_matrix(inputs, names, correlations)
+        if isinstance(y, dict):
+            raise ModelError(f"the model returns several outputs ({', '.join(map(str, y))}): use propagate() or "
+                             "gum_multi() (JCGM 102)")
+        out_units, y0m, sens = _central(y, names, steps)
+    return _guf_scalar(inputs, names, y0m, sens, out_units, coverage, _correlation_matrix(inputs, names, correlations))
+
+
+def _guf_scalar(inputs, names, y0m, sens, out_units, coverage, R):
+    """The GUF of one output from its value at the expectations and its sensitivities: (GUFResult, budget rows)."""
+    means = {k: inputs[k].mean for k in names}
+    us = {k: inputs[k].gum_std for k in names}
+    rows = []
     # uncertainties: inputs as (correlated) ufloats about 0, the output as their linear combination
     try:
         if R is not None:
@@ -352,16 +384,22 @@ def gum(model, inputs: dict, coverage: float = 0.95, correlations: dict | None =
 
 def propagate(model, inputs: dict, coverage: float = 0.95, trials: int | None = None, seed: int | None = 1,
               correlations: dict | None = None, ndig: int = 2, batch: int | None = None,
-              max_trials: int = 50_000_000) -> Result:
-    """Monte Carlo propagation (JCGM 101) with the GUF alongside; see the module docstring."""
+              max_trials: int = 50_000_000) -> Result | MultiResult:
+    """Monte Carlo propagation (JCGM 101) with the GUF alongside; see the module docstring.  A model that returns a
+    dict of named outputs gets a :class:`MultiResult` (JCGM 102)."""
     if not 0 < coverage < 1:
         raise ModelError(f"coverage must lie in (0, 1), got {coverage}")
     inputs = {k: _as_distribution(k, v) for k, v in inputs.items()}
     names = list(inputs)
     R = _correlation_matrix(inputs, names, correlations)
+    ss = np.random.SeedSequence(seed)
+    probe = _evaluate(model, {k: Q_(np.array([float(inputs[k].mean.magnitude)]), inputs[k].units) for k in names}, names)
+    if isinstance(probe, dict):  # several outputs: JCGM 102
+        if not probe:
+            raise ModelError("the model returned an empty dict: name at least one output")
+        return _propagate_multi(model, inputs, names, correlations, coverage, trials, ss, ndig, batch, max_trials)
     g, rows = gum(model, inputs, coverage, correlations)
     out_units = g.estimate.units
-    ss = np.random.SeedSequence(seed)
 
     def values(y, n):
         try:
@@ -410,3 +448,292 @@ def propagate(model, inputs: dict, coverage: float = 0.95, trials: int | None = 
     return Result(ally, out_units, coverage, g, rows, ndig,
                   batches=[(h_size * (i + 1),) + tuple(map(float, st[0])) for i, st in enumerate(stop.batches)],
                   is_sorted=True)
+
+
+# ------------------------------------------------------------------ several outputs (JCGM 102)
+@dataclass
+class CoverageRegion:
+    """A coverage region for several outputs (JCGM 102 6.5 for the GUF, 7.7 for the MCM).
+
+    ``kind`` "hyperellipsoidal": the points eta with (eta - y)^T U_y^-1 (eta - y) <= k^2; "hyperrectangular": the
+    points with |eta_j - y_j| <= k u(y_j) for every output j (``half_widths``).  ``center``, ``covariance`` and
+    ``half_widths`` are magnitudes in ``units`` (one unit per output, in the order of ``names``).
+    """
+
+    kind: str
+    names: list
+    units: list
+    center: np.ndarray
+    covariance: np.ndarray
+    k: float
+    coverage: float
+    method: str
+
+    @property
+    def half_widths(self) -> np.ndarray:
+        return self.k * np.sqrt(np.diagonal(self.covariance))
+
+    def contains(self, points) -> np.ndarray:
+        """Whether each point ((m,) or (N, m) magnitudes in ``units``) lies in the region."""
+        d = np.atleast_2d(np.asarray(points, float)) - self.center
+        if self.kind == "hyperellipsoidal":
+            return np.einsum("ni,ni->n", d @ np.linalg.inv(self.covariance), d) <= self.k**2
+        return np.all(np.abs(d) <= self.half_widths, axis=1)
+
+    def __str__(self) -> str:
+        if self.kind == "hyperellipsoidal":
+            shape = f"(eta - y)' U_y^-1 (eta - y) <= {self.k:.4g}^2"
+        else:
+            shape = ", ".join(f"|{n} - y| <= {h:.3g} {u:~P}" for n, u, h in zip(self.names, self.units, self.half_widths))
+        return (f"{percent(self.coverage)} {self.kind} coverage region of ({', '.join(self.names)}): {shape} "
+                f"(k = {self.k:.4g}; {self.method})")
+
+
+def _normal_rectangle_k(R: np.ndarray, p: float) -> tuple[float, str]:
+    """k such that a normal vector of correlation R has |Z_j| <= k for every j with probability p, and how."""
+    from scipy import optimize, stats
+
+    m = R.shape[0]
+    k_indep = float(stats.norm.ppf((1 + p ** (1 / m)) / 2))  # Sidak: exact for independent outputs, an upper bound
+    if m == 1:
+        return float(stats.norm.ppf((1 + p) / 2)), "normal quantile"
+    if m > 20:
+        return k_indep, "Sidak's bound for independent outputs (coverage at least p; more than 20 outputs)"
+    mvn = stats.multivariate_normal(np.zeros(m), R, allow_singular=True, seed=1)
+    f = lambda k: float(mvn.cdf(np.full(m, k), lower_limit=np.full(m, -k))) - p  # noqa: E731
+    lo = float(stats.norm.ppf((1 + p) / 2))
+    if f(k_indep) <= 0:
+        return k_indep, "Sidak's bound"
+    return float(optimize.brentq(f, lo, k_indep, xtol=1e-6)), "multivariate normal probability (Genz)"
+
+
+@dataclass
+class MultiGUF:
+    """The GUM uncertainty framework for several outputs (JCGM 102 6.2): U_y = C_x U_x C_x^T.
+
+    ``sensitivity`` is C_x, (outputs, inputs), in output units per input unit (``sensitivity_units``);
+    ``input_covariance`` U_x in the inputs' units, ``covariance`` U_y in the outputs' units; ``outputs[name]`` the
+    univariate GUF of each output (its budget, Welch-Satterthwaite degrees of freedom) as :func:`gum` gives it.
+    """
+
+    names: list
+    units: list
+    estimate: np.ndarray
+    input_names: list
+    sensitivity: np.ndarray
+    input_covariance: np.ndarray
+    covariance: np.ndarray
+    coverage: float
+    outputs: dict
+    budgets: dict
+
+    @property
+    def sensitivity_units(self) -> list:
+        return [[self.outputs[n].sensitivities[k].units for k in self.input_names] for n in self.names]
+
+    @property
+    def std_uncertainty(self) -> np.ndarray:
+        return np.sqrt(np.diagonal(self.covariance))
+
+    @property
+    def correlation(self) -> np.ndarray:
+        return _correlation_of(self.covariance)
+
+    def region(self, kind: str = "hyperellipsoidal", coverage: float | None = None) -> CoverageRegion:
+        """JCGM 102 6.5: the region of a multivariate normal of mean y and covariance U_y."""
+        from scipy import stats
+
+        p = self.coverage if coverage is None else coverage
+        m = len(self.names)
+        if kind == "hyperellipsoidal":
+            k, how = math.sqrt(stats.chi2.ppf(p, m)), "GUF: chi-squared quantile with m degrees of freedom (JCGM 102 6.5.2)"
+        elif kind == "hyperrectangular":
+            k, how = _normal_rectangle_k(self.correlation, p)
+            how = f"GUF: {how} (JCGM 102 6.5.4)"
+        else:
+            raise ValueError(f"region kind must be 'hyperellipsoidal' or 'hyperrectangular', got {kind!r}")
+        return CoverageRegion(kind, list(self.names), list(self.units), self.estimate.copy(), self.covariance.copy(),
+                              k, p, how)
+
+
+def _correlation_of(cov: np.ndarray) -> np.ndarray:
+    s = np.sqrt(np.diagonal(cov))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        r = cov / np.outer(s, s)
+    np.fill_diagonal(r, 1.0)
+    return r
+
+
+def gum_multi(model, inputs: dict, coverage: float = 0.95, correlations: dict | None = None) -> MultiGUF:
+    """The GUF for a model that returns a dict of named outputs (JCGM 102 6.2), sensitivities by central
+    differences as :func:`gum`."""
+    inputs = {k: _as_distribution(k, v) for k, v in inputs.items()}
+    names = list(inputs)
+    cols, steps = _guf_points(inputs, names)
+    with np.errstate(all="ignore"):
+        y = _evaluate(model, cols, names)
+    if not isinstance(y, dict):
+        raise ModelError("gum_multi: the model must return a dict of named outputs")
+    R = _correlation_matrix(inputs, names, correlations)
+    outs, units, est, C, guf, budgets = list(y), [], [], [], {}, {}
+    for o in outs:
+        yo = y[o] if isinstance(y[o], pint.Quantity) else Q_(np.asarray(y[o], float))
+        with np.errstate(all="ignore"):  # a non-finite sensitivity is reported by _guf_scalar, naming the input
+            u_, y0, sens = _central(yo, names, steps)
+        g, rows = _guf_scalar(inputs, names, y0, sens, u_, coverage, R)
+        units.append(u_)
+        est.append(y0)
+        C.append([sens[k] for k in names])
+        guf[o], budgets[o] = g, rows
+    us = np.array([inputs[k].gum_std.magnitude for k in names])
+    Ux = np.outer(us, us) * (np.eye(len(names)) if R is None else R)
+    C = np.array(C)
+    return MultiGUF(outs, units, np.array(est), names, C, Ux, C @ Ux @ C.T, coverage, guf, budgets)
+
+
+@dataclass
+class MultiValidation:
+    """JCGM 102 clause 8 as mtbudget applies it: each output's GUF interval against its MCM interval (JCGM 101 8.2,
+    delta from u(y_j) to ``ndig`` significant digits) and every correlation coefficient of the GUF against the
+    MCM's (to ``ndig`` decimals: delta_r = 0.5 10^-ndig); the coverage factors of both regions are given beside."""
+
+    outputs: dict  # name -> Validation
+    correlation_difference: np.ndarray
+    delta_r: float
+    k: dict  # kind -> (GUF k, MCM k)
+    passed: bool
+
+    def __str__(self):
+        verdict = "GUF validated" if self.passed else "GUF not validated"
+        per = "; ".join(f"{n}: {'ok' if v.passed else 'fails'}" for n, v in self.outputs.items())
+        return (f"{verdict} (JCGM 102 clause 8): {per}; largest |r_GUF - r_MCM| = "
+                f"{np.max(self.correlation_difference):.3g} (delta_r = {self.delta_r:g}); "
+                + ", ".join(f"{kind} k GUF {a:.3f} vs MCM {b:.3f}" for kind, (a, b) in self.k.items()))
+
+
+@dataclass
+class MultiResult:
+    """The Monte Carlo result for several outputs (JCGM 102 7): the joint trial values and what 7.5-7.7 make of them.
+
+    ``samples``: (outputs, M) magnitudes, one row per output in the order of ``names``, trial order (row j in
+    ``units[j]``); ``outputs[name]``: the univariate :class:`Result` of each output (its own copy of its values, its
+    own GUF and budget); ``covariance`` and ``correlation``: numpy arrays in the order of ``names``, the covariance
+    in the outputs' units (entry (i, j) in units[i] units[j]); ``gum``: the :class:`MultiGUF`.
+    """
+
+    names: list
+    units: list
+    samples: np.ndarray
+    coverage: float
+    gum: MultiGUF
+    outputs: dict
+    ndig: int = 2
+    batches: list = field(default_factory=list)
+
+    @property
+    def trials(self) -> int:
+        return int(self.samples.shape[1])
+
+    @property
+    def estimate(self) -> np.ndarray:
+        return self.samples.mean(axis=1)
+
+    @property
+    def covariance(self) -> np.ndarray:
+        return np.atleast_2d(np.cov(self.samples, ddof=1))
+
+    @property
+    def correlation(self) -> np.ndarray:
+        return _correlation_of(self.covariance)
+
+    @property
+    def std_uncertainty(self) -> np.ndarray:
+        return np.sqrt(np.diagonal(self.covariance))
+
+    def __repr__(self) -> str:
+        u = ", ".join(f"u({n}) = {s:.2g} {un:~P}" for n, s, un in zip(self.names, self.std_uncertainty, self.units))
+        return (f"<mtbudget MCM result for {len(self.names)} outputs ({', '.join(self.names)}): {u} (standard "
+                f"uncertainties, k = 1); M = {self.trials} trials (JCGM 102)>")
+
+    def region(self, kind: str = "hyperellipsoidal", coverage: float | None = None) -> CoverageRegion:
+        """JCGM 102 7.7: the smallest region of the given shape, centred on the MCM estimate and scaled by its
+        covariance, that holds the fraction p of the trials (the q-th smallest scaled distance, q as JCGM 101 7.7.1)."""
+        from .stats import interval_indices
+
+        p = self.coverage if coverage is None else coverage
+        y, V = self.estimate, self.covariance
+        D = self.samples - y[:, None]  # (m, M)
+        if kind == "hyperellipsoidal":
+            t = np.sqrt(np.einsum("im,im->m", np.linalg.solve(V, D), D))
+            how = "MCM: the q-th smallest Mahalanobis distance of the trials (JCGM 102 7.7.2)"
+        elif kind == "hyperrectangular":
+            t = np.max(np.abs(D) / np.sqrt(np.diagonal(V))[:, None], axis=0)
+            how = "MCM: the q-th smallest largest standardised deviation of the trials (JCGM 102 7.7.3)"
+        else:
+            raise ValueError(f"region kind must be 'hyperellipsoidal' or 'hyperrectangular', got {kind!r}")
+        _, q = interval_indices(t.size, p)
+        k = float(np.partition(t, q - 1)[q - 1])
+        return CoverageRegion(kind, list(self.names), list(self.units), y, V, k, p, how)
+
+    def validate(self, ndig: int | None = None) -> MultiValidation:
+        """JCGM 102 clause 8 (see :class:`MultiValidation`)."""
+        nd = self.ndig if ndig is None else ndig
+        per = {n: self.outputs[n].validate(ndig=nd) for n in self.names}
+        dr = np.abs(self.gum.correlation - self.correlation)
+        delta_r = 0.5 * 10.0 ** (-nd)
+        k = {kind: (self.gum.region(kind).k, self.region(kind).k) for kind in ("hyperellipsoidal", "hyperrectangular")}
+        ok = all(v.passed for v in per.values()) and bool(np.all(dr <= delta_r))
+        return MultiValidation(per, dr, delta_r, k, ok)
+
+
+def _propagate_multi(model, inputs, names, correlations, coverage, trials, ss, ndig, batch, max_trials) -> MultiResult:
+    g = gum_multi(model, inputs, coverage, correlations)
+    R = _correlation_matrix(inputs, names, correlations)
+    outs = g.names
+    m = len(outs)
+
+    def run(n, child) -> np.ndarray:
+        arrays = _sample_inputs(inputs, n, child, R, names)
+        Y = np.empty((m, n))
+        mags = [(k, q.magnitude, q.units) for k, q in arrays.items()]
+        for s in range(0, n, EVAL_BLOCK):
+            e = min(n, s + EVAL_BLOCK)
+            part = arrays if e - s == n else {k: Q_(v[s:e], u) for k, v, u in mags}
+            y = _evaluate(model, part, names)
+            if not isinstance(y, dict) or list(y) != outs:
+                raise ModelError(f"the model must return the same named outputs at every call ({', '.join(outs)}); "
+                                 f"got {list(y) if isinstance(y, dict) else type(y).__name__}")
+            for j, o in enumerate(outs):
+                yo = y[o] if isinstance(y[o], pint.Quantity) else Q_(np.asarray(y[o], float))
+                try:
+                    v = np.asarray(yo.to(g.units[j]).magnitude, float)
+                except pint.DimensionalityError:
+                    raise ModelError(f"output {o!r} changed units between calls ({yo.units:~} vs {g.units[j]:~})") from None
+                if v.shape != (e - s,) and v.size != 1:
+                    raise ModelError(f"output {o!r}: the model must return one value per trial, shape ({e - s},); "
+                                     f"got shape {v.shape}")
+                Y[j, s:e] = v
+        if not np.isfinite(Y).all():
+            for j in range(m):
+                _check_nan(Y[j], arrays)
+        return Y
+
+    batches = []
+    if trials is not None:
+        if int(trials) < 2:
+            raise ModelError(f"trials must be >= 2, got {trials}")
+        Y = run(int(trials), ss.spawn(1)[0])
+    else:  # JCGM 102 7.8 / JCGM 101 7.9: every output's y, u and interval ends to their numerical tolerance
+        h_size = batch or max(int(100 / (1 - coverage)), 10_000)
+        parts, stop = [], AdaptiveStop(ndig)
+        for child in iter(lambda: ss.spawn(1)[0], None):
+            Yb = run(h_size, child)
+            parts.append(Yb)
+            stop.add([batch_row(Yb[j], coverage) for j in range(m)])
+            allu = np.concatenate(parts, axis=1).std(axis=1, ddof=1)
+            if stop.done(allu) or len(stop.batches) * h_size >= max_trials:
+                break
+        Y = np.concatenate(parts, axis=1)
+        batches = [h_size * (i + 1) for i in range(len(stop.batches))]
+    results = {o: Result(Y[j].copy(), g.units[j], coverage, g.outputs[o], g.budgets[o], ndig) for j, o in enumerate(outs)}
+    return MultiResult(list(outs), list(g.units), Y, coverage, g, results, ndig, batches)

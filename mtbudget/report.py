@@ -16,10 +16,13 @@ from .outputs import MAIN_OUTPUT, SCALARS, RunResult
 
 
 def result_json(res: RunResult) -> dict:
-    out = {"trials": res.trials, "coverage": res.coverage, "complete": res.complete, "seed": res.spec.get("seed"),
+    out = {"statement_kind": statement_kind(res),
+           "trials": res.trials, "coverage": res.coverage, "complete": res.complete, "seed": res.spec.get("seed"),
            "not_converged": res.not_converged, "fallbacks": res.fallbacks, "outputs": {}, "budget": res.budget, "convergence": res.convergence}
     if res.weights:
         out["weights"] = res.weights
+    if getattr(res, "adaptive", None):
+        out["adaptive"] = res.adaptive
     for k, v in res.outputs().items():
         out["outputs"][k] = {"unit": v["unit"], "description": v["description"], "mean": v["mean"], "std": v["std"],
                              "symmetric": list(v["symmetric"]), "shortest": None if v["shortest"] is None else list(v["shortest"])}
@@ -42,7 +45,71 @@ def result_json(res: RunResult) -> dict:
     if res.guf is not None:
         out["guf_points"] = {"estimate": np.asarray(res.guf["estimate"]).tolist(), "cov": np.asarray(res.guf["cov"]).tolist(),
                              "unit": "um", "cov_unit": "um**2"}
+        if res.guf.get("basis"):
+            out["guf_points"]["basis"] = res.guf["basis"]
     return out
+
+
+def assumed_machine(cfg: dict) -> str:
+    """The machine a run assumes, in one sentence, from its configuration (the truth every trial simulates)."""
+    ge = cfg.get("geometric_errors") or {}
+    if ge.get("coefficients"):
+        errors = f"its geometric errors the {len(ge['coefficients'])} explicit coefficients of [geometric_errors.coefficients]"
+    else:
+        tr, an = ge.get("translational") or [], ge.get("angular") or []
+        orders = ", ".join(str(k + 1) for k in range(max(len(tr), len(an)))) or "1, 2, 3"
+        rotary = ""
+        if cfg.get("rotary"):  # a five-axis machine: its rotary axes' location, orientation and zero errors
+            rotary = (f"; rotary axes {', '.join(sorted(cfg['rotary']))}: location offsets "
+                      f"{ge.get('rotary_location', '20 um')}, orientation errors {ge.get('rotary_orientation', '30 urad')}, "
+                      f"zero errors {ge.get('rotary_zero', '30 urad')}" +
+                      (f", stated values {', '.join(sorted(ge['rotary']))}" if ge.get("rotary") else ""))
+        errors = ("its geometric errors drawn once from the generation functions ([geometric_errors] seed "
+                  f"{ge.get('seed', cfg.get('seed', '-'))}: Legendre coefficients of orders {orders} with standard "
+                  f"deviations {', '.join(map(str, tr)) or 'the defaults'} (translational) and "
+                  f"{', '.join(map(str, an)) or 'the defaults'} (angular), squareness "
+                  f"{ge.get('squareness', 'the default')}{rotary})")
+    effects = cfg.get("effects") or {}
+    physics = f"; physics added to it: {', '.join(sorted(effects))} ([effects])" if effects else ""
+    return (f"a machine of kinematic chain {cfg.get('machine', 'XFYZ')} with {errors}, the same machine in every trial, at "
+            f"{cfg.get('reference_temperature', '20 degC')} reference temperature{physics}")
+
+
+def statement_kind(res) -> dict:
+    """What kind of statement a run is: an a priori (virtual-experiment) evaluation of a planned verification on
+    an assumed machine, with that machine stated and the GUF agreement as the evidence that the Monte Carlo here
+    is a propagation of distributions of a near-linear model."""
+    cfg = (res.spec or {}).get("config") or {}
+    out = {"kind": "a priori",
+           "name": "virtual-experiment evaluation of a planned verification",
+           "what": ("every trial simulates the planned verification (plan, tracker station, sources) of an assumed "
+                    "machine, identifies it as the real verification would and compensates it: the spread is what "
+                    "this verification plan would achieve on that machine (a virtual experiment, VE-DA in Wübbeler "
+                    "et al., Metrology 2021), not the uncertainty of a verification that was carried out (that is an "
+                    "a posteriori evaluation of its recording, which `run` does not make)"),
+           "assumed_machine": assumed_machine(cfg)}
+    pts = res.points() if hasattr(res, "points") else None
+    if pts and "guf_u" in pts[0]:
+        r = np.array([m / g for p in pts for m, g in zip(p["u"]["value"], p["guf_u"]["value"]) if g > 0])
+        c8 = [v["passed"] for p in pts for v in p.get("clause8", [])]
+        if r.size:
+            out["evidence"] = {"u_mcm_over_u_guf": {"median": float(np.median(r)), "min": float(r.min()),
+                                                    "max": float(r.max())},
+                               "clause8_validated": int(sum(c8)), "of": len(c8),
+                               "what": "the law of propagation on the same inputs (guf_points.basis) against the "
+                                       "Monte Carlo, per point-axis: where they agree the model is near-linear and "
+                                       "the run is the propagation of the stated input distributions"}
+    return out
+
+
+def statement_kind_line(k: dict) -> str:
+    ev = k.get("evidence")
+    tail = ""
+    if ev:
+        r = ev["u_mcm_over_u_guf"]
+        tail = (f" Evidence: u(MCM)/u(GUF on the same inputs) median {r['median']:.3f} ({r['min']:.3f}-{r['max']:.3f}) "
+                f"over the point-axes; clause 8 validated at {ev['clause8_validated']} of {ev['of']}.")
+    return (f"Kind of statement: A PRIORI, a {k['name']}: {k['what']}. Assumed machine: {k['assumed_machine']}.{tail}")
 
 
 #: the per-point measurand in one sentence (docs/measurand.md has the definition)
@@ -169,8 +236,9 @@ def points_summary(pts: list) -> dict:
     c8 = [v["passed"] for p in pts for v in p.get("clause8", [])]
     if c8:
         out["clause8"] = {"passed": int(sum(c8)), "of": len(c8),
-                          "note": "GUF: the identification covariance (stated tracker noise and repeatability) "
-                                  "propagated to each point; sources without a stated weight are in the MCM only"}
+                          "note": "GUF on the same inputs as the MCM: the identification and compensation "
+                                  "linearised about the noise-free verification, every source with a first-order "
+                                  "effect (guf_points.basis says how each entered)"}
     return out
 
 
@@ -207,19 +275,51 @@ def point_lines(res: RunResult) -> list:
                  f"{_vec(w['u'], nd)} {u}, mean (bias) {_vec(w['mean'], nd)} {u}")
     if "clause8" in sm:
         c = sm["clause8"]
+        a = getattr(res, "adaptive", None) or {}
+        if a.get("point_axes") and a["point_axes_stable"] == a["point_axes"]:
+            why = ("the MCM's u and interval ends are stable to that tolerance (adaptive run): where the GUF is not "
+                   "validated the output's distribution is not the normal the GUF assumes (non-linearity, a "
+                   "hierarchical or non-normal input); quote the MCM there")
+        else:
+            why = ("the MCM's interval ends are not known to that tolerance unless the run is adaptive: for a statement "
+                   "to sign, run `mtbudget run --trials 0` (adaptive on every point-axis, JCGM 101 7.9)")
         lines.append(f"  GUF vs MCM per point and axis (JCGM 101 clause 8, 2 significant digits): {c['passed']} of {c['of']} "
-                     f"validated; {c['note']}; with few trials the MCM intervals themselves are not stable to that "
-                     f"tolerance: for a statement to sign, run `mtbudget run --trials 0` (adaptive, JCGM 101 7.9) and "
-                     f"quote u and the intervals once they are validated")
+                     f"validated; {c['note']}; {why}")
     lines.append("  every point and axis: mtbudget run --json (\"points\"), or the report's table")
     return lines
+
+
+def adaptive_line(a: dict) -> str:
+    """The adaptive run's final line: what stabilised, at how many trials."""
+    what = []
+    if a.get("point_axes") is not None:
+        what.append(f"{a['point_axes_stable']} of {a['point_axes']} point-axes of the measurand (u and the "
+                    f"{100 * a['coverage']:g} % interval ends)")
+    what += [f"{o} ({'stable' if ok else 'not stable'})" for o, ok in a.get("outputs_stable", {}).items()]
+    head = ("stopped at its trial limit before every quantity was stable" if a.get("stopped_at_limit") else
+            "every quantity stable")
+    return (f"Adaptive Monte Carlo (JCGM 101 7.9): {head} at {a['trials']} trials ({a['batches']} batches of "
+            f"{a['batch_trials']}), to {a['ndig']} significant digits of each u: " + "; ".join(what)
+            + (f". Note: {a['note']}" if a.get("note") else ""))
+
+
+def _root_i(row: dict) -> float:
+    """A budget row's square-rooted contribution, whatever its table's basis (rms_i, u_i; u_y in older logs)."""
+    return next(row[k] for k in ("rms_i", "u_i", "u_y") if k in row)
+
+
+def _root_total(table: dict) -> float:
+    return next(table[k] for k in ("rms_total", "u_total") if k in table)
 
 
 def budget_text(res: RunResult) -> str:
     lines = []
     status = "" if res.complete else "  (INCOMPLETE: partial results)"
+    lines.append(statement_kind_line(statement_kind(res)))
     lines.append(f"Monte Carlo: {res.trials} trials, coverage probability {percent(res.coverage)}, seed {res.spec.get('seed')}{status}")
-    if getattr(res, "stopped_at_limit", False):
+    if getattr(res, "adaptive", None):
+        lines.append("  " + adaptive_line(res.adaptive))
+    elif getattr(res, "stopped_at_limit", False):
         lines.append("  note: the adaptive run stopped at its trial limit before reaching its numerical tolerance")
     if res.fallbacks:
         lines.append(f"  note: {res.fallbacks} of {res.trials} trials left the linear range of the fast identification "
@@ -270,11 +370,11 @@ def budget_text(res: RunResult) -> str:
         lines.append(f"  {'source':<32} {'group':<22} {'u(x_i)':>14} {'RMS_i':>8} {'share':>7}")
         for r in sorted(b["rows"], key=lambda r: -r["contribution"]):
             ux = "-" if r["u_x"] is None else f"{r['u_x']['value']:.3g} {pretty(r['u_x']['unit'])}"
-            lines.append(f"  {r['source']:<32} {r['group']:<22} {ux:>14} {r['u_y']:8.3f} {r['share']:7.1%}")
+            lines.append(f"  {r['source']:<32} {r['group']:<22} {ux:>14} {_root_i(r):8.3f} {r['share']:7.1%}")
         lines.append(f"  {'interaction (not additive)':<32} {'':<22} {'':>14} "
                      f"{math.copysign(math.sqrt(abs(b['interaction'])), b['interaction']):8.3f} "
                      f"{(b['interaction'] / b['total'] if b['total'] else 0):7.1%}")
-        lines.append(f"  {'total':<32} {'':<22} {'':>14} {b['u_total']:8.3f} {1:7.1%}")
+        lines.append(f"  {'total':<32} {'':<22} {'':>14} {_root_total(b):8.3f} {1:7.1%}")
         lines.append("  by group: " + ", ".join(f"{g['group']} {g['share']:.1%}" for g in b["groups"]))
     if getattr(res, "log_path", None):
         lines.append("")
@@ -591,9 +691,13 @@ def run_report(res: RunResult, folder, tolerance_um: float | None = None, charac
     folder.mkdir(parents=True, exist_ok=True)
     figs = _figures(res, folder)
     data = result_json(res)
-    md = ["# mtbudget uncertainty statement", ""]
+    kind = data["statement_kind"]
+    md = ["# mtbudget a priori uncertainty evaluation of a planned verification (virtual experiment)", "",
+          "## Kind of statement", "", md_escape(statement_kind_line(kind)), ""]
     if not res.complete:
         md += ["**INCOMPLETE run: partial results.**", ""]
+    if data.get("adaptive"):
+        md += [md_escape(adaptive_line(data["adaptive"])) + ".", ""]
     mt = measurand_text(res)
     md += ["## Measurand", "", md_escape(mt[0].upper() + mt[1:]) + ".", ""]
     md += provenance_lines(res)
@@ -656,7 +760,10 @@ def run_report(res: RunResult, folder, tolerance_um: float | None = None, charac
     if tolerance_um is not None:
         conf = conformance(res, tolerance_um, characteristic)
         md += ["", "## Decision (ISO 14253-1)", "", f"Characteristic: {conf['characteristic']}.", "",
-               f"Rule: {conf['rule']}.", "", f"**{conf['statement']}**"]
+               f"Scope of the verdict: {'the whole machine' if conf['scope'] == 'machine' else 'each point-axis on its own'}.",
+               "", f"Rule: {conf['rule']}.", "", f"**{conf['statement']}**"]
+        if conf.get("per_point") and conf["scope"] == "machine":
+            md += ["", f"Per point (scope: each point-axis on its own, not the machine): {conf['per_point']['rule']}."]
         data["conformance"] = conf
     if compensation:  # CompensationTable.to_dict() (with "check"), where a compensation is available
         md += compensation_lines(compensation)
@@ -676,13 +783,51 @@ def run_report(res: RunResult, folder, tolerance_um: float | None = None, charac
                f"| source | group | u(x_i) | RMS_i [{pretty(b['unit'])}] | share |", "| --- | --- | --- | --- | --- |"]
         for r in sorted(b["rows"], key=lambda r: -r["contribution"]):
             ux = "-" if r["u_x"] is None else f"{r['u_x']['value']:.3g} {pretty(r['u_x']['unit'])}"
-            md.append(f"| {r['source']} | {r['group']} | {ux} | {r['u_y']:.3f} | {r['share']:.1%} |")
+            md.append(f"| {r['source']} | {r['group']} | {ux} | {_root_i(r):.3f} | {r['share']:.1%} |")
         md.append(f"| interaction | | | | {b['interaction'] / b['total'] if b['total'] else 0:.1%} |")
-        md.append(f"| **total** | | | {b['u_total']:.3f} | 100 % |")
+        md.append(f"| **total** | | | {_root_total(b):.3f} | 100 % |")
     figs.update({k: v[0] for k, v in (extra_figures or {}).items()})
     captions = {**CAPTIONS, **{k: v[1] for k, v in (extra_figures or {}).items()}}
     md += ["", "## Figures", ""] + [f"![{md_escape(captions.get(k, k))}]({p.name})" for k, p in figs.items()]
     (folder / "report.md").write_text("\n".join(md) + "\n")
-    write_html(md, folder, folder / "report.html", "mtbudget uncertainty statement")
+    write_html(md, folder, folder / "report.html", "mtbudget a priori uncertainty evaluation (virtual experiment)")
     (folder / "results.json").write_text(__import__("json").dumps(data, indent=1))
     return {"markdown": folder / "report.md", "html": folder / "report.html", "figures": figs}
+
+
+def posterior_report(p: dict, folder) -> dict:
+    """posterior.md, posterior.html (self-contained) and posterior.json for an a posteriori statement
+    (:func:`mtbudget.posterior.posterior`)."""
+    import json as _json
+
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    k, s, i = p["statement_kind"], p["summary"], p["identification"]
+    r = s["u_over_u_linear"]
+    md = ["# mtbudget a posteriori uncertainty statement", "", "## Kind of statement", "",
+          md_escape(f"A POSTERIORI: the {k['name']} (recording {k['recording']}, points.csv sha256 "
+                    f"{k.get('points_csv_sha256') or '-'}). {k['what'][0].upper() + k['what'][1:]}."), "",
+          "## Measurand", "", md_escape(p["measurand"][0].upper() + p["measurand"][1:]) +
+          f" ({p['not_identifiable']} combination(s) not identifiable).", "",
+          "## Identification", "",
+          md_escape(f"chi2/dof {i['chi2_per_dof']:.3f} on {i['dof']} degrees of freedom; noise: {i['noise']} "
+                    f"(scale {i['noise_scale']:.3f}); {i['thermal_correction']}."), "",
+          "## Result", "",
+          f"Standard uncertainty u (k = 1) from {p['trials']} Monte Carlo trials (seed {p['seed']}); values in µm.", "",
+          "| summary over the mesh | x | y | z |", "| --- | --- | --- | --- |",
+          "| RMS of u | " + " | ".join(f"{x:.2f}" for x in s["u_rms_over_mesh"]) + " |",
+          "| largest u | " + " | ".join(f"{x:.2f}" for x in s["u_max"]) + " |", "",
+          f"Check: u(MCM) / u(identification covariance propagated linearly) median {r['median']:.3f} "
+          f"({r['min']:.3f}-{r['max']:.3f}) over the point-axes.", "",
+          "## Every point", "",
+          f"| point | x, y, z commanded [mm] | mean x, y, z [µm] | u x, y, z [µm] | u linear x, y, z [µm] | "
+          f"{percent(p['coverage'])} interval x | y | z |", "| --- | --- | --- | --- | --- | --- | --- | --- |"]
+    for q in p["points"]:
+        iv = q["interval"]
+        md.append(f"| {q['point']} | {_vec(q['nominal']['value'], 0)} | {_vec(q['mean']['value'], 2)} | "
+                  f"{_vec(q['u']['value'], 2)} | {_vec(q['u_linear']['value'], 2)} | "
+                  + " | ".join(f"[{lo:.2f}, {hi:.2f}]" for lo, hi in zip(iv["low"], iv["high"])) + " |")
+    (folder / "posterior.md").write_text("\n".join(md) + "\n")
+    write_html(md, folder, folder / "posterior.html", "mtbudget a posteriori uncertainty statement")
+    (folder / "posterior.json").write_text(_json.dumps(p, indent=1))
+    return {"markdown": folder / "posterior.md", "html": folder / "posterior.html", "json": folder / "posterior.json"}

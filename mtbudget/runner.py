@@ -19,16 +19,16 @@ from pathlib import Path
 import numpy as np
 
 from . import __version__
-from .budget import RunPrefix, attribution, point_lpu
+from .budget import RunPrefix, attribution, point_guf
 from .config import SimulationConfig, load_config, parse_config
 from .engine import Engine
 from .errors import ConfigError, RunLogError
 from .executors import EXECUTORS, Executor, one_blas_thread
-from .outputs import MAIN_OUTPUT, SCALARS, RunResult, accumulate_block
+from .outputs import MACHINE_SCALARS, MAIN_OUTPUT, SCALARS, RunResult, accumulate_block
 from .plugins import PluginHost
 from .progress import progress_bar
 from .scenario import Scenario, build_scenario
-from .stats import Accumulator, AdaptiveStop, batch_row
+from .stats import Accumulator, AdaptiveStop, batch_row, batch_rows
 
 DEFAULT_LOG = "mtbudget-run.mcap"
 
@@ -38,7 +38,8 @@ class RunSettings:
     """How to run the Monte Carlo of a verification (every option of ``mtbudget run`` in one place).
 
     trials: an int runs that many (rounded up to whole blocks and truncated);
-    None runs the adaptive procedure of JCGM 101 7.9 on ``adaptive_outputs``
+    None runs the adaptive procedure of JCGM 101 7.9 on ``adaptive_outputs`` ("points": every point-axis of the
+    per-point measurand, its u and interval ends; the others scalar outputs)
     in batches of ``adaptive_batch`` trials (default max(100 / (1 - p), 10^4)),
     stopping at ``max_trials`` at most.  keep_samples: keep every trial's
     scalar outputs for exact intervals (default: for runs of up to 200 000
@@ -61,7 +62,7 @@ class RunSettings:
     keep_samples: bool | None = None
     ndig: int = 2
     adaptive_batch: int | None = None
-    adaptive_outputs: tuple = (MAIN_OUTPUT,)
+    adaptive_outputs: tuple = ("points", MAIN_OUTPUT)
     max_trials: int = 1_000_000
 
     def validate(self) -> "RunSettings":
@@ -175,7 +176,7 @@ def _run(config, settings, *, on_chunk, resume_blocks, engine, host, resume_hist
             acc.moments.update(moments)
     result = RunResult(spec, 0, settings.coverage, acc, engine.parameter_names, engine.parameter_units,
                        weights=scenario.weights_report(), mesh=scenario.mesh_points, commanded=scenario.commanded,
-                       angles=scenario.commanded_angles or None, guf=point_lpu(scenario))
+                       angles=scenario.commanded_angles or None, guf=point_guf(scenario))
     done = {b.block: b for b in (resume_blocks or [])}
     resumed = set(done)
     # the budget's "all sources" row is this run's first attribution_trials trials: collected as they are merged
@@ -185,11 +186,15 @@ def _run(config, settings, *, on_chunk, resume_blocks, engine, host, resume_hist
     bar = progress_bar(trials, "Monte Carlo", "trial", settings.progress)
     chunk_blocks = chunk_blocks_for(settings, engine.block)
     try:
+        batch: dict = {"parts": None}  # adaptive: the current batch's per-point components, when collected
+
         def merge(b, target_n):
             """Merge block b, cut to the trials the run still needs; the merged (cut) block is what gets logged."""
             left = target_n - acc.n
             t = b if left >= b.n else b.truncated(left)
             accumulate_block(acc, t)
+            if batch["parts"] is not None:
+                batch["parts"].append(None if t.components is None else t.components.reshape(t.n, -1))
             if prefix is not None:
                 prefix.add(t, computed=t.block not in resumed)
             return t
@@ -223,20 +228,7 @@ def _run(config, settings, *, on_chunk, resume_blocks, engine, host, resume_hist
         if trials is not None:
             consume(list(range(math.ceil(int(trials) / engine.block))), int(trials))
         else:
-            h = settings.adaptive_batch or max(int(100 / (1 - settings.coverage)), 10_000)
-            per = math.ceil(h / engine.block)
-            stop = AdaptiveStop(settings.ndig)
-            k = 0
-            while True:
-                before = acc.n
-                consume(list(range(k * per, (k + 1) * per)), before + per * engine.block)
-                k += 1
-                stop.add([batch_row(acc.scalar_samples(o)[before:], settings.coverage) for o in settings.adaptive_outputs])
-                if stop.done([acc.summary(o, settings.coverage)["std"] for o in settings.adaptive_outputs]):
-                    break
-                if acc.n >= settings.max_trials and len(stop.batches) >= 2:
-                    result.stopped_at_limit = True
-                    break
+            _adaptive(settings, engine, acc, result, consume, batch, bar)
         result.trials = acc.n
         bar.close()
         if settings.attribution_trials:
@@ -249,6 +241,55 @@ def _run(config, settings, *, on_chunk, resume_blocks, engine, host, resume_hist
         ex.close()
         result.prefix = None  # the run's first trials, kept for the budget only
     return result
+
+
+def _adaptive(settings: RunSettings, engine: Engine, acc: Accumulator, result: RunResult, consume, batch: dict, bar):
+    """The adaptive Monte Carlo procedure (JCGM 101 7.9) on the per-point measurand and the scalar outputs asked for.
+
+    After each batch of h trials: per scalar output and, with "points", per point-axis of the measurand, the
+    batch's mean, standard deviation and interval ends; the run stops when twice the standard deviation of the batch
+    values of every one of them is within the numerical tolerance of its standard uncertainty (two significant
+    digits).  The bar shows how many point-axes are stable; ``result.adaptive`` says what stabilised and at how
+    many trials.  Resumed blocks without their components (a log that histograms them) drop the per-point rule,
+    said in ``result.adaptive["note"]``.
+    """
+    h = settings.adaptive_batch or max(int(100 / (1 - settings.coverage)), 10_000)
+    per = math.ceil(h / engine.block)
+    scal = [o for o in settings.adaptive_outputs if o != "points"]
+    points = "points" in settings.adaptive_outputs
+    stop_s, stop_p = AdaptiveStop(settings.ndig), AdaptiveStop(settings.ndig)
+    note, k = None, 0
+    ok_s, ok_p = np.zeros(len(scal), bool), None
+    while True:
+        before = acc.n
+        batch["parts"] = [] if points else None
+        consume(list(range(k * per, (k + 1) * per)), before + per * engine.block)
+        k += 1
+        parts, batch["parts"] = batch["parts"], None
+        if scal:
+            stop_s.add([batch_row(acc.scalar_samples(o)[before:], settings.coverage) for o in scal])
+            ok_s = stop_s.stable([acc.summary(o, settings.coverage)["std"] for o in scal])
+        if points and (not parts or any(p is None for p in parts) or "components" not in acc.moments):
+            points, note = False, ("the per-point rule was not applied: resumed blocks do not hold their per-point "
+                                   "components; the run stopped on the scalar outputs alone")
+        if points:
+            stop_p.add(batch_rows(np.concatenate(parts), settings.coverage))
+            ok_p = stop_p.stable(acc.moments["components"].std.reshape(-1))
+        status = (f"stable: {int(ok_p.sum())} of {ok_p.size} point-axes" if points and ok_p is not None else "") + \
+            "".join(f", {o} {'stable' if ok else 'not yet'}" for o, ok in zip(scal, ok_s))
+        bar.set_postfix_str(status.lstrip(", "), refresh=True)
+        done = len(stop_s.batches if scal else stop_p.batches) >= 2 and bool(ok_s.all()) and \
+            (not points or bool(ok_p.all()))
+        if done:
+            break
+        if acc.n >= settings.max_trials and k >= 2:
+            result.stopped_at_limit = True
+            break
+    result.adaptive = {"trials": acc.n, "batches": k, "batch_trials": per * engine.block, "ndig": settings.ndig,
+                       "coverage": settings.coverage, "stopped_at_limit": result.stopped_at_limit,
+                       "point_axes_stable": None if not points or ok_p is None else int(ok_p.sum()),
+                       "point_axes": None if not points or ok_p is None else int(ok_p.size),
+                       "outputs_stable": {o: bool(ok) for o, ok in zip(scal, ok_s)}, "note": note}
 
 
 def _record(result: RunResult):
@@ -396,7 +437,7 @@ def _execute(config, settings, *, source, target, force, histogram_every) -> Run
     plugins = [{"name": s.plugin, "source": s.name, "package": s.dist_name, "version": s.dist_version}
                for s in eng.sources]
     header = {"spec": spec, "trials": settings.trials, "plugins": plugins, "sources": [s.name for s in eng.sources],
-              "outputs": {k: v[0] for k, v in SCALARS.items()}, "parameter_names": eng.parameter_names,
+              "outputs": {k: v[0] for k, v in {**SCALARS, **MACHINE_SCALARS}.items()}, "parameter_names": eng.parameter_names,
               "parameter_units": eng.parameter_units, "mesh": scenario.mesh_points.tolist(),
               "mesh_unit": "mm", "commanded": scenario.commanded.tolist(), "weights": scenario.weights_report(),
               **({"commanded_angles": {r: v.tolist() for r, v in scenario.commanded_angles.items()},
@@ -475,8 +516,10 @@ def replay(path) -> RunResult:
                     commanded=np.asarray(h["commanded"]) if h.get("commanded") else None,
                     angles={r: np.asarray(v) for r, v in h["commanded_angles"].items()} if h.get("commanded_angles")
                     else None,
-                    guf=None if guf is None else {"estimate": np.asarray(guf["estimate"]), "cov": np.asarray(guf["cov"])},
+                    guf=None if guf is None else {"estimate": np.asarray(guf["estimate"]), "cov": np.asarray(guf["cov"]),
+                                                  **({"basis": guf["basis"]} if guf.get("basis") else {})},
                     logged_points=logged.get("points"))
+    res.adaptive = logged.get("adaptive")
     res.log = log
     return res
 

@@ -367,6 +367,27 @@ class AdaptiveStop:
         deltas = np.array([numerical_tolerance(float(x), self.ndig) for x in np.atleast_1d(u)])
         return bool(np.all(2 * s <= deltas[:, None]))
 
+    def stable(self, u) -> np.ndarray:
+        """Per output, whether its mean, standard deviation and interval ends are all within their numerical tolerance
+        (JCGM 101 7.9.4): (outputs,) bools, all False before two batches.  ``done(u)`` is ``stable(u).all()``."""
+        u = np.atleast_1d(np.asarray(u, float))
+        if len(self.batches) < 2:
+            return np.zeros(u.shape, bool)
+        arr = np.array(self.batches)  # (h, outputs, 4)
+        s = arr.std(axis=0, ddof=1) / math.sqrt(len(arr))
+        deltas = np.array([numerical_tolerance(float(x), self.ndig) for x in u])
+        return np.all(2 * s <= deltas[:, None], axis=1)
+
+
+def batch_rows(Y: np.ndarray, coverage: float) -> np.ndarray:
+    """(K, 4): (mean, std, interval low, interval high) of one batch of K outputs at once, Y (n, K) (each column as
+    :func:`batch_row` of that column gives it)."""
+    Ys = np.sort(Y, axis=0)
+    M = Ys.shape[0]
+    r, q = interval_indices(M, coverage)
+    r = max(0, min(r, M - q - 1))
+    return np.stack([Ys.mean(axis=0), Ys.std(axis=0, ddof=1), Ys[r], Ys[r + q]], axis=1)
+
 
 def batch_row(y: np.ndarray, coverage: float, presorted: bool = False) -> list:
     """(mean, std, interval low, interval high) of one batch of an output (``presorted``: y is sorted already)."""

@@ -416,13 +416,15 @@ def verification_summary(res) -> dict:
 
     y = res.acc.scalar_samples("mean_error_after")
     mu, sd = float(y.mean()), float(y.std(ddof=1))
-    return {"trials": res.trials, "final_mean_error_um": {"mean": mu, "sigma": sd, "p95": float(np.percentile(y, 95)),
+    # one name per quantity, the run's own output names: mean_error_after is Eq. 27 read as the fit residual,
+    # compensation_mean Eq. 27 read as the compensated machine's error (the study's default reading)
+    return {"trials": res.trials, "mean_error_after_um": {"mean": mu, "sigma": sd, "p95": float(np.percentile(y, 95)),
                                                           "normal_mean_plus_2sigma": mu + 1.96 * sd,
                                                           "shapiro_p": float(stats.shapiro(y[:5000]).pvalue)},
             "max_residual_um": {"mean": float(res.acc.scalar_samples("max_residual").mean()),
                                 "max": float(res.acc.scalar_samples("max_residual").max())},
             "compensation_rms_um": res.summary("compensation_rms"),
-            "eq27_compensated_um": _compensated_summary(res)}
+            "compensation_mean_um": _compensated_summary(res)}
 
 
 def _compensated_summary(res) -> dict:
@@ -490,10 +492,17 @@ def readings_verdict(r: dict) -> str:
             return " to ".join(show(x, unit) for x in ref).replace(" µm to", " to").replace(" % to", " to")
         return show(ref, unit)
 
-    missed = [f"{name} {show(v, unit)} (paper {paper(key, unit)})" for name, v, key, unit in checks
-              if not matches(v, key)]
-    text = (f"Verdict: the default readings reproduce {len(checks) - len(missed)} of {len(checks)} of the paper's numbers "
-            f"within {100 * MATCH_TOLERANCE:g} %")
+    # the numbers of one reading stand or fall together: a reading is reproduced only when every number of it matches
+    readings = {"placement (Figs. 9-11)": checks[:4], "Eq. 24 at the station": checks[4:5], "Fig. 13": checks[5:6],
+                "Eq. 27": checks[6:]}
+    ok = {name: matches(v, key) for name, v, key, unit in checks}
+    full = [r for r, cs in readings.items() if all(ok[c[0]] for c in cs)]
+    strict = sum(len(readings[r]) for r in full)
+    missed = [f"{name} {show(v, unit)} (paper {paper(key, unit)})" for name, v, key, unit in checks if not ok[name]]
+    text = (f"Verdict: the default readings reproduce {strict} of {len(checks)} of the paper's numbers within "
+            f"{100 * MATCH_TOLERANCE:g} %, counting a number only when every number of its reading matches "
+            f"({len(full)} of {len(readings)} readings in full: {', '.join(full) or 'none'}); one by one "
+            f"{sum(ok.values())} of {len(checks)} match")
     return text + ("; not reproduced: " + "; ".join(missed) + "." if missed else ".")
 
 

@@ -23,7 +23,7 @@ LAYERS = [
     ["cli", "__main__"],
     ["runner", "study", "testing"],
     ["report", "report_study", "report_diagnosis", "budget"],
-    ["executors", "diagnose", "runlog", "compensate"],
+    ["executors", "diagnose", "runlog", "compensate", "posterior"],
     ["engine"],
     ["simulate"],
     ["scenario"],

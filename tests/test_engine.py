@@ -85,7 +85,11 @@ def test_mean_square_budget_adds_up(small):
     assert sum(r["share"] for r in b["rows"]) == pytest.approx(b["sum_of_contributions"] / b["total"])
     groups = {g["group"]: g["share"] for g in b["groups"]}
     assert groups["measurement system"] > groups["measurement strategy"]
-    assert b["u_combined"] == pytest.approx(np.sqrt(b["sum_of_contributions"]), rel=1e-9)
+    assert b["rms_combined"] == pytest.approx(np.sqrt(b["sum_of_contributions"]), rel=1e-9)
+    assert b["rms_total"] == pytest.approx(np.sqrt(b["total"])) and "u_total" not in b  # not a standard uncertainty
+    assert all("sensitivity" not in r and "u_y" not in r for r in b["rows"])  # a source moves many inputs
+    v = res.budget["compensation_max"]
+    assert v["basis"] == "variance" and v["u_total"] == pytest.approx(np.sqrt(v["total"])) and "u_i" in v["rows"][0]
 
 
 def test_no_source_means_no_uncertainty(small):
@@ -125,7 +129,8 @@ def test_adaptive_run_stops_at_its_tolerance(small):
     from mtbudget.stats import numerical_tolerance
 
     # one significant digit keeps the test short: two need ~40 000 trials here (the interval ends converge slowly)
-    res = run(small, trials=None, block=32, adaptive_batch=256, attribution_trials=0, max_trials=20_000, ndig=1)
+    res = run(small, trials=None, block=32, adaptive_batch=256, attribution_trials=0, max_trials=20_000, ndig=1,
+              adaptive_outputs=("compensation_rms",))  # the scalar alone (the measurand: test_adaptive_measurand.py)
     assert not res.stopped_at_limit and res.trials % 256 == 0 and res.trials >= 512
     y = res.acc.scalar_samples("compensation_rms")
     batches = y.reshape(-1, 256)

@@ -158,13 +158,16 @@ def test_the_decision_names_its_rule_and_counts_every_point_axis(logged):
     pts = res.points()
     lo = np.array([p["interval"]["low"] for p in pts])
     hi = np.array([p["interval"]["high"] for p in pts])
-    wide = conformance(res, float(np.abs(np.concatenate([lo, hi])).max()) + 1.0)
+    wide = conformance(res, float(np.abs(np.concatenate([lo, hi])).max()) + 1.0)["per_point"]
     assert wide["conforming"] == wide["of"] == lo.size and wide["verdict"] == "conforms"
+    assert wide["scope"] == "per point"
     tight = conformance(res, 1e-3)
+    assert tight["scope"] == "machine" and tight["verdict"] == "does not conform"
+    tight = tight["per_point"]
     assert tight["conforming"] == 0 and tight["verdict"] != "conforms"
     assert "ISO 14253-1" in tight["rule"] and tight["U_unit"] == "um"
     T = 20.0
-    mid = conformance(res, T)
+    mid = conformance(res, T)["per_point"]
     assert mid["conforming"] == int(((lo >= -T) & (hi <= T)).sum())  # counted here independently
     mx = conformance(res, 1e6, "max")
     assert mx["verdict"] == "conforms" and "compensation_max" in mx["characteristic"]

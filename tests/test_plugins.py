@@ -473,7 +473,7 @@ cfg = load_config({str(SMALL)!r})
 cfg.source["sources"]["enable"] = ["tracker_noise", "spindle_growth"]
 res = run(cfg, trials=32, block=16, attribution_trials=32)
 rows = {{r["source"]: r for r in res.budget["compensation_rms"]["rows"]}}
-print(rows["spindle_growth"]["plugin"], rows["spindle_growth"]["group"], rows["spindle_growth"]["u_y"] > 0)
+print(rows["spindle_growth"]["plugin"], rows["spindle_growth"]["group"], rows["spindle_growth"]["rms_i"] > 0)
 """
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
     assert out.returncode == 0, out.stderr

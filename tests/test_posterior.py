@@ -1,0 +1,76 @@
+"""The a posteriori statement of a recording against an independent linear propagation of its stated noise."""
+
+import json
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from mtbudget import tracker as lt
+from mtbudget.cli import main
+from mtbudget.config import example_recording
+from mtbudget.identify import Noise, identify
+from mtbudget.model import MeasurementModel
+from mtbudget.posterior import posterior
+from mtbudget.recording import read_recording
+
+UM_PER_MM = 1000.0
+
+
+def linear_u(folder, h=2e-4):
+    """u of each compensated point-axis by central differences of identify -> compensate in the recording's measured
+    coordinates, with the stated Eq. 23 covariance plus repeatability written here (um)."""
+    rec = read_recording(folder)
+    model = MeasurementModel.for_plan(rec.machine, rec.plan, max_degree=3)
+    noise, fixed = Noise.of(rec), rec.fixed_inputs()
+    fit = identify(model, rec.lt, noise, fixed=fixed)
+    y0 = model.predict(fit.theta, fit.pose[0], fixed)[0]
+    plan = rec.plan
+    rows = np.flatnonzero((plan.run == plan.run.min()) & np.all(plan.tool == plan.tool[0], axis=1))
+    P = model.machine_points(fit.theta, fixed)[0][rows]
+    c = P - P.mean(0)  # the rigid motions of the mesh points, removed by least squares (written here)
+    R = np.concatenate([np.tile(np.eye(3), (len(P), 1)),
+                        np.stack([np.cross(np.eye(3)[k], c).reshape(-1) for k in range(3)], axis=1)], axis=1)
+    Pi = np.eye(3 * len(P)) - R @ np.linalg.solve(R.T @ R, R.T)
+    M = len(y0)
+
+    def field(meas):
+        th = identify(model, meas, noise, fixed=fixed).theta
+        return (model.machine_points(th, fixed)[:, rows]).reshape(len(meas), -1) @ Pi.T
+
+    E = np.eye(3 * M).reshape(3 * M, M, 3) * h
+    S = ((field(y0[None] + E) - field(y0[None] - E)) / (2 * h)).T
+    r = np.linalg.norm(y0, axis=1)
+    sph = lt.spherical_jacobian(y0)
+    C = np.zeros((3 * M, 3 * M))
+    for i in range(M):
+        s = np.diag([(noise.distance + noise.distance_per_length * r[i]) ** 2, noise.angular**2, noise.angular**2])
+        C[3 * i:3 * i + 3, 3 * i:3 * i + 3] = sph[i] @ s @ sph[i].T + noise.repeatability**2 * np.eye(3)
+    return np.sqrt(np.diag(S @ C @ S.T)) * UM_PER_MM
+
+
+def test_a_posteriori_u_agrees_with_the_identification_covariance_within_5_percent():
+    folder = example_recording("thermal_x")
+    p = posterior(folder, trials=4096, seed=3)
+    u = np.array([q["u"]["value"] for q in p["points"]]).reshape(-1)
+    u_ind = linear_u(folder)
+    ok = u_ind > 1e-3
+    ratio = u[ok] / u_ind[ok]
+    # u of 4096 trials scatters by 1/sqrt(2 * 4096) = 1.1 % per point-axis
+    assert np.median(ratio) == pytest.approx(1.0, abs=0.015)
+    assert np.abs(ratio - 1).max() < 0.05
+    assert np.allclose(np.array([q["u_linear"]["value"] for q in p["points"]]).reshape(-1), u_ind, rtol=5e-3, atol=1e-4)
+    assert p["statement_kind"]["kind"] == "a posteriori" and p["statement_kind"]["recording"]
+    assert p["not_converged"] == 0
+
+
+def test_posterior_command(tmp_path):
+    r = CliRunner().invoke(main, ["posterior", "--example", "null", "--trials", "256", "--json", "--out", str(tmp_path)])
+    assert r.exit_code == 0, r.output
+    data = json.loads(r.output)
+    assert data["statement_kind"]["kind"] == "a posteriori"
+    md = (tmp_path / "posterior.md").read_text()
+    assert md.startswith("# mtbudget a posteriori") and md.count("\n| ") >= 75 + 2  # a row per point
+    assert (tmp_path / "posterior.html").exists() and json.loads((tmp_path / "posterior.json").read_text())["points"]
+    r = CliRunner().invoke(main, ["posterior", "--example", "null", "--trials", "256", "--noise", "estimated"])
+    assert r.exit_code == 0 and "A POSTERIORI" in r.output and "sqrt(chi2/dof)" in r.output
