@@ -221,3 +221,23 @@ def test_simulate_identify_compensate_a_five_axis_recording(tmp_path):
     r = CliRunner().invoke(main, ["compensate", str(out), "--format", "neutral-csv", "--out", str(csv)])
     assert r.exit_code == 0, r.output
     assert sum(line.startswith("rotary_") for line in csv.read_text().splitlines()) == len(truth)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("kind", ["CAFXYZ", "FXYZCB"])
+def test_diagnose_a_five_axis_null_names_nothing(tmp_path, kind):
+    """diagnose's baseline fit and locate on a five-axis recording written by the independent generator: a machine
+    with rotary location errors and nothing else is explained by the baseline (no named effect)."""
+    import json
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).parent))
+    from fiveaxis_generator import make_recording
+
+    make_recording(tmp_path / "r", kind, seed=4)
+    r = CliRunner().invoke(main, ["diagnose", str(tmp_path / "r"), "--json"])
+    assert r.exit_code == 0, r.output[-2000:]
+    d = json.loads(r.output[r.output.index("{"):])
+    assert not d.get("findings"), d.get("findings")
+    assert 0.8 < d["baseline"]["chi2_per_dof"] < 1.25
