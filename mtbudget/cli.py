@@ -446,7 +446,9 @@ def run_cmd(config, trials, seed, coverage, executor, workers, address, attribut
             block, adaptive_batch, as_json, quiet):
     """Monte Carlo uncertainty of a planned verification (a priori, a virtual experiment), with its budget.
 
-    CONFIG is a TOML configuration (default: the built-in paper study). Each
+    CONFIG is a TOML configuration (default: the built-in paper study; a
+    five-axis machine: examples/five_axis_cafxyz.toml, rotary axes in
+    [rotary.<A|B|C>], docs/user-guide.md "Five-axis machines"). Each
     trial draws every enabled uncertainty source (see `mtbudget plugins
     CONFIG`), simulates the verification, identifies the machine as the real
     verification would, and records the error left after compensation. The
