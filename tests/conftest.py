@@ -184,3 +184,22 @@ class OffsetSource(Source):
 
     def sample(self, n, rng, ctx):
         return {"tracker_offset": Q_(rng.normal(0, self.value("u", "mm"), (n, ctx.n_points, 3)), "mm")}
+
+
+def stated_noise_propagation(field, m0, noise, h=2e-4):
+    """Standard deviations of ``field(meas)`` ((K, M, 3) tracker coordinates -> (K, L) values) by central differences
+    in the measured coordinates about the noise-free ``m0`` (M, 3), with the stated covariance of each point written
+    here: spherical tracker noise (u_r = distance + distance_per_length r, one angular u for both angles) plus the
+    machine repeatability, isotropic.  The independent linear propagation the per-point tests compare against."""
+    from mtbudget import tracker as lt
+
+    M = len(m0)
+    E = np.eye(3 * M).reshape(3 * M, M, 3) * h
+    S = ((field(m0[None] + E) - field(m0[None] - E)) / (2 * h)).T  # (L, 3 M)
+    r = np.linalg.norm(m0, axis=1)
+    sph = lt.spherical_jacobian(m0)  # columns: d/dr, d/daz, d/del
+    C = np.zeros((3 * M, 3 * M))
+    for i in range(M):
+        s = np.diag([(noise.distance + noise.distance_per_length * r[i]) ** 2, noise.angular**2, noise.angular**2])
+        C[3 * i:3 * i + 3, 3 * i:3 * i + 3] = sph[i] @ s @ sph[i].T + noise.repeatability**2 * np.eye(3)
+    return np.sqrt(np.diag(S @ C @ S.T))

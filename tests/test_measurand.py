@@ -7,9 +7,9 @@ import json
 
 import numpy as np
 import pytest
+from conftest import stated_noise_propagation
 from click.testing import CliRunner
 
-from mtbudget import tracker as lt
 from mtbudget.budget import conformance, point_lpu
 from mtbudget.cli import main
 from mtbudget.config import load_config, parse_config
@@ -60,7 +60,6 @@ def finite_difference_propagation(sc, h=2e-4):
     """u of each point's compensated error, by central differences of simulate -> identify -> compensate in the
     measured coordinates, and the stated tracker and machine covariance of each point (mm, written here)."""
     m0 = sc.truth.predict(sc.theta[None, :], sc.pose)[0]  # (M, 3) noise-free tracker points
-    M = len(m0)
     F_true = sc.truth.machine_points(sc.theta[None, :])[0][sc.mesh_rows]
 
     def field(meas):  # (K, M, 3) -> (K, 3 M0): error after compensation, rigid part removed
@@ -68,17 +67,7 @@ def finite_difference_propagation(sc, h=2e-4):
         F_id = sc.id_model.machine_points(res.theta)[:, sc.mesh_rows]
         return (F_true[None] - F_id).reshape(len(meas), -1) @ sc.rigid_free.T
 
-    E = np.eye(3 * M).reshape(3 * M, M, 3) * h
-    S = ((field(m0[None] + E) - field(m0[None] - E)) / (2 * h)).T  # (3 M0, 3 M)
-    n = sc.noise
-    r = np.linalg.norm(m0, axis=1)
-    sph = lt.spherical_jacobian(m0)  # columns: d/dr, d/daz, d/del
-    C = np.zeros((3 * M, 3 * M))
-    for i in range(M):
-        s = np.diag([(n.distance + n.distance_per_length * r[i]) ** 2, n.angular**2, n.angular**2])
-        C[3 * i:3 * i + 3, 3 * i:3 * i + 3] = sph[i] @ s @ sph[i].T + n.repeatability**2 * np.eye(3)
-    cov = S @ C @ S.T
-    return np.sqrt(np.diag(cov)).reshape(-1, 3) * UM_PER_MM
+    return stated_noise_propagation(field, m0, sc.noise, h).reshape(-1, 3) * UM_PER_MM
 
 
 @pytest.fixture(scope="module")

@@ -4,9 +4,9 @@ import json
 
 import numpy as np
 import pytest
+from conftest import stated_noise_propagation
 from click.testing import CliRunner
 
-from mtbudget import tracker as lt
 from mtbudget.cli import main
 from mtbudget.config import example_recording
 from mtbudget.identify import Noise, identify
@@ -32,21 +32,12 @@ def linear_u(folder, h=2e-4):
     R = np.concatenate([np.tile(np.eye(3), (len(P), 1)),
                         np.stack([np.cross(np.eye(3)[k], c).reshape(-1) for k in range(3)], axis=1)], axis=1)
     Pi = np.eye(3 * len(P)) - R @ np.linalg.solve(R.T @ R, R.T)
-    M = len(y0)
 
     def field(meas):
         th = identify(model, meas, noise, fixed=fixed).theta
         return (model.machine_points(th, fixed)[:, rows]).reshape(len(meas), -1) @ Pi.T
 
-    E = np.eye(3 * M).reshape(3 * M, M, 3) * h
-    S = ((field(y0[None] + E) - field(y0[None] - E)) / (2 * h)).T
-    r = np.linalg.norm(y0, axis=1)
-    sph = lt.spherical_jacobian(y0)
-    C = np.zeros((3 * M, 3 * M))
-    for i in range(M):
-        s = np.diag([(noise.distance + noise.distance_per_length * r[i]) ** 2, noise.angular**2, noise.angular**2])
-        C[3 * i:3 * i + 3, 3 * i:3 * i + 3] = sph[i] @ s @ sph[i].T + noise.repeatability**2 * np.eye(3)
-    return np.sqrt(np.diag(S @ C @ S.T)) * UM_PER_MM
+    return stated_noise_propagation(field, y0, noise, h) * UM_PER_MM
 
 
 def test_a_posteriori_u_agrees_with_the_identification_covariance_within_5_percent():
