@@ -382,6 +382,37 @@ def budget_text(res: RunResult) -> str:
     return "\n".join(lines)
 
 
+def _pose_map(plt, pts: list, u: np.ndarray, folder: Path, um: str) -> Path:
+    """Five-axis: the largest u (k = 1) over the linear points at each rotary pose, per axis, as a grid of the first
+    two rotary axes' angles (one row for a single rotary axis)."""
+    letters = sorted(pts[0]["angles"]["value"])
+    ang = np.array([[q["angles"]["value"][r] for r in letters] for q in pts])
+    rows = np.unique(np.round(ang[:, 0], 9))
+    cols = np.unique(np.round(ang[:, 1], 9)) if len(letters) > 1 else np.array([0.0])
+    grid = np.zeros((3, len(rows), len(cols)))
+    for q in range(len(pts)):
+        i = int(np.searchsorted(rows, round(ang[q, 0], 9)))
+        j = int(np.searchsorted(cols, round(ang[q, 1], 9))) if len(letters) > 1 else 0
+        grid[:, i, j] = np.maximum(grid[:, i, j], u[q])
+    fig, axes = plt.subplots(1, 3, figsize=(15, 4.2))
+    vmax = float(grid.max())
+    for k, a in enumerate("xyz"):
+        im = axes[k].imshow(grid[k], cmap="viridis", vmin=0, vmax=vmax, origin="lower", aspect="auto")
+        axes[k].set_yticks(range(len(rows)), [f"{v:g}" for v in rows])
+        axes[k].set_ylabel(f"{letters[0]} commanded [deg]")
+        if len(letters) > 1:
+            axes[k].set_xticks(range(len(cols)), [f"{v:g}" for v in cols])
+            axes[k].set_xlabel(f"{letters[1]} commanded [deg]")
+        axes[k].set_title(f"largest u of the {a} error over the linear points (k = 1)", fontsize=9)
+        fig.colorbar(im, ax=axes[k], shrink=0.8, label=f"u [{um}]")
+    fig.suptitle("standard uncertainty of the compensated machine at each rotary pose")
+    fig.tight_layout()
+    path = Path(folder) / "uncertainty_poses.png"
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+    return path
+
+
 def _figures(res: RunResult, folder):
     """PNG figures of a run; returns {name: path}. Every axis is labelled with its unit (one spelling: µm)."""
     import matplotlib
@@ -397,21 +428,33 @@ def _figures(res: RunResult, folder):
     if pts and res.mesh is not None:
         u = np.array([q["u"]["value"] for q in pts])
         cmd = np.array([q["nominal"]["value"] for q in pts])
+        if "angles" in pts[0]:  # five-axis: the largest u over the rotary poses at each linear point
+            uniq, inv = np.unique(np.round(cmd, 6), axis=0, return_inverse=True)
+            inv = np.ravel(inv)
+            u_pt = np.zeros((len(uniq), 3))
+            np.maximum.at(u_pt, inv, u)
+            cmd_plot, u_plot = uniq, u_pt
+        else:
+            cmd_plot, u_plot = cmd, u
         fig = plt.figure(figsize=(15, 4.8))
         vmax = float(u.max())
         for j, a in enumerate("xyz"):
             ax = fig.add_subplot(1, 3, j + 1, projection="3d")
-            sc = ax.scatter(cmd[:, 0], cmd[:, 1], cmd[:, 2], c=u[:, j], cmap="viridis", vmin=0, vmax=vmax, s=45)
+            sc = ax.scatter(cmd_plot[:, 0], cmd_plot[:, 1], cmd_plot[:, 2], c=u_plot[:, j], cmap="viridis", vmin=0,
+                            vmax=vmax, s=45)
             ax.set_title(f"u of the {a} error after compensation (k = 1)", fontsize=9)
             ax.set_xlabel("x [mm]", labelpad=6)
             ax.set_ylabel("y [mm]", labelpad=6)
             ax.set_zlabel("z [mm]", labelpad=6)
             fig.colorbar(sc, ax=ax, shrink=0.6, pad=0.12, label=f"u [{um}]")
-        fig.suptitle("standard uncertainty per point and axis of the compensated machine (commanded positions)")
+        fig.suptitle("standard uncertainty per point and axis of the compensated machine (commanded positions)"
+                     + ("; largest u over the rotary poses at each point" if "angles" in pts[0] else ""))
         fig.tight_layout()
         figs["uncertainty_map"] = folder / "uncertainty_map.png"
         fig.savefig(figs["uncertainty_map"], dpi=100)
         plt.close(fig)
+        if "angles" in pts[0]:
+            figs["uncertainty_poses"] = _pose_map(plt, pts, u, folder, um)
     # distributions of the volume summaries
     names = [k for k in SCALARS if res.acc.scalar_samples(k) is not None]
     if names:
@@ -525,7 +568,9 @@ def provenance_lines(res: RunResult) -> list:
 #: a caption for every figure mtbudget writes (the alt text and the caption in the HTML)
 CAPTIONS = {
     "uncertainty_map": "Standard uncertainty (k = 1) of the compensated machine's error at each mesh point, per axis, "
-                       "at the commanded positions",
+                       "at the commanded positions (a five-axis plan: the largest over the rotary poses)",
+    "uncertainty_poses": "Five-axis: the largest standard uncertainty (k = 1) over the linear points at each rotary pose, "
+                         "per axis",
     "distributions": "Distributions over the simulated verifications of the volume summaries, with their coverage intervals",
     "contributions": "Share of each source in the variance of the per-point errors, coloured by the paper's four groups",
     "convergence": "Convergence of compensation_rms and of its standard deviation with the number of trials",
