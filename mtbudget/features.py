@@ -28,6 +28,7 @@ from .errors import ConfigError
 from .model import MeasurementModel
 from .plan import Plan
 from .stats import percent
+from .units import pretty
 
 #: kinds -> (fewest points, unit of the value, one-sided characteristic (value <= T) or two-sided (|deviation| <= T))
 KINDS = {
@@ -591,7 +592,7 @@ def features_text(feats: list | None) -> list:
             continue
         iv = f["interval"]
         dec = f.get("decision")
-        lines.append(f"  {f['name']:<22} {f['kind']:<12} {f['unit']:<5} {f['estimate']:9.3f} {f['u']:9.3f}   "
+        lines.append(f"  {f['name']:<22} {f['kind']:<12} {pretty(f['unit']):<5} {f['estimate']:9.3f} {f['u']:9.3f}   "
                      f"[{iv['low']:8.3f}, {iv['high']:8.3f}]  " + (dec["verdict_at_nominal"] if dec else "-"))
     p = feats[0].get("interval", {}).get("coverage")
     if p:
@@ -623,15 +624,16 @@ def features_markdown(feats: list | None) -> list:
             md.append(f"| {f['name']} | {f['kind']} | {f['note']} | | | |")
             continue
         iv, dec = f["interval"], f.get("decision")
-        md.append(f"| {f['name']} | {f['kind']} | {f['estimate']:.3f} {f['unit']} | {f['u']:.3f} {f['unit']} | "
-                  f"[{iv['low']:.3f}, {iv['high']:.3f}] {f['unit']} ({percent(iv['coverage'])}) | "
+        un = pretty(f["unit"])
+        md.append(f"| {f['name']} | {f['kind']} | {f['estimate']:.3f} {un} | {f['u']:.3f} {un} | "
+                  f"[{iv['low']:.3f}, {iv['high']:.3f}] {un} ({percent(iv['coverage'])}) | "
                   f"{dec['verdict_at_nominal'] if dec else '-'} |")
     md.append("")
     for f in feats:
         md.append(f"* **{f['name']}**: {f['measurand']}.")
         if "budget" in f:
             md.append("  Budget (u_i, each source alone): " + ", ".join(
-                f"{r['source']} {r['u_i']:.3g} {f['unit']} ({r['share']:.1%})"
+                f"{r['source']} {r['u_i']:.3g} {pretty(f['unit'])} ({r['share']:.1%})"
                 for r in sorted(f["budget"]["rows"], key=lambda r: -r["share"]) if r["share"] > 0.001) + ".")
         if "decision" in f:
             md.append(f"  Decision (ISO 14253-1): {f['decision']['statement']}. Rule: {f['decision']['rule']}.")
