@@ -309,15 +309,27 @@ def plane_fit(Q: np.ndarray):
     return c, vt[:, 2]
 
 
+#: up to this many points a minimum zone is found by enumerating its candidate planes (vectorised over trials,
+#: exact); above, by one linear programme per trial (scipy.optimize.linprog, about 8 ms each)
+MZ_ENUMERATE_POINTS = 12
+
+
 def minimum_zone_flatness(Q: np.ndarray, normal: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
-    """Minimum-zone flatness of the points Q (n, N, 3) (the Chebyshev plane), one linear programme per trial in the
-    nominal plane's frame: minimise t subject to |h_i - (a s_i + b t_i + c)| <= t / 2, h the height along the nominal
-    normal (exact for the zone measured along that normal; the true minimum zone differs by the second order of the
-    plane's tilt, < 1e-9 of the zone for the micrometre tilts here)."""
+    """Minimum-zone flatness of the points Q (n, N, 3) (the Chebyshev plane) in the nominal plane's frame: the smallest
+    t such that |h_i - (a s_i + b t_i + c)| <= t / 2, h the height along the nominal normal and (s, t) the in-plane
+    coordinates (exact for the zone measured along that normal; the true minimum zone differs by the second order
+    of the plane's tilt, < 1e-9 of the zone for the micrometre tilts here).
+
+    A linear programme in (a, b, c, t / 2): its optimum is a vertex where four constraints are active, four points
+    at +-t/2 from the plane.  Up to :data:`MZ_ENUMERATE_POINTS` points every such vertex is solved (each 4 points
+    and sign pattern: a 4 x 4 system) and the narrowest zone of the candidate planes is taken, which is the
+    optimum; with more points, one linprog (HiGHS) per trial."""
+    s, t, h = Q @ u, Q @ v, Q @ normal
+    if Q.shape[1] <= MZ_ENUMERATE_POINTS:
+        return _mz_enumerate(s, t, h)
     from scipy.optimize import linprog
 
     out = np.empty(len(Q))
-    s, t, h = Q @ u, Q @ v, Q @ normal
     N = Q.shape[1]
     for k in range(len(Q)):
         # variables a, b, c, w (w = t/2); rows:  h - a s - b t - c <= w  and  -(h - a s - b t - c) <= w
@@ -326,6 +338,38 @@ def minimum_zone_flatness(Q: np.ndarray, normal: np.ndarray, u: np.ndarray, v: n
         bnd = np.concatenate([-h[k], h[k]])
         res = linprog([0, 0, 0, 1], A_ub=A, b_ub=bnd, bounds=[(None, None)] * 3 + [(0, None)], method="highs")
         out[k] = 2 * res.x[3] if res.success else np.nan
+    return out
+
+
+def _mz_enumerate(s: np.ndarray, t: np.ndarray, h: np.ndarray, chunk: int = 256) -> np.ndarray:
+    """The minimum zone over every vertex of the linear programme (see :func:`minimum_zone_flatness`), (n,).
+
+    At a vertex four points lie at +-t/2: three on one side (their plane gives the tilt) or two on each (the plane is
+    parallel to both their edges).  Either way the tilt (a, b) makes two edges of the point set level:
+    a ds + b dt = dh for both, a 2 x 2 system solved in closed form for every pair of edges; the narrowest zone of
+    those tilts is the optimum (each candidate's zone is feasible, the optimum is among them)."""
+    import itertools
+
+    n, N = h.shape
+    edges = np.array(list(itertools.combinations(range(N), 2)))  # (E, 2)
+    pairs = np.array(list(itertools.combinations(range(len(edges)), 2)))  # (C, 2)
+    e1, e2 = edges[pairs[:, 0]], edges[pairs[:, 1]]
+    L = max(float(np.abs(s).max()), float(np.abs(t).max()), 1e-12)
+    s, t = s / L, t / L  # a, b scaled alike: the width does not change
+    out = np.empty(n)
+    for i0 in range(0, n, chunk):
+        S, T, H = s[i0:i0 + chunk], t[i0:i0 + chunk], h[i0:i0 + chunk]
+        ds1, dt1, dh1 = (X[:, e1[:, 1]] - X[:, e1[:, 0]] for X in (S, T, H))
+        ds2, dt2, dh2 = (X[:, e2[:, 1]] - X[:, e2[:, 0]] for X in (S, T, H))
+        det = ds1 * dt2 - ds2 * dt1
+        ok = np.abs(det) > 1e-9
+        det = np.where(ok, det, 1.0)
+        a = (dh1 * dt2 - dh2 * dt1) / det
+        b = (ds1 * dh2 - ds2 * dh1) / det
+        r = H[:, None, :] - a[..., None] * S[:, None, :] - b[..., None] * T[:, None, :]  # (m, C, N)
+        width = r.max(axis=-1) - r.min(axis=-1)
+        width[~ok] = np.inf
+        out[i0:i0 + chunk] = width.min(axis=1)
     return out
 
 

@@ -217,3 +217,22 @@ def test_features_in_text_and_report(tmp_path):
     out = run_report(again, tmp_path / "rep")
     md = out["markdown"].read_text()
     assert "## Features probed on the compensated machine" in md and "| x length | distance |" in md and "µm" in md
+
+
+def test_minimum_zone_by_enumeration_equals_linear_programming():
+    """The vectorised enumeration of the zone's vertices (up to 12 points) against scipy's linprog on random points."""
+    from scipy.optimize import linprog
+
+    from mtbudget.features import _mz_enumerate
+
+    rng = np.random.default_rng(8)
+    for N in (4, 5, 9, 12):
+        s, t = rng.uniform(-200, 200, (2, 20, N))
+        h = 1e-3 * rng.normal(size=(20, N)) + 1e-5 * s - 2e-5 * t
+        got = _mz_enumerate(s, t, h)
+        for k in range(20):
+            A = np.column_stack([s[k], t[k], np.ones(N)])
+            r = linprog([0, 0, 0, 1], A_ub=np.vstack([np.column_stack([-A, -np.ones(N)]),
+                                                      np.column_stack([A, -np.ones(N)])]),
+                        b_ub=np.r_[-h[k], h[k]], bounds=[(None, None)] * 3 + [(0, None)], method="highs")
+            assert got[k] == pytest.approx(2 * r.x[3], rel=1e-7, abs=1e-12), (N, k)
