@@ -227,8 +227,16 @@ def _parse_one(r: Reader, config) -> FeatureSpec:
     def nonneg(key, unit, default):
         v = r.quantity(key, unit, default)
         if v < 0 or not np.isfinite(v):
-            raise ConfigError(f"{r.where(key)}: a standard uncertainty must not be negative")
+            raise ConfigError(f"{r.where(key)}: must not be negative")
         return v
+
+    part_keys = [k for k in ("part_temperature", "part_temperature_u", "part_cte", "part_cte_u") if r.has(k)]
+    if part_keys and kind not in ("distance", "diameter"):
+        raise ConfigError(f"{r.where(part_keys[0])}: a {kind} does not see the part's uniform expansion; only a "
+                          "distance or a diameter takes the part's temperature and CTE")
+    if r.has("part_cte_u") and not r.has("part_temperature"):
+        raise ConfigError(f"{r.where('part_cte_u')}: the CTE's uncertainty acts through the part's temperature "
+                          "difference from 20 degC: state part_temperature too")
 
     part_t = None if not r.has("part_temperature") else r.quantity("part_temperature", "K", absolute_temperature=True)
     return FeatureSpec(name.strip(), kind, P, dirs, tol, assoc, probing_error=nonneg("probing_error", "mm", "0 um"),

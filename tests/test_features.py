@@ -163,13 +163,19 @@ def test_in_use_sources_have_their_closed_forms():
     (dict(X_LENGTH, tolerance="20 urad"), "features[0].tolerance"),
     (dict(X_LENGTH, kind="cylinder"), "features[0].kind: unknown kind 'cylinder'"),
     (dict(X_LENGTH, colour="red"), "features[0].colour: unknown key"),
+    (dict(X_LENGTH, part_cte_u="1 um/(m*K)"), "features[0].part_cte_u: the CTE's uncertainty acts through"),
+    ({"name": "o", "kind": "orientation", "part_temperature_u": "0.1 K",
+      "points": [["800 mm", "100 mm", "200 mm"], ["900 mm", "100 mm", "200 mm"], ["900 mm", "200 mm", "200 mm"]]},
+     "features[0].part_temperature_u: a orientation does not see the part's uniform expansion"),
+    ([X_LENGTH, X_LENGTH], "features[1].name: feature 'x length' is named twice"),
 ])
 def test_bad_features_are_refused_in_one_line(feature, words):
     from mtbudget.scenario import build_scenario
     from mtbudget.engine import Engine
 
     with pytest.raises(ConfigError) as exc:
-        Engine(build_scenario(parse_config(paper(features=[feature]), "run.toml")))
+        Engine(build_scenario(parse_config(paper(features=feature if isinstance(feature, list) else [feature]),
+                                           "run.toml")))
     msg = str(exc.value)
     assert "\n" not in msg and msg.startswith("run.toml: ") and words in msg, msg
 
