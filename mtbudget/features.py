@@ -232,7 +232,7 @@ def _parse_one(r: Reader, config) -> FeatureSpec:
 
     part_keys = [k for k in ("part_temperature", "part_temperature_u", "part_cte", "part_cte_u") if r.has(k)]
     if part_keys and kind not in ("distance", "diameter"):
-        raise ConfigError(f"{r.where(part_keys[0])}: a {kind} does not see the part's uniform expansion; only a "
+        raise ConfigError(f"{r.where(part_keys[0])}: {'an' if kind[0] in 'aeiou' else 'a'} {kind} does not see the part's uniform expansion; only a "
                           "distance or a diameter takes the part's temperature and CTE")
     if r.has("part_cte_u") and not r.has("part_temperature"):
         raise ConfigError(f"{r.where('part_cte_u')}: the CTE's uncertainty acts through the part's temperature "

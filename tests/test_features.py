@@ -166,7 +166,7 @@ def test_in_use_sources_have_their_closed_forms():
     (dict(X_LENGTH, part_cte_u="1 um/(m*K)"), "features[0].part_cte_u: the CTE's uncertainty acts through"),
     ({"name": "o", "kind": "orientation", "part_temperature_u": "0.1 K",
       "points": [["800 mm", "100 mm", "200 mm"], ["900 mm", "100 mm", "200 mm"], ["900 mm", "200 mm", "200 mm"]]},
-     "features[0].part_temperature_u: a orientation does not see the part's uniform expansion"),
+     "features[0].part_temperature_u: an orientation does not see the part's uniform expansion"),
     ([X_LENGTH, X_LENGTH], "features[1].name: feature 'x length' is named twice"),
 ])
 def test_bad_features_are_refused_in_one_line(feature, words):
