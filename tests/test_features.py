@@ -242,3 +242,20 @@ def test_minimum_zone_by_enumeration_equals_linear_programming():
                                                       np.column_stack([A, -np.ones(N)])]),
                         b_ub=np.r_[-h[k], h[k]], bounds=[(None, None)] * 3 + [(0, None)], method="highs")
             assert got[k] == pytest.approx(2 * r.x[3], rel=1e-7, abs=1e-12), (N, k)
+
+
+def test_a_run_with_resumed_blocks_says_its_features_are_not_available():
+    """Blocks read back from a log hold no feature values: the run says so instead of stating a u from some trials."""
+    from mtbudget.engine import Engine
+    from mtbudget.report import result_json
+    from mtbudget.runner import RunSettings, run
+    from mtbudget.scenario import build_scenario
+
+    cfg = parse_config(paper(sources={"enable": ["tracker_noise"]}, features=[X_LENGTH]), "paper.toml")
+    eng = Engine(build_scenario(cfg), block=64, seed=1)
+    b0 = eng.run_block(0)
+    b0.features = None  # as read back from a run log
+    res = run(engine=eng, settings=RunSettings(trials=128, attribution_trials=0, seed=1, block=64),
+              resume_blocks=[b0])
+    f = result_json(res)["features"][0]
+    assert "u" not in f and "not available" in f["note"]
