@@ -4,7 +4,7 @@ Run:  python benchmarks/bench_features_coverage.py [--machines 4] [--parts 512] 
 
 For each of ``--machines`` simulated machines (the example configuration examples/paper_features.toml with
 geometric_errors.seed = 7, 8, ...), mtbudget states each feature's 95 % coverage interval of its error from a Monte
-Carlo run (``--trials``, seed 1).  Then ``--parts`` parts at nominal are measured on that machine, each after its own
+Carlo run (``--trials``, seed 1, 2, ... one per machine).  Then ``--parts`` parts at nominal are measured on that machine, each after its own
 verification, simulated and identified independently of the statement (another seed: the engine's simulator and
 identification, block by block), and the part's true error is computed HERE, by code written apart from
 mtbudget/features.py: the true and the identified machine at the probed points (truth model at the simulated
@@ -145,7 +145,9 @@ def main(argv=None):
         data = copy.deepcopy(base)
         data["geometric_errors"]["seed"] = 7 + m
         sc = build_scenario(parse_config(data, f"paper_features (machine seed {7 + m})"))
-        stated = result_json(run(sc, RunSettings(trials=args.trials, attribution_trials=0, seed=1)))["features"]
+        # each machine's statement from its own seed: statements drawn from one seed share their noise draws, and a
+        # feature that hardly depends on the machine (a flatness) would get the same u, by the same chance, on all
+        stated = result_json(run(sc, RunSettings(trials=args.trials, attribution_trials=0, seed=1 + m)))["features"]
         eng = Engine(sc, block=64, seed=1000 + m)  # the parts' verifications: another seed, independent draws
         E = part_errors(sc, eng, features, list(range(-(-args.parts // 64))), rng)[: args.parts]
         for k, (f, s) in enumerate(zip(features, stated)):
