@@ -44,6 +44,7 @@ class RunReduction:
         self.scalars: dict = {o: [] for o in SCALARS}
         self.cm = None  # CoMoments of the components so far
         self.blocks: list = []
+        self.features: list = []  # [[features]]: (n, K, C) per block
 
     @property
     def full(self) -> bool:
@@ -63,6 +64,8 @@ class RunReduction:
                 self.cm = m if self.cm is None else self.cm.merge(m)
         self.blocks.append(int(b.block))
         self.n += t.n
+        if getattr(t, "features", None) is not None:
+            self.features.append(t.features)
 
     def moments(self) -> dict:
         out = {}
@@ -71,6 +74,8 @@ class RunReduction:
             out[o] = {"variance": float(np.var(y, ddof=1)), "mean_square": float(np.mean(y**2)), "mean": float(y.mean())}
         if self.cm is not None:
             out["components"] = np.diagonal(self.cm.cov, axis1=1, axis2=2)  # (M0, 3) variance of each point's components
+        if self.features and len(self.features) == len(self.blocks):  # [[features]]: (K, C) variances
+            out["features"] = np.concatenate(self.features).var(axis=0, ddof=1)
         return out
 
 
@@ -238,6 +243,10 @@ def attribution(engine, result: RunResult, n: int, *, ex_kind="inline", workers=
         }
     if "components" in total:
         tables["points"] = {**point_budget(engine, total, per_source, systematic), "trials": n}
+    if "features" in total and all("features" in v for v in per_source.values()):
+        from .features import feature_budget
+
+        tables["features"] = feature_budget(engine, total, per_source, n)
     return tables
 
 

@@ -122,7 +122,7 @@ class Reader:
 SCHEMA = {
     "": ("format", "name", "description", "machine", "reference_temperature", "seed", "mesh", "plan", "tracker",
          "machine_tool", "geometric_errors", "sensors", "effects", "placement", "sources", "weights", "measurand",
-         "stations", "scales", "rotary"),
+         "stations", "scales", "rotary", "features"),
     "mesh": ("x", "y", "z", "step", "step_x", "step_y", "step_z"),
     "plan": ("runs", "tools", "feed", "stop_time", "tool_change_time", "station_change_time"),
     "tracker": ("D", "L", "H", "a", "b", "d", "angular", "distance", "distance_per_length", "mount"),
@@ -142,11 +142,15 @@ SCHEMA = {
     # [rotary.<A|B|C>]: a five-axis machine's rotary axes (as recording.toml's format 3) and the angles the plan visits
     "rotary": ("A", "B", "C"),
     "rotary.<axis>": ("pivot", "direction", "angles", "description"),
+    # [[features]]: features probed on the compensated machine (docs/features.md; checked by mtbudget.features)
+    "features": ("name", "kind", "points", "directions", "tolerance", "association", "datum", "probing_error",
+                 "repeatability", "machine_temperature_change", "part_temperature", "part_temperature_u", "part_cte",
+                 "part_cte_u"),
 }
 #: at most this many commanded angles per rotary axis in a plan
 MAX_ROTARY_ANGLES = 72
 #: the tables that are arrays of tables ([[sensors]], [[stations]]): checked entry by entry
-ARRAY_TABLES = ("sensors", "stations")
+ARRAY_TABLES = ("sensors", "stations", "features")
 #: at most this many stations in one verification (each adds 6 or 4 unknowns and a pass over the plan)
 MAX_STATIONS = 12
 

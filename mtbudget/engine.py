@@ -14,6 +14,7 @@ from __future__ import annotations
 import numpy as np
 
 from .errors import ConfigError
+from .features import FeatureSet
 from .identify import Strategy, identify, scale_vector
 from .outputs import POINT_UNIT, SCALARS, BlockResult
 from .plugins import call
@@ -37,6 +38,7 @@ class Engine:
             sample_source(scenario, s, 2, np.random.default_rng(0), self.shapes)
         self._um = factor("mm", POINT_UNIT)
         self._options: dict = {}  # strategy source name -> its options, asked once per engine
+        self.features = FeatureSet.of(scenario)  # [[features]] (docs/features.md); None without
 
     # ------------------------------------------------------------------ one block
     def simulate(self, block: int, active: list | None = None):
@@ -80,6 +82,8 @@ class Engine:
         out_scalars = {k: np.empty(nb * n) for k in SCALARS}
         not_converged = np.zeros(nb * n, bool)  # per trial: a block cut to a run's last trials counts its own
         fallbacks = np.zeros(nb * n, bool)
+        fs = self.features
+        Ff_id = None if fs is None else np.empty((nb * n, len(fs.points), 3))  # identified machine at the features
         um = self._um
         for key in np.unique(keys):
             idx = np.flatnonzero(keys == key)
@@ -99,6 +103,8 @@ class Engine:
             if res.fallback is not None:
                 fallbacks[idx] = res.fallback
             F_id[idx] = sc.evaluate(model, res.theta)
+            if fs is not None:
+                Ff_id[idx] = fs.evaluate(model, res.theta)
             out_scalars["mean_error_after"][idx] = res.mean_error_after * um
             out_scalars["mean_error_before"][idx] = res.mean_error_before * um
             out_scalars["max_residual"][idx] = res.max_residual * um
@@ -130,6 +136,8 @@ class Engine:
             results.append(BlockResult(b, n, sc_b, e, params[sl].copy(), int(not_converged[sl].sum()), components=comp,
                                        fallbacks=int(fallbacks[sl].sum()), trial_not_converged=not_converged[sl].copy(),
                                        trial_fallbacks=fallbacks[sl].copy()))
+            if fs is not None:  # the same state of the compensated machine at every probed point, rigid part kept
+                results[-1].features = fs.block_values(fs.evaluate(sc.truth, theta_true[i]) - Ff_id[sl], self.seed, b)
         return results
 
     def _options_of(self, src) -> list:

@@ -67,6 +67,9 @@ class BlockResult:
     # to a run's last trials counts its own trials only); a block read back from a log has its counts only
     trial_not_converged: np.ndarray | None = field(default=None, repr=False, compare=False)
     trial_fallbacks: np.ndarray | None = field(default=None, repr=False, compare=False)
+    #: [[features]]: (n, K, C) each feature's error per trial (mtbudget.features: total, the verification's state
+    #: alone, each in-use source alone); None without features or for a block read back from a log
+    features: np.ndarray | None = field(default=None, repr=False, compare=False)
     # the moments of the vector outputs, computed once (a worker computes them before sending the block; the run
     # merges them and the run log writes them); never part of a comparison
     _moments: dict = field(default_factory=dict, init=False, repr=False, compare=False)
@@ -89,12 +92,14 @@ class BlockResult:
 
             raise ConfigError("a block read back from a log cannot be shortened; resume with the logged trial count")
         nc, fb = self.trial_not_converged, self.trial_fallbacks
-        return BlockResult(self.block, n, {k: v[:n] for k, v in self.scalars.items()}, self.point_error[:n],
+        out = BlockResult(self.block, n, {k: v[:n] for k, v in self.scalars.items()}, self.point_error[:n],
                            self.parameters[:n], self.not_converged if nc is None else int(nc[:n].sum()),
                            components=None if self.components is None else self.components[:n],
                            fallbacks=self.fallbacks if fb is None else int(fb[:n].sum()),
                            trial_not_converged=None if nc is None else nc[:n],
                            trial_fallbacks=None if fb is None else fb[:n])
+        out.features = None if self.features is None else self.features[:n]
+        return out
 
     def vector_moments(self) -> dict:
         """{"point_error": Moments, "parameters": Moments, "components": CoMoments}, those the block knows (a block
@@ -159,6 +164,9 @@ class RunResult:
     log_problem: str | None = None  # the run log could not be written (a full disk): what happened, how to resume
     resume_notes: list = field(default_factory=list)  # what a resume recomputed and why (damaged blocks ...)
     prefix: object = field(default=None, repr=False, compare=False)  # during a run: its first trials for the budget
+    #: [[features]]: every merged block's (n, K, C) feature errors, in block order (a resumed block has none: None)
+    feature_blocks: list = field(default_factory=list, repr=False, compare=False)
+    logged_features: list | None = None  # the features of a complete log (replay)
 
     @property
     def not_converged(self) -> int:

@@ -42,6 +42,9 @@ def result_json(res: RunResult) -> dict:
         out["points"] = pts
         out["points_summary"] = points_summary(pts)
         out["validation"] = out["points_summary"].get("clause8")
+    feats = features_of(res)
+    if feats is not None:  # [[features]] (docs/features.md): only then, so other runs' JSON is unchanged
+        out["features"] = feats
     if res.guf is not None:
         out["guf_points"] = {"estimate": np.asarray(res.guf["estimate"]).tolist(), "cov": np.asarray(res.guf["cov"]).tolist(),
                              "unit": "um", "cov_unit": "um**2"}
@@ -110,6 +113,19 @@ def statement_kind_line(k: dict) -> str:
         tail = (f" Evidence: u(MCM)/u(GUF on the same inputs) median {r['median']:.3f} ({r['min']:.3f}-{r['max']:.3f}) "
                 f"over the point-axes; clause 8 validated at {ev['clause8_validated']} of {ev['of']}.")
     return (f"Kind of statement: A PRIORI, a {k['name']}: {k['what']}. Assumed machine: {k['assumed_machine']}.{tail}")
+
+
+def features_of(res: RunResult) -> list | None:
+    """The [[features]] statement of a run (mtbudget.features.features_json), None without features."""
+    from .features import features_json
+
+    spec = (res.spec or {}).get("features")
+    if not spec:
+        return None
+    if not res.feature_blocks:
+        return res.logged_features
+    samples = None if any(b is None for b in res.feature_blocks) else np.concatenate(res.feature_blocks)
+    return features_json(spec, samples, res.coverage, res.budget)
 
 
 #: the per-point measurand in one sentence (docs/measurand.md has the definition)
@@ -335,6 +351,10 @@ def budget_text(res: RunResult) -> str:
                          f"{pretty(shown_unit(w['unit']))}")
     lines.append("")
     lines += point_lines(res)
+    if (res.spec or {}).get("features"):
+        from .features import features_text
+
+        lines += features_text(features_of(res))
     pb = res.budget.get("points")
     if pb:
         lines.append("")
@@ -798,6 +818,10 @@ def run_report(res: RunResult, folder, tolerance_um: float | None = None, charac
             md += ["", f"Systematic, {k['systematic']} ({', '.join(k['sources'])}): u_i RMS over the mesh "
                        f"{_vec(k['u_rms_over_mesh'], 2)} {pretty(pb['unit'])}, {k['share']:.1%} of the variance. "
                        "How each was bounded:", ""] + [f"* `{n}`: {md_escape(t)}" for n, t in k["bounded"].items()]
+    if data.get("features"):
+        from .features import features_markdown
+
+        md += features_markdown(data["features"])
     v = data.get("validation")
     if v:
         md += ["", "## GUF vs MCM (JCGM 101 clause 8), per point and axis", "",

@@ -126,12 +126,17 @@ def make_spec(scenario: Scenario, engine: Engine, settings: RunSettings) -> dict
     """The JSON-able description a worker (or replay --verify) rebuilds the engine from."""
     cfg = scenario.config
     other_tool = scenario.measurand_tool is not None
-    return {"config": cfg.source, "config_path": str(cfg.path) if cfg.path else None, "seed": int(engine.seed),
+    spec = {"config": cfg.source, "config_path": str(cfg.path) if cfg.path else None, "seed": int(engine.seed),
             "block": int(engine.block), "sources": [s.name for s in engine.sources], "coverage": float(settings.coverage),
             "measurand": {"tool": [float(v) for v in scenario.tool], "tool_unit": "mm",
                           "verification_tool": not other_tool,
                           "in_use": any(s.name == "in_use" for s in engine.sources),
                           "unidentified": scenario.unidentified_at_tool() if other_tool else []}}
+    if engine.features is not None:  # [[features]] (docs/features.md): only then, so other runs' specs are unchanged
+        from .features import describe
+
+        spec["features"] = describe(scenario)
+    return spec
 
 
 def run(config: SimulationConfig | Scenario | str | None = None, settings: RunSettings | None = None, *,
@@ -195,6 +200,8 @@ def _run(config, settings, *, on_chunk, resume_blocks, engine, host, resume_hist
             accumulate_block(acc, t)
             if batch["parts"] is not None:
                 batch["parts"].append(None if t.components is None else t.components.reshape(t.n, -1))
+            if spec.get("features"):  # [[features]]: every trial's feature errors, for their intervals
+                result.feature_blocks.append(t.features)
             if prefix is not None:
                 prefix.add(t, computed=t.block not in resumed)
             return t
@@ -520,6 +527,7 @@ def replay(path) -> RunResult:
                                                   **({"basis": guf["basis"]} if guf.get("basis") else {})},
                     logged_points=logged.get("points"))
     res.adaptive = logged.get("adaptive")
+    res.logged_features = logged.get("features")
     res.log = log
     return res
 

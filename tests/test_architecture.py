@@ -26,7 +26,7 @@ LAYERS = [
     ["executors", "diagnose", "runlog", "compensate", "posterior"],
     ["engine"],
     ["simulate"],
-    ["scenario"],
+    ["scenario", "features"],
     ["outputs", "identify", "multistation", "plugins", "config", "recording", "mcm"],
     ["contracts", "model", "distributions"],
     ["machine", "tracker", "plan", "stats", "hookspecs", "progress"],
