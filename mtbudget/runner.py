@@ -473,6 +473,10 @@ def replay(path) -> RunResult:
                     commanded=np.asarray(h["commanded"]) if h.get("commanded") else None,
                     guf=None if guf is None else {"estimate": np.asarray(guf["estimate"]), "cov": np.asarray(guf["cov"])},
                     logged_points=logged.get("points"))
+    if acc.n == 0:  # a run killed after its header and before its first block: nothing to state
+        raise RunLogError(f"holds no trial ({log.problem or 'no block was saved'}): the run was stopped before its "
+                          f"first block of trials was saved; `mtbudget run --resume {path}` runs it again from its "
+                          "configuration and seed", path=path)
     res.log = log
     return res
 

@@ -367,3 +367,20 @@ def test_crash_campaign(tmp_path, tiny):
     print(json.dumps(out, indent=1))
     if os.environ.get("MTBUDGET_CRASH_REPORT"):
         Path(os.environ["MTBUDGET_CRASH_REPORT"]).write_text(json.dumps(out, indent=1))
+
+
+def test_a_log_killed_before_its_first_block_gives_one_line_and_resumes(tmp_path):
+    """Issue 29: a run killed after its header and before its first block made replay --json and report raise
+    KeyError 'compensation_rms'; now one line naming the log and the way to resume it, and the resume works."""
+    log = tmp_path / "h.mcap"
+    execute(SMALL, trials=16, block=8, attribution_trials=0, log_path=log)
+    data = log.read_bytes()
+    os.remove(log)
+    partial_path(log).write_bytes(data[: data.index(b'"block": 0,')])
+    for args in (["replay", str(log), "--json"], ["replay", str(log)], ["report", str(log), "--out", str(tmp_path / "r")]):
+        res = CliRunner().invoke(main, args)
+        assert res.exit_code == 2, (args, res.output)
+        assert "Traceback" not in res.output and len(res.output.strip().splitlines()) == 1, res.output
+        assert str(log) in res.output and "no trial" in res.output and "--resume" in res.output
+    execute(resume_path=log, attribution_trials=0)
+    same_run(replay(log), run(load_config(SMALL), trials=16, block=8, attribution_trials=0))
