@@ -535,6 +535,7 @@ class _Lines:
     def __init__(self, fh, path, encoding):
         self.fh, self.path, self.encoding = fh, path, encoding
         self.line, self.offset, self.next_offset = 0, 0, 0
+        self.unterminated = False  # the line last read has no line ending: the file's last, maybe cut short
         self.header = None  # the column names, once known (for the column of a bad byte)
 
     def __iter__(self):
@@ -546,6 +547,7 @@ class _Lines:
             raise StopIteration
         self.line += 1
         self.offset, self.next_offset = self.next_offset, self.next_offset + len(raw)
+        self.unterminated = not raw.endswith((b"\n", b"\r"))
         if self.line == 1:
             for bom, name in _BOMS:
                 if raw.startswith(bom):
@@ -664,6 +666,10 @@ def _read_points(csv_path: Path, sensors, *, ignored=frozenset(), max_rows=MAX_R
                 line = lines.line
                 if not cells or (len(cells) == 1 and not cells[0].strip()):
                     continue  # a blank line
+                if lines.unterminated:  # a number cut mid-way would read as another number
+                    raise RecordingError("the last line has no line ending: the file looks cut short (an interrupted "
+                                         "copy or export?); if the line is complete, end the file with a newline",
+                                         csv_path, line=line)
                 if len(cells) != m:
                     raise _bad_count(cells, header, csv_path, line)
                 for j, append, h in appends:

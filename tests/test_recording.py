@@ -263,6 +263,20 @@ def test_harmless_variants_read_identically(edit, broken):
         assert np.array_equal(base.plan.temperature[c], back.plan.temperature[c])
 
 
+def test_a_last_line_cut_mid_number_is_refused_naming_file_and_line(broken):
+    """Issue 29: '646.506904' cut to '64' with no final newline read as 64 mm (exit 0); a file whose last line has no
+    line ending is refused with its line number, and the same line ended by a newline reads."""
+    data = (broken / "points.csv").read_bytes()
+    last = data.rstrip(b"\n").count(b"\n") + 1  # the line number of the last row
+    (broken / "points.csv").write_bytes(data.rstrip(b"\n")[:-4])
+    with pytest.raises(RecordingError) as info:
+        read_recording(broken)
+    msg = str(info.value)
+    assert "points.csv" in msg and f"line {last}:" in msg and "no line ending" in msg and "\n" not in msg
+    (broken / "points.csv").write_bytes(data.rstrip(b"\n")[:-4] + b"\r\n")  # ended: it is a complete line, read
+    assert len(read_recording(broken)) == last - 1
+
+
 def test_size_guards_refuse_before_parsing(broken):
     with pytest.raises(RecordingError, match=r"points\.csv, line 12: more than 10 data rows; .*max_rows=10"):
         read_recording(broken, max_rows=10)
