@@ -195,30 +195,34 @@ def _run(config, settings, *, on_chunk, resume_blocks, engine, host, resume_hist
             return t
 
         def consume(block_ids, target_n):
-            todo = [b for b in block_ids if b not in done]
-            chunks = [todo[i:i + chunk_blocks] for i in range(0, len(todo), chunk_blocks)]
+            # chunks of chunk_blocks consecutive blocks, each without the blocks resumed from a log: a convergence row
+            # after each such group, so a resumed run has every row of the uninterrupted run (the same numbers)
+            groups = [block_ids[i:i + chunk_blocks] for i in range(0, len(block_ids), chunk_blocks)]
+            chunks = [c for c in ([b for b in g if b not in done] for g in groups) if c]
             gen = ex.map(chunks)
             # blocks computed or resumed and not yet merged; a block is released once merged (a resumed one too),
             # so the run holds only what waits for an earlier block: memory bounded by the executor's window
             cache = {b: done.pop(b) for b in block_ids if b in done}
             pending = deque(block_ids)
+            last = {g[-1] for g in groups}
+
+            def drain():
+                merged = []  # every block now available, in block order, a row after each group
+                while pending and pending[0] in cache:
+                    b = pending.popleft()
+                    merged.append(merge(cache.pop(b), target_n))  # merged blocks are not kept
+                    if b in last:
+                        _record(result)
+                        bar.update(sum(m.n for m in merged))
+                        if on_chunk:
+                            on_chunk(merged, result)
+                        merged = []
+
             for _ in chunks:
                 for r in next(gen):
                     cache[r.block] = r
-                merged = []  # every block now available, in block order
-                while pending and pending[0] in cache:
-                    merged.append(merge(cache.pop(pending.popleft()), target_n))  # merged blocks are not kept
-                if merged:
-                    _record(result)
-                    bar.update(sum(b.n for b in merged))
-                    if on_chunk:
-                        on_chunk(merged, result)
-            if pending:  # blocks that were all resumed from a log
-                merged = [merge(cache.pop(b), target_n) for b in pending]
-                pending.clear()
-                _record(result)
-                if on_chunk:
-                    on_chunk(merged, result)
+                drain()
+            drain()  # groups that were all resumed from a log
 
         if trials is not None:
             consume(list(range(math.ceil(int(trials) / engine.block))), int(trials))
@@ -258,7 +262,8 @@ def _record(result: RunResult):
 
 # ------------------------------------------------------------------ the run command, logged
 #: settings that change a run's numbers beyond trials, seed, coverage, block and sources; logged so a resume reuses them
-RESUMED_SETTINGS = ("keep_samples", "adaptive_batch", "max_trials", "ndig", "adaptive_outputs", "chunk_blocks")
+RESUMED_SETTINGS = ("keep_samples", "adaptive_batch", "max_trials", "ndig", "adaptive_outputs", "chunk_blocks",
+                    "attribution_trials")
 
 
 def execute(config=None, settings: RunSettings | None = None, *, log_path=None, resume_path=None, force: bool = False,

@@ -384,3 +384,20 @@ def test_a_log_killed_before_its_first_block_gives_one_line_and_resumes(tmp_path
         assert str(log) in res.output and "no trial" in res.output and "--resume" in res.output
     execute(resume_path=log, attribution_trials=0)
     same_run(replay(log), run(load_config(SMALL), trials=16, block=8, attribution_trials=0))
+
+
+def test_a_resume_keeps_the_runs_settings_and_every_convergence_row(tmp_path):
+    """Issue 29: the resumed log ignored --attribution-trials 0 (it computed a budget the run had not asked for) and
+    lost the convergence rows from before the kill. Now its settings, rows and budget are the uninterrupted run's."""
+    full_log, log = tmp_path / "full.mcap", tmp_path / "cut.mcap"
+    execute(SMALL, trials=96, block=8, chunk_blocks=2, attribution_trials=0, log_path=full_log)
+    data = full_log.read_bytes()
+    at = [i for i in range(len(data)) if data.startswith(b'"block": 5,', i)][0]  # killed inside block 5
+    partial_path(log).write_bytes(data[:at])
+    assert len(read_runlog(log).convergence) == 2  # rows after blocks 0-1 and 2-3 were saved
+    res = execute(resume_path=log)  # the defaults of a new run (attribution_trials 512) must not apply
+    resumed, full = read_runlog(log), read_runlog(full_log)
+    assert resumed.header["settings"]["attribution_trials"] == 0 and res.budget == {}
+    assert resumed.result["budget"] == {} == full.result["budget"]
+    assert resumed.convergence == full.convergence and len(full.convergence) == 6
+    same_run(replay(log), replay(full_log))
