@@ -118,7 +118,8 @@ class Reader:
 
 
 #: every key a configuration may hold, by table (docs/configuration.md documents each; a test checks it does).
-#: [placement] is checked by the placement study and [sources] by the scenario.
+#: [placement] is checked here with its values (_placement, for every command that reads a configuration) and
+#: [sources] by the scenario.
 SCHEMA = {
     "": ("format", "name", "description", "machine", "reference_temperature", "seed", "mesh", "plan", "tracker",
          "machine_tool", "geometric_errors", "sensors", "effects", "placement", "sources", "weights", "measurand",
@@ -133,12 +134,21 @@ SCHEMA = {
     "effects": ("thermal", "reversal", "drift"),
     "weights": ("angular", "distance", "distance_per_length", "repeatability"),
     "measurand": ("tool",),
+    "placement": ("D", "L", "H", "range_min", "range_max", "elevation_max", "tests", "candidates", "envelope",
+                  "directions", "eq23", "eq27"),
     "stations": ("kind", "D", "L", "H", "a", "b", "d", "position", "dead_path", "description", "angular", "distance",
                  "distance_per_length"),
     # [scales.<axis>]: the nominal expansion of each axis scale, simulated and corrected (as recording.toml's [scales])
     "scales": AXES,
     "scales.<axis>": ("cte", "fixed_point"),
 }
+#: the readings of the paper that its text leaves open, one key of [placement] each, default first (mtbudget.study)
+PLACEMENT_READINGS = {"directions": ("machine", "envelope"), "eq23": ("polar", "elevation"),
+                      "eq27": ("compensated", "compensated_rigid", "residual")}
+#: what the placement study takes from elsewhere in the configuration (one key per physical input)
+PLACEMENT_NOISE_KEYS = {"angular_mean": "tracker.angular", "distance": "tracker.distance",
+                        "distance_per_length": "tracker.distance_per_length",
+                        "angular_sd": "sources.tracker_noise.angular_sd"}
 #: the tables that are arrays of tables ([[sensors]], [[stations]]): checked entry by entry
 ARRAY_TABLES = ("sensors", "stations")
 #: at most this many stations in one verification (each adds 6 or 4 unknowns and a pass over the plan)
@@ -294,6 +304,51 @@ def _pose(tr: "Reader") -> np.ndarray:
     return pose
 
 
+def _placement(r: "Reader") -> None:
+    """Check [placement] (keys and values) for every command that reads the configuration, not only the placement
+    study: a typo or a bad unit there is an error wherever the file is used (the study reads the values)."""
+    if not r.has("placement"):
+        return
+    raw = r.raw("placement")
+    if not isinstance(raw, dict):
+        raise ConfigError(f"{r.where('placement')}: expected a table")
+    p = r.sub("placement")
+    for k in raw:
+        if k in PLACEMENT_NOISE_KEYS:
+            raise ConfigError(f"{p.where(k)}: the tracker noise is stated once, as {PLACEMENT_NOISE_KEYS[k]}; "
+                              "remove it from [placement]")
+    p.check_keys(SCHEMA["placement"], "[placement]")
+    for k in "DLH":
+        if k in raw:
+            v = raw[k]
+            if not (isinstance(v, list) and len(v) == 2):
+                raise ConfigError(f"{p.where(k)}: expected [low, high], e.g. [\"-2000 mm\", \"-500 mm\"]")
+            lo, hi = (to_unit(x, "mm", p.where(k)) for x in v)
+            if not lo <= hi or max(abs(lo), abs(hi)) > MAX_LENGTH:
+                raise ConfigError(f"{p.where(k)}: expected low <= high within {MAX_LENGTH:g} mm")
+    for k, unit in (("range_min", "mm"), ("range_max", "mm"), ("elevation_max", "rad")):
+        if k in raw and not p.quantity(k, unit) > 0:
+            raise ConfigError(f"{p.where(k)}: must be positive")
+    if "range_min" in raw or "range_max" in raw:
+        if not p.quantity("range_min", "mm", "0.5 m") < p.quantity("range_max", "mm", "15 m"):
+            raise ConfigError(f"{p.where('range_max')}: must exceed range_min")
+    if "envelope" in raw:
+        env = raw["envelope"]
+        if not (isinstance(env, dict) and set(env) == set(AXES)
+                and all(isinstance(env[a], list) and len(env[a]) == 2 for a in AXES)):
+            raise ConfigError(f"{p.where('envelope')}: expected {{ x = [lo, hi], y = [lo, hi], z = [lo, hi] }}")
+        for a in AXES:
+            lo, hi = (to_unit(x, "mm", f"{p.where('envelope')}.{a}") for x in env[a])
+            if not lo <= hi:
+                raise ConfigError(f"{p.where('envelope')}.{a}: low must not exceed high")
+    for k in ("tests", "candidates"):
+        if k in raw:
+            p.number(k, kind=int, low=1)
+    for k, choices in PLACEMENT_READINGS.items():
+        if k in raw and raw[k] not in choices:
+            raise ConfigError(f"{p.where(k)}: expected one of {', '.join(map(repr, choices))}, got {raw[k]!r:.60}")
+
+
 def config_states(data: dict, key: str) -> bool:
     """Whether the raw configuration ``data`` states the dotted ``key`` ("machine_tool.cte")."""
     node = data
@@ -416,8 +471,9 @@ def parse_config(data: dict, path=None) -> SimulationConfig:
         raise ConfigError(f"{r.where('format')}: expected \"{CONFIG_FORMAT}\", got {fmt!r}")
     r.check_keys(SCHEMA[""], "a configuration")
     for table in [t for t in SCHEMA if t and t not in ARRAY_TABLES and "." not in t]:  # every table; [scales.x]: _scales
-        if r.has(table):
+        if r.has(table) and table != "placement":
             r.sub(table).check_keys(SCHEMA[table], f"[{table}]")
+    _placement(r)
     for table in ARRAY_TABLES:
         entries = data.get(table, [])
         if not isinstance(entries, list) or not all(isinstance(x, dict) for x in entries):

@@ -32,7 +32,7 @@ from typing import TYPE_CHECKING
 
 from .errors import PluginError
 from .model import MODEL_INPUTS
-from .units import ABSOLUTE_TEMPERATURE, Q_, is_offset_temperature, is_temperature_difference_unit, parse_quantity, ureg
+from .units import ABSOLUTE_TEMPERATURE, Q_, angle_or_ratio_problem, is_offset_temperature, is_temperature_difference_unit, parse_quantity, ureg
 
 if TYPE_CHECKING:  # annotations only: the contract does not import the layers that use it
     from .model import MeasurementModel
@@ -158,12 +158,14 @@ class Source:
             if isinstance(old, pint.Quantity):
                 if not isinstance(new, pint.Quantity):
                     new = Q_(float(new))
-                if old.dimensionless and not old.unitless and new.unitless:
+                if old.dimensionless and not old.unitless and not dict(new.unit_items()):
                     raise PluginError(f"parameter {k!r}: {v!r} needs an explicit unit (for example \"{v} {old.units:~P}\"); "
                                       "a bare number is ambiguous for an angle", self.plugin or None, self.name)
                 if new.dimensionality != old.dimensionality:
                     raise PluginError(f"parameter {k!r}: {new:~P} does not have the dimension of {old:~P}",
                                       self.plugin or None, self.name)
+                if old.dimensionless and dict(old.unit_items()) and (problem := angle_or_ratio_problem(new, old)):
+                    raise PluginError(f"parameter {k!r}: {v!r} {problem}", self.plugin or None, self.name)
                 if old.dimensionality == ureg.kelvin.dimensionality:
                     if is_offset_temperature(old) or k in self.absolute_temperatures:
                         if is_temperature_difference_unit(new):

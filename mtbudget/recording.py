@@ -869,6 +869,16 @@ def _convert(parsed, values, rows, csv_path, temp_cols, columns=COLUMNS):
             kelvin = "" if unit == ureg.kelvin else f" ({T[k]:.6g} K)"
             fail(name, k, f"{values[name][k]:g} {unit:~P}{kelvin} is not a plausible absolute temperature "
                           f"({lo:g} K to {hi:g} K){hint}")
+        # a header on the other scale: readings a shop has in degC (5-40) under degF read as below 5 degC, and
+        # readings a shop has in degF (50-105) under degC read as above 50 degC; neither is a verification's air
+        unit, med = parsed[name][1], float(np.median(values[name]))
+        other = ("degC", 5 <= med <= 40 and np.median(T) < 278.15) if unit == ureg.degree_Fahrenheit else \
+            ("degF", 50 <= med <= 105) if unit == ureg.degree_Celsius else None
+        if other is not None and other[1]:
+            k = int(np.argmin(np.abs(values[name] - med)))
+            fail(name, k, f"the readings of this column (median {med:g} {unit:~P}, {np.median(T) - 273.15:.1f} degC) are "
+                          f"not a machine shop's temperature; they look like {other[0]} readings: write "
+                          f"'{name} [{other[0]}]' (or check the sensor)")
     nominal = np.stack([out["x"], out["y"], out["z"]], axis=1)
     _, first, inverse = np.unique(out["point"], return_index=True, return_inverse=True)
     moved = np.flatnonzero(np.any(nominal != nominal[first[inverse.ravel()]], axis=1))
