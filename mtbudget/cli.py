@@ -55,6 +55,14 @@ def _first_run_note(args: list):
         click.echo("compiling the engine's kernels (numba), once for this machine: 5-10 s ...", err=True)
 
 
+def _identify_limit() -> int:
+    """The most rows a recording may have for a command that identifies it: one identification's limit, checked by
+    the reader on the bytes before it parses a row (a 10^6-row file is refused in a second, not after its parse)."""
+    from .identify import MAX_POINTS
+
+    return MAX_POINTS
+
+
 @click.group(cls=_Group, context_settings={"help_option_names": ["-h", "--help"]})
 @click.version_option(__version__, prog_name="mtbudget")
 def main():
@@ -113,7 +121,7 @@ def _print_identification(folder, as_json=False, max_degree=3, strategy="one-pha
     from .recording import read_recording
     from .units import display, shown_unit
 
-    rec = read_recording(folder, several_stations=True)
+    rec = read_recording(folder, several_stations=True, max_rows=_identify_limit())
     if rec.several_stations:  # all stations at once (docs/recording-format.md, format 2)
         from .multistation import identify_recording_any, summary as station_summary, summary_text
 
@@ -232,7 +240,7 @@ def compensate(recording, example, fmt, out, step, check, max_degree, as_json, r
         raise click.UsageError("give a RECORDING folder or --example NAME")
     step_mm = parse_step(step)
     exporter = find_exporter(fmt)
-    rec = read_recording(example_recording(example) if example else recording)
+    rec = read_recording(example_recording(example) if example else recording, max_rows=_identify_limit())
     table = build_table(rec, step_mm, max_degree=max_degree)
     written = export(table, exporter, out)
     result = check_export(table, rec, exporter, written) if check else None
@@ -489,7 +497,8 @@ def diagnose_cmd(recording, example, as_json, report_dir, alpha, max_degree, qui
     if recording is None and example is None:
         raise click.UsageError("give a RECORDING folder or --example NAME")
     folder = example_recording(example) if example else recording
-    rec = read_recording(folder, several_stations=True)  # several stations: every station identified together
+    rec = read_recording(folder, several_stations=True,  # several stations: every station identified together
+                         max_rows=_identify_limit())
     d = diagnose(rec, alpha=alpha, max_degree=max_degree, progress=not quiet)
     if report_dir is not None:
         from .report_diagnosis import diagnosis_report
