@@ -32,12 +32,24 @@ class _Group(click.Group):
 
         for var in ("OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "OMP_NUM_THREADS"):
             os.environ.setdefault(var, "1")
-        _first_run_note(ctx.meta.get("mtbudget.argv", []))
+        argv = ctx.meta.get("mtbudget.argv", [])
+        _first_run_note(argv)
+        from .progress import start_starting, stop_starting
+
+        if argv and argv[0] in _COMPUTING and not {"-h", "--help", "--quiet"} & set(argv):
+            start_starting()  # a heartbeat on stderr until the command's first bar or note (not in a CliRunner)
         try:
             return super().invoke(ctx)
         except MtbudgetError as exc:
+            stop_starting()
             click.echo(f"error: {exc}", err=True)
             ctx.exit(2)
+        except KeyboardInterrupt:
+            stop_starting()
+            click.echo("\ninterrupted (Ctrl-C)", err=True)
+            ctx.exit(130)
+        finally:
+            stop_starting()
 
 
 #: commands that evaluate the kinematic chain (and so call the compiled kernels)
@@ -45,14 +57,15 @@ _COMPUTING = {"study", "run", "replay", "simulate", "identify", "compensate", "d
 
 
 def _first_run_note(args: list):
-    """On a terminal, say so when the first command after installing compiles the engine's kernels (numba,
-    several seconds once per machine), rather than sit silent."""
-    if not args or args[0] not in _COMPUTING or {"-h", "--help", "--quiet"} & set(args) or not sys.stderr.isatty():
+    """Say so on stderr (a terminal, a pipe or a file alike) when the first command after installing compiles the
+    engine's kernels (numba, once per machine: 13-34 s measured on 2 busy cores), rather than sit silent; never
+    with --quiet or --help (stdout, where --json prints, is never written)."""
+    if not args or args[0] not in _COMPUTING or {"-h", "--help", "--quiet"} & set(args):
         return
     from .kernels import compiled_here
 
     if compiled_here() is False:
-        click.echo("compiling the engine's kernels (numba), once for this machine: 5-10 s ...", err=True)
+        click.echo("compiling the engine's kernels (numba), once for this machine: 10-40 s ...", err=True)
 
 
 def _identify_limit() -> int:
@@ -390,7 +403,20 @@ def run_cmd(config, trials, seed, coverage, executor, workers, address, attribut
     settings = RunSettings(trials=trials or None, seed=seed, coverage=coverage, executor=executor, workers=workers,
                            address=address, attribution_trials=attribution_trials, progress=not quiet,
                            adaptive_batch=adaptive_batch, block=block)
-    res = execute(config, settings, log_path=log_path, resume_path=resume_path, force=force)
+    try:
+        res = execute(config, settings, log_path=log_path, resume_path=resume_path, force=force)
+    except KeyboardInterrupt:
+        from .runner import DEFAULT_LOG
+        from .runlog import final_path, partial_path
+
+        target = final_path(log_path or resume_path or DEFAULT_LOG)
+        if partial_path(target).exists():
+            click.echo(f"\ninterrupted: the blocks of trials finished so far are saved in {partial_path(target)}; "
+                       f"finish the run with `mtbudget run --resume {target}` (the same numbers as an uninterrupted "
+                       "run)", err=True)
+        else:
+            click.echo("\ninterrupted before the first block of trials was saved; nothing to resume", err=True)
+        raise SystemExit(130) from None
     if as_json:
         click.echo(json.dumps(result_json(res), indent=1))
     else:
@@ -537,7 +563,7 @@ def report(runlog, out, tolerance, characteristic):
     convergence). The HTML opens in a browser with no network.
     """
     from .config import to_unit
-    from .progress import note
+    from .progress import note, working
     from .report import run_report
     from .runner import replay as do_replay
 
@@ -546,7 +572,8 @@ def report(runlog, out, tolerance, characteristic):
         raise click.BadParameter("must be a positive length, e.g. \"20 um\"", param_hint="--tolerance")
     res = do_replay(runlog)
     note(f"writing the report and its figures into {out}/ ...")
-    paths = run_report(res, out, tol, characteristic)
+    with working("report and figures"):
+        paths = run_report(res, out, tol, characteristic)
     if tol is not None:  # the decision on the console too, not only below the report's tables
         from .budget import conformance
 
@@ -591,13 +618,16 @@ def _placement(config, tests, out, quiet):
     from .scenario import build_scenario
     from .study import placement, placement_arrays, placement_json
 
+    from .progress import working
+
     cfg = load_config(config)
     res = placement(build_scenario(cfg), tests=tests, progress=not quiet)
     out.mkdir(parents=True, exist_ok=True)
-    summary = placement_json(res)
-    write_placement_log(summary, placement_arrays(res), out / "placement.mcap",
-                        cfg.path.read_text() if cfg.path else None, cfg.seed)
-    md = placement_report(res, summary, out)
+    with working("writing the placement log, report and figures", not quiet):
+        summary = placement_json(res)
+        write_placement_log(summary, placement_arrays(res), out / "placement.mcap",
+                            cfg.path.read_text() if cfg.path else None, cfg.seed)
+        md = placement_report(res, summary, out)
     red = res["reduction"]
     click.echo(f"placement: {res['settings']['tests']} tests per direction in {res['seconds']:.0f} s; mean maximum error "
                f"{red['mean_better_um']:.1f} µm ({red['better']} direction) vs {red['mean_worse_um']:.1f} µm "
@@ -623,10 +653,13 @@ def _verification(config, trials, out, quiet, attribution_trials):
     execute(cfg, RunSettings(trials=trials, progress=not quiet, attribution_trials=attribution_trials),
             log_path=out / "verification.mcap", force=True)
     res = replay(out / "verification.mcap")
+    from .progress import working
+
     note("writing the report and the figures of paper Figs. 12-15 ...", not quiet)
-    init, final = verification_clouds(res, build_scenario(cfg, sources=res.spec["sources"]))
-    figs = verification_figures(res, init, final, res.mesh, out / "report")
-    run_report(res, out / "report", extra_figures={k: (p, STUDY_CAPTIONS.get(k, k)) for k, p in figs.items()})
+    with working("report and figures", not quiet):
+        init, final = verification_clouds(res, build_scenario(cfg, sources=res.spec["sources"]))
+        figs = verification_figures(res, init, final, res.mesh, out / "report")
+        run_report(res, out / "report", extra_figures={k: (p, STUDY_CAPTIONS.get(k, k)) for k, p in figs.items()})
     summ = verification_summary(res)
     (out / "verification.json").write_text(json.dumps(summ, indent=1, default=float))
     fm = summ["final_mean_error_um"]
@@ -792,9 +825,12 @@ def _readings(config, out, quiet, trials):
     from .scenario import build_scenario
     from .study import paper_readings, readings_verdict
 
+    from .progress import working
+
     note("every reading of the paper's figures side by side ...", not quiet)
-    r = paper_readings(build_scenario(load_config(config)), trials=trials)  # the run's own verifications
-    md = readings_report(r, out)
+    with working("readings", not quiet):
+        r = paper_readings(build_scenario(load_config(config)), trials=trials)  # the run's own verifications
+        md = readings_report(r, out)
     verdict = readings_verdict(r)
     with open(md, "a", encoding="utf-8") as fh:
         fh.write("\n" + verdict + "\n")

@@ -39,7 +39,7 @@ from .engine import Engine
 from .errors import ConfigError
 from .identify import Strategy, identify
 from .plan import mesh
-from .progress import progress_bar
+from .progress import progress_bar, working
 from .scenario import Scenario
 from .units import display, factor
 
@@ -263,7 +263,8 @@ def placement(scenario: Scenario, tests: int | None = None, seed: int | None = N
     better, worse = sorted([("X", x.mean()), ("Y", y.mean())], key=lambda t: t[1])
     out["reduction"] = {"better": better[0], "worse": worse[0], "mean_better_um": better[1], "mean_worse_um": worse[1],
                         "reduction": 1 - better[1] / worse[1]}
-    out["fits"] = {k: fit_candidates(v["max_error_um"]) for k, v in out["directions"].items()} if fits else {}
+    with working("fitting the distributions of Fig. 11", progress):
+        out["fits"] = {k: fit_candidates(v["max_error_um"]) for k, v in out["directions"].items()} if fits else {}
     return out
 
 
