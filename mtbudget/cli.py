@@ -83,7 +83,7 @@ def main():
 
     \b
     Start with:
-      mtbudget study all --out paper-study   the paper's studies on the built-in default (about 10 s)
+      mtbudget study all --out paper-study   the paper's studies on the built-in default (about 9 CPU s)
       mtbudget run --trials 1000             Monte Carlo uncertainty and budget of the built-in verification
       mtbudget report mtbudget-run.mcap      a Markdown and HTML report of that run
       mtbudget simulate --out sim            one simulated verification written as a recording
@@ -744,7 +744,8 @@ def study_stations(config, trials, attribution_trials, seed, out, quiet, force):
     trackers and two tracking interferometers; docs/user-guide.md, "Several stations"). The verification is
     simulated and identified from the first laser tracker alone and from all of them (every station's pose, or
     position and dead path, identified with the machine's errors), on the same machine with the same seed. Writes
-    stations.md, .html and .json with a figure to --out. About 20 s with the defaults on 2 cores.
+    stations.md, .html and .json with a figure to --out. About 23 s of CPU with the defaults (27 s wall on 2
+    shared cores; docs/performance.md).
     """
     _fresh_out(out, ("stations",), force)
     from .config import bundled_config, load_config

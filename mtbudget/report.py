@@ -248,9 +248,10 @@ def budget_text(res: RunResult) -> str:
     lines.append("it is not the uncertainty of a point):")
     lines.append(f"{'output':<20} {'unit':<5} {'mean':>9} {'std dev':>9}   {'symmetric interval':>22}   {'shortest interval':>22}")
     for key, v in res.outputs().items():
-        sym = f"[{v['symmetric'][0]:.3f}, {v['symmetric'][1]:.3f}]"
-        sh = "-" if v["shortest"] is None else f"[{v['shortest'][0]:.3f}, {v['shortest'][1]:.3f}]"
-        lines.append(f"{key:<20} {pretty(v['unit']):<5} {v['mean']:9.3f} {v['std']:9.3f}   {sym:>22}   {sh:>22}")
+        nd = decimals_for(v["std"])  # the spread to 2 significant digits, the rest to the same decimal (JCGM 101 7.9.2)
+        sym = f"[{v['symmetric'][0]:.{nd}f}, {v['symmetric'][1]:.{nd}f}]"
+        sh = "-" if v["shortest"] is None else f"[{v['shortest'][0]:.{nd}f}, {v['shortest'][1]:.{nd}f}]"
+        lines.append(f"{key:<20} {pretty(v['unit']):<5} {v['mean']:9.{nd}f} {v['std']:9.{nd}f}   {sym:>22}   {sh:>22}")
     b = res.budget.get(MAIN_OUTPUT)
     if b:
         lines.append("")
