@@ -7,7 +7,9 @@ See docs/configuration.md for every key.
 
 from __future__ import annotations
 
+import datetime
 import difflib
+import re
 from dataclasses import dataclass, field
 from importlib import resources
 from pathlib import Path
@@ -123,7 +125,7 @@ class Reader:
 SCHEMA = {
     "": ("format", "name", "description", "machine", "reference_temperature", "seed", "mesh", "plan", "tracker",
          "machine_tool", "geometric_errors", "sensors", "effects", "placement", "sources", "weights", "measurand",
-         "stations", "scales"),
+         "stations", "scales", "report"),
     "mesh": ("x", "y", "z", "step", "step_x", "step_y", "step_z"),
     "plan": ("runs", "tools", "feed", "stop_time", "tool_change_time", "station_change_time"),
     "tracker": ("D", "L", "H", "a", "b", "d", "angular", "distance", "distance_per_length"),
@@ -141,6 +143,10 @@ SCHEMA = {
     # [scales.<axis>]: the nominal expansion of each axis scale, simulated and corrected (as recording.toml's [scales])
     "scales": AXES,
     "scales.<axis>": ("cte", "fixed_point"),
+    # [report]: what a laboratory states on the report and the DCC (all optional, free text; mtbudget.report)
+    "report": ("laboratory", "instrument", "machine", "customer", "operator", "date", "traceability", "certificate",
+               "country", "location"),
+    "report.instrument": ("model", "serial", "calibration"),
 }
 #: the readings of the paper that its text leaves open, one key of [placement] each, default first (mtbudget.study)
 PLACEMENT_READINGS = {"directions": ("machine", "envelope"), "eq23": ("polar", "elevation"),
@@ -349,6 +355,36 @@ def _placement(r: "Reader") -> None:
             raise ConfigError(f"{p.where(k)}: expected one of {', '.join(map(repr, choices))}, got {raw[k]!r:.60}")
 
 
+def _report_fields(r: "Reader") -> None:
+    """[report]: optional text fields of the report and the DCC (keys already checked), checked for their types."""
+    if not r.has("report"):
+        return
+    p = r.sub("report")
+    for k in SCHEMA["report"]:
+        if k not in p.data or k == "instrument":
+            continue
+        v = p.data[k]
+        if not isinstance(v, str) or not v.strip():
+            raise ConfigError(f"{p.where(k)}: expected a non-empty string" + (' (a date as "2026-11-25", quoted)'
+                                                                               if k == "date" else ""))
+    if "date" in p.data:
+        try:
+            datetime.date.fromisoformat(p.data["date"].strip())
+        except ValueError:
+            raise ConfigError(f"{p.where('date')}: expected a date YYYY-MM-DD, got {p.data['date']!r:.40}") from None
+    if "country" in p.data and not re.fullmatch(r"[A-Z]{2}", p.data["country"]):
+        raise ConfigError(f"{p.where('country')}: expected an ISO 3166-1 code of two capital letters (DE, ES, FR ...)")
+    if "instrument" in p.data:
+        ins = p.data["instrument"]
+        if not isinstance(ins, dict):
+            raise ConfigError(f"{p.where('instrument')}: expected a table: model, serial, calibration")
+        it = p.sub("instrument")
+        it.check_keys(SCHEMA["report.instrument"], "[report.instrument]")
+        for k, v in ins.items():
+            if not isinstance(v, str) or not v.strip():
+                raise ConfigError(f"{it.where(k)}: expected a non-empty string")
+
+
 def config_states(data: dict, key: str) -> bool:
     """Whether the raw configuration ``data`` states the dotted ``key`` ("machine_tool.cte")."""
     node = data
@@ -474,6 +510,7 @@ def parse_config(data: dict, path=None) -> SimulationConfig:
         if r.has(table) and table != "placement":
             r.sub(table).check_keys(SCHEMA[table], f"[{table}]")
     _placement(r)
+    _report_fields(r)
     for table in ARRAY_TABLES:
         entries = data.get(table, [])
         if not isinstance(entries, list) or not all(isinstance(x, dict) for x in entries):
