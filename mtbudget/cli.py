@@ -565,6 +565,7 @@ def report(runlog, out, tolerance, characteristic):
     from .config import to_unit
     from .progress import note, working
     from .report import run_report
+    from .report_dcc import write_dcc
     from .runner import replay as do_replay
 
     tol = None if tolerance is None else to_unit(tolerance, "um", "--tolerance")
@@ -574,11 +575,13 @@ def report(runlog, out, tolerance, characteristic):
     note(f"writing the report and its figures into {out}/ ...")
     with working("report and figures"):
         paths = run_report(res, out, tol, characteristic)
+        dcc = write_dcc(res, Path(out) / "certificate.xml", tol, characteristic)
     if tol is not None:  # the decision on the console too, not only below the report's tables
         from .budget import conformance
 
         click.echo("decision (ISO 14253-1): " + conformance(res, tol, characteristic)["statement"])
-    click.echo(f"wrote {paths['markdown']} and {paths['html']}" + ("" if res.complete else " (INCOMPLETE run)"))
+    click.echo(f"wrote {paths['markdown']}, {paths['html']} and {dcc} (the DCC: PTB DCC 3.3.0 XML)"
+               + ("" if res.complete else " (INCOMPLETE run)"))
 
 
 @main.group()

@@ -355,6 +355,10 @@ def _placement(r: "Reader") -> None:
             raise ConfigError(f"{p.where(k)}: expected one of {', '.join(map(repr, choices))}, got {raw[k]!r:.60}")
 
 
+#: [report] location: where the verification is performed (the DCC 3.3.0 performanceLocation values)
+PERFORMANCE_LOCATIONS = ("laboratory", "customer", "laboratoryBranch", "customerBranch", "other")
+
+
 def _report_fields(r: "Reader") -> None:
     """[report]: optional text fields of the report and the DCC (keys already checked), checked for their types."""
     if not r.has("report"):
@@ -372,6 +376,9 @@ def _report_fields(r: "Reader") -> None:
             datetime.date.fromisoformat(p.data["date"].strip())
         except ValueError:
             raise ConfigError(f"{p.where('date')}: expected a date YYYY-MM-DD, got {p.data['date']!r:.40}") from None
+    if "location" in p.data and p.data["location"] not in PERFORMANCE_LOCATIONS:
+        raise ConfigError(f"{p.where('location')}: where the verification is performed: one of "
+                          f"{', '.join(map(repr, PERFORMANCE_LOCATIONS))} (the DCC's performanceLocation)")
     if "country" in p.data and not re.fullmatch(r"[A-Z]{2}", p.data["country"]):
         raise ConfigError(f"{p.where('country')}: expected an ISO 3166-1 code of two capital letters (DE, ES, FR ...)")
     if "instrument" in p.data:

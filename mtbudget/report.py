@@ -462,7 +462,7 @@ def headline(res, tolerance_um: float | None = None, characteristic: str = "comp
     cfg = (res.spec or {}).get("config") or {}
     out["fields"] = {
         "laboratory": f.get("laboratory"), "customer": f.get("customer"), "operator": f.get("operator"),
-        "machine": f.get("machine") or f"a {cfg.get('machine', 'XFYZ')} machine tool (no name stated)",
+        "machine": f.get("machine") or f"machine tool of kinematic chain {cfg.get('machine', 'XFYZ')} (no name stated)",
         "instrument": ", ".join(x for x in (ins.get("model"), ins.get("serial") and f"serial {ins['serial']}",
                                             ins.get("calibration") and f"calibration: {ins['calibration']}") if x) or None,
         "date": f.get("date") or time.strftime("%Y-%m-%d"), "traceability": f.get("traceability"),
