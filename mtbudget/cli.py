@@ -103,7 +103,9 @@ def main():
 @click.option("--trial", type=click.IntRange(min=0), default=0, show_default=True,
               help="Which trial of that run: `mtbudget run` with the same seed simulates the same trial.")
 @click.option("--no-identify", is_flag=True, help="Only write the recording; skip the identification summary.")
-def simulate(config, out, seed, trial, no_identify):
+@click.option("--set", "sets", multiple=True, metavar="KEY=VALUE",
+              help="Change one key of the configuration, e.g. --set 'effects.thermal.x=11.5 um/(m*K)' (repeatable).")
+def simulate(config, out, seed, trial, no_identify, sets):
     """Simulate a verification and write it as a recording.
 
     CONFIG is a TOML configuration (default: the built-in paper study,
@@ -120,7 +122,7 @@ def simulate(config, out, seed, trial, no_identify):
     from .scenario import build_scenario
     from .simulate import simulate_recording
 
-    cfg = load_config(config)
+    cfg = load_config(config, sets)
     rec, truth = simulate_recording(build_scenario(cfg), seed, trial)
     write_recording(rec, out, truth=truth)
     click.echo(f"wrote {len(rec)} simulated points of {cfg.name!r} ({cfg.machine}) to {out}/")
@@ -374,8 +376,11 @@ def plugins_cmd(config, as_json):
               help="With --trials 0: trials per adaptive batch (default: JCGM 101's max(100/(1-p), 10^4)).")
 @click.option("--json", "as_json", is_flag=True, help="Print the results as one JSON object (progress still goes to stderr).")
 @click.option("--quiet", is_flag=True, help="No progress bars.")
+@click.option("--set", "sets", multiple=True, metavar="KEY=VALUE",
+              help="Change one key of the configuration, e.g. --set 'sources.tracker_noise.angular_sd=3 urad' "
+                   "(repeatable; docs/configuration.md, \"Overlays\").")
 def run_cmd(config, trials, seed, coverage, executor, workers, address, attribution_trials, log_path, force, resume_path,
-            block, adaptive_batch, as_json, quiet):
+            block, adaptive_batch, as_json, quiet, sets):
     """Monte Carlo uncertainty of a verification, with its budget.
 
     CONFIG is a TOML configuration (default: the built-in paper study). Each
@@ -403,6 +408,12 @@ def run_cmd(config, trials, seed, coverage, executor, workers, address, attribut
     settings = RunSettings(trials=trials or None, seed=seed, coverage=coverage, executor=executor, workers=workers,
                            address=address, attribution_trials=attribution_trials, progress=not quiet,
                            adaptive_batch=adaptive_batch, block=block)
+    if sets:
+        if resume_path is not None:
+            raise click.UsageError("--set changes a configuration; a resume continues the logged one")
+        from .config import load_config
+
+        config = load_config(config, sets)
     try:
         res = execute(config, settings, log_path=log_path, resume_path=resume_path, force=force)
     except KeyboardInterrupt:

@@ -238,6 +238,9 @@ class SimulationConfig:
     scales: dict = field(default_factory=dict)
     source: dict = field(default_factory=dict)  # the raw TOML (for logging)
     path: Path | None = None
+    #: the configuration's text as the run log keeps it: None for a plain file (its own text is read), the text
+    #: with the resolved table appended for a file that `extends` another or a configuration changed by --set
+    text: str | None = None
 
     def stated(self, key: str) -> bool:
         """Whether the configuration itself states ``key`` ("tracker.angular"), rather than leaving its default."""
@@ -482,9 +485,90 @@ def _stations(raw: list, path) -> list:
     return out
 
 
-def load_config(path=None) -> SimulationConfig:
-    """Load a configuration file (the built-in default when ``path`` is None)."""
+#: how deep `extends` may chain (a file that extends one that extends ...)
+MAX_EXTENDS = 8
+
+
+def load_config(path=None, sets: tuple | list = ()) -> SimulationConfig:
+    """Load a configuration file (the built-in default when ``path`` is None).
+
+    A file may start from another: ``extends = "base.toml"`` (relative to the file) or ``extends = "default"``
+    (the built-in paper configuration); its own tables and keys then replace the base's, table by table and key by
+    key (a list or a value is replaced whole).  ``sets``: "dotted.key=value" overrides applied last (the CLI's
+    ``--set``), the value a TOML value or else a string (``sources.tracker_noise.angular_sd=3 urad``); an index
+    reaches into an array of tables (``sensors.0.noise=0.02 K``)."""
     path = Path(path) if path is not None else default_config_path()
+    data, chain = _load_with_extends(path, [])
+    for item in sets:
+        _apply_set(data, item, path)
+    try:
+        cfg = parse_config(data, path)
+    except ConfigError as exc:
+        keys = [str(x).partition("=")[0].strip() for x in sets]
+        if any(k and f": {k}:" in str(exc) for k in keys):  # a key of --set, not of the file
+            raise ConfigError(f"{exc} (given with --set)") from None
+        raise
+    if len(chain) > 1 or sets:
+        import json
+
+        own = path.read_text(encoding="utf-8", errors="replace")
+        cfg.text = (own + "\n\n# resolved by mtbudget (extends: " + " <- ".join(str(p) for p in chain[1:]) +
+                    ("; --set " + ", ".join(sets) if sets else "") + "), as JSON:\n# " + json.dumps(data, default=str) + "\n")
+    return cfg
+
+
+def _merge(base: dict, over: dict) -> dict:
+    out = dict(base)
+    for k, v in over.items():
+        out[k] = _merge(out[k], v) if isinstance(v, dict) and isinstance(out.get(k), dict) else v
+    return out
+
+
+def _load_with_extends(path: Path, seen: list) -> tuple[dict, list]:
+    """The TOML table of ``path`` with its ``extends`` chain merged in; the chain of files (this one first)."""
+    if len(seen) >= MAX_EXTENDS:
+        raise ConfigError(f"{path}: extends: more than {MAX_EXTENDS} files deep")
+    if path.resolve() in [p.resolve() for p in seen]:
+        raise ConfigError(f"{seen[-1]}: extends: {path} extends itself (through {' -> '.join(map(str, seen))})")
+    data = _read_toml(path)
+    base = data.pop("extends", None)
+    if base is None:
+        return data, [path]
+    if not isinstance(base, str) or not base.strip():
+        raise ConfigError(f"{path}: extends: expected a file name or \"default\" (the built-in configuration)")
+    base_path = default_config_path() if base.strip() == "default" else (path.parent / base).resolve()
+    if not base_path.exists():
+        raise ConfigError(f"{path}: extends: no such configuration file {base_path}")
+    merged, chain = _load_with_extends(base_path, seen + [path])
+    return _merge(merged, data), [path] + chain
+
+
+def _apply_set(data: dict, item: str, path) -> None:
+    key, sep, text = str(item).partition("=")
+    key = key.strip()
+    if not sep or not key:
+        raise ConfigError(f"--set {item!r}: expected KEY=VALUE, for example --set 'tracker.angular=25 urad'")
+    try:
+        value = tomllib.loads(f"v = {text.strip()}")["v"]
+    except tomllib.TOMLDecodeError:
+        value = text.strip()
+    node, parts = data, key.split(".")
+    for i, part in enumerate(parts[:-1]):
+        if isinstance(node, list):
+            if not part.isdigit() or int(part) >= len(node):
+                raise ConfigError(f"--set {key}: {'.'.join(parts[:i])} has {len(node)} entries; {part!r} is not one")
+            node = node[int(part)]
+            continue
+        nxt = node.setdefault(part, {})
+        if not isinstance(nxt, (dict, list)):
+            raise ConfigError(f"--set {key}: {'.'.join(parts[:i + 1])} is a value, not a table")
+        node = nxt
+    if isinstance(node, list):
+        raise ConfigError(f"--set {key}: name a key inside an entry of {'.'.join(parts[:-1])}")
+    node[parts[-1]] = value  # checked with the rest by parse_config (unknown keys, units)
+
+
+def _read_toml(path: Path) -> dict:
     if not path.exists():
         raise ConfigError(f"{path}: no such configuration file")
     try:
@@ -504,7 +588,7 @@ def load_config(path=None) -> SimulationConfig:
         raise ConfigError(f"{path}: invalid TOML ({_printable(exc)})") from None
     except RecursionError:
         raise ConfigError(f"{path}: invalid TOML (nested too deeply)") from None
-    return parse_config(data, path)
+    return data
 
 
 def parse_config(data: dict, path=None) -> SimulationConfig:

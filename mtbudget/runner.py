@@ -370,7 +370,7 @@ def _execute(config, settings, *, source, target, force, histogram_every) -> Run
     else:
         cfg = config if isinstance(config, SimulationConfig) else load_config(config)  # a bad config is said first
         _refuse_existing(target, force)
-        config_text = cfg.path.read_text() if cfg.path else json.dumps(cfg.source)
+        config_text = cfg.text if cfg.text is not None else cfg.path.read_text() if cfg.path else json.dumps(cfg.source)
     settings.validate()
     # the chunk size the run uses, logged as such (not None for "automatic"): a resume reuses the same value; a log
     # from before this recorded null, and a resume of it applies the same rule again (chunk_blocks_for)
