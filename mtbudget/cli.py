@@ -561,9 +561,17 @@ def diagnose_cmd(recording, example, as_json, report_dir, alpha, max_degree, qui
               help="What the tolerance applies to: each error component at each point (component), or the largest "
                    "3-D error over the mesh (max).")
 def report(runlog, out, tolerance, characteristic):
-    """Write an uncertainty statement (Markdown and HTML) from a run log.
+    """Write an uncertainty statement (Markdown, HTML and a DCC) from a run log.
 
-    The report reads like a calibration certificate: the measurand (the
+    It opens with the statement in brief a laboratory issues: the kind of
+    statement (a priori: a planned verification evaluated by simulation), the
+    measurand in words, the result, U with k = 2 and the coverage, the
+    decision and its rule, and the laboratory, instrument (tracker model,
+    serial, calibration), machine, customer, operator, date and traceability
+    sentence of the configuration's optional [report] table ("not stated"
+    where absent). The same statement is written as certificate.xml, a
+    Digital Calibration Certificate (PTB DCC 3.3.0, D-SI quantities). Then:
+    the measurand (the
     error of the compensated machine at each mesh point, per axis), the
     conditions (configuration, machine, mesh, tracker, sources, seed,
     versions), the result (u per axis over the mesh, the worst point, the
