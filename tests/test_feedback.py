@@ -9,6 +9,7 @@ import sys
 import time
 from pathlib import Path
 
+import pytest
 from click.testing import CliRunner
 
 from mtbudget import progress
@@ -77,3 +78,43 @@ def test_ctrl_c_says_where_the_partial_log_is_and_how_to_resume(tmp_path):
     said = err.decode().strip().splitlines()[-1]
     assert p.returncode == 130, err.decode()[-2000:]
     assert f"saved in {log}.partial" in said and f"mtbudget run --resume {log}" in said, said
+
+
+def longest_silence(args, cwd) -> tuple[float, int]:
+    """(the longest time in s without a byte on stdout or stderr, both piped; the exit status) of mtbudget ARGS."""
+    import selectors
+
+    t0 = time.monotonic()
+    p = subprocess.Popen([sys.executable, "-m", "mtbudget", *args], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                         cwd=cwd)
+    sel = selectors.DefaultSelector()
+    sel.register(p.stdout, selectors.EVENT_READ)
+    sel.register(p.stderr, selectors.EVENT_READ)
+    last, worst, open_ = t0, 0.0, 2
+    while open_:
+        for key, _ in sel.select(timeout=300):
+            data = os.read(key.fileobj.fileno(), 65536)
+            now = time.monotonic()
+            if not data:
+                sel.unregister(key.fileobj)
+                open_ -= 1
+                continue
+            worst, last = max(worst, now - last), now
+    p.wait()
+    return max(worst, time.monotonic() - last), p.returncode
+
+
+@pytest.mark.slow
+def test_the_newcomers_path_is_never_silent_for_more_than_2_s_on_a_pipe(tmp_path):
+    """README line 1 and each command of the README table, stdout and stderr piped (issue 29: `study all` was silent
+    17 s, `report` 14 s). The first run's kernel compilation is out of scope here (its note is tested apart)."""
+    cmds = [["study", "all", "--out", "ps"], ["report", "ps/verification.mcap", "--out", "rep"],
+            ["replay", "ps/verification.mcap"], ["run", str(SMALL), "--trials", "200", "--log", "r.mcap"],
+            ["simulate", "--out", "sim"], ["identify", "sim"], ["diagnose", "--example", "null"], ["plugins"]]
+    # (compensate: its traceback on a simulated recording is another item of issue 29; measured 1.3 s by hand)
+    worst = {}
+    for args in cmds:
+        gap, rc = longest_silence(args, tmp_path)
+        worst[" ".join(args[:2])] = round(gap, 2)
+        assert rc == 0, (args, rc)
+    assert max(worst.values()) <= 2.0, worst
