@@ -126,6 +126,10 @@ def simulate(config, out, seed, trial, no_identify, sets):
     rec, truth = simulate_recording(build_scenario(cfg), seed, trial)
     write_recording(rec, out, truth=truth)
     click.echo(f"wrote {len(rec)} simulated points of {cfg.name!r} ({cfg.machine}) to {out}/")
+    silent = [s.sensor.column for s in cfg.sensors if not s.noise_stated]
+    if silent:  # the stated default, said where it takes effect
+        click.echo(f"note: no reading noise stated for sensor{'s' if len(silent) > 1 else ''} {', '.join(silent)}: "
+                   "simulated noise-free (noise = \"0 K\"); state [[sensors]] noise to simulate it", err=True)
     if not no_identify:
         _print_identification(out)
 

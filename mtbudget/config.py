@@ -192,6 +192,7 @@ class SensorSpec:
     cycle_amplitude: float = 0.0  # K
     cycle_period: float = 1800.0  # s
     cycle_phase: float = 0.0  # rad
+    noise_stated: bool = True  # False: no `noise` key, the readings are simulated noise-free (the stated default)
 
     def values(self, t: np.ndarray, rng: np.random.Generator) -> np.ndarray:
         T = self.start + self.rate * t
@@ -737,7 +738,8 @@ def parse_config(data: dict, path=None) -> SimulationConfig:
         rate = sr.quantity("rate", "K/s", "0 K/h")
         noise = sr.quantity("noise", "K", "0 K")
         spec = SensorSpec(sensor, start, rate, noise, sr.quantity("cycle_amplitude", "K", "0 K"),
-                          sr.quantity("cycle_period", "s", "30 min"), sr.quantity("cycle_phase", "rad", "0 rad"))
+                          sr.quantity("cycle_period", "s", "30 min"), sr.quantity("cycle_phase", "rad", "0 rad"),
+                          noise_stated="noise" in s)
         for key in ("noise", "cycle_amplitude", "cycle_period"):
             if getattr(spec, key) < 0 or (key == "cycle_period" and not spec.cycle_period > 0):
                 raise ConfigError(f"{sr.where(key)}: must be {'positive' if key == 'cycle_period' else 'zero or positive'}")

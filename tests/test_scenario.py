@@ -252,3 +252,17 @@ def test_a_placement_typo_stops_run_and_simulate(command, tmp_path):
     res = CliRunner().invoke(main, args)
     assert res.exit_code == 2 and len(res.output.strip().splitlines()) == 1, res.output
     assert "placement.Lx: unknown key; did you mean 'L'?" in res.output and str(cfg) in res.output
+
+
+def test_a_sensor_without_noise_is_simulated_noise_free_and_says_so(tmp_path):
+    """Issue 29: a deleted sensor `noise` silently became 0 K; it is the stated default (docs/configuration.md) and
+    `simulate` says so for the sensors it applies to."""
+    cfg = load_config(SMALL)
+    assert [s.noise_stated for s in cfg.sensors] == [False] and cfg.sensors[0].noise == 0.0
+    res = CliRunner().invoke(main, ["simulate", str(SMALL), "--out", str(tmp_path / "sim"), "--no-identify"])
+    assert res.exit_code == 0, res.output
+    assert "no reading noise stated for sensor T_x: simulated noise-free" in res.stderr
+    stated = tmp_path / "stated.toml"
+    stated.write_text(SMALL.read_text().replace('column = "T_x"', 'column = "T_x"\nnoise = "0.02 K"', 1))
+    res = CliRunner().invoke(main, ["simulate", str(stated), "--out", str(tmp_path / "sim2"), "--no-identify"])
+    assert res.exit_code == 0 and "noise" not in res.stderr
