@@ -733,9 +733,10 @@ def run_report(res: RunResult, folder, tolerance_um: float | None = None, charac
            "| output | unit | mean | std dev over trials | symmetric interval | shortest interval |",
            "| --- | --- | --- | --- | --- | --- |"]
     for k, val in data["outputs"].items():
-        sh = "-" if val["shortest"] is None else f"[{val['shortest'][0]:.3f}, {val['shortest'][1]:.3f}]"
-        md.append(f"| {k} | {pretty(val['unit'])} | {val['mean']:.3f} | {val['std']:.3f} | "
-                  f"[{val['symmetric'][0]:.3f}, {val['symmetric'][1]:.3f}] | {sh} |")
+        nd = decimals_for(val["std"])  # the spread to 2 significant digits, the rest to the same decimal
+        sh = "-" if val["shortest"] is None else f"[{val['shortest'][0]:.{nd}f}, {val['shortest'][1]:.{nd}f}]"
+        md.append(f"| {k} | {pretty(val['unit'])} | {val['mean']:.{nd}f} | {val['std']:.{nd}f} | "
+                  f"[{val['symmetric'][0]:.{nd}f}, {val['symmetric'][1]:.{nd}f}] | {sh} |")
     b = res.budget.get(MAIN_OUTPUT)
     if b:
         md += ["", f"### Budget of {MAIN_OUTPUT}", "",

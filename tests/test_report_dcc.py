@@ -172,3 +172,25 @@ def test_the_dcc_validates_against_the_published_schema(logged):
     xmlschema = pytest.importorskip("xmlschema")
     _, path, _ = logged
     xmlschema.XMLSchema(str(SCHEMAS / "dcc.xsd")).validate(str(path))
+
+
+def test_the_spread_of_a_short_run_is_shown_to_two_significant_digits(logged):
+    """Issue 29: 3 decimals on a 200-trial spread; a standard deviation from n trials is known to about 1/sqrt(2n)
+    (5 % at n = 200), so two significant digits, and the mean and the interval ends to the same decimal."""
+    from mtbudget.report import budget_text
+
+    res, _, folder = logged
+    for line in budget_text(res).splitlines():
+        if line.startswith("compensation_rms "):
+            cells = line.split()
+            mean, std = cells[2], cells[3]
+            digits = std.replace(".", "").lstrip("0")
+            assert len(digits) == 2, line
+            assert len(mean.split(".")[-1]) == len(std.split(".")[-1]) if "." in std else "." not in mean
+            break
+    else:
+        raise AssertionError("no compensation_rms row")
+    md = run_report(res, folder / "rep2")["markdown"].read_text()
+    row = next(r for r in md.splitlines() if r.startswith("| compensation_rms |"))
+    std = row.split("|")[4].strip()
+    assert len(std.replace(".", "").lstrip("0")) == 2, row
