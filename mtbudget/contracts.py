@@ -300,9 +300,13 @@ def check_plausible(source: Source, out, method: str = "sample") -> None:
                 mag, f = np.asarray(v, dtype=float), 1.0
             if not mag.size:
                 continue
-            with np.errstate(all="ignore"):
-                big = float(np.nanmax(np.abs(mag))) * abs(f) if np.isfinite(mag).all() else 0.0
-        except (TypeError, ValueError, pint.errors.PintError):
+            limit = PLAUSIBLE_PERTURBATION[unit] / abs(f)  # in the array's own unit
+            if mag.max() <= limit and mag.min() >= -limit:  # two passes, no temporary (NaN fails: looked at below)
+                continue
+            if not np.isfinite(mag).all():
+                continue  # NaN or infinity: check_sample says so
+            big = float(np.abs(mag).max()) * abs(f)
+        except (TypeError, ValueError, ZeroDivisionError, pint.errors.PintError):
             continue
         limit = PLAUSIBLE_PERTURBATION[unit]
         if big > limit:
