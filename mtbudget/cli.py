@@ -438,6 +438,14 @@ def run_cmd(config, trials, seed, coverage, executor, workers, address, attribut
         click.echo(budget_text(res))
     for n in res.resume_notes:
         click.echo(f"note: resume: {n}", err=True)
+    if resume_path is not None:  # an option given with --resume that the logged run overrides: said, not ignored
+        ctx = click.get_current_context()
+        given = {k for k in ("trials", "seed", "coverage", "block", "attribution_trials", "adaptive_batch")
+                 if ctx.get_parameter_source(k) == click.core.ParameterSource.COMMANDLINE}
+        kept = {k: v for k, v in getattr(res, "resume_kept", {}).items() if k in given}
+        if kept:
+            click.echo("note: resume: the run keeps its logged settings: " + ", ".join(
+                f"--{k.replace('_', '-')} {v}" for k, v in kept.items()) + " (the options given were not used)", err=True)
     if res.log_problem:
         click.echo(f"warning: {res.log_problem}", err=True)
         raise SystemExit(1)

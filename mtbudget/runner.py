@@ -350,16 +350,17 @@ def _execute(config, settings, *, source, target, force, histogram_every) -> Run
     from .report import result_json
     from .runlog import RunLogWriter, final_path
 
-    copy, hist, notes, resumed = None, None, [], None
+    copy, hist, notes, resumed, overridden = None, None, [], None, {}
     if source is not None:
         old, copy, notes = _saved_run(source)
         spec = old.header["spec"]
         cfg = parse_config(spec["config"], spec.get("config_path"))
         kept = {k: (tuple(v) if k == "adaptive_outputs" else v) for k, v in old.header.get("settings", {}).items()
                 if k in RESUMED_SETTINGS}
-        settings = replace(settings, trials=old.header["trials"], seed=spec["seed"],
-                           coverage=spec.get("coverage", settings.coverage), block=spec["block"],
-                           sources=spec.get("sources"), **kept)
+        logged = dict(trials=old.header["trials"], seed=spec["seed"], coverage=spec.get("coverage", settings.coverage),
+                      block=spec["block"], **kept)
+        overridden = {k: v for k, v in logged.items() if getattr(settings, k) is not None and getattr(settings, k) != v}
+        settings = replace(settings, sources=spec.get("sources"), **logged)
         config_text = old.config_text or ""
         resumed = old.path
         own = {Path(source).resolve(), Path(old.path).resolve()}
@@ -429,6 +430,8 @@ def _execute(config, settings, *, source, target, force, histogram_every) -> Run
         raise
     result.log_path = target
     result.resume_notes = notes
+    #: a resume: the run's logged settings that differ from the ones this call was given (the logged ones were kept)
+    result.resume_kept = overridden
     if writer.failed is not None:
         result.log_problem = (f"the run log could not be written ({writer.failed}); {writer.partial} keeps the blocks "
                               f"written before; make room and run `mtbudget run --resume {target}` to complete it")

@@ -401,3 +401,16 @@ def test_a_resume_keeps_the_runs_settings_and_every_convergence_row(tmp_path):
     assert resumed.result["budget"] == {} == full.result["budget"]
     assert resumed.convergence == full.convergence and len(full.convergence) == 6
     same_run(replay(log), replay(full_log))
+
+
+def test_an_option_given_with_resume_that_the_log_overrides_is_said(tmp_path):
+    """The resumed run keeps its logged --attribution-trials 0; an --attribution-trials 32 given with --resume is said
+    to be unused, not silently dropped (nor silently applied)."""
+    full_log, log = tmp_path / "full.mcap", tmp_path / "cut.mcap"
+    execute(SMALL, trials=48, block=8, chunk_blocks=2, attribution_trials=0, log_path=full_log)
+    data = full_log.read_bytes()
+    partial_path(log).write_bytes(data[:[i for i in range(len(data)) if data.startswith(b'"block": 3,', i)][0]])
+    res = CliRunner().invoke(main, ["run", "--resume", str(log), "--quiet", "--attribution-trials", "32", "--json"])
+    assert res.exit_code == 0, res.output
+    assert json.loads(res.stdout)["budget"] == {}
+    assert "note: resume: the run keeps its logged settings: --attribution-trials 0" in res.stderr
