@@ -684,8 +684,17 @@ def _verification(config, trials, out, quiet, attribution_trials):
 
         one_tracker(build_scenario(cfg, sources=[]), "the paper's verification study (Figs. 12-15)")
     out.mkdir(parents=True, exist_ok=True)
-    execute(cfg, RunSettings(trials=trials, progress=not quiet, attribution_trials=attribution_trials),
-            log_path=out / "verification.mcap", force=True)
+    try:
+        execute(cfg, RunSettings(trials=trials, progress=not quiet, attribution_trials=attribution_trials),
+                log_path=out / "verification.mcap", force=True)
+    except KeyboardInterrupt:
+        from .runlog import partial_path
+
+        log = out / "verification.mcap"
+        where = (f"the blocks finished so far are saved in {partial_path(log)} (`mtbudget run --resume {log}` finishes "
+                 "that run)" if partial_path(log).exists() else "no block of trials was saved yet")
+        click.echo(f"\ninterrupted: {where}; run the study again with --force for its report and figures", err=True)
+        raise SystemExit(130) from None
     res = replay(out / "verification.mcap")
     from .progress import working
 
