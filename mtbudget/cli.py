@@ -32,12 +32,24 @@ class _Group(click.Group):
 
         for var in ("OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "OMP_NUM_THREADS"):
             os.environ.setdefault(var, "1")
-        _first_run_note(ctx.meta.get("mtbudget.argv", []))
+        argv = ctx.meta.get("mtbudget.argv", [])
+        _first_run_note(argv)
+        from .progress import start_starting, stop_starting
+
+        if argv and argv[0] in _COMPUTING and not {"-h", "--help", "--quiet"} & set(argv):
+            start_starting()  # a heartbeat on stderr until the command's first bar or note (not in a CliRunner)
         try:
             return super().invoke(ctx)
         except MtbudgetError as exc:
+            stop_starting()
             click.echo(f"error: {exc}", err=True)
             ctx.exit(2)
+        except KeyboardInterrupt:
+            stop_starting()
+            click.echo("\ninterrupted (Ctrl-C)", err=True)
+            ctx.exit(130)
+        finally:
+            stop_starting()
 
 
 #: commands that evaluate the kinematic chain (and so call the compiled kernels)
@@ -45,14 +57,23 @@ _COMPUTING = {"study", "run", "replay", "simulate", "identify", "compensate", "d
 
 
 def _first_run_note(args: list):
-    """On a terminal, say so when the first command after installing compiles the engine's kernels (numba,
-    several seconds once per machine), rather than sit silent."""
-    if not args or args[0] not in _COMPUTING or {"-h", "--help", "--quiet"} & set(args) or not sys.stderr.isatty():
+    """Say so on stderr (a terminal, a pipe or a file alike) when the first command after installing compiles the
+    engine's kernels (numba, once per machine: 13-34 s measured on 2 busy cores), rather than sit silent; never
+    with --quiet or --help (stdout, where --json prints, is never written)."""
+    if not args or args[0] not in _COMPUTING or {"-h", "--help", "--quiet"} & set(args):
         return
     from .kernels import compiled_here
 
     if compiled_here() is False:
-        click.echo("compiling the engine's kernels (numba), once for this machine: 5-10 s ...", err=True)
+        click.echo("compiling the engine's kernels (numba), once for this machine: 10-40 s ...", err=True)
+
+
+def _identify_limit() -> int:
+    """The most rows a recording may have for a command that identifies it: one identification's limit, checked by
+    the reader on the bytes before it parses a row (a 10^6-row file is refused in a second, not after its parse)."""
+    from .identify import MAX_POINTS
+
+    return MAX_POINTS
 
 
 @click.group(cls=_Group, context_settings={"help_option_names": ["-h", "--help"]})
@@ -62,7 +83,7 @@ def main():
 
     \b
     Start with:
-      mtbudget study all --out paper-study   the paper's studies on the built-in default (about 10 s)
+      mtbudget study all --out paper-study   the paper's studies on the built-in default (about 9 CPU s)
       mtbudget run --trials 1000             Monte Carlo uncertainty and budget of the built-in verification
       mtbudget report mtbudget-run.mcap      a Markdown and HTML report of that run
       mtbudget simulate --out sim            one simulated verification written as a recording
@@ -82,7 +103,9 @@ def main():
 @click.option("--trial", type=click.IntRange(min=0), default=0, show_default=True,
               help="Which trial of that run: `mtbudget run` with the same seed simulates the same trial.")
 @click.option("--no-identify", is_flag=True, help="Only write the recording; skip the identification summary.")
-def simulate(config, out, seed, trial, no_identify):
+@click.option("--set", "sets", multiple=True, metavar="KEY=VALUE",
+              help="Change one key of the configuration, e.g. --set 'effects.thermal.x=11.5 um/(m*K)' (repeatable).")
+def simulate(config, out, seed, trial, no_identify, sets):
     """Simulate a verification and write it as a recording.
 
     CONFIG is a TOML configuration (default: the built-in paper study,
@@ -99,10 +122,14 @@ def simulate(config, out, seed, trial, no_identify):
     from .scenario import build_scenario
     from .simulate import simulate_recording
 
-    cfg = load_config(config)
+    cfg = load_config(config, sets)
     rec, truth = simulate_recording(build_scenario(cfg), seed, trial)
     write_recording(rec, out, truth=truth)
     click.echo(f"wrote {len(rec)} simulated points of {cfg.name!r} ({cfg.machine}) to {out}/")
+    silent = [s.sensor.column for s in cfg.sensors if not s.noise_stated]
+    if silent:  # the stated default, said where it takes effect
+        click.echo(f"note: no reading noise stated for sensor{'s' if len(silent) > 1 else ''} {', '.join(silent)}: "
+                   "simulated noise-free (noise = \"0 K\"); state [[sensors]] noise to simulate it", err=True)
     if not no_identify:
         _print_identification(out)
 
@@ -113,7 +140,7 @@ def _print_identification(folder, as_json=False, max_degree=3, strategy="one-pha
     from .recording import read_recording
     from .units import display, pretty as pretty_unit, shown_unit
 
-    rec = read_recording(folder, several_stations=True)
+    rec = read_recording(folder, several_stations=True, max_rows=_identify_limit())
     if rec.several_stations:  # all stations at once (docs/recording-format.md, format 2)
         from .multistation import identify_recording_any, summary as station_summary, summary_text
 
@@ -317,7 +344,7 @@ def compensate(recording, example, fmt, out, step, check, strict, reference, sie
     step_mm = parse_step(step)
     ref_point = parse_reference(reference)
     exporter = find_exporter(fmt)
-    rec = read_recording(example_recording(example) if example else recording)
+    rec = read_recording(example_recording(example) if example else recording, max_rows=_identify_limit())
     table = build_table(rec, step_mm, max_degree=max_degree, reference_point=ref_point)
     table.options["siemens_cec_sign"] = siemens_cec_sign
     written = export(table, exporter, out)
@@ -442,8 +469,11 @@ def plugins_cmd(config, as_json):
               help="With --trials 0: trials per adaptive batch (default: JCGM 101's max(100/(1-p), 10^4)).")
 @click.option("--json", "as_json", is_flag=True, help="Print the results as one JSON object (progress still goes to stderr).")
 @click.option("--quiet", is_flag=True, help="No progress bars.")
+@click.option("--set", "sets", multiple=True, metavar="KEY=VALUE",
+              help="Change one key of the configuration, e.g. --set 'sources.tracker_noise.angular_sd=3 urad' "
+                   "(repeatable; docs/configuration.md, \"Overlays\").")
 def run_cmd(config, trials, seed, coverage, executor, workers, address, attribution_trials, log_path, force, resume_path,
-            block, adaptive_batch, as_json, quiet):
+            block, adaptive_batch, as_json, quiet, sets):
     """Monte Carlo uncertainty of a planned verification (a priori, a virtual experiment), with its budget.
 
     CONFIG is a TOML configuration (default: the built-in paper study; a
@@ -473,13 +503,40 @@ def run_cmd(config, trials, seed, coverage, executor, workers, address, attribut
     settings = RunSettings(trials=trials or None, seed=seed, coverage=coverage, executor=executor, workers=workers,
                            address=address, attribution_trials=attribution_trials, progress=not quiet,
                            adaptive_batch=adaptive_batch, block=block)
-    res = execute(config, settings, log_path=log_path, resume_path=resume_path, force=force)
+    if sets:
+        if resume_path is not None:
+            raise click.UsageError("--set changes a configuration; a resume continues the logged one")
+        from .config import load_config
+
+        config = load_config(config, sets)
+    try:
+        res = execute(config, settings, log_path=log_path, resume_path=resume_path, force=force)
+    except KeyboardInterrupt:
+        from .runner import DEFAULT_LOG
+        from .runlog import final_path, partial_path
+
+        target = final_path(log_path or resume_path or DEFAULT_LOG)
+        if partial_path(target).exists():
+            click.echo(f"\ninterrupted: the blocks of trials finished so far are saved in {partial_path(target)}; "
+                       f"finish the run with `mtbudget run --resume {target}` (the same numbers as an uninterrupted "
+                       "run)", err=True)
+        else:
+            click.echo("\ninterrupted before the first block of trials was saved; nothing to resume", err=True)
+        raise SystemExit(130) from None
     if as_json:
         click.echo(json.dumps(result_json(res), indent=1))
     else:
         click.echo(budget_text(res))
     for n in res.resume_notes:
         click.echo(f"note: resume: {n}", err=True)
+    if resume_path is not None:  # an option given with --resume that the logged run overrides: said, not ignored
+        ctx = click.get_current_context()
+        given = {k for k in ("trials", "seed", "coverage", "block", "attribution_trials", "adaptive_batch")
+                 if ctx.get_parameter_source(k) == click.core.ParameterSource.COMMANDLINE}
+        kept = {k: v for k, v in getattr(res, "resume_kept", {}).items() if k in given}
+        if kept:
+            click.echo("note: resume: the run keeps its logged settings: " + ", ".join(
+                f"--{k.replace('_', '-')} {v}" for k, v in kept.items()) + " (the options given were not used)", err=True)
     if res.log_problem:
         click.echo(f"warning: {res.log_problem}", err=True)
         raise SystemExit(1)
@@ -580,7 +637,8 @@ def diagnose_cmd(recording, example, as_json, report_dir, alpha, max_degree, qui
     if recording is None and example is None:
         raise click.UsageError("give a RECORDING folder or --example NAME")
     folder = example_recording(example) if example else recording
-    rec = read_recording(folder, several_stations=True)  # several stations: every station identified together
+    rec = read_recording(folder, several_stations=True,  # several stations: every station identified together
+                         max_rows=_identify_limit())
     d = diagnose(rec, alpha=alpha, max_degree=max_degree, progress=not quiet)
     if report_dir is not None:
         from .report_diagnosis import diagnosis_report
@@ -606,12 +664,17 @@ def diagnose_cmd(recording, example, as_json, report_dir, alpha, max_degree, qui
               help="What the tolerance applies to: each error component at each point (component), or the largest "
                    "3-D error over the mesh (max).")
 def report(runlog, out, tolerance, characteristic):
-    """Write the uncertainty evaluation of a run (Markdown and HTML) from its run log.
+    """Write an uncertainty statement (Markdown, HTML and a DCC) from a run log.
 
-    A run is an a priori evaluation: a virtual experiment of the planned
-    verification on the assumed machine of its configuration (stated at the
-    top of the report), not the certificate of a verification carried out.
-    The report gives the kind of statement, the measurand (the
+    It opens with the statement in brief a laboratory issues: the kind of
+    statement (a priori: a planned verification evaluated by simulation), the
+    measurand in words, the result, U with k = 2 and the coverage, the
+    decision and its rule, and the laboratory, instrument (tracker model,
+    serial, calibration), machine, customer, operator, date and traceability
+    sentence of the configuration's optional [report] table ("not stated"
+    where absent). The same statement is written as certificate.xml, a
+    Digital Calibration Certificate (PTB DCC 3.3.0, D-SI quantities). Then:
+    the measurand (the
     error of the compensated machine at each mesh point, per axis), the
     conditions (configuration, machine, mesh, tracker, sources, seed,
     versions), the result (u per axis over the mesh, the worst point, the
@@ -622,8 +685,9 @@ def report(runlog, out, tolerance, characteristic):
     convergence). The HTML opens in a browser with no network.
     """
     from .config import to_unit
-    from .progress import note
+    from .progress import note, working
     from .report import run_report
+    from .report_dcc import write_dcc
     from .runner import replay as do_replay
 
     tol = None if tolerance is None else to_unit(tolerance, "um", "--tolerance")
@@ -631,12 +695,15 @@ def report(runlog, out, tolerance, characteristic):
         raise click.BadParameter("must be a positive length, e.g. \"20 um\"", param_hint="--tolerance")
     res = do_replay(runlog)
     note(f"writing the report and its figures into {out}/ ...")
-    paths = run_report(res, out, tol, characteristic)
+    with working("report and figures"):
+        paths = run_report(res, out, tol, characteristic)
+        dcc = write_dcc(res, Path(out) / "certificate.xml", tol, characteristic)
     if tol is not None:  # the decision on the console too, not only below the report's tables
         from .budget import conformance
 
         click.echo("decision (ISO 14253-1): " + conformance(res, tol, characteristic)["statement"])
-    click.echo(f"wrote {paths['markdown']} and {paths['html']}" + ("" if res.complete else " (INCOMPLETE run)"))
+    click.echo(f"wrote {paths['markdown']}, {paths['html']} and {dcc} (the DCC: PTB DCC 3.3.0 XML)"
+               + ("" if res.complete else " (INCOMPLETE run)"))
 
 
 @main.group()
@@ -676,13 +743,16 @@ def _placement(config, tests, out, quiet):
     from .scenario import build_scenario
     from .study import placement, placement_arrays, placement_json
 
+    from .progress import working
+
     cfg = load_config(config)
     res = placement(build_scenario(cfg), tests=tests, progress=not quiet)
     out.mkdir(parents=True, exist_ok=True)
-    summary = placement_json(res)
-    write_placement_log(summary, placement_arrays(res), out / "placement.mcap",
-                        cfg.path.read_text() if cfg.path else None, cfg.seed)
-    md = placement_report(res, summary, out)
+    with working("writing the placement log, report and figures", not quiet):
+        summary = placement_json(res)
+        write_placement_log(summary, placement_arrays(res), out / "placement.mcap",
+                            cfg.path.read_text() if cfg.path else None, cfg.seed)
+        md = placement_report(res, summary, out)
     red = res["reduction"]
     click.echo(f"placement: {res['settings']['tests']} tests per direction in {res['seconds']:.0f} s; mean maximum error "
                f"{red['mean_better_um']:.1f} µm ({red['better']} direction) vs {red['mean_worse_um']:.1f} µm "
@@ -705,13 +775,25 @@ def _verification(config, trials, out, quiet, attribution_trials):
 
         one_tracker(build_scenario(cfg, sources=[]), "the paper's verification study (Figs. 12-15)")
     out.mkdir(parents=True, exist_ok=True)
-    execute(cfg, RunSettings(trials=trials, progress=not quiet, attribution_trials=attribution_trials),
-            log_path=out / "verification.mcap", force=True)
+    try:
+        execute(cfg, RunSettings(trials=trials, progress=not quiet, attribution_trials=attribution_trials),
+                log_path=out / "verification.mcap", force=True)
+    except KeyboardInterrupt:
+        from .runlog import partial_path
+
+        log = out / "verification.mcap"
+        where = (f"the blocks finished so far are saved in {partial_path(log)} (`mtbudget run --resume {log}` finishes "
+                 "that run)" if partial_path(log).exists() else "no block of trials was saved yet")
+        click.echo(f"\ninterrupted: {where}; run the study again with --force for its report and figures", err=True)
+        raise SystemExit(130) from None
     res = replay(out / "verification.mcap")
+    from .progress import working
+
     note("writing the report and the figures of paper Figs. 12-15 ...", not quiet)
-    init, final = verification_clouds(res, build_scenario(cfg, sources=res.spec["sources"]))
-    figs = verification_figures(res, init, final, res.mesh, out / "report")
-    run_report(res, out / "report", extra_figures={k: (p, STUDY_CAPTIONS.get(k, k)) for k, p in figs.items()})
+    with working("report and figures", not quiet):
+        init, final = verification_clouds(res, build_scenario(cfg, sources=res.spec["sources"]))
+        figs = verification_figures(res, init, final, res.mesh, out / "report")
+        run_report(res, out / "report", extra_figures={k: (p, STUDY_CAPTIONS.get(k, k)) for k, p in figs.items()})
     summ = verification_summary(res)
     (out / "verification.json").write_text(json.dumps(summ, indent=1, default=float))
     fm = summ["mean_error_after_um"]
@@ -797,7 +879,8 @@ def study_stations(config, trials, attribution_trials, seed, out, quiet, force):
     trackers and two tracking interferometers; docs/user-guide.md, "Several stations"). The verification is
     simulated and identified from the first laser tracker alone and from all of them (every station's pose, or
     position and dead path, identified with the machine's errors), on the same machine with the same seed. Writes
-    stations.md, .html and .json with a figure to --out. About 20 s with the defaults on 2 cores.
+    stations.md, .html and .json with a figure to --out. About 23 s of CPU with the defaults (27 s wall on 2
+    shared cores; docs/performance.md).
     """
     _fresh_out(out, ("stations",), force)
     from .config import bundled_config, load_config
@@ -878,9 +961,12 @@ def _readings(config, out, quiet, trials):
     from .scenario import build_scenario
     from .study import paper_readings, readings_verdict
 
+    from .progress import working
+
     note("every reading of the paper's figures side by side ...", not quiet)
-    r = paper_readings(build_scenario(load_config(config)), trials=trials)  # the run's own verifications
-    md = readings_report(r, out)
+    with working("readings", not quiet):
+        r = paper_readings(build_scenario(load_config(config)), trials=trials)  # the run's own verifications
+        md = readings_report(r, out)
     verdict = readings_verdict(r)
     with open(md, "a", encoding="utf-8") as fh:
         fh.write("\n" + verdict + "\n")

@@ -7,7 +7,9 @@ See docs/configuration.md for every key.
 
 from __future__ import annotations
 
+import datetime
 import difflib
+import re
 from dataclasses import dataclass, field
 from importlib import resources
 from pathlib import Path
@@ -118,11 +120,12 @@ class Reader:
 
 
 #: every key a configuration may hold, by table (docs/configuration.md documents each; a test checks it does).
-#: [placement] is checked by the placement study and [sources] by the scenario.
+#: [placement] is checked here with its values (_placement, for every command that reads a configuration) and
+#: [sources] by the scenario.
 SCHEMA = {
     "": ("format", "name", "description", "machine", "reference_temperature", "seed", "mesh", "plan", "tracker",
          "machine_tool", "geometric_errors", "sensors", "effects", "placement", "sources", "weights", "measurand",
-         "stations", "scales", "rotary", "features"),
+         "stations", "scales", "rotary", "features", "report"),
     "mesh": ("x", "y", "z", "step", "step_x", "step_y", "step_z"),
     "plan": ("runs", "tools", "feed", "stop_time", "tool_change_time", "station_change_time"),
     "tracker": ("D", "L", "H", "a", "b", "d", "angular", "distance", "distance_per_length", "mount"),
@@ -134,6 +137,8 @@ SCHEMA = {
     "effects": ("thermal", "reversal", "drift"),
     "weights": ("angular", "distance", "distance_per_length", "repeatability"),
     "measurand": ("tool",),
+    "placement": ("D", "L", "H", "range_min", "range_max", "elevation_max", "tests", "candidates", "envelope",
+                  "directions", "eq23", "eq27"),
     "stations": ("kind", "D", "L", "H", "a", "b", "d", "position", "dead_path", "description", "angular", "distance",
                  "distance_per_length"),
     # [scales.<axis>]: the nominal expansion of each axis scale, simulated and corrected (as recording.toml's [scales])
@@ -146,9 +151,20 @@ SCHEMA = {
     "features": ("name", "kind", "points", "directions", "tolerance", "association", "datum", "probing_error",
                  "repeatability", "machine_temperature_change", "part_temperature", "part_temperature_u", "part_cte",
                  "part_cte_u"),
+    # [report]: what a laboratory states on the report and the DCC (all optional, free text; mtbudget.report)
+    "report": ("laboratory", "instrument", "machine", "customer", "operator", "date", "traceability", "certificate",
+               "country", "location"),
+    "report.instrument": ("model", "serial", "calibration"),
 }
 #: at most this many commanded angles per rotary axis in a plan
 MAX_ROTARY_ANGLES = 72
+#: the readings of the paper that its text leaves open, one key of [placement] each, default first (mtbudget.study)
+PLACEMENT_READINGS = {"directions": ("machine", "envelope"), "eq23": ("polar", "elevation"),
+                      "eq27": ("compensated", "compensated_rigid", "residual")}
+#: what the placement study takes from elsewhere in the configuration (one key per physical input)
+PLACEMENT_NOISE_KEYS = {"angular_mean": "tracker.angular", "distance": "tracker.distance",
+                        "distance_per_length": "tracker.distance_per_length",
+                        "angular_sd": "sources.tracker_noise.angular_sd"}
 #: the tables that are arrays of tables ([[sensors]], [[stations]]): checked entry by entry
 ARRAY_TABLES = ("sensors", "stations", "features")
 #: at most this many stations in one verification (each adds 6 or 4 unknowns and a pass over the plan)
@@ -186,6 +202,7 @@ class SensorSpec:
     cycle_amplitude: float = 0.0  # K
     cycle_period: float = 1800.0  # s
     cycle_phase: float = 0.0  # rad
+    noise_stated: bool = True  # False: no `noise` key, the readings are simulated noise-free (the stated default)
 
     def values(self, t: np.ndarray, rng: np.random.Generator) -> np.ndarray:
         T = self.start + self.rate * t
@@ -238,6 +255,9 @@ class SimulationConfig:
     mount: str = "table"
     source: dict = field(default_factory=dict)  # the raw TOML (for logging)
     path: Path | None = None
+    #: the configuration's text as the run log keeps it: None for a plain file (its own text is read), the text
+    #: with the resolved table appended for a file that `extends` another or a configuration changed by --set
+    text: str | None = None
 
     def mesh_points(self) -> np.ndarray:
         """The plan's nominal poses, (M0, 3 + R): the linear mesh (x fastest) at every combination of the rotary
@@ -320,6 +340,88 @@ def _pose(tr: "Reader") -> np.ndarray:
     if np.any(np.abs(pose[:3]) > MAX_LENGTH):
         raise ConfigError(f"{tr.where('DLH'[int(np.argmax(np.abs(pose[:3])))])}: beyond {MAX_LENGTH:g} mm")
     return pose
+
+
+def _placement(r: "Reader") -> None:
+    """Check [placement] (keys and values) for every command that reads the configuration, not only the placement
+    study: a typo or a bad unit there is an error wherever the file is used (the study reads the values)."""
+    if not r.has("placement"):
+        return
+    raw = r.raw("placement")
+    if not isinstance(raw, dict):
+        raise ConfigError(f"{r.where('placement')}: expected a table")
+    p = r.sub("placement")
+    for k in raw:
+        if k in PLACEMENT_NOISE_KEYS:
+            raise ConfigError(f"{p.where(k)}: the tracker noise is stated once, as {PLACEMENT_NOISE_KEYS[k]}; "
+                              "remove it from [placement]")
+    p.check_keys(SCHEMA["placement"], "[placement]")
+    for k in "DLH":
+        if k in raw:
+            v = raw[k]
+            if not (isinstance(v, list) and len(v) == 2):
+                raise ConfigError(f"{p.where(k)}: expected [low, high], e.g. [\"-2000 mm\", \"-500 mm\"]")
+            lo, hi = (to_unit(x, "mm", p.where(k)) for x in v)
+            if not lo <= hi or max(abs(lo), abs(hi)) > MAX_LENGTH:
+                raise ConfigError(f"{p.where(k)}: expected low <= high within {MAX_LENGTH:g} mm")
+    for k, unit in (("range_min", "mm"), ("range_max", "mm"), ("elevation_max", "rad")):
+        if k in raw and not p.quantity(k, unit) > 0:
+            raise ConfigError(f"{p.where(k)}: must be positive")
+    if "range_min" in raw or "range_max" in raw:
+        if not p.quantity("range_min", "mm", "0.5 m") < p.quantity("range_max", "mm", "15 m"):
+            raise ConfigError(f"{p.where('range_max')}: must exceed range_min")
+    if "envelope" in raw:
+        env = raw["envelope"]
+        if not (isinstance(env, dict) and set(env) == set(AXES)
+                and all(isinstance(env[a], list) and len(env[a]) == 2 for a in AXES)):
+            raise ConfigError(f"{p.where('envelope')}: expected {{ x = [lo, hi], y = [lo, hi], z = [lo, hi] }}")
+        for a in AXES:
+            lo, hi = (to_unit(x, "mm", f"{p.where('envelope')}.{a}") for x in env[a])
+            if not lo <= hi:
+                raise ConfigError(f"{p.where('envelope')}.{a}: low must not exceed high")
+    for k in ("tests", "candidates"):
+        if k in raw:
+            p.number(k, kind=int, low=1)
+    for k, choices in PLACEMENT_READINGS.items():
+        if k in raw and raw[k] not in choices:
+            raise ConfigError(f"{p.where(k)}: expected one of {', '.join(map(repr, choices))}, got {raw[k]!r:.60}")
+
+
+#: [report] location: where the verification is performed (the DCC 3.3.0 performanceLocation values)
+PERFORMANCE_LOCATIONS = ("laboratory", "customer", "laboratoryBranch", "customerBranch", "other")
+
+
+def _report_fields(r: "Reader") -> None:
+    """[report]: optional text fields of the report and the DCC (keys already checked), checked for their types."""
+    if not r.has("report"):
+        return
+    p = r.sub("report")
+    for k in SCHEMA["report"]:
+        if k not in p.data or k == "instrument":
+            continue
+        v = p.data[k]
+        if not isinstance(v, str) or not v.strip():
+            raise ConfigError(f"{p.where(k)}: expected a non-empty string" + (' (a date as "2026-11-25", quoted)'
+                                                                               if k == "date" else ""))
+    if "date" in p.data:
+        try:
+            datetime.date.fromisoformat(p.data["date"].strip())
+        except ValueError:
+            raise ConfigError(f"{p.where('date')}: expected a date YYYY-MM-DD, got {p.data['date']!r:.40}") from None
+    if "location" in p.data and p.data["location"] not in PERFORMANCE_LOCATIONS:
+        raise ConfigError(f"{p.where('location')}: where the verification is performed: one of "
+                          f"{', '.join(map(repr, PERFORMANCE_LOCATIONS))} (the DCC's performanceLocation)")
+    if "country" in p.data and not re.fullmatch(r"[A-Z]{2}", p.data["country"]):
+        raise ConfigError(f"{p.where('country')}: expected an ISO 3166-1 code of two capital letters (DE, ES, FR ...)")
+    if "instrument" in p.data:
+        ins = p.data["instrument"]
+        if not isinstance(ins, dict):
+            raise ConfigError(f"{p.where('instrument')}: expected a table: model, serial, calibration")
+        it = p.sub("instrument")
+        it.check_keys(SCHEMA["report.instrument"], "[report.instrument]")
+        for k, v in ins.items():
+            if not isinstance(v, str) or not v.strip():
+                raise ConfigError(f"{it.where(k)}: expected a non-empty string")
 
 
 def config_states(data: dict, key: str) -> bool:
@@ -463,9 +565,90 @@ def _stations(raw: list, path) -> list:
     return out
 
 
-def load_config(path=None) -> SimulationConfig:
-    """Load a configuration file (the built-in default when ``path`` is None)."""
+#: how deep `extends` may chain (a file that extends one that extends ...)
+MAX_EXTENDS = 8
+
+
+def load_config(path=None, sets: tuple | list = ()) -> SimulationConfig:
+    """Load a configuration file (the built-in default when ``path`` is None).
+
+    A file may start from another: ``extends = "base.toml"`` (relative to the file) or ``extends = "default"``
+    (the built-in paper configuration); its own tables and keys then replace the base's, table by table and key by
+    key (a list or a value is replaced whole).  ``sets``: "dotted.key=value" overrides applied last (the CLI's
+    ``--set``), the value a TOML value or else a string (``sources.tracker_noise.angular_sd=3 urad``); an index
+    reaches into an array of tables (``sensors.0.noise=0.02 K``)."""
     path = Path(path) if path is not None else default_config_path()
+    data, chain = _load_with_extends(path, [])
+    for item in sets:
+        _apply_set(data, item, path)
+    try:
+        cfg = parse_config(data, path)
+    except ConfigError as exc:
+        keys = [str(x).partition("=")[0].strip() for x in sets]
+        if any(k and f": {k}:" in str(exc) for k in keys):  # a key of --set, not of the file
+            raise ConfigError(f"{exc} (given with --set)") from None
+        raise
+    if len(chain) > 1 or sets:
+        import json
+
+        own = path.read_text(encoding="utf-8", errors="replace")
+        cfg.text = (own + "\n\n# resolved by mtbudget (extends: " + " <- ".join(str(p) for p in chain[1:]) +
+                    ("; --set " + ", ".join(sets) if sets else "") + "), as JSON:\n# " + json.dumps(data, default=str) + "\n")
+    return cfg
+
+
+def _merge(base: dict, over: dict) -> dict:
+    out = dict(base)
+    for k, v in over.items():
+        out[k] = _merge(out[k], v) if isinstance(v, dict) and isinstance(out.get(k), dict) else v
+    return out
+
+
+def _load_with_extends(path: Path, seen: list) -> tuple[dict, list]:
+    """The TOML table of ``path`` with its ``extends`` chain merged in; the chain of files (this one first)."""
+    if len(seen) >= MAX_EXTENDS:
+        raise ConfigError(f"{path}: extends: more than {MAX_EXTENDS} files deep")
+    if path.resolve() in [p.resolve() for p in seen]:
+        raise ConfigError(f"{seen[-1]}: extends: {path} extends itself (through {' -> '.join(map(str, seen))})")
+    data = _read_toml(path)
+    base = data.pop("extends", None)
+    if base is None:
+        return data, [path]
+    if not isinstance(base, str) or not base.strip():
+        raise ConfigError(f"{path}: extends: expected a file name or \"default\" (the built-in configuration)")
+    base_path = default_config_path() if base.strip() == "default" else (path.parent / base).resolve()
+    if not base_path.exists():
+        raise ConfigError(f"{path}: extends: no such configuration file {base_path}")
+    merged, chain = _load_with_extends(base_path, seen + [path])
+    return _merge(merged, data), [path] + chain
+
+
+def _apply_set(data: dict, item: str, path) -> None:
+    key, sep, text = str(item).partition("=")
+    key = key.strip()
+    if not sep or not key:
+        raise ConfigError(f"--set {item!r}: expected KEY=VALUE, for example --set 'tracker.angular=25 urad'")
+    try:
+        value = tomllib.loads(f"v = {text.strip()}")["v"]
+    except tomllib.TOMLDecodeError:
+        value = text.strip()
+    node, parts = data, key.split(".")
+    for i, part in enumerate(parts[:-1]):
+        if isinstance(node, list):
+            if not part.isdigit() or int(part) >= len(node):
+                raise ConfigError(f"--set {key}: {'.'.join(parts[:i])} has {len(node)} entries; {part!r} is not one")
+            node = node[int(part)]
+            continue
+        nxt = node.setdefault(part, {})
+        if not isinstance(nxt, (dict, list)):
+            raise ConfigError(f"--set {key}: {'.'.join(parts[:i + 1])} is a value, not a table")
+        node = nxt
+    if isinstance(node, list):
+        raise ConfigError(f"--set {key}: name a key inside an entry of {'.'.join(parts[:-1])}")
+    node[parts[-1]] = value  # checked with the rest by parse_config (unknown keys, units)
+
+
+def _read_toml(path: Path) -> dict:
     if not path.exists():
         raise ConfigError(f"{path}: no such configuration file")
     try:
@@ -485,7 +668,7 @@ def load_config(path=None) -> SimulationConfig:
         raise ConfigError(f"{path}: invalid TOML ({_printable(exc)})") from None
     except RecursionError:
         raise ConfigError(f"{path}: invalid TOML (nested too deeply)") from None
-    return parse_config(data, path)
+    return data
 
 
 def parse_config(data: dict, path=None) -> SimulationConfig:
@@ -495,8 +678,10 @@ def parse_config(data: dict, path=None) -> SimulationConfig:
         raise ConfigError(f"{r.where('format')}: expected \"{CONFIG_FORMAT}\", got {fmt!r}")
     r.check_keys(SCHEMA[""], "a configuration")
     for table in [t for t in SCHEMA if t and t not in ARRAY_TABLES and "." not in t]:  # every table; [scales.x]: _scales
-        if r.has(table):
+        if r.has(table) and table != "placement":
             r.sub(table).check_keys(SCHEMA[table], f"[{table}]")
+    _placement(r)
+    _report_fields(r)
     for table in ARRAY_TABLES:
         entries = data.get(table, [])
         if not isinstance(entries, list) or not all(isinstance(x, dict) for x in entries):
@@ -660,7 +845,8 @@ def parse_config(data: dict, path=None) -> SimulationConfig:
         rate = sr.quantity("rate", "K/s", "0 K/h")
         noise = sr.quantity("noise", "K", "0 K")
         spec = SensorSpec(sensor, start, rate, noise, sr.quantity("cycle_amplitude", "K", "0 K"),
-                          sr.quantity("cycle_period", "s", "30 min"), sr.quantity("cycle_phase", "rad", "0 rad"))
+                          sr.quantity("cycle_period", "s", "30 min"), sr.quantity("cycle_phase", "rad", "0 rad"),
+                          noise_stated="noise" in s)
         for key in ("noise", "cycle_amplitude", "cycle_period"):
             if getattr(spec, key) < 0 or (key == "cycle_period" and not spec.cycle_period > 0):
                 raise ConfigError(f"{sr.where(key)}: must be {'positive' if key == 'cycle_period' else 'zero or positive'}")

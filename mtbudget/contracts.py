@@ -32,7 +32,7 @@ from typing import TYPE_CHECKING
 
 from .errors import PluginError
 from .model import MODEL_INPUTS
-from .units import ABSOLUTE_TEMPERATURE, Q_, is_offset_temperature, is_temperature_difference_unit, parse_quantity, ureg
+from .units import ABSOLUTE_TEMPERATURE, Q_, angle_or_ratio_problem, is_offset_temperature, is_temperature_difference_unit, parse_quantity, ureg
 
 if TYPE_CHECKING:  # annotations only: the contract does not import the layers that use it
     from .model import MeasurementModel
@@ -158,12 +158,14 @@ class Source:
             if isinstance(old, pint.Quantity):
                 if not isinstance(new, pint.Quantity):
                     new = Q_(float(new))
-                if old.dimensionless and not old.unitless and new.unitless:
+                if old.dimensionless and not old.unitless and not dict(new.unit_items()):
                     raise PluginError(f"parameter {k!r}: {v!r} needs an explicit unit (for example \"{v} {old.units:~P}\"); "
                                       "a bare number is ambiguous for an angle", self.plugin or None, self.name)
                 if new.dimensionality != old.dimensionality:
                     raise PluginError(f"parameter {k!r}: {new:~P} does not have the dimension of {old:~P}",
                                       self.plugin or None, self.name)
+                if old.dimensionless and dict(old.unit_items()) and (problem := angle_or_ratio_problem(new, old)):
+                    raise PluginError(f"parameter {k!r}: {v!r} {problem}", self.plugin or None, self.name)
                 if old.dimensionality == ureg.kelvin.dimensionality:
                     if is_offset_temperature(old) or k in self.absolute_temperatures:
                         if is_temperature_difference_unit(new):
@@ -272,6 +274,46 @@ def check_sample(source: Source, out: dict, n: int, shapes: dict, method: str = 
                               source.plugin, source.name, method)
         conv[key] = arr
     return conv
+
+
+#: the largest magnitude a perturbation may have, per internal unit: beyond it a sample is absurd for a machine tool
+#: verified with a laser tracker (10 m of offset, half a turn, a scale error of 100 %) and is refused, naming the
+#: plugin and the source, before it can overflow into inf/nan results ("strategy": option indices, checked apart)
+PLAUSIBLE_PERTURBATION = {"mm": 1e4, "rad": np.pi, "": 1.0}
+
+
+def check_plausible(source: Source, out, method: str = "sample") -> None:
+    """Refuse a sample holding a finite but absurd perturbation (:data:`PLAUSIBLE_PERTURBATION`), naming the plugin,
+    the source and the target.  Values that are not finite, not quantities or of the wrong dimension are left to
+    :func:`check_sample`, which says what is wrong with them.  One pass of ``abs().max()`` per array."""
+    if not isinstance(out, dict):
+        return
+    for key, v in out.items():
+        if key not in TARGETS or key == "strategy" or key not in source.targets:
+            continue
+        unit = TARGETS[key][0]
+        try:
+            if isinstance(v, pint.Quantity):
+                mag = np.asarray(v.magnitude, dtype=float)
+                f = 1.0 if v.units == internal_unit(key) else float(Q_(1.0, v.units).to(internal_unit(key)).magnitude)
+            else:
+                mag, f = np.asarray(v, dtype=float), 1.0
+            if not mag.size:
+                continue
+            limit = PLAUSIBLE_PERTURBATION[unit] / abs(f)  # in the array's own unit
+            if mag.max() <= limit and mag.min() >= -limit:  # two passes, no temporary (NaN fails: looked at below)
+                continue
+            if not np.isfinite(mag).all():
+                continue  # NaN or infinity: check_sample says so
+            big = float(np.abs(mag).max()) * abs(f)
+        except (TypeError, ValueError, ZeroDivisionError, pint.errors.PintError):
+            continue
+        limit = PLAUSIBLE_PERTURBATION[unit]
+        if big > limit:
+            shown = f"{big:.3g} {unit}" if unit else f"{big:.3g}"
+            raise PluginError(f"{method}() returned {key!r} of magnitude up to {shown}, beyond the plausible "
+                              f"{limit:g} {unit or '(dimensionless)'} of a perturbation: a unit mistake or an overflow "
+                              "in the plugin?", source.plugin or None, source.name, "mtbudget_register_sources", method)
 
 
 #: target key -> its internal unit as a pint Unit (built once)

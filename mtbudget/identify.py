@@ -533,6 +533,10 @@ def _rows(fixed: dict, idx, N: int) -> dict:
     return {k: (v[idx] if np.ndim(v) and np.shape(v)[0] == N and N > 1 else v) for k, v in fixed.items()}
 
 
+#: the most measured points one identification takes (a guard against a recording that would exhaust the memory)
+MAX_POINTS = 100_000
+
+
 def identify(
     model: MeasurementModel,
     measured: np.ndarray,
@@ -584,6 +588,11 @@ def identify(
     if "tracker_offset" in fixed:  # a known displacement in the tracker frame: take it off the measurement
         meas = meas - np.broadcast_to(fixed.pop("tracker_offset"), meas.shape)
     N, M = meas.shape[:2]
+    if M > MAX_POINTS:  # the working set grows with M (measured: 3.7 GB and 36 s for 1e5 points, docs/performance.md)
+        raise IdentificationError(
+            f"{M} measured points in one identification; at most {MAX_POINTS} (it holds about 37 kB per point: "
+            f"{M * 37e3 / 1e9:.0f} GB here); a verification measures hundreds to a few thousand points: thin the "
+            "recording or identify its runs apart")
     p = model.n_params
 
     # identifiability of each phase (depends on the plan only: computed once per model, see _plan_cache)
@@ -698,6 +707,11 @@ def _solution_quantities(res: Identification, measured, fixed, chunk) -> dict:
 
 def _identify_chunk(model, meas, noise, strategy, theta, pose, fixed, phases, with_covariance=True):
     N, M = meas.shape[:2]
+    if M > MAX_POINTS:  # the working set grows with M (measured: 3.7 GB and 36 s for 1e5 points, docs/performance.md)
+        raise IdentificationError(
+            f"{M} measured points in one identification; at most {MAX_POINTS} (it holds about 37 kB per point: "
+            f"{M * 37e3 / 1e9:.0f} GB here); a verification measures hundreds to a few thousand points: thin the "
+            "recording or identify its runs apart")
     p = model.n_params
     sv = scale_vector(model)
     Wh = _weights(model, meas, noise, strategy)
@@ -819,6 +833,11 @@ def _identify_chunk_chord(model, meas, noise, strategy, theta, pose0, fixed, pha
     nominal points seen from it (the same for every trial and label, computed once per model, phase, pose
     and noise, and cached) instead of each label's mean information."""
     N, M = meas.shape[:2]
+    if M > MAX_POINTS:  # the working set grows with M (measured: 3.7 GB and 36 s for 1e5 points, docs/performance.md)
+        raise IdentificationError(
+            f"{M} measured points in one identification; at most {MAX_POINTS} (it holds about 37 kB per point: "
+            f"{M * 37e3 / 1e9:.0f} GB here); a verification measures hundreds to a few thousand points: thin the "
+            "recording or identify its runs apart")
     p = model.n_params
     sv = scale_vector(model)
     lab = _Labels(labels, N)

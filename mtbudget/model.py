@@ -15,8 +15,8 @@ import numpy as np
 
 from . import tracker as lt
 from .errors import ConfigError
-from .machine import (AXES, AXIS_INDEX, ROTARY, ROTARY_INDEX, ChainInputs, Configuration, ErrorModel, chain, is_rotary,
-                      parse_error_name, rotary_term)
+from .machine import (AXES, ROTARY, ROTARY_INDEX, ChainInputs, Configuration, ErrorModel, chain, is_rotary,
+                      parse_error_name)
 from .plan import Plan, Scale
 
 # ----------------------------------------------------------------------------- ISO 230-1 names (the one map)

@@ -11,9 +11,19 @@ hook (and the method) and the distribution it came from.
 After loading, the host checks every plugin against the hook specifications
 (:meth:`PluginHost.check_pending`): a function named like a hook that does
 not exist is an error that suggests the closest real hook, instead of being
-ignored.  A third-party plugin that fails to import is skipped with a
-one-line warning (logger ``mtbudget.plugins``, shown on stderr by the CLI);
-the built-ins keep working.
+ignored.
+
+A third-party plugin (an entry point of another distribution) that fails is
+isolated: when it fails to import, cannot be registered (it reuses a
+plugin's name, a hook implementation is invalid), misspells a hook, raises in
+a registration hook, or registers a name another plugin already has
+(a built-in's name, or the name of a plugin that sorts first), it is skipped
+with a one-line warning that names it and says why (logger
+``mtbudget.plugins``, shown on stderr by the CLI; ``mtbudget plugins``
+lists it); the built-ins and the other plugins keep working.  mtbudget's own
+plugins and plugins registered in code (``PluginHost(plugins=...)``) are
+never skipped: their failure is an error.  ``MTBUDGET_STRICT_PLUGINS=1``
+makes every plugin failure an error (for a plugin's own tests).
 
 From a source checkout that is not installed (``PYTHONPATH=checkout``), the
 entry points of mtbudget are absent: the host then registers the built-ins
@@ -24,6 +34,7 @@ Environment switches:
 
 * ``MTBUDGET_DISABLE_PLUGINS=name,name``: do not load these plugins.
 * ``MTBUDGET_PLUGINS=name,name``: load only these (an allow-list).
+* ``MTBUDGET_STRICT_PLUGINS=1``: a failing third-party plugin is an error instead of being skipped.
 * ``MTBUDGET_TRACE_PLUGINS=1``: print every hook call and every call into a
   registered plugin object to stderr (hook or method, plugin, arguments,
   outcome, duration), through pluggy's hook-call monitoring.
@@ -46,7 +57,7 @@ from pathlib import Path
 import pluggy
 
 from . import hookspecs
-from .contracts import TARGETS, Candidate, Exporter, Group, Source
+from .contracts import TARGETS, Candidate, Exporter, Group, Source, check_plausible
 from .errors import PluginError
 
 try:  # Python >= 3.11
@@ -201,8 +212,11 @@ class PluginHost:
         self.info: dict[str, PluginInfo] = {}
         #: names of the registered plugins that are mtbudget's own
         self.builtin: set[str] = set()
-        #: one-line messages of the third-party plugins skipped because they failed to import
+        #: one-line messages of the third-party plugins skipped because they failed (import, registration, a hook)
         self.skipped: list[str] = []
+        #: names of the registered third-party plugins from entry points: a failure skips them (module docstring)
+        self.isolated: set[str] = set()
+        self.strict = _env_flag("MTBUDGET_STRICT_PLUGINS")
         self._trace_started: list[float] = []
         if tracing():
             self.pm.add_hookcall_monitoring(self._trace_before, self._trace_after)
@@ -246,7 +260,18 @@ class PluginHost:
         except Exception as exc:
             self._import_failed(ep.name, ep.value, dist, version, exc, builtin=_is_builtin_dist(dist))
             return
-        self._register(module, ep.name, ep.value, dist, version, builtin=_is_builtin_dist(dist))
+        builtin = _is_builtin_dist(dist)
+        try:
+            self._register(module, ep.name, ep.value, dist, version, builtin=builtin)
+        except PluginError as exc:
+            if builtin or self.strict:
+                raise
+            if self.pm.get_plugin(ep.name) is module:  # pluggy may have added some of its hooks before failing
+                self.pm.unregister(name=ep.name)
+            self._warn_skipped(ep.name, ep.value, dist, version, f"it cannot be registered: {exc.reason}")
+            return
+        if not builtin:
+            self.isolated.add(ep.name)
 
     def _load_checkout_builtin(self, name: str, value: str):
         from . import __version__
@@ -264,10 +289,26 @@ class PluginHost:
             raise PluginError(f"built-in plugin {value!r} ({dist} {version}) failed to import: {reason}; "
                               f"reinstall mtbudget, or skip it with MTBUDGET_DISABLE_PLUGINS={name}",
                               name, hook="load") from exc
-        msg = (f"mtbudget: skipping plugin {name!r} ({value}, from {dist} {version}): it failed to import: {reason}; "
+        self._warn_skipped(name, value, dist, version, f"it failed to import: {reason}")
+
+    def _warn_skipped(self, name, value, dist, version, why: str):
+        msg = (f"mtbudget: skipping plugin {name!r} ({value}, from {dist} {version}): {_one_line(why)}; "
                f"set MTBUDGET_DISABLE_PLUGINS={name} to silence this warning")
         self.skipped.append(msg)
         log.warning(msg)
+
+    def _isolate(self, name: str, exc: PluginError) -> None:
+        """Skip the registered third-party plugin ``name`` after ``exc``, or raise ``exc`` when it may not be
+        skipped (a built-in, a plugin registered in code, MTBUDGET_STRICT_PLUGINS)."""
+        if name not in self.isolated or self.strict:
+            raise exc
+        self.isolated.discard(name)
+        info = self.info.pop(name)
+        if self.pm.get_plugin(name) is not None:
+            self.pm.unregister(name=name)
+        hook = f"hook {exc.hook}: " if exc.hook and exc.hook != "register" and not exc.reason.startswith(exc.hook) else ""
+        reason = exc.reason.split(", or skip that plugin with MTBUDGET_DISABLE_PLUGINS=")[0]  # said once, below
+        self._warn_skipped(name, info.module, info.distribution, info.version, hook + reason)
 
     def _warn_unknown_names(self, disabled, allowed, known):
         for var, names in (("MTBUDGET_DISABLE_PLUGINS", disabled), ("MTBUDGET_PLUGINS", allowed or set())):
@@ -306,32 +347,39 @@ class PluginHost:
         hook, and for an unmarked one that looks like a misspelled hook.
         """
         hooks = hook_names()
-        for name, obj in self.pm.list_name_plugin():
+        for name, obj in list(self.pm.list_name_plugin()):
             if obj is None:
                 continue
-            callers = self.pm.get_hookcallers(obj) or []
-            for caller in callers:
-                if caller.has_spec():
-                    continue
-                if any(impl.plugin is obj and not impl.optionalhook for impl in caller.get_hookimpls()):
-                    raise self._unknown_hook(name, caller.name, hooks)
-            implemented = {c.name for c in callers}
-            for attr in dir(obj):
-                if not attr.startswith(_PROJECT + "_") or attr in implemented:
-                    continue
-                fn = getattr(obj, attr, None)
-                if not callable(fn) or isinstance(fn, type) or hasattr(fn, _PROJECT + "_spec") \
-                        or hasattr(fn, _PROJECT + "_impl"):
-                    continue
-                if attr in hooks:
-                    raise PluginError(f"{attr}() is not marked with @hookimpl, so it would never be called; "
-                                      "decorate it (from mtbudget import hookimpl)", name, hook=attr)
-                if difflib.get_close_matches(attr, hooks, 1, 0.8):
-                    raise self._unknown_hook(name, attr, hooks)
+            try:
+                self._check_plugin(name, obj, hooks)
+            except PluginError as exc:
+                self._isolate(name, exc)
         try:
             self.pm.check_pending()  # pluggy's own check, in case it knows more than the loop above
         except pluggy.PluginValidationError as exc:
             raise PluginError(_one_line(str(exc)), self.pm.get_name(exc.plugin), hook="register") from None
+
+    def _check_plugin(self, name: str, obj, hooks: list) -> None:
+        """check_pending for one plugin: raise the PluginError of its first function named like no hook."""
+        callers = self.pm.get_hookcallers(obj) or []
+        for caller in callers:
+            if caller.has_spec():
+                continue
+            if any(impl.plugin is obj and not impl.optionalhook for impl in caller.get_hookimpls()):
+                raise self._unknown_hook(name, caller.name, hooks)
+        implemented = {c.name for c in callers}
+        for attr in dir(obj):
+            if not attr.startswith(_PROJECT + "_") or attr in implemented:
+                continue
+            fn = getattr(obj, attr, None)
+            if not callable(fn) or isinstance(fn, type) or hasattr(fn, _PROJECT + "_spec") \
+                    or hasattr(fn, _PROJECT + "_impl"):
+                continue
+            if attr in hooks:
+                raise PluginError(f"{attr}() is not marked with @hookimpl, so it would never be called; "
+                                  "decorate it (from mtbudget import hookimpl)", name, hook=attr)
+            if difflib.get_close_matches(attr, hooks, 1, 0.8):
+                raise self._unknown_hook(name, attr, hooks)
 
     def _unknown_hook(self, plugin: str, hook: str, hooks: list) -> PluginError:
         info = self.info.get(plugin)
@@ -371,8 +419,16 @@ class PluginHost:
         hook = getattr(self.pm.hook, hook_name)
         found, owners = [], {}
         everyone = self.pm.get_plugins()
+
+        def drop(plugin):  # what a skipped plugin registered in this call
+            found[:] = [o for o in found if o.plugin != plugin]
+            for key in [k for k, p in owners.items() if p == plugin]:
+                del owners[key]
+
         for impl in hook.get_hookimpls():  # registration order
             plugin = impl.plugin_name
+            if self.pm.get_plugin(plugin) is None:  # skipped while collecting (it clashed with a later plugin)
+                continue
             info = self.info.get(plugin, PluginInfo(plugin, "?", "?", "?"))
 
             got: list[str] = []
@@ -384,7 +440,11 @@ class PluginHost:
                 obj.plugin, obj.dist_name, obj.dist_version = _plugin, _info.distribution, _info.version
                 key = check(obj)
                 if key in owners:
-                    raise self._duplicate(hook_name, key, owners[key], _plugin, obj)
+                    err = self._duplicate(hook_name, key, owners[key], _plugin, obj)
+                    if err.plugin == _plugin:
+                        raise err
+                    drop(err.plugin)  # an earlier third-party plugin took a built-in's name: it goes, or it raises
+                    self._isolate(err.plugin, err)
                 owners[key] = _plugin
                 found.append(obj)
                 _got.append(_label(obj))
@@ -394,11 +454,16 @@ class PluginHost:
             only = self.pm.subset_hook_caller(hook_name, remove_plugins=[p for p in everyone if p is not impl.plugin])
             try:
                 only(register=register)
-            except PluginError:
-                raise
             except Exception as exc:
-                raise PluginError(f"raised {type(exc).__name__}: {exc} (from {info.distribution} {info.version})",
-                                  plugin, hook=hook_name) from exc
+                err = exc if isinstance(exc, PluginError) else PluginError(
+                    f"raised {type(exc).__name__}: {_one_line(exc)} (from {info.distribution} {info.version})",
+                    plugin, hook=hook_name)
+                if plugin not in self.isolated or self.strict:
+                    if err is exc:
+                        raise
+                    raise err from exc
+                drop(plugin)
+                self._isolate(plugin, err)
         return found
 
     def _duplicate(self, hook_name: str, key, first: str, second: str, obj) -> PluginError:
@@ -501,7 +566,12 @@ def call(obj, method: str, *args, **kwargs):
 
 def _call(obj, method: str, args, kwargs):
     try:
-        return getattr(obj, method)(*args, **kwargs)
+        out = getattr(obj, method)(*args, **kwargs)
+        if method in _SAMPLES and isinstance(obj, Source) and obj.dist_name != BUILTIN_DISTRIBUTION:
+            # finite but absurd (1e300 mm) would overflow into inf/nan results; mtbudget's own sources are tested
+            # (and spared the 2 % of a run the check costs them)
+            check_plausible(obj, out, method)
+        return out
     except PluginError as exc:
         if exc.method is None and exc.plugin in (None, getattr(obj, "plugin", None)):
             raise PluginError(exc.reason, exc.plugin or getattr(obj, "plugin", None) or None,
@@ -510,6 +580,9 @@ def _call(obj, method: str, args, kwargs):
     except Exception as exc:
         raise PluginError(f"raised {type(exc).__name__}: {exc}", getattr(obj, "plugin", None) or None, _label(obj),
                           _hook_of(obj), method) from exc
+
+
+_SAMPLES = ("sample", "sample_internal")
 
 
 def _label(obj):

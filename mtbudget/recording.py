@@ -624,6 +624,7 @@ class _Lines:
     def __init__(self, fh, path, encoding):
         self.fh, self.path, self.encoding = fh, path, encoding
         self.line, self.offset, self.next_offset = 0, 0, 0
+        self.unterminated = False  # the line last read has no line ending: the file's last, maybe cut short
         self.header = None  # the column names, once known (for the column of a bad byte)
 
     def __iter__(self):
@@ -635,6 +636,7 @@ class _Lines:
             raise StopIteration
         self.line += 1
         self.offset, self.next_offset = self.next_offset, self.next_offset + len(raw)
+        self.unterminated = not raw.endswith((b"\n", b"\r"))
         if self.line == 1:
             for bom, name in _BOMS:
                 if raw.startswith(bom):
@@ -756,6 +758,10 @@ def _read_points(csv_path: Path, sensors, *, ignored=frozenset(), max_rows=MAX_R
                 line = lines.line
                 if not cells or (len(cells) == 1 and not cells[0].strip()):
                     continue  # a blank line
+                if lines.unterminated:  # a number cut mid-way would read as another number
+                    raise RecordingError("the last line has no line ending: the file looks cut short (an interrupted "
+                                         "copy or export?); if the line is complete, end the file with a newline",
+                                         csv_path, line=line)
                 if len(cells) != m:
                     raise _bad_count(cells, header, csv_path, line)
                 for j, append, h in appends:
@@ -973,6 +979,16 @@ def _convert(parsed, values, rows, csv_path, temp_cols, columns=COLUMNS, rotary=
             kelvin = "" if unit == ureg.kelvin else f" ({T[k]:.6g} K)"
             fail(name, k, f"{values[name][k]:g} {unit:~P}{kelvin} is not a plausible absolute temperature "
                           f"({lo:g} K to {hi:g} K){hint}")
+        # a header on the other scale: readings a shop has in degC (5-40) under degF read as below 5 degC, and
+        # readings a shop has in degF (50-105) under degC read as above 50 degC; neither is a verification's air
+        unit, med = parsed[name][1], float(np.median(values[name]))
+        other = ("degC", 5 <= med <= 40 and np.median(T) < 278.15) if unit == ureg.degree_Fahrenheit else \
+            ("degF", 50 <= med <= 105) if unit == ureg.degree_Celsius else None
+        if other is not None and other[1]:
+            k = int(np.argmin(np.abs(values[name] - med)))
+            fail(name, k, f"the readings of this column (median {med:g} {unit:~P}, {np.median(T) - 273.15:.1f} degC) are "
+                          f"not a machine shop's temperature; they look like {other[0]} readings: write "
+                          f"'{name} [{other[0]}]' (or check the sensor)")
     nominal = np.stack([out["x"], out["y"], out["z"]], axis=1)
     _, first, inverse = np.unique(out["point"], return_index=True, return_inverse=True)
     moved = np.flatnonzero(np.any(nominal != nominal[first[inverse.ravel()]], axis=1))

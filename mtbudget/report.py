@@ -379,9 +379,10 @@ def budget_text(res: RunResult) -> str:
     lines.append("it is not the uncertainty of a point):")
     lines.append(f"{'output':<20} {'unit':<5} {'mean':>9} {'std dev':>9}   {'symmetric interval':>22}   {'shortest interval':>22}")
     for key, v in res.outputs().items():
-        sym = f"[{v['symmetric'][0]:.3f}, {v['symmetric'][1]:.3f}]"
-        sh = "-" if v["shortest"] is None else f"[{v['shortest'][0]:.3f}, {v['shortest'][1]:.3f}]"
-        lines.append(f"{key:<20} {pretty(v['unit']):<5} {v['mean']:9.3f} {v['std']:9.3f}   {sym:>22}   {sh:>22}")
+        nd = decimals_for(v["std"])  # the spread to 2 significant digits, the rest to the same decimal (JCGM 101 7.9.2)
+        sym = f"[{v['symmetric'][0]:.{nd}f}, {v['symmetric'][1]:.{nd}f}]"
+        sh = "-" if v["shortest"] is None else f"[{v['shortest'][0]:.{nd}f}, {v['shortest'][1]:.{nd}f}]"
+        lines.append(f"{key:<20} {pretty(v['unit']):<5} {v['mean']:9.{nd}f} {v['std']:9.{nd}f}   {sym:>22}   {sh:>22}")
     b = res.budget.get(MAIN_OUTPUT)
     if b:
         lines.append("")
@@ -585,6 +586,81 @@ def provenance_lines(res: RunResult) -> list:
     return lines
 
 
+#: the kind of statement a report of a run log makes (a run simulates a planned verification)
+A_PRIORI = ("a priori: the uncertainty of a planned verification, evaluated before it is measured by {n} Monte Carlo "
+            "trials (JCGM 101) of the simulated verification; it states what the verification will achieve, not the "
+            "result of a measurement")
+
+
+def report_fields(res) -> dict:
+    """The [report] table of the run's configuration (laboratory, instrument, customer, ...): {} when absent."""
+    cfg = (res.spec or {}).get("config") or {}
+    rep = cfg.get("report") if isinstance(cfg, dict) else None
+    return rep if isinstance(rep, dict) else {}
+
+
+def headline(res, tolerance_um: float | None = None, characteristic: str = "component") -> dict:
+    """The statement in brief a laboratory issues: kind of statement, measurand in words, result, U with k and
+    coverage (two significant digits), the decision and its rule, and the [report] fields (or "not stated")."""
+    import time
+
+    pts = res.points()
+    out = {"kind": "a priori", "kind_text": A_PRIORI.format(n=res.trials), "measurand": measurand_text(res)}
+    if pts and "interval" in pts[0]:
+        u = np.array([q["u"]["value"] for q in pts])
+        mean = np.array([q["mean"]["value"] for q in pts])
+        half = np.array([[(h - lo) / 2 for lo, h in zip(q["interval"]["low"], q["interval"]["high"])] for q in pts])
+        U = 2.0 * float(u.max())
+        nd = decimals_for(U)
+        unit = pretty(pts[0]["u"]["unit"])
+        out.update(unit=unit, points=len(pts), U_max=round(U, nd), U_rms=round(2.0 * float(np.sqrt((u ** 2).mean())), nd),
+                   half_width_max=round(float(half.max()), nd), bias_max=round(float(np.abs(mean).max()), nd),
+                   k=2.0, coverage=res.coverage, decimals=nd)
+        out["result_text"] = (f"the error of each component (x, y, z) at each of the {len(pts)} mesh points after "
+                              f"compensation is estimated by the mean of the trials: at most {out['bias_max']:.{nd}f} "
+                              f"{unit} from zero")
+        out["U_text"] = (f"U = {out['U_max']:.{nd}f} {unit} (k = 2, coverage probability about 95 % for a normal "
+                         f"distribution), the largest over the mesh points and axes (U = 2u); RMS over the mesh "
+                         f"{out['U_rms']:.{nd}f} {unit}; the largest half-width of the Monte Carlo {percent(res.coverage)} "
+                         f"coverage intervals is {out['half_width_max']:.{nd}f} {unit}")
+    if tolerance_um is not None:
+        from .budget import conformance
+
+        conf = conformance(res, tolerance_um, characteristic)
+        out["decision"], out["rule"] = conf["statement"], conf["rule"]
+    else:
+        out["decision"] = "none: no tolerance was given (mtbudget report --tolerance \"20 um\")"
+        out["rule"] = "ISO 14253-1, applied when a tolerance is given"
+    f = report_fields(res)
+    ins = f.get("instrument") if isinstance(f.get("instrument"), dict) else {}
+    cfg = (res.spec or {}).get("config") or {}
+    out["fields"] = {
+        "laboratory": f.get("laboratory"), "customer": f.get("customer"), "operator": f.get("operator"),
+        "machine": f.get("machine") or f"machine tool of kinematic chain {cfg.get('machine', 'XFYZ')} (no name stated)",
+        "instrument": ", ".join(x for x in (ins.get("model"), ins.get("serial") and f"serial {ins['serial']}",
+                                            ins.get("calibration") and f"calibration: {ins['calibration']}") if x) or None,
+        "date": f.get("date") or time.strftime("%Y-%m-%d"), "traceability": f.get("traceability"),
+        "certificate": f.get("certificate"), "country": f.get("country"), "location": f.get("location")}
+    return out
+
+
+def headline_lines(h: dict) -> list:
+    """The statement in brief as a Markdown table (first thing in the report)."""
+    def said(key, hint):
+        v = h["fields"].get(key)
+        return md_escape(v) if v else f"not stated ([report] {hint})"
+
+    rows = [("kind of statement", md_escape(h["kind_text"])), ("measurand", md_escape(h["measurand"]))]
+    if "U_text" in h:
+        rows += [("result", md_escape(h["result_text"])), ("expanded uncertainty", f"**{md_escape(h['U_text'])}**")]
+    rows += [("decision", md_escape(h["decision"])), ("decision rule", md_escape(h["rule"])),
+             ("laboratory", said("laboratory", "laboratory")), ("instrument", said("instrument", "instrument.model, serial, calibration")),
+             ("machine", md_escape(h["fields"]["machine"])), ("customer", said("customer", "customer")),
+             ("operator", said("operator", "operator")), ("date", md_escape(h["fields"]["date"])),
+             ("traceability", said("traceability", "traceability")), ("certificate", said("certificate", "certificate"))]
+    return ["## Statement in brief", "", "| | |", "| --- | --- |"] + [f"| {k} | {v} |" for k, v in rows] + [""]
+
+
 #: a caption for every figure mtbudget writes (the alt text and the caption in the HTML)
 CAPTIONS = {
     "uncertainty_map": "Standard uncertainty (k = 1) of the compensated machine's error at each mesh point, per axis, "
@@ -761,6 +837,9 @@ def run_report(res: RunResult, folder, tolerance_um: float | None = None, charac
           "## Kind of statement", "", md_escape(statement_kind_line(kind)), ""]
     if not res.complete:
         md += ["**INCOMPLETE run: partial results.**", ""]
+    head = headline(res, tolerance_um, characteristic)
+    data["statement"] = head
+    md += headline_lines(head)
     if data.get("adaptive"):
         md += [md_escape(adaptive_line(data["adaptive"])) + ".", ""]
     mt = measurand_text(res)
@@ -841,9 +920,10 @@ def run_report(res: RunResult, folder, tolerance_um: float | None = None, charac
            "| output | unit | mean | std dev over trials | symmetric interval | shortest interval |",
            "| --- | --- | --- | --- | --- | --- |"]
     for k, val in data["outputs"].items():
-        sh = "-" if val["shortest"] is None else f"[{val['shortest'][0]:.3f}, {val['shortest'][1]:.3f}]"
-        md.append(f"| {k} | {pretty(val['unit'])} | {val['mean']:.3f} | {val['std']:.3f} | "
-                  f"[{val['symmetric'][0]:.3f}, {val['symmetric'][1]:.3f}] | {sh} |")
+        nd = decimals_for(val["std"])  # the spread to 2 significant digits, the rest to the same decimal
+        sh = "-" if val["shortest"] is None else f"[{val['shortest'][0]:.{nd}f}, {val['shortest'][1]:.{nd}f}]"
+        md.append(f"| {k} | {pretty(val['unit'])} | {val['mean']:.{nd}f} | {val['std']:.{nd}f} | "
+                  f"[{val['symmetric'][0]:.{nd}f}, {val['symmetric'][1]:.{nd}f}] | {sh} |")
     b = res.budget.get(MAIN_OUTPUT)
     if b:
         md += ["", f"### Budget of {MAIN_OUTPUT}", "",

@@ -36,13 +36,14 @@ def placement_figures(res: dict, folder: Path) -> dict:
     for name, d in res["directions"].items():
         loc, err = d["best_location"], d["max_error_um"]
         show = np.random.default_rng(0).choice(len(err), min(len(err), 20000), replace=False)
-        fig = plt.figure(figsize=(7, 5.5))
+        fig = plt.figure(figsize=(7.5, 5.5))
         ax = fig.add_subplot(projection="3d")
         sc = ax.scatter(loc[show, 0], loc[show, 1], loc[show, 2], c=err[show], s=2, cmap="viridis")
-        fig.colorbar(sc, ax=ax, shrink=0.7, label="maximum u_p over the mesh [um]")
-        ax.set_xlabel("x [mm]")
-        ax.set_ylabel("y [mm]")
-        ax.set_zlabel("z [mm]")
+        # the colour bar kept clear of the z axis' ticks and label (they overlapped)
+        fig.colorbar(sc, ax=ax, shrink=0.7, pad=0.14, label="maximum u_p over the mesh [µm]")
+        ax.set_xlabel("x [mm]", labelpad=6)
+        ax.set_ylabel("y [mm]", labelpad=6)
+        ax.set_zlabel("z [mm]", labelpad=8)
         ax.set_title(f"best tracker station of each test: {name}-axis direction (paper Fig. {9 if name == 'Y' else 10})")
         p = folder / f"placement_{name}.png"
         fig.savefig(p, dpi=100)
@@ -56,7 +57,7 @@ def placement_figures(res: dict, folder: Path) -> dict:
         xs = np.linspace(err.min(), err.max(), 300)
         ax.plot(xs, getattr(stats, best["distribution"])(*best["parameters"]).pdf(xs), lw=1.5,
                 label=f"{name}: best fit {best['distribution']} (KS {best['ks_distance']:.3f})")
-    ax.set_xlabel("maximum error introduced by the tracker [um]")
+    ax.set_xlabel("maximum error introduced by the tracker [µm]")
     ax.set_title("paper Fig. 11: maximum error at the best station of each test")
     ax.legend(fontsize=7)
     fig.tight_layout()
@@ -75,7 +76,7 @@ def placement_report(res: dict, j: dict, folder: Path) -> Path:
              f"{j['settings']['tests']} Monte Carlo tests per direction, {j['settings']['candidates']} candidate stations per "
              f"test; u_theta, u_phi ~ N({j['settings']['angular_mean_urad']:g}, {j['settings']['angular_sd_urad']:g}) urad, "
              f"u_d = {j['settings']['distance_um']:g} µm + {j['settings']['distance_per_length_um_per_m']:g} µm/m.", "",
-             "| direction | tests | mean max error [um] | std | 5 % | 95 % | best fit |", "| --- | --- | --- | --- | --- | --- | --- |"]
+             "| direction | tests | mean max error [µm] | std | 5 % | 95 % | best fit |", "| --- | --- | --- | --- | --- | --- | --- |"]
     for k, d in j["directions"].items():
         e = d["max_error_um"]
         lines.append(f"| {k} | {d['tests']} | {e['mean']:.1f} | {e['std']:.1f} | {e['p05']:.1f} | {e['p95']:.1f} | "
@@ -105,10 +106,13 @@ def verification_figures(res, init: np.ndarray, final: np.ndarray, mesh_pts: np.
         fig, axes = plt.subplots(1, 4, figsize=(15, 3.6))
         for i, a in enumerate("xyz"):
             axes[i].hist(data[..., i].ravel(), bins=80, density=True, color="#7aa6c2")
-            axes[i].set_xlabel(f"{a} error [um]")
+            axes[i].set_xlabel(f"{a} error [µm]")
         axes[3].hist(np.linalg.norm(data, axis=2).ravel(), bins=80, density=True, color="#c2a67a")
-        axes[3].set_xlabel("distance error [um]")
-        fig.suptitle(f"{name} error of the verification points, {len(data)} simulated verifications (paper Fig. {fig_no})")
+        axes[3].set_xlabel("distance error [µm]")
+        # the clouds are recomputed for the study's first blocks: say how many of how many (it read "256" in a
+        # 1000-verification study)
+        fig.suptitle(f"{name} error of the verification points: the first {len(data)} of the study's {res.trials} "
+                     f"simulated verifications (paper Fig. {fig_no})")
         fig.tight_layout()
         p = folder / f"{name}_errors.png"
         fig.savefig(p, dpi=100)
@@ -121,8 +125,12 @@ def verification_figures(res, init: np.ndarray, final: np.ndarray, mesh_pts: np.
         cloud = mesh_pts[None] + data * scale
         norm = np.linalg.norm(data, axis=2)
         sc = ax.scatter(cloud[..., 0].ravel(), cloud[..., 1].ravel(), cloud[..., 2].ravel(), c=norm.ravel(), s=1, cmap="viridis")
-        fig.colorbar(sc, ax=ax, shrink=0.6, label="error [um]")
-        ax.set_title(f"{title}: error clouds, exaggerated x{scale * factor('mm', 'um'):.0f}", fontsize=9)
+        fig.colorbar(sc, ax=ax, shrink=0.6, pad=0.1, label="error [µm]")
+        ax.set_xlabel("x [mm]")
+        ax.set_ylabel("y [mm]")
+        ax.set_zlabel("z [mm]")
+        ax.set_title(f"{title}: error clouds of the first {len(data)} of {res.trials} verifications, "
+                     f"exaggerated x{scale * factor('mm', 'um'):.0f}", fontsize=9)
     fig.tight_layout()
     p = folder / "error_clouds.png"
     fig.savefig(p, dpi=100)

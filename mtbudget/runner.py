@@ -207,30 +207,34 @@ def _run(config, settings, *, on_chunk, resume_blocks, engine, host, resume_hist
             return t
 
         def consume(block_ids, target_n):
-            todo = [b for b in block_ids if b not in done]
-            chunks = [todo[i:i + chunk_blocks] for i in range(0, len(todo), chunk_blocks)]
+            # chunks of chunk_blocks consecutive blocks, each without the blocks resumed from a log: a convergence row
+            # after each such group, so a resumed run has every row of the uninterrupted run (the same numbers)
+            groups = [block_ids[i:i + chunk_blocks] for i in range(0, len(block_ids), chunk_blocks)]
+            chunks = [c for c in ([b for b in g if b not in done] for g in groups) if c]
             gen = ex.map(chunks)
             # blocks computed or resumed and not yet merged; a block is released once merged (a resumed one too),
             # so the run holds only what waits for an earlier block: memory bounded by the executor's window
             cache = {b: done.pop(b) for b in block_ids if b in done}
             pending = deque(block_ids)
+            last = {g[-1] for g in groups}
+
+            def drain():
+                merged = []  # every block now available, in block order, a row after each group
+                while pending and pending[0] in cache:
+                    b = pending.popleft()
+                    merged.append(merge(cache.pop(b), target_n))  # merged blocks are not kept
+                    if b in last:
+                        _record(result)
+                        bar.update(sum(m.n for m in merged))
+                        if on_chunk:
+                            on_chunk(merged, result)
+                        merged = []
+
             for _ in chunks:
                 for r in next(gen):
                     cache[r.block] = r
-                merged = []  # every block now available, in block order
-                while pending and pending[0] in cache:
-                    merged.append(merge(cache.pop(pending.popleft()), target_n))  # merged blocks are not kept
-                if merged:
-                    _record(result)
-                    bar.update(sum(b.n for b in merged))
-                    if on_chunk:
-                        on_chunk(merged, result)
-            if pending:  # blocks that were all resumed from a log
-                merged = [merge(cache.pop(b), target_n) for b in pending]
-                pending.clear()
-                _record(result)
-                if on_chunk:
-                    on_chunk(merged, result)
+                drain()
+            drain()  # groups that were all resumed from a log
 
         if trials is not None:
             consume(list(range(math.ceil(int(trials) / engine.block))), int(trials))
@@ -306,7 +310,8 @@ def _record(result: RunResult):
 
 # ------------------------------------------------------------------ the run command, logged
 #: settings that change a run's numbers beyond trials, seed, coverage, block and sources; logged so a resume reuses them
-RESUMED_SETTINGS = ("keep_samples", "adaptive_batch", "max_trials", "ndig", "adaptive_outputs", "chunk_blocks")
+RESUMED_SETTINGS = ("keep_samples", "adaptive_batch", "max_trials", "ndig", "adaptive_outputs", "chunk_blocks",
+                    "attribution_trials")
 
 
 def execute(config=None, settings: RunSettings | None = None, *, log_path=None, resume_path=None, force: bool = False,
@@ -393,16 +398,17 @@ def _execute(config, settings, *, source, target, force, histogram_every) -> Run
     from .report import result_json
     from .runlog import RunLogWriter, final_path
 
-    copy, hist, notes, resumed = None, None, [], None
+    copy, hist, notes, resumed, overridden = None, None, [], None, {}
     if source is not None:
         old, copy, notes = _saved_run(source)
         spec = old.header["spec"]
         cfg = parse_config(spec["config"], spec.get("config_path"))
         kept = {k: (tuple(v) if k == "adaptive_outputs" else v) for k, v in old.header.get("settings", {}).items()
                 if k in RESUMED_SETTINGS}
-        settings = replace(settings, trials=old.header["trials"], seed=spec["seed"],
-                           coverage=spec.get("coverage", settings.coverage), block=spec["block"],
-                           sources=spec.get("sources"), **kept)
+        logged = dict(trials=old.header["trials"], seed=spec["seed"], coverage=spec.get("coverage", settings.coverage),
+                      block=spec["block"], **kept)
+        overridden = {k: v for k, v in logged.items() if getattr(settings, k) is not None and getattr(settings, k) != v}
+        settings = replace(settings, sources=spec.get("sources"), **logged)
         config_text = old.config_text or ""
         resumed = old.path
         own = {Path(source).resolve(), Path(old.path).resolve()}
@@ -413,7 +419,7 @@ def _execute(config, settings, *, source, target, force, histogram_every) -> Run
     else:
         cfg = config if isinstance(config, SimulationConfig) else load_config(config)  # a bad config is said first
         _refuse_existing(target, force)
-        config_text = cfg.path.read_text() if cfg.path else json.dumps(cfg.source)
+        config_text = cfg.text if cfg.text is not None else cfg.path.read_text() if cfg.path else json.dumps(cfg.source)
     settings.validate()
     # the chunk size the run uses, logged as such (not None for "automatic"): a resume reuses the same value; a log
     # from before this recorded null, and a resume of it applies the same rule again (chunk_blocks_for)
@@ -474,6 +480,8 @@ def _execute(config, settings, *, source, target, force, histogram_every) -> Run
         raise
     result.log_path = target
     result.resume_notes = notes
+    #: a resume: the run's logged settings that differ from the ones this call was given (the logged ones were kept)
+    result.resume_kept = overridden
     if writer.failed is not None:
         result.log_problem = (f"the run log could not be written ({writer.failed}); {writer.partial} keeps the blocks "
                               f"written before; make room and run `mtbudget run --resume {target}` to complete it")
@@ -526,6 +534,10 @@ def replay(path) -> RunResult:
                     guf=None if guf is None else {"estimate": np.asarray(guf["estimate"]), "cov": np.asarray(guf["cov"]),
                                                   **({"basis": guf["basis"]} if guf.get("basis") else {})},
                     logged_points=logged.get("points"))
+    if acc.n == 0:  # a run killed after its header and before its first block: nothing to state
+        raise RunLogError(f"holds no trial ({log.problem or 'no block was saved'}): the run was stopped before its "
+                          f"first block of trials was saved; `mtbudget run --resume {path}` runs it again from its "
+                          "configuration and seed", path=path)
     res.adaptive = logged.get("adaptive")
     res.logged_features = logged.get("features")
     res.log = log

@@ -33,12 +33,13 @@ from types import SimpleNamespace
 import numpy as np
 
 from . import tracker as lt
-from .config import Reader, to_unit
+from .config import PLACEMENT_NOISE_KEYS, SCHEMA, Reader, to_unit
+from .config import PLACEMENT_READINGS as _READINGS
 from .engine import Engine
 from .errors import ConfigError
 from .identify import Strategy, identify
 from .plan import mesh
-from .progress import progress_bar
+from .progress import progress_bar, working
 from .scenario import Scenario
 from .units import display, factor
 
@@ -69,10 +70,8 @@ class PlacementSettings:
 
 
 #: what the placement study takes from elsewhere in the configuration (one key per physical input)
-_NOISE_KEYS = {"angular_mean": "tracker.angular", "distance": "tracker.distance",
-               "distance_per_length": "tracker.distance_per_length", "angular_sd": "sources.tracker_noise.angular_sd"}
-_PLACEMENT_KEYS = ("D", "L", "H", "range_min", "range_max", "elevation_max", "tests", "candidates", "envelope",
-                   "directions", "eq23", "eq27")
+_NOISE_KEYS = PLACEMENT_NOISE_KEYS
+_PLACEMENT_KEYS = SCHEMA["placement"]
 
 #: The readings of the paper that its text leaves open, default first: the default of each is the one that
 #: reproduces the paper on the most counts (docs/paper-reproduction.md; ``mtbudget study all`` prints every
@@ -82,15 +81,15 @@ _PLACEMENT_KEYS = ("D", "L", "H", "range_min", "range_max", "elevation_max", "te
 #: machine coordinates x, y, z (Eq. 21 as printed, the paper's own station d = -563.52 mm is such an x), and the
 #: X direction is the same space turned a quarter about z (x = L, y = D).  "envelope": the X direction stands
 #: in front of the machine at distance D from the envelope's front face, L along x from the mesh centre.
-PLACEMENT_READINGS = ("machine", "envelope")
+PLACEMENT_READINGS = _READINGS["directions"]
 #: eq23: what theta of Eq. 23 is.  "polar": the angle from the tracker's z axis (the rows of Eq. 23 are then
 #: the exact diagonal of the tracker covariance).  "elevation": the angle from the tracker's horizontal plane
 #: (the paper's range "-45 deg <= theta <= 45 deg" reads so), Eq. 23 then used as printed.
-EQ23_READINGS = ("polar", "elevation")
+EQ23_READINGS = _READINGS["eq23"]
 #: eq27: what the paper's final mean volumetric error (Eq. 27, Figs. 14-15) averages.  "compensated": the
 #: distance error of the compensated machine at each mesh point (docs/measurand.md), rigid part removed;
 #: "compensated_rigid": the same with the rigid part kept; "residual": the fit residual of the verification.
-EQ27_READINGS = ("compensated", "compensated_rigid", "residual")
+EQ27_READINGS = _READINGS["eq27"]
 
 
 def _reading(raw: dict, r: Reader, key: str, choices: tuple, given: str | None) -> str:
@@ -266,7 +265,8 @@ def placement(scenario: Scenario, tests: int | None = None, seed: int | None = N
     better, worse = sorted([("X", x.mean()), ("Y", y.mean())], key=lambda t: t[1])
     out["reduction"] = {"better": better[0], "worse": worse[0], "mean_better_um": better[1], "mean_worse_um": worse[1],
                         "reduction": 1 - better[1] / worse[1]}
-    out["fits"] = {k: fit_candidates(v["max_error_um"]) for k, v in out["directions"].items()} if fits else {}
+    with working("fitting the distributions of Fig. 11", progress):
+        out["fits"] = {k: fit_candidates(v["max_error_um"]) for k, v in out["directions"].items()} if fits else {}
     return out
 
 

@@ -195,6 +195,26 @@ def _is_offset(name: str) -> bool:
     return Q_(0.0, name).to_base_units().magnitude != 0
 
 
+def _is_angle(q) -> bool:
+    """Whether a quantity (or unit) is an angle: its root unit is the radian (rad, deg, arcsec, urad/s * s ...)."""
+    return (q if isinstance(q, pint.Quantity) else Q_(1.0, q)).to_root_units().units == ureg.radian
+
+
+def angle_or_ratio_problem(q, expected) -> str | None:
+    """None, or why ``q`` (with a unit) does not fit ``expected`` (a unit or quantity of dimension 1): pint counts
+    angles and ratios alike, but 0.8 ppm is no angle and 5 urad no ratio (a slope of 1 um/m is an angle of 1 urad,
+    and a ratio has to be written as one)."""
+    if not isinstance(q, pint.Quantity) or not dict(q.unit_items()) or not q.dimensionless:
+        return None  # (pint's `unitless` is also true of ppm and percent)
+    want_angle = _is_angle(expected)
+    if want_angle and not _is_angle(q):
+        return "is a ratio, not an angle; write the angle in an angle unit (urad, mrad, deg, arcsec; a slope of 1 um/m " \
+               "is 1 urad)"
+    if not want_angle and _is_angle(q):
+        return "is an angle, not a ratio; write the ratio as one (um/m, ppm, percent)"
+    return None
+
+
 def to_internal(value, unit: str, *, where: str = "value", error=None, absolute_temperature: bool = False) -> float:
     """Parse ``value`` and return its magnitude in ``unit`` (a plain float).
 
@@ -215,6 +235,10 @@ def to_internal(value, unit: str, *, where: str = "value", error=None, absolute_
                      f"a bare number is ambiguous for {what}")
     if unit.strip() in ("", "1", "dimensionless") and not q.unitless and q.to_root_units().units == ureg.radian:
         _fail(error, f"{where}: {_show(value)} is an angle; expected a plain number")
+    if target.dimensionless and unit.strip() not in ("", "1", "dimensionless"):
+        problem = angle_or_ratio_problem(q, unit)
+        if problem:
+            _fail(error, f"{where}: {_show(value)} {problem}")
     temperature = target.dimensionality == ureg.kelvin.dimensionality
     if absolute_temperature and any(name.startswith("delta_") for name, _ in q.unit_items()):
         _fail(error, f"{where}: {_show(value)} is a temperature difference; give an absolute temperature such as \"20 degC\"")

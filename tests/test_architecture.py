@@ -22,7 +22,7 @@ PKG = ROOT / "mtbudget"
 LAYERS = [
     ["cli", "__main__"],
     ["runner", "study", "testing"],
-    ["report", "report_study", "report_diagnosis", "budget"],
+    ["report", "report_study", "report_diagnosis", "report_dcc", "budget"],
     ["executors", "diagnose", "runlog", "compensate", "posterior"],
     ["engine"],
     ["simulate"],

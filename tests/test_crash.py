@@ -367,3 +367,50 @@ def test_crash_campaign(tmp_path, tiny):
     print(json.dumps(out, indent=1))
     if os.environ.get("MTBUDGET_CRASH_REPORT"):
         Path(os.environ["MTBUDGET_CRASH_REPORT"]).write_text(json.dumps(out, indent=1))
+
+
+def test_a_log_killed_before_its_first_block_gives_one_line_and_resumes(tmp_path):
+    """Issue 29: a run killed after its header and before its first block made replay --json and report raise
+    KeyError 'compensation_rms'; now one line naming the log and the way to resume it, and the resume works."""
+    log = tmp_path / "h.mcap"
+    execute(SMALL, trials=16, block=8, attribution_trials=0, log_path=log)
+    data = log.read_bytes()
+    os.remove(log)
+    partial_path(log).write_bytes(data[: data.index(b'"block": 0,')])
+    for args in (["replay", str(log), "--json"], ["replay", str(log)], ["report", str(log), "--out", str(tmp_path / "r")]):
+        res = CliRunner().invoke(main, args)
+        assert res.exit_code == 2, (args, res.output)
+        assert "Traceback" not in res.output and len(res.output.strip().splitlines()) == 1, res.output
+        assert str(log) in res.output and "no trial" in res.output and "--resume" in res.output
+    execute(resume_path=log, attribution_trials=0)
+    same_run(replay(log), run(load_config(SMALL), trials=16, block=8, attribution_trials=0))
+
+
+def test_a_resume_keeps_the_runs_settings_and_every_convergence_row(tmp_path):
+    """Issue 29: the resumed log ignored --attribution-trials 0 (it computed a budget the run had not asked for) and
+    lost the convergence rows from before the kill. Now its settings, rows and budget are the uninterrupted run's."""
+    full_log, log = tmp_path / "full.mcap", tmp_path / "cut.mcap"
+    execute(SMALL, trials=96, block=8, chunk_blocks=2, attribution_trials=0, log_path=full_log)
+    data = full_log.read_bytes()
+    at = [i for i in range(len(data)) if data.startswith(b'"block": 5,', i)][0]  # killed inside block 5
+    partial_path(log).write_bytes(data[:at])
+    assert len(read_runlog(log).convergence) == 2  # rows after blocks 0-1 and 2-3 were saved
+    res = execute(resume_path=log)  # the defaults of a new run (attribution_trials 512) must not apply
+    resumed, full = read_runlog(log), read_runlog(full_log)
+    assert resumed.header["settings"]["attribution_trials"] == 0 and res.budget == {}
+    assert resumed.result["budget"] == {} == full.result["budget"]
+    assert resumed.convergence == full.convergence and len(full.convergence) == 6
+    same_run(replay(log), replay(full_log))
+
+
+def test_an_option_given_with_resume_that_the_log_overrides_is_said(tmp_path):
+    """The resumed run keeps its logged --attribution-trials 0; an --attribution-trials 32 given with --resume is said
+    to be unused, not silently dropped (nor silently applied)."""
+    full_log, log = tmp_path / "full.mcap", tmp_path / "cut.mcap"
+    execute(SMALL, trials=48, block=8, chunk_blocks=2, attribution_trials=0, log_path=full_log)
+    data = full_log.read_bytes()
+    partial_path(log).write_bytes(data[:[i for i in range(len(data)) if data.startswith(b'"block": 3,', i)][0]])
+    res = CliRunner().invoke(main, ["run", "--resume", str(log), "--quiet", "--attribution-trials", "32", "--json"])
+    assert res.exit_code == 0, res.output
+    assert json.loads(res.stdout)["budget"] == {}
+    assert "note: resume: the run keeps its logged settings: --attribution-trials 0" in res.stderr

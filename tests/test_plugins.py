@@ -3,6 +3,7 @@
 import ast
 import dataclasses
 import inspect
+import json
 import logging
 import os
 import re
@@ -16,9 +17,11 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from click.testing import CliRunner
 
 import mtbudget
 from mtbudget import hookspecs
+from mtbudget.cli import main
 from mtbudget.config import load_config
 from mtbudget.contracts import Candidate, Context, Source
 from mtbudget.engine import Engine
@@ -221,6 +224,11 @@ CASES = {
     "NaN": (dict(result=lambda n, c: {"tracker_offset": Q_(np.full((n, c.n_points, 3), np.nan), "mm")}), "NaN"),
     "undeclared key": (dict(result=lambda n, c: {"point_offset": Q_(np.zeros((n, c.n_points, 3)), "mm")}), "not among its declared"),
     "not a dict": (dict(result=lambda n, c: 3), "must return a dict"),
+    # issue 29: finite but absurd (1e300 mm) made run print inf/nan with exit 0
+    "absurd, in mm": (dict(result=lambda n, c: {"tracker_offset": Q_(np.full((n, c.n_points, 3), 1e300), "mm")}),
+                      r"'tracker_offset' of magnitude up to 1e\+300 mm, beyond the plausible 10000 mm"),
+    "absurd, in km": (dict(result=lambda n, c: {"tracker_offset": Q_(np.full((n, c.n_points, 3), -20.0), "km")}),
+                      r"magnitude up to 2e\+07 mm"),
 }
 
 
@@ -292,6 +300,7 @@ def test_duplicate_source_names_blame_the_later_or_third_party_plugin(monkeypatc
         name = "repeatability"
 
     early = module_entry_point(monkeypatch, "aaa", "mtbudget_test_aaa", mtbudget_register_sources=lambda register: register(Clash()))
+    monkeypatch.setenv("MTBUDGET_STRICT_PLUGINS", "1")  # strict: an error, for the plugin's own tests
     host = PluginHost(entry_points=[early, *builtin_entry_points()])
     assert [i.plugin_name for i in host.pm.hook.mtbudget_register_sources.get_hookimpls()][0] == "aaa"
     with pytest.raises(PluginError) as info:
@@ -299,6 +308,12 @@ def test_duplicate_source_names_blame_the_later_or_third_party_plugin(monkeypatc
     msg = str(info.value)
     assert info.value.plugin == "aaa" and "'aaa'" in msg and "'machine_tool' (mtbudget " in msg, msg
     assert "MTBUDGET_DISABLE_PLUGINS=aaa" in msg
+    # by default the third-party plugin is skipped with that warning and the built-in's source is the one used
+    monkeypatch.delenv("MTBUDGET_STRICT_PLUGINS")
+    host = PluginHost(entry_points=[early, *builtin_entry_points()])
+    mine = {s.name: s for s in host.sources()}
+    assert mine["repeatability"].plugin == "machine_tool" and "aaa" not in host.info
+    assert len(host.skipped) == 1 and "'aaa'" in host.skipped[0] and "duplicate source name 'repeatability'" in host.skipped[0]
 
     # a plugin registered after the built-ins is blamed too (candidates: effect and axis)
     class Thermal(Wobble):
@@ -314,9 +329,14 @@ def test_duplicate_source_names_blame_the_later_or_third_party_plugin(monkeypatc
 def test_duplicate_plugin_name_blames_the_third_party_package(monkeypatch):
     impostor = module_entry_point(monkeypatch, "physics", "mtbudget_test_impostor")
     eps = [impostor, *builtin_entry_points()]  # listed first: the built-in still wins its name
+    monkeypatch.setenv("MTBUDGET_STRICT_PLUGINS", "1")
     with pytest.raises(PluginError, match="two plugins are named 'physics'.*the one from mtbudget_test_impostor") as info:
         PluginHost(entry_points=eps)
     assert info.value.plugin == "physics"
+    monkeypatch.delenv("MTBUDGET_STRICT_PLUGINS")  # by default: skipped with a warning, the built-in kept
+    host = PluginHost(entry_points=eps)
+    assert host.info["physics"].distribution == "mtbudget" and host.candidates()
+    assert len(host.skipped) == 1 and "two plugins are named 'physics'" in host.skipped[0]
 
 
 def write_broken_distribution(folder: Path) -> Path:
@@ -393,6 +413,66 @@ def test_cli_shows_the_import_warning_and_the_trace_on_stderr(tmp_path):
     assert len(warnings) == 1 and "MTBUDGET_DISABLE_PLUGINS=broken" in warnings[0], out.stderr
     traced = {re.search(r"plugin (\w+)", line).group(1) for line in err if line.startswith("mtbudget trace: hook ")}
     assert BUILTIN <= traced, out.stderr
+
+
+FAILING_PLUGINS = {  # entry-point name -> module text: four ways a third-party plugin fails, one good plugin
+    "raiser": "from mtbudget import hookimpl\n@hookimpl\ndef mtbudget_register_sources(register):\n"
+              "    raise RuntimeError('no licence file')\n",
+    "physics": "",  # the name of a built-in plugin
+    "typo": "from mtbudget import hookimpl\n@hookimpl\ndef mtbudget_register_sourcez(register):\n    pass\n",
+    "clash": "from mtbudget import hookimpl\nfrom mtbudget.contracts import Group, Source\n"
+             "class R(Source):\n    name = 'repeatability'\n    targets = ('tracker_offset',)\n"
+             "@hookimpl\ndef mtbudget_register_sources(register):\n    register(R())\n",
+    "nice": "from mtbudget import hookimpl\nfrom mtbudget.contracts import Group, Source\nfrom mtbudget.units import Q_\n"
+            "class Nice(Source):\n    name = 'nice_offset'\n    opt_in = True\n    group = Group.MEASUREMENT_SYSTEM\n"
+            "    targets = ('tracker_offset',)\n    parameters = {'u': Q_(1.0, 'um')}\n"
+            "    def sample(self, n, rng, ctx):\n"
+            "        return {'tracker_offset': Q_(rng.normal(0, self.value('u', 'mm'), (n, ctx.n_points, 3)), 'mm')}\n"
+            "@hookimpl\ndef mtbudget_register_sources(register):\n    register(Nice())\n",
+}
+
+
+def test_a_failing_third_party_plugin_is_skipped_and_the_others_run(tmp_path, monkeypatch, caplog):
+    """Issue 29: a plugin whose hook raises, that reuses a built-in's name or misspells a hook made `mtbudget plugins`
+    and every run exit 2; each is now named, skipped with a warning, and the built-ins and the good plugin run."""
+    import mtbudget.plugins as host_module
+
+    site_dir = tmp_path / "site"
+    site_dir.mkdir()
+    for name, text in FAILING_PLUGINS.items():
+        (site_dir / f"mtbudget_test_{name}.py").write_text(text)
+    info = site_dir / "mtbudget_zoo-1.0.dist-info"
+    info.mkdir()
+    (info / "METADATA").write_text("Metadata-Version: 2.1\nName: mtbudget-zoo\nVersion: 1.0\n")
+    (info / "entry_points.txt").write_text("[mtbudget]\n" + "".join(f"{n} = mtbudget_test_{n}\n" for n in FAILING_PLUGINS))
+    monkeypatch.syspath_prepend(str(site_dir))
+    for var in ("MTBUDGET_DISABLE_PLUGINS", "MTBUDGET_PLUGINS", "MTBUDGET_STRICT_PLUGINS"):
+        monkeypatch.delenv(var, raising=False)
+    monkeypatch.setattr(host_module, "_default", None)
+    res = CliRunner().invoke(main, ["plugins", "--json"])
+    assert res.exit_code == 0, res.output
+    data = json.loads(res.stdout)
+    skipped = {re.search(r"skipping plugin '(\w+)'", m).group(1): m for m in data["skipped"]}
+    assert set(skipped) == {"raiser", "physics", "typo", "clash"}, data["skipped"]
+    for name, part in [("raiser", "RuntimeError: no licence file"), ("physics", "two plugins are named 'physics'"),
+                       ("typo", "did you mean 'mtbudget_register_sources'"),
+                       ("clash", "duplicate source name 'repeatability'")]:
+        m = skipped[name]
+        assert part in m and "mtbudget-zoo 1.0" in m and f"MTBUDGET_DISABLE_PLUGINS={name}" in m and "\n" not in m, m
+    by_name = {s["name"]: s for s in data["sources"]}
+    assert by_name["repeatability"]["plugin"] == "machine_tool" and by_name["nice_offset"]["plugin"] == "nice"
+    assert next(p for p in data["plugins"] if p["name"] == "physics")["distribution"] == "mtbudget"
+    # a run with the good plugin's source enabled: exit 0, every warning on stderr, the source in the budget
+    cfg = tmp_path / "c.toml"
+    cfg.write_text(SMALL.read_text().replace('enable = ["tracker_noise", ', 'enable = ["nice_offset", "tracker_noise", ', 1))
+    monkeypatch.setattr(host_module, "_default", None)
+    caplog.clear()
+    res = CliRunner().invoke(main, ["run", str(cfg), "--trials", "16", "--block", "8", "--attribution-trials", "16",
+                                    "--quiet", "--json", "--log", str(tmp_path / "r.mcap")])
+    assert res.exit_code == 0, res.output
+    assert "nice_offset" in {r["source"] for r in json.loads(res.stdout)["budget"]["compensation_rms"]["rows"]}
+    said = " ".join(r.getMessage() for r in caplog.records if r.name == "mtbudget.plugins")
+    assert all(f"skipping plugin '{n}'" in said for n in skipped), said  # (on stderr: the subprocess test above)
 
 
 def test_parameter_override_checks_dimension():
@@ -552,3 +632,33 @@ def test_sources_that_model_one_thing_twice_cannot_both_be_enabled():
     with pytest.raises(ConfigError, match="'other_noise' and 'tracker_noise' model the same thing"):
         select_sources(cfg, host, ["tracker_noise", "other_noise"])
     assert [s.name for s in select_sources(cfg, host, ["other_noise"])[0]] == ["other_noise"]
+
+
+def test_the_plugin_guide_names_every_public_member_of_source():
+    """Issue 29: value(), nonnegative, excludes, configure, check, description were used but undocumented."""
+    doc = (ROOT / "docs" / "plugins.md").read_text()
+    table = doc[doc.index("### Every member of `Source`"):doc.index("An example that uses them")]
+    rows = " ".join(line.split("|")[1] for line in table.splitlines() if line.startswith("| `"))
+    members = {n for n in dir(Source) if not n.startswith("_")} | {"bounded"}
+    missing = sorted(m for m in members if f"`{m}" not in rows and f"`{m}(" not in rows and f", `{m}`" not in rows)
+    assert not missing, f"docs/plugins.md: the Source table lacks {missing}"
+
+
+def test_the_plugin_guides_source_example_runs_and_its_checks_bite():
+    doc = (ROOT / "docs" / "plugins.md").read_text()
+    start = doc.index("An example that uses them")
+    code = doc[doc.index("```python", start) + len("```python"):doc.index("```", doc.index("```python", start) + 9)]
+    mod = types.ModuleType("mtbudget_doc_example")
+    exec(compile(code, "docs/plugins.md", "exec"), mod.__dict__)
+    eng = engine_with(mod)
+    assert "squareness_tolerance" in [s.name for s in eng.scenario.sources]
+    src = mod.SquarenessTolerance(half_width="2 mrad")
+    assert "above 1000 urad" in src.check()
+    assert "must not be negative" in mod.SquarenessTolerance(half_width="-1 urad").check()
+    with pytest.raises(PluginError, match="is a ratio, not an angle"):
+        mod.SquarenessTolerance(half_width="10 um/m")
+    draws = call(src.configure({"half_width": "8 urad"}), "sample", 4000, np.random.default_rng(1), eng.scenario.context)
+    a = draws["geometry.angular"].to("urad").magnitude
+    col = [p.name for p in eng.scenario.context.model.errors.params].index("sxy")
+    assert np.abs(a[:, col]).max() <= 8 and a[:, col].std() == pytest.approx(8 / np.sqrt(3), rel=0.05)
+    assert np.count_nonzero(np.delete(a, col, axis=1)) == 0

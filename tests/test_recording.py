@@ -145,6 +145,14 @@ def edit_toml(folder, old, new):
     p.write_text(text.replace(old, new, 1))
 
 
+def _to_fahrenheit(line, header, column):
+    """``line`` with the cell of ``column`` converted from degC to degF by hand (9/5 t + 32), its header unchanged."""
+    j = [h.split(" [")[0] for h in header.split(",")].index(column)
+    cells = line.split(",")
+    cells[j] = repr(float(cells[j]) * 9 / 5 + 32)
+    return ",".join(cells)
+
+
 STRICT = {
     "decimal comma": (lambda f: edit_csv(f, lambda L: [L[0], L[1].replace("1668.945719", "1668,945719")] + L[2:]),
                       ["points.csv", "line 2", "lt_x", "decimal comma", "1668,945719", "20 cells, the header has 19"]),
@@ -172,6 +180,11 @@ STRICT = {
     "kelvin column holding degC": (lambda f: edit_csv(f, lambda L: [L[0].replace("T_x [degC]", "T_x [K]")] + L[1:]),
                                    ["points.csv", "line 2", "T_x [K]", "19.912 K", "plausible absolute temperature",
                                     "write 'T_x [degC]'"]),
+    "degF header over degC readings": (lambda f: edit_csv(f, lambda L: [L[0].replace("T_z [degC]", "T_z [degF]")] + L[1:]),
+                                       ["points.csv", "T_z [degF]", "not a machine shop's temperature",
+                                        "look like degC readings", "write 'T_z [degC]'"]),
+    "degC header over degF readings": (lambda f: edit_csv(f, lambda L: [L[0]] + [_to_fahrenheit(ln, L[0], "T_air") for ln in L[1:]]),
+                                       ["points.csv", "T_air [degC]", "look like degF readings", "write 'T_air [degF]'"]),
     "delta_degC header": (lambda f: edit_csv(f, lambda L: [L[0].replace("T_y [degC]", "T_y [delta_degC]")] + L[1:]),
                           ["points.csv", "line 1", "T_y", "temperature difference"]),
     "implausible temperature": (lambda f: edit_csv(f, lambda L: set_cell(L, 40, "T_air", "-300")),
@@ -261,6 +274,20 @@ def test_harmless_variants_read_identically(edit, broken):
         assert np.array_equal(a, b)
     for c in base.plan.temperature:
         assert np.array_equal(base.plan.temperature[c], back.plan.temperature[c])
+
+
+def test_a_last_line_cut_mid_number_is_refused_naming_file_and_line(broken):
+    """Issue 29: '646.506904' cut to '64' with no final newline read as 64 mm (exit 0); a file whose last line has no
+    line ending is refused with its line number, and the same line ended by a newline reads."""
+    data = (broken / "points.csv").read_bytes()
+    last = data.rstrip(b"\n").count(b"\n") + 1  # the line number of the last row
+    (broken / "points.csv").write_bytes(data.rstrip(b"\n")[:-4])
+    with pytest.raises(RecordingError) as info:
+        read_recording(broken)
+    msg = str(info.value)
+    assert "points.csv" in msg and f"line {last}:" in msg and "no line ending" in msg and "\n" not in msg
+    (broken / "points.csv").write_bytes(data.rstrip(b"\n")[:-4] + b"\r\n")  # ended: it is a complete line, read
+    assert len(read_recording(broken)) == last - 1
 
 
 def test_size_guards_refuse_before_parsing(broken):

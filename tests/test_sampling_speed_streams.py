@@ -281,8 +281,13 @@ def test_check_internal_accepts_and_refuses():
         with pytest.raises(PluginError, match=words) as e:
             simulate.sample_source(sc, _probe(result), 2, np.random.default_rng(0), shapes, {"internal_probe": [{}]})
         assert e.value.plugin == "probe_plugin" and e.value.source == "internal_probe"
-    big = _probe(lambda n, ctx: {"point_offset": np.full((n, M, 3), 1e308)})  # large but finite
-    assert np.all(simulate.sample_source(sc, big, 2, np.random.default_rng(0), shapes)["point_offset"] == 1e308)
+    # large but finite: absurd for a perturbation (issue 29: 1e300 mm made a run print inf/nan with exit 0)
+    big = _probe(lambda n, ctx: {"point_offset": np.full((n, M, 3), 1e308)})
+    with pytest.raises(PluginError, match="beyond the plausible 10000 mm") as e:
+        simulate.sample_source(sc, big, 2, np.random.default_rng(0), shapes)
+    assert e.value.plugin == "probe_plugin" and e.value.source == "internal_probe"
+    fine = _probe(lambda n, ctx: {"point_offset": np.full((n, M, 3), 9999.0)})  # within: kept as it is
+    assert np.all(simulate.sample_source(sc, fine, 2, np.random.default_rng(0), shapes)["point_offset"] == 9999.0)
 
 
 def test_a_subclass_that_overrides_sample_is_sampled_through_it():

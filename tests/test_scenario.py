@@ -152,6 +152,7 @@ def test_misstated_weights_are_an_explicit_reported_choice():
     (lambda r: r["machine_tool"].update(repeatability="-1.5 um"), "machine_tool.repeatability: a standard uncertainty must not be negative"),
     (lambda r: r["sources"].update(tracker_noise={"angular_sd": "3"}), "needs an explicit unit"),
     (lambda r: r["sources"].update(typo_key=3), "sources.typo_key: unknown key"),
+    (lambda r: r["sources"].update(tracker_noise={"angular_sd": "3 ppm"}), "'3 ppm' is a ratio, not an angle"),
 ])
 def test_source_settings_are_strict(edit, message):
     raw = raw_small()
@@ -196,6 +197,20 @@ def test_context_arrays_are_read_only():
     (lambda r: r.update(reference_temperature="20 delta_degC"), "is a temperature difference"),
     (lambda r: r["machine_tool"].update(max_degree=-1), r"max_degree: must be between 1 and 9"),
     (lambda r: r["sensors"][0].update(positon="10 mm"), r"sensors\[0\]\.positon: unknown key; did you mean 'position'"),
+    # issue 29: [placement] is checked wherever the configuration is read, not only by the placement study
+    (lambda r: r.update(placement={"Lx": ["-2000 mm", "2000 mm"]}), r"placement\.Lx: unknown key; did you mean 'L'\?"),
+    (lambda r: r.update(placement={"range_max": "5 furlongz"}), r"placement\.range_max: .*furlongz"),
+    (lambda r: r.update(placement={"range_max": "5 s"}), r"placement\.range_max: '5 s' is not a quantity of dimension"),
+    (lambda r: r.update(placement={"D": "nan mm"}), r"placement\.D: expected \[low, high\]"),
+    (lambda r: r.update(placement={"D": ["nan mm", "1 mm"]}), r"placement\.D: 'nan mm' is not finite"),
+    (lambda r: r.update(placement={"directions": "machin"}), r"placement\.directions: expected one of 'machine'"),
+    (lambda r: r.update(placement={"tests": 0}), r"placement\.tests: must be at least 1"),
+    (lambda r: r.update(placement={"angular_mean": "20 urad"}), r"placement\.angular_mean: the tracker noise is stated once"),
+    (lambda r: r.update(placement={"envelope": {"x": ["0 mm", "1 mm"]}}), r"placement\.envelope: expected \{ x ="),
+    # ratios are not angles, angles not ratios (pint counts both as dimension 1)
+    (lambda r: r["tracker"].update(a="0.8 ppm"), r"tracker\.a: '0\.8 ppm' is a ratio, not an angle"),
+    (lambda r: r["tracker"].update(angular="0.02 mm/m"), r"tracker\.angular: '0\.02 mm/m' is a ratio, not an angle"),
+    (lambda r: r["tracker"].update(distance_per_length="0.8 urad"), r"distance_per_length: '0\.8 urad' is an angle, not a ratio"),
 ])
 def test_configuration_is_strict(edit, message):
     raw = raw_small()
@@ -225,3 +240,29 @@ def test_configuration_page_lists_every_key():
             if not ok:
                 missing.append(f"[{table}] {k}" if table else k)
     assert not missing, f"docs/configuration.md does not document {missing}"
+
+
+@pytest.mark.parametrize("command", ["run", "simulate"])
+def test_a_placement_typo_stops_run_and_simulate(command, tmp_path):
+    """Issue 29: `run` and `simulate` accepted anything in [placement]; now one line naming the key, exit 2."""
+    cfg = tmp_path / "c.toml"
+    cfg.write_text(SMALL.read_text() + '\n[placement]\nLx = ["-2000 mm", "2000 mm"]\n')
+    args = [command, str(cfg), "--out", str(tmp_path / "o")] if command == "simulate" else \
+        [command, str(cfg), "--trials", "4", "--log", str(tmp_path / "r.mcap"), "--quiet"]
+    res = CliRunner().invoke(main, args)
+    assert res.exit_code == 2 and len(res.output.strip().splitlines()) == 1, res.output
+    assert "placement.Lx: unknown key; did you mean 'L'?" in res.output and str(cfg) in res.output
+
+
+def test_a_sensor_without_noise_is_simulated_noise_free_and_says_so(tmp_path):
+    """Issue 29: a deleted sensor `noise` silently became 0 K; it is the stated default (docs/configuration.md) and
+    `simulate` says so for the sensors it applies to."""
+    cfg = load_config(SMALL)
+    assert [s.noise_stated for s in cfg.sensors] == [False] and cfg.sensors[0].noise == 0.0
+    res = CliRunner().invoke(main, ["simulate", str(SMALL), "--out", str(tmp_path / "sim"), "--no-identify"])
+    assert res.exit_code == 0, res.output
+    assert "no reading noise stated for sensor T_x: simulated noise-free" in res.stderr
+    stated = tmp_path / "stated.toml"
+    stated.write_text(SMALL.read_text().replace('column = "T_x"', 'column = "T_x"\nnoise = "0.02 K"', 1))
+    res = CliRunner().invoke(main, ["simulate", str(stated), "--out", str(tmp_path / "sim2"), "--no-identify"])
+    assert res.exit_code == 0 and "noise" not in res.stderr

@@ -1,0 +1,211 @@
+"""A machine-readable Digital Calibration Certificate (PTB DCC 3.3.0, D-SI quantities) of a run.
+
+The same statement as report.md (``report.headline``), as XML a laboratory's
+software reads: the administrative data (software, core data, the item, the
+laboratory, the responsible person, the customer, the statements: kind of
+statement, traceability, decision rule) from the optional ``[report]`` table
+of the configuration, and the results as D-SI quantities: per axis the
+largest and the RMS expanded uncertainty over the mesh (``si:expandedUnc``,
+k = 2), and for every mesh point and axis the estimate with its Monte Carlo
+coverage interval (``si:coverageInterval``: standard uncertainty, interval
+ends, coverage probability).  Units are D-SI unit strings (``\\micro\\metre``,
+``\\milli\\metre``).  Fields the configuration does not state are written as
+"not stated", never invented.
+
+Schema: https://ptb.de/dcc/v3.3.0/ (dcc.xsd, which imports the D-SI
+SI_Format.xsd).  ``tests/test_report_dcc.py`` validates the output with
+``xmlschema`` when those files are in ``tests/data/dcc/`` and reads it back
+with ``pydcc``.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import xml.etree.ElementTree as ET
+from pathlib import Path
+
+import numpy as np
+
+from . import __version__
+from .report import headline
+
+DCC_NS = "https://ptb.de/dcc"
+SI_NS = "https://ptb.de/si"
+SCHEMA_VERSION = "3.3.0"
+SCHEMA_LOCATION = "https://ptb.de/dcc https://ptb.de/dcc/v3.3.0/dcc.xsd"
+#: mtbudget's display units -> D-SI unit strings
+DSI_UNITS = {"µm": r"\micro\metre", "um": r"\micro\metre", "mm": r"\milli\metre"}
+NOT_STATED = "not stated"
+
+ET.register_namespace("dcc", DCC_NS)
+ET.register_namespace("si", SI_NS)
+
+
+def _d(tag):
+    return f"{{{DCC_NS}}}{tag}"
+
+
+def _s(tag):
+    return f"{{{SI_NS}}}{tag}"
+
+
+def _sub(parent, tag, text=None, **attrib):
+    el = ET.SubElement(parent, tag, attrib)
+    if text is not None:
+        el.text = str(text)
+    return el
+
+
+def _text(parent, tag, text: str):
+    """A dcc:textType element: <tag><dcc:content lang="en">text</dcc:content></tag>."""
+    el = _sub(parent, _d(tag))
+    _sub(el, _d("content"), text, lang="en")
+    return el
+
+
+def _contact(parent, tag, name: str | None, country: str, strict: bool = True):
+    el = _sub(parent, _d(tag))
+    _text(el, "name", name or NOT_STATED)
+    if strict:  # contactType requires a location
+        loc = _sub(el, _d("location"))
+        _sub(loc, _d("countryCode"), country)
+    return el
+
+
+def _num(x: float, nd: int) -> str:
+    return f"{x:.{nd}f}"
+
+
+def _real(parent, label: str, value: float, unit: str, nd: int, *, U=None, k=None, p=None, interval=None, u=None):
+    """An si:real: value and unit, with an expanded uncertainty (U, k, p) or a coverage interval (u, [lo, hi], p)."""
+    r = _sub(parent, _s("real"))
+    _sub(r, _s("label"), label)
+    _sub(r, _s("value"), _num(value, nd))
+    _sub(r, _s("unit"), unit)
+    if U is not None:
+        e = _sub(r, _s("expandedUnc"))
+        _sub(e, _s("uncertainty"), _num(U, nd))
+        _sub(e, _s("coverageFactor"), f"{k:g}")
+        _sub(e, _s("coverageProbability"), f"{p:g}")
+        _sub(e, _s("distribution"), "normal")
+    elif interval is not None:
+        c = _sub(r, _s("coverageInterval"))
+        _sub(c, _s("standardUnc"), _num(u, nd))
+        _sub(c, _s("intervalMin"), _num(interval[0], nd))
+        _sub(c, _s("intervalMax"), _num(interval[1], nd))
+        _sub(c, _s("coverageProbability"), f"{p:g}")
+    return r
+
+
+def _quantity(parent, name: str, **real):
+    q = _sub(parent, _d("quantity"))
+    _text(q, "name", name)
+    _real(q, **real)
+    return q
+
+
+def certificate_id(res, fields: dict) -> str:
+    """The [report] certificate identifier, or one derived from the run (configuration, seed, trials)."""
+    if fields.get("certificate"):
+        return fields["certificate"]
+    spec = res.spec or {}
+    h = hashlib.sha256(json.dumps([spec.get("config"), spec.get("seed"), res.trials], sort_keys=True,
+                                  default=str).encode()).hexdigest()[:12]
+    return f"mtbudget-{spec.get('seed')}-{res.trials}-{h}"
+
+
+def dcc_tree(res, tolerance_um: float | None = None, characteristic: str = "component") -> ET.ElementTree:
+    """The DCC of a run (a RunResult from ``runner.replay``) as an ElementTree."""
+    h = headline(res, tolerance_um, characteristic)
+    f = h["fields"]
+    country = f.get("country") or "ZZ"  # ZZ: user-assigned code of ISO 3166-1, "no country stated"
+    date = f["date"]
+    root = ET.Element(_d("digitalCalibrationCertificate"), {"schemaVersion": SCHEMA_VERSION})
+    root.set("{http://www.w3.org/2001/XMLSchema-instance}schemaLocation", SCHEMA_LOCATION)
+    adm = _sub(root, _d("administrativeData"))
+    sw = _sub(_sub(adm, _d("dccSoftware")), _d("software"))
+    _text(sw, "name", "mtbudget")
+    _sub(sw, _d("release"), __version__)
+    _sub(sw, _d("type"), "application")
+    core = _sub(adm, _d("coreData"))
+    _sub(core, _d("countryCodeISO3166_1"), country)
+    _sub(core, _d("usedLangCodeISO639_1"), "en")
+    _sub(core, _d("mandatoryLangCodeISO639_1"), "en")
+    _sub(core, _d("uniqueIdentifier"), certificate_id(res, f))
+    _sub(core, _d("beginPerformanceDate"), date)
+    _sub(core, _d("endPerformanceDate"), date)
+    _sub(core, _d("performanceLocation"), f.get("location") or "other")
+    items = _sub(adm, _d("items"))
+    item = _sub(items, _d("item"))
+    _text(item, "name", f["machine"])
+    ids = _sub(item, _d("identifications"))
+    ident = _sub(ids, _d("identification"))
+    _sub(ident, _d("issuer"), "calibrationLaboratory")
+    _sub(ident, _d("value"), f"kinematic chain {((res.spec or {}).get('config') or {}).get('machine', 'XFYZ')}")
+    _text(ident, "name", "machine tool configuration (ISO 10791 / ISO 230-1 axis order)")
+    lab = _sub(adm, _d("calibrationLaboratory"))
+    _contact(lab, "contact", f.get("laboratory"), country)
+    resp = _sub(_sub(adm, _d("respPersons")), _d("respPerson"))
+    _contact(resp, "person", f.get("operator"), country, strict=False)
+    _sub(resp, _d("role"), "operator")
+    _contact(adm, "customer", f.get("customer"), country)
+    st = _sub(adm, _d("statements"))
+    for name, text in (("kind of statement", h["kind_text"]),
+                       ("traceability", f.get("traceability") or NOT_STATED),
+                       ("decision rule", h["rule"]), ("decision", h["decision"])):
+        s = _sub(st, _d("statement"))
+        _text(s, "name", name)
+        d = _sub(s, _d("declaration"))
+        _sub(d, _d("content"), text, lang="en")
+    mres = _sub(_sub(root, _d("measurementResults")), _d("measurementResult"))
+    _text(mres, "name", "error of the compensated machine tool after a volumetric verification with a laser tracker")
+    desc = _sub(mres, _d("description"))
+    _sub(desc, _d("content"), h["measurand"], lang="en")
+    meth = _sub(_sub(mres, _d("usedMethods")), _d("usedMethod"))
+    _text(meth, "name", f"Monte Carlo method, {res.trials} trials")
+    _sub(meth, _d("norm"), "JCGM 101:2008")
+    if f.get("instrument"):
+        eq = _sub(_sub(mres, _d("measuringEquipments")), _d("measuringEquipment"))
+        _text(eq, "name", f"laser tracker: {f['instrument']}")
+    results = _sub(mres, _d("results"))
+    if "U_max" in h:
+        unit = DSI_UNITS.get(h["unit"], h["unit"])
+        nd, p = h["decimals"], float(res.coverage)
+        first = _sub(results, _d("result"))
+        _text(first, "name", "expanded uncertainty of the error after compensation over the mesh, per axis (k = 2)")
+        data = _sub(first, _d("data"))
+        pts = res.points()
+        u = np.array([q["u"]["value"] for q in pts])
+        for j, a in enumerate("xyz"):
+            _quantity(data, f"largest expanded uncertainty U (k = 2, coverage probability about 95 % for a normal "
+                            f"distribution) of the {a} error over the mesh", label=f"U_max_{a}",
+                      value=round(2.0 * float(u[:, j].max()), nd), unit=unit, nd=nd)
+            _quantity(data, f"RMS over the mesh of the expanded uncertainty U (k = 2) of the {a} error",
+                      label=f"U_rms_{a}", value=round(2.0 * float(np.sqrt((u[:, j] ** 2).mean())), nd), unit=unit, nd=nd)
+        per = _sub(results, _d("result"))
+        _text(per, "name", "error of each axis at each mesh point after compensation: estimate, standard "
+                           f"uncertainty and {100 * p:g} % coverage interval (JCGM 101)")
+        lst = _sub(_sub(per, _d("data")), _d("list"))
+        for q in pts:
+            pl = _sub(lst, _d("list"))
+            _text(pl, "name", f"point {q['point']} at x, y, z = " +
+                  ", ".join(f"{v:.3f}" for v in q["nominal"]["value"]) + " mm (commanded)")
+            for j, a in enumerate("xyz"):
+                _quantity(pl, f"{a} error", label=f"e_{a}", value=q["mean"]["value"][j], unit=unit, nd=nd,
+                          u=q["u"]["value"][j], interval=(q["interval"]["low"][j], q["interval"]["high"][j]), p=p)
+    else:
+        r = _sub(results, _d("result"))
+        _text(r, "name", "no per-point statement")
+        d = _sub(r, _d("data"))
+        t = _sub(d, _d("text"))
+        _sub(t, _d("content"), "the run log holds no per-point coverage intervals", lang="en")
+    ET.indent(root, space=" ")
+    return ET.ElementTree(root)
+
+
+def write_dcc(res, path, tolerance_um: float | None = None, characteristic: str = "component") -> Path:
+    """Write the DCC of a run to ``path`` (UTF-8 XML); returns the path."""
+    path = Path(path)
+    dcc_tree(res, tolerance_um, characteristic).write(path, encoding="UTF-8", xml_declaration=True)
+    return path
