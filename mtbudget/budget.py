@@ -335,13 +335,14 @@ def point_lpu(scenario) -> dict:
     P = sc.rigid_free
     um = factor("mm", "um")
     y0 = (P @ (F_true - F_id).reshape(-1)).reshape(M0, 3) * um
-    Jf = P @ J.reshape(3 * M0, -1)
-    cov = Jf @ cov_theta @ Jf.T * um**2
+    Jf = (P @ J.reshape(3 * M0, -1)).reshape(M0, 3, -1)
+    # only each point's 3 x 3 block of P J cov_theta J^T P^T: O(M0), not the (3 M0)^2 matrix
+    blocks = np.einsum("mip,mjp->mij", Jf @ cov_theta, Jf) * um**2
     m = sc.context.measurand
     if m is not None:  # at a tool the verification did not use: the unidentifiable errors' prior, as the MCM draws it
-        G = P @ m["unidentified_field"][:, sc.mesh_rows].reshape(m["unidentified_field"].shape[0], -1).T
-        cov = cov + G @ G.T * um**2
-    blocks = np.stack([cov[3 * i:3 * i + 3, 3 * i:3 * i + 3] for i in range(M0)])
+        G = (P @ m["unidentified_field"][:, sc.mesh_rows].reshape(m["unidentified_field"].shape[0], -1).T
+             ).reshape(M0, 3, -1)
+        blocks = blocks + np.einsum("mik,mjk->mij", G, G) * um**2
     return {"estimate": y0, "cov": blocks}
 
 

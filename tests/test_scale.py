@@ -1,0 +1,110 @@
+"""Speed and scale (issue 31): the rigid-motion removal as a rank-6 correction, large meshes."""
+
+from __future__ import annotations
+
+import re
+import time
+
+import numpy as np
+import pytest
+
+from mtbudget.budget import point_lpu
+from mtbudget.config import default_config_path, load_config
+from mtbudget.engine import Engine
+from mtbudget.scenario import _rigid_projector, build_scenario
+
+from conftest import rigid_free as dense_rigid_free
+
+
+def _rigid_fit_residual(P, d):
+    """d minus its least-squares rigid motion (translation t and small rotation w about the origin: t + w x p),
+    fitted by lstsq on a matrix assembled from skew-symmetric matrices (not the code's construction)."""
+    M = len(P)
+    rows = []
+    for p in P:
+        skew = np.array([[0.0, p[2], -p[1]], [-p[2], 0.0, p[0]], [p[1], -p[0], 0.0]])  # w x p = skew @ w
+        rows.append(np.hstack([np.eye(3), skew]))
+    A = np.vstack(rows)
+    sol, *_ = np.linalg.lstsq(A, d.reshape(M * 3, -1), rcond=None)
+    return d.reshape(M * 3, -1) - A @ sol
+
+
+@pytest.mark.parametrize("shape", ["grid", "random", "line"])
+def test_rank6_removal_equals_the_dense_projector_and_a_rigid_fit(shape):
+    rng = np.random.default_rng(3)
+    if shape == "grid":
+        g = np.stack(np.meshgrid(np.linspace(800, 1200, 5), np.linspace(100, 500, 5), np.linspace(200, 400, 3),
+                                 indexing="ij"), -1).reshape(-1, 3)
+    elif shape == "random":
+        g = rng.uniform(-500, 500, (40, 3)) + [1000, 300, 300]
+    else:  # points on a line: the rotation about the line moves nothing (rank 5)
+        g = np.outer(np.linspace(0, 400, 9), [1.0, 0.5, 0.2]) + [800, 100, 200]
+    P = _rigid_projector(g)
+    D = dense_rigid_free(g)
+    X = rng.normal(size=(7, 3 * len(g)))
+    assert np.abs(X @ P.T - X @ D.T).max() < 1e-12
+    assert np.abs(P @ X.T - D @ X.T).max() < 1e-12
+    assert np.abs(P @ X[0] - D @ X[0]).max() < 1e-12
+    assert np.abs(np.asarray(P) - D).max() < 1e-12
+    assert np.abs(P @ X.T - _rigid_fit_residual(g, X.T)).max() < 1e-9
+    # a finite rotation and translation of the points is removed to second order in the angle
+    a = 1e-6
+    R = np.array([[1.0, 0.0, 0.0], [0.0, np.cos(a), -np.sin(a)], [0.0, np.sin(a), np.cos(a)]])
+    moved = (g @ R.T + [0.3, -0.2, 0.1] - g).ravel()
+    assert np.abs(P @ moved).max() < 1e-9
+
+
+def test_the_engine_and_the_guf_give_the_same_numbers_with_the_dense_projector():
+    sc = build_scenario(load_config())
+    fast = Engine(sc, block=16, seed=5).run_blocks([0, 1])
+    lpu = point_lpu(sc)
+    sc.rigid_free = dense_rigid_free(sc.mesh_points)  # the dense (3 M0)^2 projector of the code before
+    dense = Engine(sc, block=16, seed=5).run_blocks([0, 1])
+    lpu_dense = point_lpu(sc)
+    for a, b in zip(fast, dense):
+        assert np.abs(a.components - b.components).max() < 1e-9  # um
+        for k in a.scalars:
+            assert np.allclose(a.scalars[k], b.scalars[k], rtol=1e-12, atol=1e-9), k
+    assert np.abs(lpu["estimate"] - lpu_dense["estimate"]).max() < 1e-9
+    # the GUF's per-point blocks against the full dense covariance, formed independently
+    M0 = len(sc.mesh_rows)
+    assert lpu["cov"].shape == (M0, 3, 3)
+    assert np.abs(lpu["cov"] - lpu_dense["cov"]).max() < 1e-9 * np.abs(lpu_dense["cov"]).max()
+
+
+def _paper_with_step(tmp_path, step):
+    text = default_config_path().read_text()
+    text, n = re.subn(r'(?m)^step = "100 mm"', f'step = "{step} mm"', text)
+    assert n == 1
+    path = tmp_path / f"step{step}.toml"
+    path.write_text(text)
+    return path
+
+
+def test_a_4851_point_mesh_runs_and_its_removal_is_linear(tmp_path):
+    from mtbudget.runner import run
+
+    cfg = load_config(_paper_with_step(tmp_path, 20))  # paper ranges, 21 x 21 x 11 points
+    sc = build_scenario(cfg)
+    assert len(sc.mesh_rows) == 4851
+    # the removal on a block of 64 trials: a few 3M x 6 products, never the 14553^2 matrix (1.7 GB)
+    X = np.random.default_rng(1).normal(size=(64, 3 * 4851))
+    t = time.process_time()
+    Y = X @ sc.rigid_free.T
+    assert time.process_time() - t < 0.5
+    for j in range(6):  # what is left has no rigid part: orthogonal to every rigid motion
+        assert np.abs(Y @ sc.rigid_free.Q[:, j]).max() < 1e-9
+    res = run(sc, trials=4, block=4, attribution_trials=0)
+    assert res.trials == 4 and res.not_converged == 0
+    assert 0 < res.summary()["mean"] < 100  # um
+    pts = res.points()
+    assert len(pts) == 4851 and all(np.all(np.isfinite(p["u"]["value"])) for p in pts)
+
+
+def test_the_mesh_cap_names_the_key(tmp_path):
+    from mtbudget.errors import ConfigError
+
+    path = _paper_with_step(tmp_path, 100)
+    path.write_text(path.read_text().replace('step = "100 mm"', 'step_x = "4 mm"\nstep_y = "4 mm"\nstep_z = "200 mm"'))
+    with pytest.raises(ConfigError, match=r"mesh.*20402 mesh points; at most 10000"):
+        load_config(path)
