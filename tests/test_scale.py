@@ -108,3 +108,24 @@ def test_the_mesh_cap_names_the_key(tmp_path):
     path.write_text(path.read_text().replace('step = "100 mm"', 'step_x = "4 mm"\nstep_y = "4 mm"\nstep_z = "200 mm"'))
     with pytest.raises(ConfigError, match=r"mesh.*20402 mesh points; at most 10000"):
         load_config(path)
+
+
+def test_a_whole_run_imports_neither_scipy_stats_nor_matplotlib(tmp_path):
+    """`mtbudget run` (table and JSON, with its budget) never loads scipy.stats (~0.35 s of CPU) nor matplotlib."""
+    import subprocess
+    import sys
+
+    code = """
+import sys
+from click.testing import CliRunner
+from mtbudget.cli import main
+from mtbudget.config import default_config_path
+for extra in ([], ["--json"]):
+    r = CliRunner().invoke(main, ["run", str(default_config_path()), "--trials", "4", "--attribution-trials", "2",
+                                  "--quiet", "--log", "r.mcap", "--force", *extra])
+    assert r.exit_code == 0, r.output
+print("loaded:" + ",".join(m for m in ("matplotlib", "scipy.stats") if m in sys.modules))
+"""
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=tmp_path)
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert out.stdout.strip().splitlines()[-1] == "loaded:", out.stdout[-500:]
