@@ -129,3 +129,51 @@ print("loaded:" + ",".join(m for m in ("matplotlib", "scipy.stats") if m in sys.
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=tmp_path)
     assert out.returncode == 0, out.stderr[-2000:]
     assert out.stdout.strip().splitlines()[-1] == "loaded:", out.stdout[-500:]
+
+
+def test_per_point_intervals_stream_from_about_ten_thousand_trials_and_say_their_method():
+    """Below the limit every per-point value is kept (exact order statistics); beyond it they are histogrammed as
+    they come (nothing per trial is kept), the intervals agree with the exact ones within the histogram's resolution,
+    and the statement says which method it used."""
+    from pathlib import Path
+
+    from mtbudget import runner
+    from mtbudget.report import budget_text
+    from mtbudget.runner import RunSettings, keep_vector_samples, run
+
+    assert keep_vector_samples(RunSettings(trials=10_000), 75)  # the paper's 75 points: exact up to ~11 000 trials
+    assert not keep_vector_samples(RunSettings(trials=12_000), 75)
+    assert not keep_vector_samples(RunSettings(trials=256), 4851)
+    sc = build_scenario(load_config(Path(__file__).parent / "data" / "small.toml"))
+    exact = run(sc, trials=1024, block=64, attribution_trials=0)
+    assert exact.acc.vector_samples and not exact.acc.vector_hist
+    limit = runner.VECTOR_SAMPLE_LIMIT
+    runner.VECTOR_SAMPLE_LIMIT = 100  # this run streams
+    try:
+        streamed = run(sc, trials=1024, block=64, attribution_trials=0)
+    finally:
+        runner.VECTOR_SAMPLE_LIMIT = limit
+    assert not streamed.acc.vector_samples and streamed.acc.vector_hist
+    pe, ps = exact.points(), streamed.points()
+    assert pe[0]["interval"]["method"].startswith("order statistics")
+    assert ps[0]["interval"]["method"].startswith("quantiles of a 4000-bin histogram")
+    assert "shortest_interval" in pe[0] and "shortest_interval" not in ps[0]
+    h = streamed.acc.vector_hist["components"]
+    width = (h.high - h.low) / h.bins  # one bin, per component
+    for a, b in zip(pe, ps):
+        assert np.allclose(a["u"]["value"], b["u"]["value"], rtol=1e-12)  # moments are exact in both
+        for end in ("low", "high"):
+            # 1024 trials: the exact ends are order statistics, the histogram's interpolate between the same values;
+            # they differ by at most the gap between neighbouring order statistics plus a bin
+            gap = np.abs(np.asarray(a["interval"][end]) - np.asarray(b["interval"][end]))
+            assert np.all(gap <= 0.02 * np.asarray(a["u"]["value"]) + width[3 * a["point"]:3 * a["point"] + 3]), gap
+    assert "quantiles of a 4000-bin histogram" in budget_text(streamed)
+    assert "order statistics of every trial" in budget_text(exact)
+
+
+def test_histograms_of_large_meshes_are_bounded():
+    from mtbudget.stats import HIST_COUNTS, VectorHistogram
+
+    h = VectorHistogram(np.random.default_rng(0).normal(size=(4, 3 * 4851)))
+    assert h.counts.size <= HIST_COUNTS and h.bins >= 500
+    assert VectorHistogram(np.zeros((4, 225))).bins == 4000
