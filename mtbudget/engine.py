@@ -209,7 +209,7 @@ def _station_basis(sc: Scenario, model, fixed, hold) -> tuple:
     """The directions the identification of several stations iterates along, from the noise-free verification of
     the scenario: one basis for every trial, so a trial's result does not depend on which trials are identified
     with it (chunking, executors, resume), bit for bit.  Cached per model in the scenario."""
-    from .multistation import identify_stations_batch
+    from .multistation import chord_basis, identify_stations_batch
     from .simulate import measure_stations
 
     def make():
@@ -217,7 +217,8 @@ def _station_basis(sc: Scenario, model, fixed, hold) -> tuple:
         xyz, ranges = measure_stations(sc, sc.truth.machine_points(sc.theta[None, :], truth), truth)
         b = identify_stations_batch(model, sc.stations, sc.row_station, xyz, ranges, sc.noise.repeatability,
                                     fixed=fixed, hold=hold, max_iter=1)
-        return model, b["basis"]  # the model is kept beside its basis so that its id is not reused
+        # with the chord's shared iteration matrix from the same Jacobian (used when nothing is fixed: [scales])
+        return model, chord_basis(b)  # the model is kept beside its basis (its id)
 
     return sc.cached(("station basis", id(model)), make)[1]
 
