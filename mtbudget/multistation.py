@@ -187,6 +187,17 @@ class _Rows:
     weight: np.ndarray  # (n, 3, 3) whiteners or (n,) 1/sigma
 
 
+def _mv(W: np.ndarray, e: np.ndarray) -> np.ndarray:
+    """W e for stacks of 3 x 3 matrices and 3-vectors (..., 3, 3), (..., 3): elementwise, so each row's numbers do
+    not depend on the others (and 10x faster than numpy's stacked matmul of tiny matrices)."""
+    return W[..., :, 0] * e[..., None, 0] + W[..., :, 1] * e[..., None, 1] + W[..., :, 2] * e[..., None, 2]
+
+
+def _mtv(W: np.ndarray, e: np.ndarray) -> np.ndarray:
+    """W^T e, as :func:`_mv`."""
+    return W[..., 0, :] * e[..., 0, None] + W[..., 1, :] * e[..., 1, None] + W[..., 2, :] * e[..., 2, None]
+
+
 def _evaluate(model, fixed, rows, x, sv, jacobian=True):
     """Whitened residuals (n_res,) and, optionally, the whitened Jacobian of the predictions in scaled unknowns."""
     p = model.n_params
@@ -539,11 +550,11 @@ def identify_stations_batch(model: MeasurementModel, stations: list, row_station
             if st.kind == "xyz":
                 pose = x[:, sl]
                 R = lt.rotation(pose[:, 3], pose[:, 4], pose[:, 5])  # (N, 3, 3)
-                pred = (P - pose[:, None, :3]) @ R
+                pred = _mtv(R[:, None], P - pose[:, None, :3])  # R^T (P - T)
                 e = lt_xyz[t][:, idx] - pred
                 W = W[t]
                 raw.append(e)
-                res.append((W @ e[..., None])[..., 0].reshape(N, -1))
+                res.append(_mv(W, e).reshape(N, -1))
                 if jacobian:
                     J = np.zeros((N, len(idx), 3, n))
                     WR = W @ np.swapaxes(R, 1, 2)[:, None]  # (N, m, 3, 3): whitener times R^T
@@ -720,16 +731,17 @@ def _batch_chord(model, blocks, x, evaluate, sv, basis, lt_xyz, lt_range, M, N, 
         for st, idx, W, sl in blocks:
             m = len(idx)
             if st.kind == "xyz":
-                c[:, off:off + 3 * m] = (np.swapaxes(W[a], -1, -2)
-                                         @ wa[:, off:off + 3 * m].reshape(-1, m, 3, 1)).reshape(len(a), -1)
+                c[:, off:off + 3 * m] = _mtv(W[a], wa[:, off:off + 3 * m].reshape(-1, m, 3)).reshape(len(a), -1)
                 off += 3 * m
             else:
                 c[:, off:off + m] = W[a] * wa[:, off:off + m]
                 off += m
         return (c[:, None, :] @ U0)[:, 0]
 
-    iterate(nominal, xtol)  # stage 1: the shared Jacobian
-    for _ in range(2):  # stage 2, twice: the second from each trial's Jacobian where the first stopped
+    # stage 1 stops near its own fixed point (about 1 um from the minimum on the bundled configuration), the first
+    # stage 2 near its own (b^2 / distance from it); only the last goes to xtol
+    iterate(nominal, max(xtol, 1e-3))  # stage 1: the shared Jacobian
+    for tol in (max(xtol, 1e-5), xtol):  # stage 2, twice: the second from each trial's Jacobian where the first stopped
         todo = np.flatnonzero(~failed)
         if not len(todo):
             break
@@ -756,9 +768,11 @@ def _batch_chord(model, blocks, x, evaluate, sv, basis, lt_xyz, lt_range, M, N, 
             for (st, idx, W, sl), (R, pj) in zip(blocks, parts):
                 m = len(idx)
                 if st.kind == "xyz":
-                    b = (np.swapaxes(W[a], -1, -2) @ wa[:, off:off + 3 * m].reshape(-1, m, 3, 1))  # W^T w
-                    v[:, idx] += (R[pos][:, None] @ b)[..., 0]
-                    gx[:, sl] = (np.swapaxes(pj[pos], -1, -2) @ b)[..., 0].sum(axis=1)
+                    b = _mtv(W[a], wa[:, off:off + 3 * m].reshape(-1, m, 3))  # W^T w
+                    v[:, idx] += _mv(R[pos][:, None], b)
+                    pjb = pj[pos]  # (k, m, 3, 6): the columns of the station's pose, summed over its rows
+                    gx[:, sl] = (pjb[..., 0, :] * b[..., 0, None] + pjb[..., 1, :] * b[..., 1, None]
+                                 + pjb[..., 2, :] * b[..., 2, None]).sum(axis=1)
                     off += 3 * m
                 else:
                     c = W[a] * wa[:, off:off + m]
@@ -770,7 +784,7 @@ def _batch_chord(model, blocks, x, evaluate, sv, basis, lt_xyz, lt_range, M, N, 
             gx[:, :p] = adjoint(v, pos)
             return ((gx / sv)[:, None, :] @ Q)[:, 0]
 
-        iterate(exact, xtol)
+        iterate(exact, tol)
         moved = np.abs((x[todo] - xs) * sv).max(axis=1)
     if len(todo):  # what the last stage moved, against the distance from the start: its own bias is about
         dist = np.maximum(np.abs((xs - x_start[todo]) * sv).max(axis=1), 1.0)  # moved * (moved / distance)
