@@ -19,6 +19,9 @@ Configurations are the built-in ``paper_xfyz.toml`` with one thing changed:
 * ``stations``: the bundled ``four_stations.toml`` (4 stations), its first station alone through
   ``[[stations]]``, and the paper configuration's ``[tracker]`` (the same station), 64 -> 320 trials,
   ``--attribution-trials 0``.
+* ``chunks``: in process, ``runner.run`` of the built-in configuration, 4096 trials, ``attribution_trials=0``,
+  with ``chunk_blocks`` 4, 8, 16, 32 alternated, CPU per trial (the rule ``runner.auto_chunk_blocks`` is chosen
+  from it).
 * ``memory``: peak resident memory of the command at ``--memory-trials`` trials (``--attribution-trials 0``,
   inline).
 
@@ -141,6 +144,23 @@ def main():
                       f"{per['one [[stations]]'] / per['[tracker]']:.1f}x, four / one [[stations]] "
                       f"{per['four'] / per['one [[stations]]']:.1f}x, four / [tracker] "
                       f"{per['four'] / per['[tracker]']:.1f}x", flush=True)
+        if "chunks" in what:
+            from mtbudget.config import load_config  # noqa: PLC0415
+            from mtbudget.runner import run  # noqa: PLC0415
+            from mtbudget.scenario import build_scenario  # noqa: PLC0415
+
+            sc = build_scenario(load_config())
+            run(sc, trials=256, attribution_trials=0)
+            res = {}
+            for r in range(args.rounds):
+                for cb in (4, 8, 16, 32):
+                    c = time.process_time()
+                    run(sc, trials=4096, chunk_blocks=cb, attribution_trials=0)
+                    res.setdefault(cb, []).append((time.process_time() - c) / 4096)
+                print(f"chunks round {r + 1} ({load()}): " + ", ".join(f"{cb} blocks {v[-1] * 1e3:.4f} ms/trial"
+                                                                      for cb, v in res.items()), flush=True)
+            med = {cb: statistics.median(v) for cb, v in res.items()}
+            print("chunks: median " + ", ".join(f"{cb}: {med[4] / v:.2f}x the speed of 4" for cb, v in med.items()))
         if "memory" in what:
             for n in args.memory_trials:
                 t0 = time.time()
