@@ -691,11 +691,41 @@ def _batch_chord(model, blocks, x, evaluate, sv, basis, lt_xyz, lt_range, M, N, 
     needs more than ``max_iter`` steps in a stage, or whose estimated remaining bias (the distance stage 2 moved,
     squared, over the distance from the start: its Jacobian was that far from the minimum) exceeds
     ``chord_bias`` (um or urad) is ``failed``: the caller solves it with :func:`identify_stations`.  Every product is
-    taken trial by trial (a trial's bits do not depend on the trials identified with it)."""
+    taken trial by trial (a trial's bits do not depend on the trials identified with it).  The residuals and
+    gradients are compiled (:mod:`mtbudget.kernels_stations`); ``evaluate`` (the batch's numpy residuals) is their
+    reference in the tests."""
+    from . import kernels_stations as ks
     from .machine import chain_adjoint
 
     Q, rank, U0, Hinv, H0 = basis
-    w, raw = evaluate(x, np.arange(N), jacobian=False)[:2]
+    n_res = sum(3 * len(idx) if st.kind == "xyz" else len(idx) for st, idx, _, _ in blocks)
+    # per station, once: its rows, its measurements and whiteners of every trial (contiguous), its first column
+    # among the unknowns and among the whitened residuals
+    plan, off = [], 0
+    for st, idx, W, sl in blocks:
+        meas = lt_xyz[:, idx] if st.kind == "xyz" else lt_range[:, idx]
+        plan.append((st.kind == "xyz", np.ascontiguousarray(idx, np.int64), np.ascontiguousarray(meas),
+                     np.ascontiguousarray(W), sl.start, off))
+        off += 3 * len(idx) if st.kind == "xyz" else len(idx)
+
+    def residuals(xa, a):
+        """Whitened residuals (k, n_res) and each station's raw residuals of trials ``a`` at unknowns ``xa``."""
+        xa = np.ascontiguousarray(xa)
+        P = model.machine_points(xa[:, :p])
+        wa, raws = np.empty((len(a), n_res)), []
+        for xyz, idx, meas, W, c0, o in plan:
+            if xyz:
+                R = np.ascontiguousarray(lt.rotation(xa[:, c0 + 3], xa[:, c0 + 4], xa[:, c0 + 5]))
+                e = np.empty((len(a), len(idx), 3))
+                ks.xyz_residual(P, idx, xa, c0, R, meas, W, a, o, wa, e)
+            else:
+                e = np.empty((len(a), len(idx)))
+                ks.range_residual(P, idx, xa, c0, meas, W, a, o, wa, e)
+            raws.append(e)
+        return wa, raws
+
+    all_trials = np.arange(N)
+    w, raw = residuals(x, all_trials)
     failed = np.zeros(N, bool)
     iterations = np.zeros(N, int)
     x_start = x.copy()
@@ -711,7 +741,7 @@ def _batch_chord(model, blocks, x, evaluate, sv, basis, lt_xyz, lt_range, M, N, 
             y = (Hinv @ g[..., None])  # trial by trial
             z = (Q @ y)[..., 0]
             x[a] += z / sv
-            w_a, raw_a = evaluate(x[a], a, jacobian=False)[:2]
+            w_a, raw_a = residuals(x[a], a)
             w[a] = w_a
             for r_all, r_new in zip(raw, raw_a):
                 r_all[a] = r_new
@@ -727,20 +757,17 @@ def _batch_chord(model, blocks, x, evaluate, sv, basis, lt_xyz, lt_range, M, N, 
     def nominal(a, wa):
         """G^T w with the noise-free verification's Jacobian whitened by each trial's own whiteners."""
         c = np.empty_like(wa)
-        off = 0
-        for st, idx, W, sl in blocks:
-            m = len(idx)
-            if st.kind == "xyz":
-                c[:, off:off + 3 * m] = _mtv(W[a], wa[:, off:off + 3 * m].reshape(-1, m, 3)).reshape(len(a), -1)
-                off += 3 * m
+        for xyz, idx, meas, W, c0, o in plan:
+            if xyz:
+                ks.back_whiten_xyz(wa, o, W, a, c)
             else:
-                c[:, off:off + m] = W[a] * wa[:, off:off + m]
-                off += m
+                c[:, o:o + len(idx)] = W[a] * wa[:, o:o + len(idx)]
         return (c[:, None, :] @ U0)[:, 0]
 
     # stage 1 stops near its own fixed point (about 1 um from the minimum on the bundled configuration), the first
     # stage 2 near its own (b^2 / distance from it); only the last goes to xtol
     iterate(nominal, max(xtol, 1e-3))  # stage 1: the shared Jacobian
+    todo = np.flatnonzero(~failed)
     for tol in (max(xtol, 1e-5), xtol):  # stage 2, twice: the second from each trial's Jacobian where the first stopped
         todo = np.flatnonzero(~failed)
         if not len(todo):
@@ -748,39 +775,27 @@ def _batch_chord(model, blocks, x, evaluate, sv, basis, lt_xyz, lt_range, M, N, 
         xs = x[todo].copy()
         P_s, adjoint = chain_adjoint(model.config, model.errors, xs[:, :p], model.inputs, B=model.B)
         parts = []  # per station, at stage 2's start: what maps its whitened residuals to A^T w
-        for st, idx, W, sl in blocks:
-            if st.kind == "xyz":
-                pose = xs[:, sl]
-                R = lt.rotation(pose[:, 3], pose[:, 4], pose[:, 5])
-                parts.append((R, lt.pose_jacobian(P_s[:, idx], pose)))
+        for xyz, idx, meas, W, c0, o in plan:
+            if xyz:
+                pose = xs[:, c0:c0 + 6]
+                parts.append((np.ascontiguousarray(lt.rotation(pose[:, 3], pose[:, 4], pose[:, 5])),
+                              np.ascontiguousarray(lt.pose_jacobian(P_s[:, idx], pose))))
             else:
-                d = P_s[:, idx] - xs[:, sl][:, None, :3]
-                parts.append((d / np.sqrt((d * d).sum(-1))[..., None], None))
+                d = P_s[:, idx] - xs[:, None, c0:c0 + 3]
+                parts.append((np.ascontiguousarray(d / np.sqrt((d * d).sum(-1))[..., None]), None))
         where = np.full(N, -1)
         where[todo] = np.arange(len(todo))
 
         def exact(a, wa, parts=parts, where=where, adjoint=adjoint):
             pos = where[a]
-            n = x.shape[1]
+            wa = np.ascontiguousarray(wa)
             v = np.zeros((len(a), M, 3))
-            gx = np.zeros((len(a), n))
-            off = 0
-            for (st, idx, W, sl), (R, pj) in zip(blocks, parts):
-                m = len(idx)
-                if st.kind == "xyz":
-                    b = _mtv(W[a], wa[:, off:off + 3 * m].reshape(-1, m, 3))  # W^T w
-                    v[:, idx] += _mv(R[pos][:, None], b)
-                    pjb = pj[pos]  # (k, m, 3, 6): the columns of the station's pose, summed over its rows
-                    gx[:, sl] = (pjb[..., 0, :] * b[..., 0, None] + pjb[..., 1, :] * b[..., 1, None]
-                                 + pjb[..., 2, :] * b[..., 2, None]).sum(axis=1)
-                    off += 3 * m
+            gx = np.zeros((len(a), x.shape[1]))
+            for (xyz, idx, meas, W, c0, o), (R, pj) in zip(plan, parts):
+                if xyz:
+                    ks.xyz_gradient(wa, o, W, a, R, pj, pos, idx, c0, v, gx)
                 else:
-                    c = W[a] * wa[:, off:off + m]
-                    uc = R[pos] * c[..., None]
-                    v[:, idx] += uc
-                    gx[:, sl.start:sl.start + 3] = -uc.sum(axis=1)
-                    gx[:, sl.start + 3] = c.sum(axis=1)
-                    off += m
+                    ks.range_gradient(wa, o, W, a, R, pos, idx, c0, v, gx)
             gx[:, :p] = adjoint(v, pos)
             return ((gx / sv)[:, None, :] @ Q)[:, 0]
 

@@ -210,3 +210,64 @@ def test_several_stations_with_one_shared_matrix_agree_with_identify_stations(st
         F = sc.evaluate(model, np.stack([b["theta"][i], r.x[:p]]))
         assert np.abs(sc.rigid_free @ (F[0] - F[1]).ravel()).max() * 1e3 < 1e-6  # um
         assert abs(b["chi2"][i] / r.chi2 - 1) < 1e-9
+
+
+def test_the_station_kernels_equal_the_numpy_residuals_and_the_exact_gradient(monkeypatch):
+    """kernels_stations against the batch's numpy residuals (``evaluate``) and A^T w from its exact Jacobian."""
+    from mtbudget import kernels_stations as ks
+    from mtbudget import multistation as ms
+    from mtbudget import tracker as lt
+    from mtbudget.config import bundled_config
+    from mtbudget.engine import _station_basis
+    from mtbudget.machine import chain_adjoint
+
+    sc = build_scenario(load_config(bundled_config("four_stations")))
+    sim = Engine(sc, block=5, seed=2).simulate(0)
+    model, hold = sc.id_model, sc.unidentifiable(sc.id_model)
+    got = {}
+    monkeypatch.setattr(ms, "_batch_chord", lambda model, blocks, x, evaluate, *a: got.update(
+        blocks=blocks, x=x.copy(), evaluate=evaluate) or {})
+    ms.identify_stations_batch(model, sc.stations, sc.row_station, sim[0], sim.ranges, sc.noise.repeatability,
+                               hold=hold, basis=_station_basis(sc, model, None, hold))
+    rng = np.random.default_rng(4)
+    sv, p = ms._scales(model, sc.stations), model.n_params
+    x = got["x"] + rng.normal(0, 1, got["x"].shape) / sv  # off the start by about 1 um or urad in every unknown
+    t = np.array([4, 1, 3])  # trials out of order, a subset
+    w_ref, raw_ref, A = got["evaluate"](x[t], t, jacobian=True)
+    P = model.machine_points(x[t][:, :p])
+    xt = np.ascontiguousarray(x[t])
+    w = np.empty_like(w_ref)
+    v, g = np.zeros((3, model.n_points, 3)), np.zeros_like(xt)
+    _, adjoint = chain_adjoint(model.config, model.errors, xt[:, :p], model.inputs, B=model.B)
+    off = 0
+    for (st, idx, W, sl), e_ref in zip(got["blocks"], raw_ref):
+        idx = np.ascontiguousarray(idx, np.int64)
+        meas = np.ascontiguousarray(sim[0][:, idx] if st.kind == "xyz" else sim.ranges[:, idx])
+        W = np.ascontiguousarray(W)
+        e = np.empty_like(e_ref)
+        if st.kind == "xyz":
+            R = np.ascontiguousarray(lt.rotation(xt[:, sl.start + 3], xt[:, sl.start + 4], xt[:, sl.start + 5]))
+            ks.xyz_residual(P, idx, xt, sl.start, R, meas, W, t, off, w, e)
+        else:
+            ks.range_residual(P, idx, xt, sl.start, meas, W, t, off, w, e)
+        assert np.abs(e - e_ref).max() < 1e-12  # mm
+        off += e[0].size
+    assert np.abs(w - w_ref).max() < 1e-9 * np.abs(w_ref).max()
+    off = 0
+    for st, idx, W, sl in got["blocks"]:
+        idx = np.ascontiguousarray(idx, np.int64)
+        W, pos = np.ascontiguousarray(W), np.arange(3)
+        if st.kind == "xyz":
+            pose = xt[:, sl]
+            R = np.ascontiguousarray(lt.rotation(pose[:, 3], pose[:, 4], pose[:, 5]))
+            pj = np.ascontiguousarray(lt.pose_jacobian(P[:, idx], pose))
+            ks.xyz_gradient(w, off, W, t, R, pj, pos, idx, sl.start, v, g)
+            off += 3 * len(idx)
+        else:
+            d = P[:, idx] - xt[:, None, sl.start:sl.start + 3]
+            U = np.ascontiguousarray(d / np.sqrt((d * d).sum(-1))[..., None])
+            ks.range_gradient(w, off, W, t, U, pos, idx, sl.start, v, g)
+            off += len(idx)
+    g[:, :p] = adjoint(v)
+    ref = np.einsum("kri,kr->ki", A, w)  # A^T w from the exact whitened Jacobian (scaled unknowns)
+    assert np.abs(g / sv - ref).max() < 1e-9 * np.abs(ref).max()
