@@ -14,7 +14,7 @@ Configurations are the built-in ``paper_xfyz.toml`` with one thing changed:
   thread, 75 points, 48 + 6 parameters, linearised, one shared pseudo-inverse, 2 chord iterations) measured in
   this process in the same run, alternating, ``--rounds`` rounds.
 * ``mesh``: ``[mesh] step`` 100 mm (75 points), 40 mm (726 points), 20 mm (4851 points), with
-  ``--attribution-trials 0``; the slope between 64 and 320 trials.  The ratio printed is the per-trial cost
+  ``--attribution-trials 0``; the slope between ``--slope`` trial counts (256 and 1280).  The ratio printed is the per-trial cost
   against 75 points, divided by the ratio of points (<= 1.5 is the issue's target).
 * ``stations``: the bundled ``four_stations.toml`` (4 stations), its first station alone through
   ``[[stations]]``, and the paper configuration's ``[tracker]`` (the same station), 64 -> 320 trials,
@@ -108,6 +108,8 @@ def main():
     ap.add_argument("--long", type=int, default=32000)
     ap.add_argument("--memory-trials", type=int, nargs="+", default=[100_000])
     ap.add_argument("--steps", type=int, nargs="+", default=[100, 40, 20])
+    ap.add_argument("--slope", type=int, nargs=2, default=[256, 1280],
+                    help="the two trial counts of the mesh and stations arms")
     args = ap.parse_args()
     what = set(args.what.split(","))
     paper = DATA / "paper_xfyz.toml"
@@ -129,7 +131,7 @@ def main():
 
             npts = {s: len(load_config(c).plan()) for s, c in cfgs.items()}
             for r in range(args.rounds):
-                per = {s: slope(c, 64, 320, "--attribution-trials", "0") for s, c in cfgs.items()}
+                per = {s: slope(c, *args.slope, "--attribution-trials", "0") for s, c in cfgs.items()}
                 base = args.steps[0]
                 row = ", ".join(f"{npts[s]} points {per[s] * 1e3:.2f} ms/trial (x{per[s] / per[base]:.1f}, "
                                 f"{per[s] / per[base] / (npts[s] / npts[base]):.2f} of linear)" for s in args.steps)
@@ -138,7 +140,7 @@ def main():
             four = DATA / "four_stations.toml"
             cfgs = {"[tracker]": paper, "one [[stations]]": variant(tmp, "one", four, first_station), "four": four}
             for r in range(args.rounds):
-                per = {k: slope(c, 64, 320, "--attribution-trials", "0") for k, c in cfgs.items()}
+                per = {k: slope(c, *args.slope, "--attribution-trials", "0") for k, c in cfgs.items()}
                 row = ", ".join(f"{k} {v * 1e3:.3f} ms/trial" for k, v in per.items())
                 print(f"stations round {r + 1} ({load()}): {row}; one [[stations]] / [tracker] "
                       f"{per['one [[stations]]'] / per['[tracker]']:.1f}x, four / one [[stations]] "
