@@ -590,7 +590,7 @@ def identify_stations_batch(model: MeasurementModel, stations: list, row_station
         rank, _, _, null = _null_space(A[0], rank_tol)
         Q = _free_basis(A[0], null, hold, rank_tol)
     else:  # given: the same for any grouping of the trials (the engine's, from the noise-free verification)
-        Q, rank = basis
+        Q, rank = basis[:2]
     cost = (w * w).sum(axis=1)
     converged = np.zeros(N, bool)
     failed = np.zeros(N, bool)

@@ -271,3 +271,20 @@ def test_the_station_kernels_equal_the_numpy_residuals_and_the_exact_gradient(mo
     g[:, :p] = adjoint(v)
     ref = np.einsum("kri,kr->ki", A, w)  # A^T w from the exact whitened Jacobian (scaled unknowns)
     assert np.abs(g / sv - ref).max() < 1e-9 * np.abs(ref).max()
+
+
+def test_several_stations_with_stated_scales_take_the_reference_batch():
+    """With [scales] the identification has fixed inputs, which the compiled J^T v does not take: the engine's
+    several-station batch then iterates by Gauss-Newton (the basis's chord matrices unused), and a block runs."""
+    import tomllib
+
+    from mtbudget.config import bundled_config, parse_config
+
+    d = tomllib.loads(bundled_config("four_stations").read_text())
+    d["scales"] = {"x": {"cte": "11.5 um/(m*K)", "fixed_point": "800 mm"}}
+    d["machine_tool"].pop("cte", None)
+    d["sources"]["disable"] = d["sources"].get("disable", []) + ["temperature_drift"]
+    sc = build_scenario(parse_config(d))
+    assert sc.correction  # fixed inputs: the reference batch
+    res = Engine(sc, block=4, seed=1).run_block(0)
+    assert res.not_converged == 0 and np.all(np.isfinite(res.components))
