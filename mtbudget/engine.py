@@ -167,7 +167,6 @@ class _StationsResult:
 
     def __init__(self, model, sc: Scenario, meas: np.ndarray, ranges: np.ndarray):
         from .multistation import identify_stations, identify_stations_batch, multilaterate
-        from .tracker import register, to_tracker
 
         fixed = sc.correction or None
         k, p = len(meas), model.n_params
@@ -190,19 +189,26 @@ class _StationsResult:
         self.max_residual = np.array([a.max() for a in after])
         # before compensation: the nominal machine, each station placed by its closed-form start (unweighted Kabsch
         # for a tracker: the one-tracker path's weighted pose fit gives about 5 % less on the paper's configuration)
+        # (a laser tracker's rows: the fit and the distances compiled, one trial at a time,
+        # kernels_stations.registered_distances, the numbers of tracker.register and to_tracker to round-off)
+        from .kernels_stations import registered_distances
+
         P0 = model.machine_points(np.zeros((1, p)), fixed)[0]
-        self.mean_error_before = np.empty(k)
-        for i in range(k):
-            before = []
-            for st in sc.stations:
-                idx = np.flatnonzero(sc.row_station == st.id)
-                if st.kind == "xyz":
-                    pose = register(P0[idx][None], meas[i, idx][None])
-                    before.append(_norm3(meas[i, idx] - to_tracker(P0[idx][None], pose)[0]))
-                elif not xyz_rows.any():
+        before = []
+        for st in sc.stations:
+            idx = np.flatnonzero(sc.row_station == st.id)
+            if st.kind == "xyz":
+                d = np.empty((k, len(idx)))
+                registered_distances(np.ascontiguousarray(P0[idx]), np.ascontiguousarray(meas[:, idx]), d)
+                before.append(d)
+            elif not xyz_rows.any():
+                rows = []
+                for i in range(k):
                     S, o = multilaterate(P0[idx], ranges[i, idx])
-                    before.append(np.abs(ranges[i, idx] - np.sqrt(((P0[idx] - S) ** 2).sum(-1)) - o))
-            self.mean_error_before[i] = np.concatenate(before).mean()
+                    rows.append(np.abs(ranges[i, idx] - np.sqrt(((P0[idx] - S) ** 2).sum(-1)) - o))
+                before.append(np.array(rows))
+        before = np.concatenate(before, axis=1)
+        self.mean_error_before = np.array([before[i].mean() for i in range(k)])
 
 
 def _station_basis(sc: Scenario, model, fixed, hold) -> tuple:

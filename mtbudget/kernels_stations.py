@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 from numba import njit
 
 
@@ -117,3 +118,41 @@ def back_whiten_xyz(wa, off, W, t, c):  # pragma: no cover
             w0, w1, w2 = wa[j, off + 3 * r], wa[j, off + 3 * r + 1], wa[j, off + 3 * r + 2]
             for q in range(3):
                 c[j, off + 3 * r + q] = W[i, r, 0, q] * w0 + W[i, r, 1, q] * w1 + W[i, r, 2, q] * w2
+
+
+@_compiled
+def registered_distances(P0, meas, out):  # pragma: no cover
+    """For each trial j, the distances |meas_j - R_j^T (P0 - T_j)| (m,) after the unweighted closed-form rigid fit
+    (Kabsch) of its station-frame points meas (k, m, 3) onto the machine points P0 (m, 3): what
+    :func:`mtbudget.tracker.register` then :func:`mtbudget.tracker.to_tracker` give, one trial at a time, without
+    numpy's per-call cost (the Eq. 27 error before compensation of a laser tracker's rows, every trial)."""
+    k, m = meas.shape[0], meas.shape[1]
+    cw = np.zeros(3)
+    for r in range(m):
+        for c in range(3):
+            cw[c] += P0[r, c]
+    cw /= m
+    for j in range(k):
+        cl = np.zeros(3)
+        for r in range(m):
+            for c in range(3):
+                cl[c] += meas[j, r, c]
+        cl /= m
+        H = np.zeros((3, 3))  # sum_r a_r b_r^T, a = meas - cl, b = P0 - cw
+        for r in range(m):
+            for a in range(3):
+                for b in range(3):
+                    H[a, b] += (meas[j, r, a] - cl[a]) * (P0[r, b] - cw[b])
+        U, _, Vt = np.linalg.svd(H)
+        d = 1.0 if np.linalg.det(U @ Vt) >= 0 else -1.0
+        R = np.zeros((3, 3))  # V diag(1, 1, d) U^T: tracker-frame vectors to the machine frame
+        for a in range(3):
+            for b in range(3):
+                R[a, b] = Vt[0, a] * U[b, 0] + Vt[1, a] * U[b, 1] + d * Vt[2, a] * U[b, 2]
+        T = cw - R @ cl
+        for r in range(m):
+            s = 0.0
+            for c in range(3):  # R^T (P0 - T): component c
+                q = R[0, c] * (P0[r, 0] - T[0]) + R[1, c] * (P0[r, 1] - T[1]) + R[2, c] * (P0[r, 2] - T[2])
+                s += (meas[j, r, c] - q) ** 2
+            out[j, r] = math.sqrt(s)

@@ -288,3 +288,21 @@ def test_several_stations_with_stated_scales_take_the_reference_batch():
     assert sc.correction  # fixed inputs: the reference batch
     res = Engine(sc, block=4, seed=1).run_block(0)
     assert res.not_converged == 0 and np.all(np.isfinite(res.components))
+
+
+def test_registered_distances_equal_register_then_to_tracker():
+    """kernels_stations.registered_distances (the Eq. 27 error before compensation of a tracker's rows) against
+    tracker.register and tracker.to_tracker trial by trial, for a tracker pose of the paper and a reflected fit."""
+    from mtbudget import tracker as lt
+    from mtbudget.kernels_stations import registered_distances
+
+    rng = np.random.default_rng(1)
+    P0 = rng.uniform(0, 500, (75, 3)) + [800, 100, 200]
+    for pose in ([-563.5, 194.4, 677.8, 0.0006, 0.0006, 1.03], [2563.5, 194.4, 677.8, 0.0, 0.0, np.pi]):
+        meas = lt.to_tracker(P0[None], np.array([pose])) + rng.normal(0, 0.02, (6, 75, 3))
+        out = np.empty((6, 75))
+        registered_distances(P0, meas, out)
+        for i in range(6):
+            ref = np.linalg.norm(meas[i] - lt.to_tracker(P0[None], lt.register(P0[None], meas[i][None]))[0], axis=1)
+            assert np.abs(out[i] - ref).max() < 1e-9  # mm
+        assert 0.01 < out.mean() < 0.05  # the noise, not a wrong fit
