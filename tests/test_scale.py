@@ -183,8 +183,8 @@ def test_histograms_of_large_meshes_are_bounded():
 def test_several_stations_with_one_shared_matrix_agree_with_identify_stations(stations):
     """The engine's identification over several stations (one iteration matrix shared by every trial, no Jacobian
     formed per trial: multistation._batch_chord) gives every trial's result as identify_stations, the reference
-    (Gauss-Newton with each trial's exact Jacobian), one trial at a time: the compensated field to 1e-6 um, every
-    unknown to 2e-4 of a scaled unknown (um, urad), chi2 to 1e-9; none falls back.  Four stations, one tracker
+    (Gauss-Newton with each trial's exact Jacobian), one trial at a time: the compensated field to 1e-7 um, every
+    unknown to 1e-5 of a scaled unknown (um, urad), chi2 to 1e-9; none falls back (measured: 7e-9 um, 1.3e-7).  Four stations, one tracker
     with two interferometers, one tracker alone."""
     import tomllib
 
@@ -206,9 +206,9 @@ def test_several_stations_with_one_shared_matrix_agree_with_identify_stations(st
     for i in range(12):
         r = identify_stations(model, sc.stations, sc.row_station, sim[0][i], sim.ranges[i], sc.noise.repeatability,
                               hold=hold)
-        assert np.abs((b["x"][i] - r.x) * scale).max() < 2e-4, i
+        assert np.abs((b["x"][i] - r.x) * scale).max() < 1e-5, i
         F = sc.evaluate(model, np.stack([b["theta"][i], r.x[:p]]))
-        assert np.abs(sc.rigid_free @ (F[0] - F[1]).ravel()).max() * 1e3 < 1e-6  # um
+        assert np.abs(sc.rigid_free @ (F[0] - F[1]).ravel()).max() * 1e3 < 1e-7  # um
         assert abs(b["chi2"][i] / r.chi2 - 1) < 1e-9
 
 
