@@ -183,10 +183,10 @@ class _StationsResult:
             self.theta[i], self.converged[i], self.chi2_per_dof[i] = r.x[:p], r.converged, r.chi2_per_dof
             res_xyz[i], res_rng[i] = r.residual_xyz, r.residual_range
         xyz_rows = np.isin(sc.row_station, [st.id for st in sc.stations if st.kind == "xyz"])
-        # trial by trial, so that a trial's figures do not depend on the trials identified with it, bit for bit
-        after = [_norm3(res_xyz[i, xyz_rows]) if xyz_rows.any() else np.abs(res_rng[i]) for i in range(k)]
-        self.mean_error_after = np.array([a.mean() for a in after])
-        self.max_residual = np.array([a.max() for a in after])
+        # reduced within each trial's row, so that a trial's figures do not depend on the trials identified with it
+        after = _norm3(res_xyz[:, xyz_rows]) if xyz_rows.any() else np.abs(res_rng)  # (k, rows), each row its trial's
+        self.mean_error_after = after.mean(axis=1)
+        self.max_residual = after.max(axis=1)
         # before compensation: the nominal machine, each station placed by its closed-form start (unweighted Kabsch
         # for a tracker: the one-tracker path's weighted pose fit gives about 5 % less on the paper's configuration)
         # (a laser tracker's rows: the fit and the distances compiled, one trial at a time,
@@ -208,7 +208,7 @@ class _StationsResult:
                     rows.append(np.abs(ranges[i, idx] - np.sqrt(((P0[idx] - S) ** 2).sum(-1)) - o))
                 before.append(np.array(rows))
         before = np.concatenate(before, axis=1)
-        self.mean_error_before = np.array([before[i].mean() for i in range(k)])
+        self.mean_error_before = before.mean(axis=1)
 
 
 def _station_basis(sc: Scenario, model, fixed, hold) -> tuple:
