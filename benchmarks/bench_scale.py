@@ -19,6 +19,9 @@ Configurations are the built-in ``paper_xfyz.toml`` with one thing changed:
 * ``stations``: the bundled ``four_stations.toml`` (4 stations), its first station alone through
   ``[[stations]]``, and the paper configuration's ``[tracker]`` (the same station), 64 -> 320 trials,
   ``--attribution-trials 0``.
+* ``engine-stations``: the same three configurations in process (``Engine.run_blocks`` of 4 blocks of 64 trials,
+  best of ``--rounds``, CPU): the identification's cost without the command's fixed cost, which makes the slope of
+  short runs noisy on a loaded machine.
 * ``chunks``: in process, ``runner.run`` of the built-in configuration, 4096 trials, ``attribution_trials=0``,
   with ``chunk_blocks`` 4, 8, 16, 32 alternated, CPU per trial (the rule ``runner.auto_chunk_blocks`` is chosen
   from it).
@@ -146,6 +149,25 @@ def main():
                       f"{per['one [[stations]]'] / per['[tracker]']:.1f}x, four / one [[stations]] "
                       f"{per['four'] / per['one [[stations]]']:.1f}x, four / [tracker] "
                       f"{per['four'] / per['[tracker]']:.1f}x", flush=True)
+        if "engine-stations" in what:
+            from mtbudget.config import load_config  # noqa: PLC0415
+            from mtbudget.engine import Engine  # noqa: PLC0415
+            from mtbudget.scenario import build_scenario  # noqa: PLC0415
+
+            four = DATA / "four_stations.toml"
+            cfgs = {"[tracker]": paper, "one [[stations]]": variant(tmp, "one", four, first_station), "four": four}
+            engs = {k: Engine(build_scenario(load_config(c)), block=64, seed=3) for k, c in cfgs.items()}
+            for e in engs.values():
+                e.run_blocks([0])
+            best = {}
+            for _ in range(args.rounds):
+                for k, e in engs.items():
+                    c = time.process_time()
+                    e.run_blocks([1, 2, 3, 4])
+                    best[k] = min(best.get(k, float("inf")), (time.process_time() - c) / 256)
+            print(f"engine-stations ({load()}): " + ", ".join(f"{k} {v * 1e3:.3f} ms/trial" for k, v in best.items())
+                  + f"; one [[stations]] / [tracker] {best['one [[stations]]'] / best['[tracker]']:.2f}x, four / "
+                  f"[tracker] {best['four'] / best['[tracker]']:.2f}x", flush=True)
         if "chunks" in what:
             from mtbudget.config import load_config  # noqa: PLC0415
             from mtbudget.runner import run  # noqa: PLC0415
