@@ -351,13 +351,14 @@ def point_lpu(scenario) -> dict:
     P = sc.rigid_free
     um = factor("mm", "um")
     y0 = (P @ (F_true - F_id).reshape(-1)).reshape(M0, 3) * um
-    Jf = P @ J.reshape(3 * M0, -1)
-    cov = Jf @ cov_theta @ Jf.T * um**2
+    Jf = (P @ J.reshape(3 * M0, -1)).reshape(M0, 3, -1)
+    # only each point's 3 x 3 block of P J cov_theta J^T P^T: O(M0), not the (3 M0)^2 matrix
+    blocks = np.einsum("mip,mjp->mij", Jf @ cov_theta, Jf) * um**2
     m = sc.context.measurand
     if m is not None:  # at a tool the verification did not use: the unidentifiable errors' prior, as the MCM draws it
-        G = P @ m["unidentified_field"][:, sc.mesh_rows].reshape(m["unidentified_field"].shape[0], -1).T
-        cov = cov + G @ G.T * um**2
-    blocks = np.stack([cov[3 * i:3 * i + 3, 3 * i:3 * i + 3] for i in range(M0)])
+        G = (P @ m["unidentified_field"][:, sc.mesh_rows].reshape(m["unidentified_field"].shape[0], -1).T
+             ).reshape(M0, 3, -1)
+        blocks = blocks + np.einsum("mik,mjk->mij", G, G) * um**2
     return {"estimate": y0, "cov": blocks}
 
 
@@ -387,6 +388,34 @@ def _closed_form_noise(sources) -> tuple:
     return Noise(ang, dist, dpl, math.sqrt(r2)), covered
 
 
+#: measured coordinates whose identifications point_guf runs in one call (a larger plan goes in chunks of this many)
+GUF_DIRECTIONS = 2048
+
+
+def _identification_map(sc, meas0, fixed, h):
+    """(d theta_hat / d y (p, 3 M), theta_hat at the noise-free measurements (1, p)) by central differences of the
+    identification in each measured coordinate: in one call up to GUF_DIRECTIONS coordinates, in chunks beyond (a
+    plan of thousands of points would otherwise hold 2 x (3 M)^2 numbers at once)."""
+    from .identify import identify
+
+    M = meas0.shape[1]
+    n = 3 * M
+    if n <= GUF_DIRECTIONS:
+        E = np.eye(n).reshape(n, M, 3) * h
+        res = identify(sc.id_model, np.concatenate([meas0, meas0 + E, meas0 - E]), sc.noise, fixed=fixed)
+        return ((res.theta[1:1 + n] - res.theta[1 + n:]) / (2 * h)).T, res.theta[:1]
+    theta0 = identify(sc.id_model, meas0, sc.noise, fixed=fixed).theta
+    G = np.empty((theta0.shape[1], n))
+    for start in range(0, n, GUF_DIRECTIONS // 2):
+        k = min(GUF_DIRECTIONS // 2, n - start)
+        E = np.zeros((k, n))
+        E[np.arange(k), start + np.arange(k)] = h
+        E = E.reshape(k, M, 3)
+        res = identify(sc.id_model, np.concatenate([meas0 + E, meas0 - E]), sc.noise, fixed=fixed)
+        G[:, start:start + k] = ((res.theta[:k] - res.theta[k:]) / (2 * h)).T
+    return G, theta0
+
+
 def point_guf(scenario, draws: int = 1024, seed: int = 0, h: float = 2e-4) -> dict:
     """The law of propagation for the per-point measurand on the same inputs as the Monte Carlo (JCGM 101 clause 8
     can then validate where the model is near-linear).
@@ -408,7 +437,6 @@ def point_guf(scenario, draws: int = 1024, seed: int = 0, h: float = 2e-4) -> di
     With [[stations]] it is :func:`point_lpu` (the stated noise only), said in ``basis``.
     Returns {"estimate": (M0, 3) um, "cov": (M0, 3, 3) um^2, "basis": {...}}.
     """
-    from .identify import identify
     from .simulate import simulate_block
     from .units import factor
 
@@ -425,23 +453,23 @@ def point_guf(scenario, draws: int = 1024, seed: int = 0, h: float = 2e-4) -> di
     nominal = simulate_block(sc, 0, 1, seed, active=[])
     meas0, th0 = np.asarray(nominal[0]), np.asarray(nominal[1])  # (1, M, 3) mm, (1, p)
     M = meas0.shape[1]
-    E = np.eye(3 * M).reshape(3 * M, M, 3) * h
-    res = identify(sc.id_model, np.concatenate([meas0, meas0 + E, meas0 - E]), sc.noise, fixed=fixed)
-    G = ((res.theta[1:1 + 3 * M] - res.theta[1 + 3 * M:]) / (2 * h)).T  # (p, 3 M): d theta_hat / d y
-    F_id, J = sc.evaluate(sc.id_model, res.theta[:1], jacobian=True)
+    G, theta0 = _identification_map(sc, meas0, fixed, h)  # (p, 3 M): d theta_hat / d y; theta_hat(y0)
+    F_id, J = sc.evaluate(sc.id_model, theta0, jacobian=True)
     M0 = F_id.shape[1]
     P = sc.rigid_free
-    S = -(P @ J[0].reshape(3 * M0, -1)) @ G  # (3 M0, 3 M): d e / d y
+    PJ = -(P @ J[0].reshape(3 * M0, -1))  # (3 M0, p): d e / d theta_hat; d e / d y = PJ G, never formed (3 M0 x 3 M)
     F_true0 = sc.evaluate(sc.truth, th0)[0]
     if sc.null_bias is not None:
         F_true0 = F_true0 - sc.null_bias
     y0 = P @ (F_true0 - F_id[0]).reshape(-1)
-    # closed form: S blockdiag(C_i) S^T, per point
+    # closed form: S blockdiag(C_i) S^T per point, S = PJ G: the parameters' covariance K = G blockdiag(C_i) G^T once
     noise, covered = _closed_form_noise(sc.sources)
     C = sc.id_model.covariance(meas0[0], noise.angular, noise.distance, noise.distance_per_length,
                                noise.repeatability)  # (M, 3, 3) tracker frame, mm^2
-    Sb = S.reshape(M0, 3, M, 3)
-    cov = np.einsum("aimk,mkl,ajml->aij", Sb, C, Sb)
+    Gb = G.reshape(G.shape[0], M, 3)
+    K = np.einsum("pmk,mkl,qml->pq", Gb, C, Gb)
+    PJb = PJ.reshape(M0, 3, -1)
+    cov = np.einsum("aip,pq,ajq->aij", PJb, K, PJb)
     m = sc.context.measurand
     if m is not None:  # at a tool the verification did not use: the unidentifiable errors' prior
         Gu = P @ m["unidentified_field"][:, sc.mesh_rows].reshape(m["unidentified_field"].shape[0], -1).T
@@ -458,7 +486,7 @@ def point_guf(scenario, draws: int = 1024, seed: int = 0, h: float = 2e-4) -> di
         dF = sc.evaluate(sc.truth, np.asarray(sim[1])) - sc.evaluate(sc.truth, th0)
         if sim.measurand_offset is not None:
             dF = dF + sim.measurand_offset[:, sc.mesh_rows]
-        de = dF.reshape(draws, -1) @ P.T + (np.asarray(sim[0]) - meas0).reshape(draws, -1) @ S.T  # (draws, 3 M0)
+        de = dF.reshape(draws, -1) @ P.T + ((np.asarray(sim[0]) - meas0).reshape(draws, -1) @ G.T) @ PJ.T  # (draws, 3 M0)
         if not np.any(de):
             skipped.append(src.name)
             continue

@@ -29,9 +29,10 @@ except ModuleNotFoundError:  # pragma: no cover
 
 CONFIG_FORMAT = "mtbudget-config/1"
 DEFAULT_CONFIG = "paper_xfyz.toml"
-#: size and range guards, checked before anything is allocated: mesh points (the scenario holds a
-#: (3 M0)^2 projector), measured points of the plan, |length| of mesh, tools and tracker position (mm)
-MAX_MESH_POINTS = 1000
+#: size and range guards, checked before anything is allocated: mesh points (time and memory grow linearly with
+#: them: a 64-trial block of 10^4 points holds arrays of ~15 MB per quantity), measured points of the plan, |length|
+#: of mesh, tools and tracker position (mm)
+MAX_MESH_POINTS = 10_000
 MAX_PLAN_ROWS = 100_000
 MAX_LENGTH = 1.0e5
 MAX_CONFIG_BYTES = 1_048_576
@@ -718,8 +719,7 @@ def parse_config(data: dict, path=None) -> SimulationConfig:
     n_mesh = int(np.prod([round((ranges[a][1] - ranges[a][0]) / step[a]) + 1 for a in AXES]))
     n_mesh *= int(np.prod([len(v) for v in rotary_angles.values()])) if rotary_angles else 1
     if n_mesh > MAX_MESH_POINTS:
-        raise ConfigError(f"{m.where('step')}: {n_mesh} mesh points; at most {MAX_MESH_POINTS} (the scenario holds a "
-                          f"{3 * n_mesh} x {3 * n_mesh} matrix)")
+        raise ConfigError(f"{m.where('step')}: {n_mesh} mesh points; at most {MAX_MESH_POINTS}")
     pl = r.sub("plan")
     tools_raw = pl.raw("tools", [["0 mm", "0 mm", "0 mm"]])
     if not isinstance(tools_raw, list) or not tools_raw:

@@ -487,11 +487,11 @@ def _student_t(nu: float, n: int, rng: np.random.Generator, scale: float = 1.0, 
 
 
 def t_factor(coverage: float, dof: float) -> float:
-    """Coverage factor k from the t distribution (normal for infinite dof)."""
+    """Coverage factor k from the t distribution (normal for infinite dof).  scipy.special's quantile functions
+    (what ``scipy.stats.norm.ppf`` and ``t.ppf`` call: the same numbers) without importing scipy.stats, about 0.35 s
+    of every run's CPU."""
+    from scipy import special
+
     if math.isinf(dof):
-        from scipy import stats
-
-        return float(stats.norm.ppf(0.5 + coverage / 2))
-    from scipy import stats
-
-    return float(stats.t.ppf(0.5 + coverage / 2, dof))
+        return float(special.ndtri(0.5 + coverage / 2))
+    return float(special.stdtrit(dof, 0.5 + coverage / 2))

@@ -175,7 +175,6 @@ class _StationsResult:
 
     def __init__(self, model, sc: Scenario, meas: np.ndarray, ranges: np.ndarray):
         from .multistation import identify_stations, identify_stations_batch, multilaterate
-        from .tracker import register, to_tracker
 
         fixed = sc.correction or None
         k, p = len(meas), model.n_params
@@ -192,32 +191,39 @@ class _StationsResult:
             self.theta[i], self.converged[i], self.chi2_per_dof[i] = r.x[:p], r.converged, r.chi2_per_dof
             res_xyz[i], res_rng[i] = r.residual_xyz, r.residual_range
         xyz_rows = np.isin(sc.row_station, [st.id for st in sc.stations if st.kind == "xyz"])
-        # trial by trial, so that a trial's figures do not depend on the trials identified with it, bit for bit
-        after = [_norm3(res_xyz[i, xyz_rows]) if xyz_rows.any() else np.abs(res_rng[i]) for i in range(k)]
-        self.mean_error_after = np.array([a.mean() for a in after])
-        self.max_residual = np.array([a.max() for a in after])
+        # reduced within each trial's row, so that a trial's figures do not depend on the trials identified with it
+        after = _norm3(res_xyz[:, xyz_rows]) if xyz_rows.any() else np.abs(res_rng)  # (k, rows), each row its trial's
+        self.mean_error_after = after.mean(axis=1)
+        self.max_residual = after.max(axis=1)
         # before compensation: the nominal machine, each station placed by its closed-form start (unweighted Kabsch
         # for a tracker: the one-tracker path's weighted pose fit gives about 5 % less on the paper's configuration)
+        # (a laser tracker's rows: the fit and the distances compiled, one trial at a time,
+        # kernels_stations.registered_distances, the numbers of tracker.register and to_tracker to round-off)
+        from .kernels_stations import registered_distances
+
         P0 = model.machine_points(np.zeros((1, p)), fixed)[0]
-        self.mean_error_before = np.empty(k)
-        for i in range(k):
-            before = []
-            for st in sc.stations:
-                idx = np.flatnonzero(sc.row_station == st.id)
-                if st.kind == "xyz":
-                    pose = register(P0[idx][None], meas[i, idx][None])
-                    before.append(_norm3(meas[i, idx] - to_tracker(P0[idx][None], pose)[0]))
-                elif not xyz_rows.any():
+        before = []
+        for st in sc.stations:
+            idx = np.flatnonzero(sc.row_station == st.id)
+            if st.kind == "xyz":
+                d = np.empty((k, len(idx)))
+                registered_distances(np.ascontiguousarray(P0[idx]), np.ascontiguousarray(meas[:, idx]), d)
+                before.append(d)
+            elif not xyz_rows.any():
+                rows = []
+                for i in range(k):
                     S, o = multilaterate(P0[idx], ranges[i, idx])
-                    before.append(np.abs(ranges[i, idx] - np.sqrt(((P0[idx] - S) ** 2).sum(-1)) - o))
-            self.mean_error_before[i] = np.concatenate(before).mean()
+                    rows.append(np.abs(ranges[i, idx] - np.sqrt(((P0[idx] - S) ** 2).sum(-1)) - o))
+                before.append(np.array(rows))
+        before = np.concatenate(before, axis=1)
+        self.mean_error_before = before.mean(axis=1)
 
 
 def _station_basis(sc: Scenario, model, fixed, hold) -> tuple:
     """The directions the identification of several stations iterates along, from the noise-free verification of
     the scenario: one basis for every trial, so a trial's result does not depend on which trials are identified
     with it (chunking, executors, resume), bit for bit.  Cached per model in the scenario."""
-    from .multistation import identify_stations_batch
+    from .multistation import chord_basis, identify_stations_batch
     from .simulate import measure_stations
 
     def make():
@@ -225,7 +231,8 @@ def _station_basis(sc: Scenario, model, fixed, hold) -> tuple:
         xyz, ranges = measure_stations(sc, sc.truth.machine_points(sc.theta[None, :], truth), truth)
         b = identify_stations_batch(model, sc.stations, sc.row_station, xyz, ranges, sc.noise.repeatability,
                                     fixed=fixed, hold=hold, max_iter=1)
-        return model, b["basis"]  # the model is kept beside its basis so that its id is not reused
+        # with the chord's shared iteration matrix from the same Jacobian (used when nothing is fixed: [scales])
+        return model, chord_basis(b)  # the model is kept beside its basis (its id)
 
     return sc.cached(("station basis", id(model)), make)[1]
 

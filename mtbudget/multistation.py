@@ -187,6 +187,17 @@ class _Rows:
     weight: np.ndarray  # (n, 3, 3) whiteners or (n,) 1/sigma
 
 
+def _mv(W: np.ndarray, e: np.ndarray) -> np.ndarray:
+    """W e for stacks of 3 x 3 matrices and 3-vectors (..., 3, 3), (..., 3): elementwise, so each row's numbers do
+    not depend on the others (and 10x faster than numpy's stacked matmul of tiny matrices)."""
+    return W[..., :, 0] * e[..., None, 0] + W[..., :, 1] * e[..., None, 1] + W[..., :, 2] * e[..., None, 2]
+
+
+def _mtv(W: np.ndarray, e: np.ndarray) -> np.ndarray:
+    """W^T e, as :func:`_mv`."""
+    return W[..., 0, :] * e[..., 0, None] + W[..., 1, :] * e[..., 1, None] + W[..., 2, :] * e[..., 2, None]
+
+
 def _evaluate(model, fixed, rows, x, sv, jacobian=True):
     """Whitened residuals (n_res,) and, optionally, the whitened Jacobian of the predictions in scaled unknowns."""
     p = model.n_params
@@ -459,7 +470,8 @@ class Linearisation:
 
 def identify_stations_batch(model: MeasurementModel, stations: list, row_station, lt_xyz, lt_range,
                             repeatability: float, *, fixed: dict | None = None, max_iter: int = 50, xtol: float = 1e-7,
-                            rank_tol: float = 1e-7, hold: np.ndarray | None = None, basis: tuple | None = None) -> dict:
+                            rank_tol: float = 1e-7, hold: np.ndarray | None = None, basis: tuple | None = None,
+                            chord_bias: float = 1e-3) -> dict:
     """:func:`identify_stations` for N trials of one plan at once (the engine's): lt_xyz (N, M, 3), lt_range (N, M).
 
     The same weighted least squares, the same closed-form starts, the same whiteners and the same convergence
@@ -473,10 +485,13 @@ def identify_stations_batch(model: MeasurementModel, stations: list, row_station
 
     basis: (Q, rank) the directions to iterate along and the Jacobian's rank, as a previous call returned them
     (``"basis"``); without it they come from the first trial's Jacobian, so the last bits of every trial depend on
-    which trials are identified together: the engine passes the basis of the noise-free verification.
+    which trials are identified together: the engine passes the basis of the noise-free verification.  With
+    (Q, rank, U0, Hinv, H0) (:func:`chord_basis`) and no ``fixed`` inputs, the trials iterate with that one shared
+    matrix and never form a Jacobian (:func:`_batch_chord`; ``chord_bias``: its acceptance test).
 
     Returns a dict: theta (N, p), x (N, n), converged (N,), failed (N,), iterations (N,), chi2 (N,), dof,
-    residual_xyz (N, M, 3) mm (NaN on range rows), residual_range (N, M) mm (NaN on xyz rows), basis.
+    residual_xyz (N, M, 3) mm (NaN on range rows), residual_range (N, M) mm (NaN on xyz rows), basis, jacobian (the
+    first trial's whitened Jacobian at its start when no basis was given, for :func:`chord_basis`).
 
     A trial gives the same bits whatever trials are identified with it, as long as ``basis`` is given: numpy's
     small products round a lone row differently (a matrix-vector path), so a single trial is evaluated as two.
@@ -535,11 +550,11 @@ def identify_stations_batch(model: MeasurementModel, stations: list, row_station
             if st.kind == "xyz":
                 pose = x[:, sl]
                 R = lt.rotation(pose[:, 3], pose[:, 4], pose[:, 5])  # (N, 3, 3)
-                pred = (P - pose[:, None, :3]) @ R
+                pred = _mtv(R[:, None], P - pose[:, None, :3])  # R^T (P - T)
                 e = lt_xyz[t][:, idx] - pred
                 W = W[t]
                 raw.append(e)
-                res.append((W @ e[..., None])[..., 0].reshape(N, -1))
+                res.append(_mv(W, e).reshape(N, -1))
                 if jacobian:
                     J = np.zeros((N, len(idx), 3, n))
                     WR = W @ np.swapaxes(R, 1, 2)[:, None]  # (N, m, 3, 3): whitener times R^T
@@ -566,12 +581,16 @@ def identify_stations_batch(model: MeasurementModel, stations: list, row_station
         return w, raw, A
 
     all_trials = np.arange(N)
+    if basis is not None and len(basis) == 5 and not fixed:  # the shared chord matrix: no Jacobian per trial
+        return _batch_chord(model, blocks, x, evaluate, sv, basis, lt_xyz, lt_range, M, N, p, max_iter, xtol,
+                            chord_bias)
     w, raw, A = evaluate(x, all_trials)
+    A_first = A[0] if basis is None else None
     if basis is None:
         rank, _, _, null = _null_space(A[0], rank_tol)
         Q = _free_basis(A[0], null, hold, rank_tol)
     else:  # given: the same for any grouping of the trials (the engine's, from the noise-free verification)
-        Q, rank = basis
+        Q, rank = basis[:2]
     cost = (w * w).sum(axis=1)
     converged = np.zeros(N, bool)
     failed = np.zeros(N, bool)
@@ -631,7 +650,172 @@ def identify_stations_batch(model: MeasurementModel, stations: list, row_station
             res_rng[:, idx] = e
     return {"theta": x[:, :p], "x": x, "converged": converged, "iterations": iterations, "chi2": cost,
             "dof": int(w.shape[1] - rank), "failed": failed, "residual_xyz": res_xyz, "residual_range": res_rng,
-            "basis": (Q, rank)}
+            "basis": (Q, rank), "jacobian": A_first,
+            "whiteners": None if A_first is None else [W[0] for _, _, W, _ in blocks]}
+
+
+def chord_basis(batch: dict) -> tuple:
+    """(Q, rank, U0, Hinv, H0): the basis (Q, rank) of an :func:`identify_stations_batch` result without a basis given
+    (the engine's: the noise-free verification), with the chord's shared matrices from its whitened Jacobian A0
+    (n_res, n) at its start: U0 = (the same Jacobian before whitening) Q, H0 = (A0 Q)^T A0 Q and its inverse, computed once
+    per scenario and shared by every trial (:func:`identify_stations_batch` with this basis)."""
+    Q, rank = batch["basis"]
+    A0 = batch["jacobian"]
+    G0 = A0 @ Q
+    U0 = np.empty_like(G0)
+    off = 0
+    for W in batch["whiteners"]:  # (m, 3, 3) whiteners of an xyz station's rows, (m,) 1 / sigma of a range station's
+        m = len(W)
+        if W.ndim == 3:
+            U0[off:off + 3 * m] = np.linalg.solve(W, G0[off:off + 3 * m].reshape(m, 3, -1)).reshape(3 * m, -1)
+            off += 3 * m
+        else:
+            U0[off:off + m] = G0[off:off + m] / W[:, None]
+            off += m
+    H0 = G0.T @ G0
+    return Q, rank, U0, np.linalg.inv(H0), H0
+
+
+def _batch_chord(model, blocks, x, evaluate, sv, basis, lt_xyz, lt_range, M, N, p, max_iter, xtol, chord_bias):
+    """:func:`identify_stations_batch` with one iteration matrix shared by every trial (``basis`` from
+    :func:`chord_basis`), as the one-tracker identification (:func:`mtbudget.identify.identify`) does.
+
+    Stage 1: chord iterations z += Q Hinv (W U0)^T w(x) with the noise-free verification's Jacobian (U0, before
+    whitening) whitened by each trial's own whiteners W, one residual evaluation each, until a step is below ``xtol``: they stop near, not at, the weighted least-squares
+    minimum (where G0, not each trial's Jacobian, is orthogonal to the residual).  Stage 2: each trial's exact
+    gradient A^T w, with A the trial's own whitened Jacobian where stage 1 stopped (then again where that stopped),
+    never formed: the chain's
+    ``J^T v`` (:func:`mtbudget.machine.chain_adjoint`, compiled) plus each station's pose or position columns, and the
+    same shared matrix, to ``xtol``.  A trial whose steps do not contract (by 2x per step after the first two, in the
+    energy norm of the step: the weakest directions converge more slowly and change the fit least), that
+    needs more than ``max_iter`` steps in a stage, or whose estimated remaining bias (the distance stage 2 moved,
+    squared, over the distance from the start: its Jacobian was that far from the minimum) exceeds
+    ``chord_bias`` (um or urad) is ``failed``: the caller solves it with :func:`identify_stations`.  Every product is
+    taken trial by trial (a trial's bits do not depend on the trials identified with it).  The residuals and
+    gradients are compiled (:mod:`mtbudget.kernels_stations`); ``evaluate`` (the batch's numpy residuals) is their
+    reference in the tests."""
+    from . import kernels_stations as ks
+    from .machine import chain_adjoint
+
+    Q, rank, U0, Hinv, H0 = basis
+    n_res = sum(3 * len(idx) if st.kind == "xyz" else len(idx) for st, idx, _, _ in blocks)
+    # per station, once: its rows, its measurements and whiteners of every trial (contiguous), its first column
+    # among the unknowns and among the whitened residuals
+    plan, off = [], 0
+    for st, idx, W, sl in blocks:
+        meas = lt_xyz[:, idx] if st.kind == "xyz" else lt_range[:, idx]
+        plan.append((st.kind == "xyz", np.ascontiguousarray(idx, np.int64), np.ascontiguousarray(meas),
+                     np.ascontiguousarray(W), sl.start, off))
+        off += 3 * len(idx) if st.kind == "xyz" else len(idx)
+
+    def residuals(xa, a):
+        """Whitened residuals (k, n_res) and each station's raw residuals of trials ``a`` at unknowns ``xa``."""
+        xa = np.ascontiguousarray(xa)
+        P = model.machine_points(xa[:, :p])
+        wa, raws = np.empty((len(a), n_res)), []
+        for xyz, idx, meas, W, c0, o in plan:
+            if xyz:
+                R = np.ascontiguousarray(lt.rotation(xa[:, c0 + 3], xa[:, c0 + 4], xa[:, c0 + 5]))
+                e = np.empty((len(a), len(idx), 3))
+                ks.xyz_residual(P, idx, xa, c0, R, meas, W, a, o, wa, e)
+            else:
+                e = np.empty((len(a), len(idx)))
+                ks.range_residual(P, idx, xa, c0, meas, W, a, o, wa, e)
+            raws.append(e)
+        return wa, raws
+
+    all_trials = np.arange(N)
+    w, raw = residuals(x, all_trials)
+    failed = np.zeros(N, bool)
+    iterations = np.zeros(N, int)
+    x_start = x.copy()
+
+    def iterate(gradient, tol):
+        """Chord steps on the trials not failed, until each one's step is below tol."""
+        a = np.flatnonzero(~failed)
+        last = np.full(N, np.inf)
+        for it in range(max_iter):
+            if not len(a):
+                return
+            g = gradient(a, w[a])  # (na, q)
+            y = (Hinv @ g[..., None])  # trial by trial
+            z = (Q @ y)[..., 0]
+            x[a] += z / sv
+            w_a, raw_a = residuals(x[a], a)
+            w[a] = w_a
+            for r_all, r_new in zip(raw, raw_a):
+                r_all[a] = r_new
+            iterations[a] += 1
+            size = np.abs(z).max(axis=1)
+            energy = np.sqrt((y[..., 0] * (H0 @ y)[..., 0]).sum(axis=1))  # of the step: what it changes in the fit
+            slow = (it >= 2) & (energy > 0.5 * last[a]) & (size >= tol)
+            failed[a[slow]] = True
+            last[a] = energy
+            a = a[(size >= tol) & ~slow]
+        failed[a] = True  # still moving after max_iter steps
+
+    def nominal(a, wa):
+        """G^T w with the noise-free verification's Jacobian whitened by each trial's own whiteners."""
+        c = np.empty_like(wa)
+        for xyz, idx, meas, W, c0, o in plan:
+            if xyz:
+                ks.back_whiten_xyz(wa, o, W, a, c)
+            else:
+                c[:, o:o + len(idx)] = W[a] * wa[:, o:o + len(idx)]
+        return (c[:, None, :] @ U0)[:, 0]
+
+    # stage 1 stops near its own fixed point (about 1 um from the minimum on the bundled configuration), the first
+    # stage 2 near its own (b^2 / distance from it); only the last goes to xtol (1e-3 for the first two: measured,
+    # the results are as close to identify_stations', 1e-7 in the unknowns, with 10-16 steps per trial in all)
+    iterate(nominal, max(xtol, 1e-3))  # stage 1: the shared Jacobian
+    todo = np.flatnonzero(~failed)
+    for tol in (max(xtol, 1e-3), xtol):  # stage 2, twice: the second from each trial's Jacobian where the first stopped
+        todo = np.flatnonzero(~failed)
+        if not len(todo):
+            break
+        xs = x[todo].copy()
+        P_s, adjoint = chain_adjoint(model.config, model.errors, xs[:, :p], model.inputs, B=model.B)
+        parts = []  # per station, at stage 2's start: what maps its whitened residuals to A^T w
+        for xyz, idx, meas, W, c0, o in plan:
+            if xyz:
+                pose = xs[:, c0:c0 + 6]
+                parts.append((np.ascontiguousarray(lt.rotation(pose[:, 3], pose[:, 4], pose[:, 5])),
+                              np.ascontiguousarray(lt.pose_jacobian(P_s[:, idx], pose))))
+            else:
+                d = P_s[:, idx] - xs[:, None, c0:c0 + 3]
+                parts.append((np.ascontiguousarray(d / np.sqrt((d * d).sum(-1))[..., None]), None))
+        where = np.full(N, -1)
+        where[todo] = np.arange(len(todo))
+
+        def exact(a, wa, parts=parts, where=where, adjoint=adjoint):
+            pos = where[a]
+            wa = np.ascontiguousarray(wa)
+            v = np.zeros((len(a), M, 3))
+            gx = np.zeros((len(a), x.shape[1]))
+            for (xyz, idx, meas, W, c0, o), (R, pj) in zip(plan, parts):
+                if xyz:
+                    ks.xyz_gradient(wa, o, W, a, R, pj, pos, idx, c0, v, gx)
+                else:
+                    ks.range_gradient(wa, o, W, a, R, pos, idx, c0, v, gx)
+            gx[:, :p] = adjoint(v, pos)
+            return ((gx / sv)[:, None, :] @ Q)[:, 0]
+
+        iterate(exact, tol)
+        moved = np.abs((x[todo] - xs) * sv).max(axis=1)
+    if len(todo):  # what the last stage moved, against the distance from the start: its own bias is about
+        dist = np.maximum(np.abs((xs - x_start[todo]) * sv).max(axis=1), 1.0)  # moved * (moved / distance)
+        failed[todo[moved * moved / dist > chord_bias]] = True
+    cost = (w * w).sum(axis=1)
+    res_xyz = np.full((N, M, 3), np.nan)
+    res_rng = np.full((N, M), np.nan)
+    for (st, idx, _, _), e in zip(blocks, raw):
+        if st.kind == "xyz":
+            res_xyz[:, idx] = e
+        else:
+            res_rng[:, idx] = e
+    return {"theta": x[:, :p], "x": x, "converged": ~failed, "iterations": iterations, "chi2": cost,
+            "dof": int(w.shape[1] - rank), "failed": failed, "residual_xyz": res_xyz, "residual_range": res_rng,
+            "basis": basis, "jacobian": None}
 
 
 def linearise(res: MultiIdentification, lt_xyz, lt_range, repeatability: float, *, fixed: dict | None = None

@@ -285,7 +285,8 @@ def point_lines(res: RunResult) -> list:
     if half is not None:
         label = f"largest half-width of the {percent(res.coverage)} interval"
         lines.append(f"    {label:<48}" + "".join(f"{x:9.{nd}f}" for x in half.max(axis=0))
-                     + f"   (coverage {percent(res.coverage)}; a normal would give k = {k:.2f})")
+                     + f"   (coverage {percent(res.coverage)}; {pts[0]['interval']['method']}; a normal would give "
+                       f"k = {k:.2f})")
     w = sm["worst_point"]
     lines.append(f"  worst point #{w['point']} at x, y, z = {_vec(w['nominal']['value'], 0)} mm{_angles(w)}: u = "
                  f"{_vec(w['u'], nd)} {u}, mean (bias) {_vec(w['mean'], nd)} {u}")

@@ -92,30 +92,44 @@ class RunSettings:
         return self
 
 
-def auto_chunk_blocks(n_blocks: int) -> int:
-    """Blocks identified together in a run of ``n_blocks`` blocks: 4 up to 511 blocks (a crash loses little, and a
-    short run still gets a convergence row every 4 blocks), growing to 16 from 1024 blocks: identifying more trials
-    per call shares each call's fixed cost (16 blocks are ~15 % faster per trial than 4, docs/performance.md)."""
-    return min(16, max(4, int(n_blocks) // 64))
+#: trials x measured points identified together at most (the arrays of a chunk grow with both): 16 blocks of 64
+#: trials of the paper's 75 points; a 4851-point mesh gets one block per chunk (measured: 8.6-9.4 ms per trial
+#: against 10.1-10.4 with 4 blocks, and 0.95 GB of memory for 1280 trials with chunks of 5 blocks)
+CHUNK_ROWS = 16 * 64 * 75
 
 
-def chunk_blocks_for(settings: RunSettings, block: int) -> int:
+def auto_chunk_blocks(n_blocks: int, block_rows: int | None = None) -> int:
+    """Blocks identified together in a run of ``n_blocks`` blocks: a quarter of them (a run has at least four
+    convergence rows and log records), at least 4 and at most 16: 16 from 64 blocks (4096 trials of 64) on.
+    Identifying more trials per call shares each call's fixed cost: measured, chunks of 16 blocks are 1.11x faster
+    per trial than 4 at 4096 trials, 8 nearly as fast, 32 no faster (docs/performance.md, issue 31).  Before issue
+    31 the rule was ``min(16, max(4, n_blocks // 64))``: 4 up to 511 blocks; a resumed log that recorded no chunk
+    size gets this rule, the same numbers and other convergence rows."""
+    c = min(16, max(4, int(n_blocks) // 4))
+    if block_rows:  # trials x measured points of one block: at most CHUNK_ROWS together
+        c = max(1, min(c, CHUNK_ROWS // int(block_rows)))
+    return c
+
+
+def chunk_blocks_for(settings: RunSettings, block: int, rows: int | None = None) -> int:
     """The blocks identified together in a run with these settings: ``settings.chunk_blocks`` when given, else
-    :func:`auto_chunk_blocks` of the run's blocks (an adaptive run's: one batch).  The run log records the value
-    used, and a resume reuses it."""
+    :func:`auto_chunk_blocks` of the run's blocks (an adaptive run's: one batch) and, given ``rows`` (the plan's
+    measured points), of their size.  The run log records the value used, and a resume reuses it."""
     if settings.chunk_blocks:
         return int(settings.chunk_blocks)
     trials = settings.trials
     return auto_chunk_blocks(math.ceil((int(trials) if trials is not None else settings.adaptive_batch or 10_000)
-                                       / int(block)))
+                                       / int(block)), None if rows is None else int(block) * int(rows))
 
 
-#: per-point components kept as every trial's values (exact intervals) up to this many numbers, else histograms
-VECTOR_SAMPLE_LIMIT = 25_000_000
+#: per-point components kept as every trial's values (exact intervals) up to this many numbers (20 MB, and as much
+#: again to sort them: about 11 000 trials of the paper's 75 points, 170 of 4851), else streamed into histograms
+#: (memory bounded for any number of trials; the intervals say their method)
+VECTOR_SAMPLE_LIMIT = 2_500_000
 
 
 def keep_vector_samples(settings: RunSettings, n_points: int) -> bool:
-    """Whether a run keeps every trial's per-point components (about 200 MB at the limit) or histograms them."""
+    """Whether a run keeps every trial's per-point components (at most 20 MB) or histograms them."""
     if settings.keep_samples is False:
         return False
     total = settings.max_trials if settings.trials is None else int(settings.trials)
@@ -189,7 +203,7 @@ def _run(config, settings, *, on_chunk, resume_blocks, engine, host, resume_hist
     result.prefix = prefix
     ex = Executor(engine, spec, settings.executor, settings.workers, settings.address)
     bar = progress_bar(trials, "Monte Carlo", "trial", settings.progress)
-    chunk_blocks = chunk_blocks_for(settings, engine.block)
+    chunk_blocks = chunk_blocks_for(settings, engine.block, len(scenario.plan))
     try:
         batch: dict = {"parts": None}  # adaptive: the current batch's per-point components, when collected
 
@@ -423,8 +437,8 @@ def _execute(config, settings, *, source, target, force, histogram_every) -> Run
     settings.validate()
     # the chunk size the run uses, logged as such (not None for "automatic"): a resume reuses the same value; a log
     # from before this recorded null, and a resume of it applies the same rule again (chunk_blocks_for)
-    settings = replace(settings, chunk_blocks=chunk_blocks_for(settings, settings.block))
     scenario = build_scenario(cfg, sources=settings.sources)
+    settings = replace(settings, chunk_blocks=chunk_blocks_for(settings, settings.block, len(scenario.plan)))
     eng = Engine(scenario, block=settings.block, seed=settings.seed)
     spec = make_spec(scenario, eng, settings)
     keep_vectors = keep_vector_samples(settings, len(scenario.mesh_rows))

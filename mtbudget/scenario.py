@@ -72,7 +72,7 @@ class Scenario:
     context: Context
     mesh_rows: np.ndarray  # plan rows of the mesh (first run, first tool)
     mesh_points: np.ndarray  # (M0, 3) nominal tool points of those rows, machine frame (mm)
-    rigid_free: np.ndarray  # (3 M0, 3 M0) projector that removes what the tracker pose absorbs
+    rigid_free: "RigidFree"  # (3 M0, 3 M0) projector that removes what the tracker pose absorbs (rank-6 form)
     measurand_tool: np.ndarray | None = None  # (3,) mm: [measurand] tool, when not the verification's first tool
     #: [[stations]]: the stations as the identification knows them (:class:`mtbudget.recording.Station`, ids 1..K,
     #: the stated uncertainties), their true places (config.StationSpec) and the station of every plan row; None for
@@ -316,7 +316,36 @@ def prior_std(config: SimulationConfig, param) -> float | None:
     return stds[min(param.order, len(stds)) - 1]
 
 
-def _rigid_projector(P: np.ndarray) -> np.ndarray:
+class RigidFree:
+    """``I - Q Q^T``: removes from fields on M points (vectors of 3 M, x y z per point) what the tracker pose absorbs,
+    their least-squares rigid motion.  Q (3 M, r <= 6) is an orthonormal basis of the rigid motions of the points, so
+    the removal is a rank-6 correction, O(M) in time and memory (the dense 3M x 3M projector it replaces grew as M^2).
+    Symmetric; used as a matrix: ``P @ X`` on (3 M,) or (3 M, k), ``X @ P`` and ``X @ P.T`` on (..., 3 M).
+    ``np.asarray(P)`` is the dense matrix (tests and small meshes only)."""
+
+    __array_ufunc__ = None  # numpy hands ``array @ P`` to __rmatmul__
+
+    def __init__(self, Q: np.ndarray):
+        self.Q = Q
+        self.shape = (len(Q), len(Q))
+
+    @property
+    def T(self) -> "RigidFree":
+        return self
+
+    def __matmul__(self, X):
+        X = np.asarray(X)
+        return X - self.Q @ (self.Q.T @ X)
+
+    def __rmatmul__(self, X):
+        X = np.asarray(X)
+        return X - (X @ self.Q) @ self.Q.T
+
+    def __array__(self, dtype=None, copy=None):
+        return np.asarray(np.eye(len(self.Q)) - self.Q @ self.Q.T, dtype=dtype)
+
+
+def _rigid_projector(P: np.ndarray) -> RigidFree:
     """I - projector onto rigid motions of points P (M, 3): removes what the tracker pose absorbs."""
     M = len(P)
     A = np.zeros((M, 3, 6))
@@ -327,7 +356,9 @@ def _rigid_projector(P: np.ndarray) -> np.ndarray:
         e[k] = 1
         A[:, :, 3 + k] = np.cross(e, c)
     A = A.reshape(3 * M, 6)
-    return np.eye(3 * M) - A @ np.linalg.pinv(A)
+    # the range of A, as pinv(A) sees it (singular values above its default cut-off: points on a line lose a rotation)
+    U, s, _ = np.linalg.svd(A, full_matrices=False)
+    return RigidFree(U[:, s > max(A.shape) * np.finfo(float).eps * s[0]])
 
 
 def _effects_as_sources(config: SimulationConfig) -> dict:

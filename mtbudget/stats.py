@@ -132,10 +132,19 @@ class Moments:
                    np.asarray(d["min"], float), np.asarray(d["max"], float))
 
 
-class VectorHistogram:
-    """Histograms of K components with ranges fixed from the first block (overflow counted)."""
+#: counts held by one VectorHistogram at most (64 MB): 4000 bins per component up to 2000 components, fewer beyond
+#: (550 bins for the 14 553 components of a 4851-point mesh), never fewer than HIST_MIN_BINS
+HIST_COUNTS = 8_000_000
+HIST_BINS, HIST_MIN_BINS = 4000, 500
 
-    def __init__(self, first: np.ndarray, bins: int = 4000):
+
+class VectorHistogram:
+    """Histograms of K components with ranges fixed from the first block (overflow counted).  bins: per component,
+    by default 4000, fewer for many components (HIST_COUNTS: memory bounded whatever the mesh)."""
+
+    def __init__(self, first: np.ndarray, bins: int | None = None):
+        if bins is None:
+            bins = int(min(HIST_BINS, max(HIST_MIN_BINS, HIST_COUNTS // max(first.shape[1], 1))))
         lo, hi = first.min(axis=0), first.max(axis=0)
         c, w = (lo + hi) / 2, np.maximum(hi - lo, np.maximum(np.abs(lo + hi) * 1e-9, 1e-12))
         self.low, self.high, self.bins = c - 2 * w, c + 2 * w, bins

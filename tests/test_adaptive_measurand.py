@@ -36,7 +36,12 @@ def all_stable(Y, ndig, p):
     return spread <= np.array([tolerance(x, ndig) for x in u])[:, None]
 
 
-def test_the_adaptive_run_stops_on_every_point_axis():
+def test_the_adaptive_run_stops_on_every_point_axis(monkeypatch):
+    # every trial's per-point values kept (a run beyond runner.VECTOR_SAMPLE_LIMIT streams them into histograms),
+    # so that this test can recompute the batches' statistics from them
+    import mtbudget.runner
+
+    monkeypatch.setattr(mtbudget.runner, "VECTOR_SAMPLE_LIMIT", 10**8)
     res = run(load_config(SMALL), trials=None, block=32, adaptive_batch=256, attribution_trials=0,
               max_trials=60_000, ndig=1)
     a = res.adaptive

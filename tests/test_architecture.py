@@ -30,7 +30,7 @@ LAYERS = [
     ["outputs", "identify", "multistation", "plugins", "config", "recording", "mcm"],
     ["contracts", "model", "distributions"],
     ["machine", "tracker", "plan", "stats", "hookspecs", "progress"],
-    ["units", "errors", "kernels"],
+    ["units", "errors", "kernels", "kernels_stations"],
 ]
 #: the package facade (``__version__``, lazy ``ureg``/``Q_``/``hookimpl``) stands outside the layers
 FACADE = "__init__"

@@ -1,0 +1,158 @@
+"""Compiled kernels of the several-station identification's chord iterations (numba; issue 31).
+
+:func:`mtbudget.multistation._batch_chord` iterates every trial with one shared matrix; what is left per
+iteration is, per station, the whitened residual of its rows (a laser tracker's R^T (P - T) against its
+measured points, an interferometer's |P - S| + o against its ranges) and, in the chord's second stage, the
+trial's exact gradient A^T w: the machine-frame vectors the chain's ``J^T v`` takes
+(:func:`mtbudget.kernels.chain_vjp`) plus the columns of the station's own unknowns.  In numpy these are
+a dozen passes over (trials, rows, 3, 3) arrays each; here one pass per trial and row.
+
+Every number a trial gets depends on that trial's inputs only (no reduction across trials): results do not
+depend on how trials are grouped.  The numpy formulations are the references they are tested against
+(``multistation.identify_stations_batch``'s ``evaluate`` for the residuals; ``tests/test_scale.py`` writes the
+gradient's from the exact Jacobian).  Only plain float64 and int64 arrays cross this boundary.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+
+def _compiled(f):
+    """As :mod:`mtbudget.kernels`: numba's ``njit`` without Python objects or division checks, cached on disk where
+    it can be (else compiled in memory once per process); no ``fastmath``."""
+    try:
+        return njit(cache=True, nogil=True, error_model="numpy")(f)
+    except RuntimeError:  # "cannot cache function ...: no locator available"
+        return njit(cache=False, nogil=True, error_model="numpy")(f)
+
+
+@_compiled
+def xyz_residual(P, idx, x, c0, R, meas, W, t, off, w, e):  # pragma: no cover
+    """A laser tracker's rows for trials ``t``: e = meas - R^T (P - T) (k, m, 3) into ``e`` and W e into the
+    whitened residuals ``w`` (k, n_res) from column ``off``.  P (k, M, 3) the trials' machine points; idx (m,) the
+    station's rows; x (k, n) the unknowns, the pose's translation at columns c0..c0+2; R (k, 3, 3) the pose's
+    rotation; meas (N, m, 3) and W (N, m, 3, 3) the station's measurements and whiteners of every trial, row t[j]
+    for trial j."""
+    k, m = P.shape[0], idx.shape[0]
+    for j in range(k):
+        i = t[j]
+        T0, T1, T2 = x[j, c0], x[j, c0 + 1], x[j, c0 + 2]
+        for r in range(m):
+            p = idx[r]
+            d0, d1, d2 = P[j, p, 0] - T0, P[j, p, 1] - T1, P[j, p, 2] - T2
+            e0 = meas[i, r, 0] - (R[j, 0, 0] * d0 + R[j, 1, 0] * d1 + R[j, 2, 0] * d2)
+            e1 = meas[i, r, 1] - (R[j, 0, 1] * d0 + R[j, 1, 1] * d1 + R[j, 2, 1] * d2)
+            e2 = meas[i, r, 2] - (R[j, 0, 2] * d0 + R[j, 1, 2] * d1 + R[j, 2, 2] * d2)
+            e[j, r, 0], e[j, r, 1], e[j, r, 2] = e0, e1, e2
+            for c in range(3):
+                w[j, off + 3 * r + c] = W[i, r, c, 0] * e0 + W[i, r, c, 1] * e1 + W[i, r, c, 2] * e2
+
+
+@_compiled
+def range_residual(P, idx, x, c0, meas, W, t, off, w, e):  # pragma: no cover
+    """An interferometer's rows for trials ``t``: e = meas - (|P - S| + o) (k, m) into ``e`` and W e into ``w``
+    from column ``off``; S at columns c0..c0+2 of x, o at c0+3; meas and W (N, m), row t[j] for trial j."""
+    k, m = P.shape[0], idx.shape[0]
+    for j in range(k):
+        i = t[j]
+        S0, S1, S2, o = x[j, c0], x[j, c0 + 1], x[j, c0 + 2], x[j, c0 + 3]
+        for r in range(m):
+            p = idx[r]
+            d0, d1, d2 = P[j, p, 0] - S0, P[j, p, 1] - S1, P[j, p, 2] - S2
+            er = meas[i, r] - (math.sqrt(d0 * d0 + d1 * d1 + d2 * d2) + o)
+            e[j, r] = er
+            w[j, off + r] = W[i, r] * er
+
+
+@_compiled
+def xyz_gradient(wa, off, W, t, R, pj, pos, idx, c0, v, g):  # pragma: no cover
+    """A laser tracker's part of A^T w for trials ``t``: b = W^T w per row; R b added to the machine-frame vectors
+    ``v`` (k, M, 3) at its rows (the chain's J^T v takes them) and pj^T b summed over its rows into the pose's
+    columns c0..c0+5 of ``g`` (k, n).  R (K, 3, 3) and pj (K, m, 3, 6): the pose's rotation and the pose Jacobian
+    of the prediction where the stage began, row pos[j] for trial j."""
+    k, m = wa.shape[0], idx.shape[0]
+    for j in range(k):
+        i, s = t[j], pos[j]
+        for r in range(m):
+            w0, w1, w2 = wa[j, off + 3 * r], wa[j, off + 3 * r + 1], wa[j, off + 3 * r + 2]
+            b0 = W[i, r, 0, 0] * w0 + W[i, r, 1, 0] * w1 + W[i, r, 2, 0] * w2
+            b1 = W[i, r, 0, 1] * w0 + W[i, r, 1, 1] * w1 + W[i, r, 2, 1] * w2
+            b2 = W[i, r, 0, 2] * w0 + W[i, r, 1, 2] * w1 + W[i, r, 2, 2] * w2
+            p = idx[r]
+            for c in range(3):
+                v[j, p, c] += R[s, c, 0] * b0 + R[s, c, 1] * b1 + R[s, c, 2] * b2
+            for col in range(6):
+                g[j, c0 + col] += pj[s, r, 0, col] * b0 + pj[s, r, 1, col] * b1 + pj[s, r, 2, col] * b2
+
+
+@_compiled
+def range_gradient(wa, off, W, t, U, pos, idx, c0, v, g):  # pragma: no cover
+    """An interferometer's part of A^T w for trials ``t``: c = W w per row; u c added to ``v`` at its rows, -u c
+    summed into S's columns c0..c0+2 of ``g`` and c into o's (c0+3).  U (K, m, 3): the unit beam vectors where the
+    stage began, row pos[j] for trial j."""
+    k, m = wa.shape[0], idx.shape[0]
+    for j in range(k):
+        i, s = t[j], pos[j]
+        for r in range(m):
+            c = W[i, r] * wa[j, off + r]
+            p = idx[r]
+            for q in range(3):
+                uc = U[s, r, q] * c
+                v[j, p, q] += uc
+                g[j, c0 + q] -= uc
+            g[j, c0 + 3] += c
+
+
+@_compiled
+def back_whiten_xyz(wa, off, W, t, c):  # pragma: no cover
+    """W^T w of a laser tracker's rows for trials ``t`` into ``c`` (k, n_res) from column ``off``: what the chord's
+    first stage multiplies with the noise-free Jacobian before whitening."""
+    k, m = wa.shape[0], W.shape[1]
+    for j in range(k):
+        i = t[j]
+        for r in range(m):
+            w0, w1, w2 = wa[j, off + 3 * r], wa[j, off + 3 * r + 1], wa[j, off + 3 * r + 2]
+            for q in range(3):
+                c[j, off + 3 * r + q] = W[i, r, 0, q] * w0 + W[i, r, 1, q] * w1 + W[i, r, 2, q] * w2
+
+
+@_compiled
+def registered_distances(P0, meas, out):  # pragma: no cover
+    """For each trial j, the distances |meas_j - R_j^T (P0 - T_j)| (m,) after the unweighted closed-form rigid fit
+    (Kabsch) of its station-frame points meas (k, m, 3) onto the machine points P0 (m, 3): what
+    :func:`mtbudget.tracker.register` then :func:`mtbudget.tracker.to_tracker` give, one trial at a time, without
+    numpy's per-call cost (the Eq. 27 error before compensation of a laser tracker's rows, every trial)."""
+    k, m = meas.shape[0], meas.shape[1]
+    cw = np.zeros(3)
+    for r in range(m):
+        for c in range(3):
+            cw[c] += P0[r, c]
+    cw /= m
+    for j in range(k):
+        cl = np.zeros(3)
+        for r in range(m):
+            for c in range(3):
+                cl[c] += meas[j, r, c]
+        cl /= m
+        H = np.zeros((3, 3))  # sum_r a_r b_r^T, a = meas - cl, b = P0 - cw
+        for r in range(m):
+            for a in range(3):
+                for b in range(3):
+                    H[a, b] += (meas[j, r, a] - cl[a]) * (P0[r, b] - cw[b])
+        U, _, Vt = np.linalg.svd(H)
+        d = 1.0 if np.linalg.det(U @ Vt) >= 0 else -1.0
+        R = np.zeros((3, 3))  # V diag(1, 1, d) U^T: tracker-frame vectors to the machine frame
+        for a in range(3):
+            for b in range(3):
+                R[a, b] = Vt[0, a] * U[b, 0] + Vt[1, a] * U[b, 1] + d * Vt[2, a] * U[b, 2]
+        T = cw - R @ cl
+        for r in range(m):
+            s = 0.0
+            for c in range(3):  # R^T (P0 - T): component c
+                q = R[0, c] * (P0[r, 0] - T[0]) + R[1, c] * (P0[r, 1] - T[1]) + R[2, c] * (P0[r, 2] - T[2])
+                s += (meas[j, r, c] - q) ** 2
+            out[j, r] = math.sqrt(s)

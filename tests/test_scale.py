@@ -1,0 +1,308 @@
+"""Speed and scale (issue 31): the rigid-motion removal as a rank-6 correction, large meshes."""
+
+from __future__ import annotations
+
+import re
+import time
+
+import numpy as np
+import pytest
+
+from mtbudget.budget import point_lpu
+from mtbudget.config import default_config_path, load_config
+from mtbudget.engine import Engine
+from mtbudget.scenario import _rigid_projector, build_scenario
+
+from conftest import rigid_free as dense_rigid_free
+
+
+def _rigid_fit_residual(P, d):
+    """d minus its least-squares rigid motion (translation t and small rotation w about the origin: t + w x p),
+    fitted by lstsq on a matrix assembled from skew-symmetric matrices (not the code's construction)."""
+    M = len(P)
+    rows = []
+    for p in P:
+        skew = np.array([[0.0, p[2], -p[1]], [-p[2], 0.0, p[0]], [p[1], -p[0], 0.0]])  # w x p = skew @ w
+        rows.append(np.hstack([np.eye(3), skew]))
+    A = np.vstack(rows)
+    sol, *_ = np.linalg.lstsq(A, d.reshape(M * 3, -1), rcond=None)
+    return d.reshape(M * 3, -1) - A @ sol
+
+
+@pytest.mark.parametrize("shape", ["grid", "random", "line"])
+def test_rank6_removal_equals_the_dense_projector_and_a_rigid_fit(shape):
+    rng = np.random.default_rng(3)
+    if shape == "grid":
+        g = np.stack(np.meshgrid(np.linspace(800, 1200, 5), np.linspace(100, 500, 5), np.linspace(200, 400, 3),
+                                 indexing="ij"), -1).reshape(-1, 3)
+    elif shape == "random":
+        g = rng.uniform(-500, 500, (40, 3)) + [1000, 300, 300]
+    else:  # points on a line: the rotation about the line moves nothing (rank 5)
+        g = np.outer(np.linspace(0, 400, 9), [1.0, 0.5, 0.2]) + [800, 100, 200]
+    P = _rigid_projector(g)
+    D = dense_rigid_free(g)
+    X = rng.normal(size=(7, 3 * len(g)))
+    assert np.abs(X @ P.T - X @ D.T).max() < 1e-12
+    assert np.abs(P @ X.T - D @ X.T).max() < 1e-12
+    assert np.abs(P @ X[0] - D @ X[0]).max() < 1e-12
+    assert np.abs(np.asarray(P) - D).max() < 1e-12
+    assert np.abs(P @ X.T - _rigid_fit_residual(g, X.T)).max() < 1e-9
+    # a finite rotation and translation of the points is removed to second order in the angle
+    a = 1e-6
+    R = np.array([[1.0, 0.0, 0.0], [0.0, np.cos(a), -np.sin(a)], [0.0, np.sin(a), np.cos(a)]])
+    moved = (g @ R.T + [0.3, -0.2, 0.1] - g).ravel()
+    assert np.abs(P @ moved).max() < 1e-9
+
+
+def test_the_engine_and_the_guf_give_the_same_numbers_with_the_dense_projector():
+    sc = build_scenario(load_config())
+    fast = Engine(sc, block=16, seed=5).run_blocks([0, 1])
+    lpu = point_lpu(sc)
+    sc.rigid_free = dense_rigid_free(sc.mesh_points)  # the dense (3 M0)^2 projector of the code before
+    dense = Engine(sc, block=16, seed=5).run_blocks([0, 1])
+    lpu_dense = point_lpu(sc)
+    for a, b in zip(fast, dense):
+        assert np.abs(a.components - b.components).max() < 1e-9  # um
+        for k in a.scalars:
+            assert np.allclose(a.scalars[k], b.scalars[k], rtol=1e-12, atol=1e-9), k
+    assert np.abs(lpu["estimate"] - lpu_dense["estimate"]).max() < 1e-9
+    # the GUF's per-point blocks against the full dense covariance, formed independently
+    M0 = len(sc.mesh_rows)
+    assert lpu["cov"].shape == (M0, 3, 3)
+    assert np.abs(lpu["cov"] - lpu_dense["cov"]).max() < 1e-9 * np.abs(lpu_dense["cov"]).max()
+
+
+def _paper_with_step(tmp_path, step):
+    text = default_config_path().read_text()
+    text, n = re.subn(r'(?m)^step = "100 mm"', f'step = "{step} mm"', text)
+    assert n == 1
+    path = tmp_path / f"step{step}.toml"
+    path.write_text(text)
+    return path
+
+
+def test_a_4851_point_mesh_runs_and_its_removal_is_linear(tmp_path):
+    from mtbudget.runner import run
+
+    cfg = load_config(_paper_with_step(tmp_path, 20))  # paper ranges, 21 x 21 x 11 points
+    sc = build_scenario(cfg)
+    assert len(sc.mesh_rows) == 4851
+    # the removal on a block of 64 trials: a few 3M x 6 products, never the 14553^2 matrix (1.7 GB)
+    X = np.random.default_rng(1).normal(size=(64, 3 * 4851))
+    t = time.process_time()
+    Y = X @ sc.rigid_free.T
+    assert time.process_time() - t < 0.5
+    for j in range(6):  # what is left has no rigid part: orthogonal to every rigid motion
+        assert np.abs(Y @ sc.rigid_free.Q[:, j]).max() < 1e-9
+    res = run(sc, trials=4, block=4, attribution_trials=0)
+    assert res.trials == 4 and res.not_converged == 0
+    assert 0 < res.summary()["mean"] < 100  # um
+    pts = res.points()
+    assert len(pts) == 4851 and all(np.all(np.isfinite(p["u"]["value"])) for p in pts)
+
+
+def test_the_mesh_cap_names_the_key(tmp_path):
+    from mtbudget.errors import ConfigError
+
+    path = _paper_with_step(tmp_path, 100)
+    path.write_text(path.read_text().replace('step = "100 mm"', 'step_x = "4 mm"\nstep_y = "4 mm"\nstep_z = "200 mm"'))
+    with pytest.raises(ConfigError, match=r"mesh.*20402 mesh points; at most 10000"):
+        load_config(path)
+
+
+def test_a_whole_run_imports_neither_scipy_stats_nor_matplotlib(tmp_path):
+    """`mtbudget run` (table and JSON, with its budget) never loads scipy.stats (~0.35 s of CPU) nor matplotlib."""
+    import subprocess
+    import sys
+
+    code = """
+import sys
+from click.testing import CliRunner
+from mtbudget.cli import main
+from mtbudget.config import default_config_path
+for extra in ([], ["--json"]):
+    r = CliRunner().invoke(main, ["run", str(default_config_path()), "--trials", "4", "--attribution-trials", "2",
+                                  "--quiet", "--log", "r.mcap", "--force", *extra])
+    assert r.exit_code == 0, r.output
+print("loaded:" + ",".join(m for m in ("matplotlib", "scipy.stats") if m in sys.modules))
+"""
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=tmp_path)
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert out.stdout.strip().splitlines()[-1] == "loaded:", out.stdout[-500:]
+
+
+def test_per_point_intervals_stream_from_about_ten_thousand_trials_and_say_their_method():
+    """Below the limit every per-point value is kept (exact order statistics); beyond it they are histogrammed as
+    they come (nothing per trial is kept), the intervals agree with the exact ones within the histogram's resolution,
+    and the statement says which method it used."""
+    from pathlib import Path
+
+    from mtbudget import runner
+    from mtbudget.report import budget_text
+    from mtbudget.runner import RunSettings, keep_vector_samples, run
+
+    assert keep_vector_samples(RunSettings(trials=10_000), 75)  # the paper's 75 points: exact up to ~11 000 trials
+    assert not keep_vector_samples(RunSettings(trials=12_000), 75)
+    assert not keep_vector_samples(RunSettings(trials=256), 4851)
+    sc = build_scenario(load_config(Path(__file__).parent / "data" / "small.toml"))
+    exact = run(sc, trials=1024, block=64, attribution_trials=0)
+    assert exact.acc.vector_samples and not exact.acc.vector_hist
+    limit = runner.VECTOR_SAMPLE_LIMIT
+    runner.VECTOR_SAMPLE_LIMIT = 100  # this run streams
+    try:
+        streamed = run(sc, trials=1024, block=64, attribution_trials=0)
+    finally:
+        runner.VECTOR_SAMPLE_LIMIT = limit
+    assert not streamed.acc.vector_samples and streamed.acc.vector_hist
+    pe, ps = exact.points(), streamed.points()
+    assert pe[0]["interval"]["method"].startswith("order statistics")
+    assert ps[0]["interval"]["method"].startswith("quantiles of a 4000-bin histogram")
+    assert "shortest_interval" in pe[0] and "shortest_interval" not in ps[0]
+    h = streamed.acc.vector_hist["components"]
+    width = (h.high - h.low) / h.bins  # one bin, per component
+    for a, b in zip(pe, ps):
+        assert np.allclose(a["u"]["value"], b["u"]["value"], rtol=1e-12)  # moments are exact in both
+        for end in ("low", "high"):
+            # 1024 trials: the exact ends are order statistics, the histogram's interpolate between the same values;
+            # they differ by at most the gap between neighbouring order statistics plus a bin
+            gap = np.abs(np.asarray(a["interval"][end]) - np.asarray(b["interval"][end]))
+            assert np.all(gap <= 0.02 * np.asarray(a["u"]["value"]) + width[3 * a["point"]:3 * a["point"] + 3]), gap
+    assert "quantiles of a 4000-bin histogram" in budget_text(streamed)
+    assert "order statistics of every trial" in budget_text(exact)
+
+
+def test_histograms_of_large_meshes_are_bounded():
+    from mtbudget.stats import HIST_COUNTS, VectorHistogram
+
+    h = VectorHistogram(np.random.default_rng(0).normal(size=(4, 3 * 4851)))
+    assert h.counts.size <= HIST_COUNTS and h.bins >= 500
+    assert VectorHistogram(np.zeros((4, 225))).bins == 4000
+
+
+@pytest.mark.parametrize("stations", [slice(None), slice(1, None), slice(0, 1)])
+def test_several_stations_with_one_shared_matrix_agree_with_identify_stations(stations):
+    """The engine's identification over several stations (one iteration matrix shared by every trial, no Jacobian
+    formed per trial: multistation._batch_chord) gives every trial's result as identify_stations, the reference
+    (Gauss-Newton with each trial's exact Jacobian), one trial at a time: the compensated field to 1e-7 um, every
+    unknown to 1e-5 of a scaled unknown (um, urad), chi2 to 1e-9; none falls back (measured: 7e-9 um, 1.3e-7).  Four stations, one tracker
+    with two interferometers, one tracker alone."""
+    import tomllib
+
+    from mtbudget.config import bundled_config, parse_config
+    from mtbudget.engine import _station_basis
+    from mtbudget.multistation import _scales, identify_stations, identify_stations_batch
+
+    d = tomllib.loads(bundled_config("four_stations").read_text())
+    d["stations"] = d["stations"][stations]
+    sc = build_scenario(parse_config(d))
+    sim = Engine(sc, block=12, seed=11).simulate(0)
+    model, hold = sc.id_model, sc.unidentifiable(sc.id_model)
+    basis = _station_basis(sc, model, None, hold)
+    assert len(basis) == 5  # the chord's shared matrices
+    b = identify_stations_batch(model, sc.stations, sc.row_station, sim[0], sim.ranges, sc.noise.repeatability,
+                                hold=hold, basis=basis)
+    assert b["converged"].all() and not b["failed"].any()
+    scale, p = _scales(model, sc.stations), model.n_params
+    for i in range(12):
+        r = identify_stations(model, sc.stations, sc.row_station, sim[0][i], sim.ranges[i], sc.noise.repeatability,
+                              hold=hold)
+        assert np.abs((b["x"][i] - r.x) * scale).max() < 1e-5, i
+        F = sc.evaluate(model, np.stack([b["theta"][i], r.x[:p]]))
+        assert np.abs(sc.rigid_free @ (F[0] - F[1]).ravel()).max() * 1e3 < 1e-7  # um
+        assert abs(b["chi2"][i] / r.chi2 - 1) < 1e-9
+
+
+def test_the_station_kernels_equal_the_numpy_residuals_and_the_exact_gradient(monkeypatch):
+    """kernels_stations against the batch's numpy residuals (``evaluate``) and A^T w from its exact Jacobian."""
+    from mtbudget import kernels_stations as ks
+    from mtbudget import multistation as ms
+    from mtbudget import tracker as lt
+    from mtbudget.config import bundled_config
+    from mtbudget.engine import _station_basis
+    from mtbudget.machine import chain_adjoint
+
+    sc = build_scenario(load_config(bundled_config("four_stations")))
+    sim = Engine(sc, block=5, seed=2).simulate(0)
+    model, hold = sc.id_model, sc.unidentifiable(sc.id_model)
+    got = {}
+    monkeypatch.setattr(ms, "_batch_chord", lambda model, blocks, x, evaluate, *a: got.update(
+        blocks=blocks, x=x.copy(), evaluate=evaluate) or {})
+    ms.identify_stations_batch(model, sc.stations, sc.row_station, sim[0], sim.ranges, sc.noise.repeatability,
+                               hold=hold, basis=_station_basis(sc, model, None, hold))
+    rng = np.random.default_rng(4)
+    sv, p = ms._scales(model, sc.stations), model.n_params
+    x = got["x"] + rng.normal(0, 1, got["x"].shape) / sv  # off the start by about 1 um or urad in every unknown
+    t = np.array([4, 1, 3])  # trials out of order, a subset
+    w_ref, raw_ref, A = got["evaluate"](x[t], t, jacobian=True)
+    P = model.machine_points(x[t][:, :p])
+    xt = np.ascontiguousarray(x[t])
+    w = np.empty_like(w_ref)
+    v, g = np.zeros((3, model.n_points, 3)), np.zeros_like(xt)
+    _, adjoint = chain_adjoint(model.config, model.errors, xt[:, :p], model.inputs, B=model.B)
+    off = 0
+    for (st, idx, W, sl), e_ref in zip(got["blocks"], raw_ref):
+        idx = np.ascontiguousarray(idx, np.int64)
+        meas = np.ascontiguousarray(sim[0][:, idx] if st.kind == "xyz" else sim.ranges[:, idx])
+        W = np.ascontiguousarray(W)
+        e = np.empty_like(e_ref)
+        if st.kind == "xyz":
+            R = np.ascontiguousarray(lt.rotation(xt[:, sl.start + 3], xt[:, sl.start + 4], xt[:, sl.start + 5]))
+            ks.xyz_residual(P, idx, xt, sl.start, R, meas, W, t, off, w, e)
+        else:
+            ks.range_residual(P, idx, xt, sl.start, meas, W, t, off, w, e)
+        assert np.abs(e - e_ref).max() < 1e-12  # mm
+        off += e[0].size
+    assert np.abs(w - w_ref).max() < 1e-9 * np.abs(w_ref).max()
+    off = 0
+    for st, idx, W, sl in got["blocks"]:
+        idx = np.ascontiguousarray(idx, np.int64)
+        W, pos = np.ascontiguousarray(W), np.arange(3)
+        if st.kind == "xyz":
+            pose = xt[:, sl]
+            R = np.ascontiguousarray(lt.rotation(pose[:, 3], pose[:, 4], pose[:, 5]))
+            pj = np.ascontiguousarray(lt.pose_jacobian(P[:, idx], pose))
+            ks.xyz_gradient(w, off, W, t, R, pj, pos, idx, sl.start, v, g)
+            off += 3 * len(idx)
+        else:
+            d = P[:, idx] - xt[:, None, sl.start:sl.start + 3]
+            U = np.ascontiguousarray(d / np.sqrt((d * d).sum(-1))[..., None])
+            ks.range_gradient(w, off, W, t, U, pos, idx, sl.start, v, g)
+            off += len(idx)
+    g[:, :p] = adjoint(v)
+    ref = np.einsum("kri,kr->ki", A, w)  # A^T w from the exact whitened Jacobian (scaled unknowns)
+    assert np.abs(g / sv - ref).max() < 1e-9 * np.abs(ref).max()
+
+
+def test_several_stations_with_stated_scales_take_the_reference_batch():
+    """With [scales] the identification has fixed inputs, which the compiled J^T v does not take: the engine's
+    several-station batch then iterates by Gauss-Newton (the basis's chord matrices unused), and a block runs."""
+    import tomllib
+
+    from mtbudget.config import bundled_config, parse_config
+
+    d = tomllib.loads(bundled_config("four_stations").read_text())
+    d["scales"] = {"x": {"cte": "11.5 um/(m*K)", "fixed_point": "800 mm"}}
+    d["machine_tool"].pop("cte", None)
+    d["sources"]["disable"] = d["sources"].get("disable", []) + ["temperature_drift"]
+    sc = build_scenario(parse_config(d))
+    assert sc.correction  # fixed inputs: the reference batch
+    res = Engine(sc, block=4, seed=1).run_block(0)
+    assert res.not_converged == 0 and np.all(np.isfinite(res.components))
+
+
+def test_registered_distances_equal_register_then_to_tracker():
+    """kernels_stations.registered_distances (the Eq. 27 error before compensation of a tracker's rows) against
+    tracker.register and tracker.to_tracker trial by trial, for a tracker pose of the paper and a reflected fit."""
+    from mtbudget import tracker as lt
+    from mtbudget.kernels_stations import registered_distances
+
+    rng = np.random.default_rng(1)
+    P0 = rng.uniform(0, 500, (75, 3)) + [800, 100, 200]
+    for pose in ([-563.5, 194.4, 677.8, 0.0006, 0.0006, 1.03], [2563.5, 194.4, 677.8, 0.0, 0.0, np.pi]):
+        meas = lt.to_tracker(P0[None], np.array([pose])) + rng.normal(0, 0.02, (6, 75, 3))
+        out = np.empty((6, 75))
+        registered_distances(P0, meas, out)
+        for i in range(6):
+            ref = np.linalg.norm(meas[i] - lt.to_tracker(P0[None], lt.register(P0[None], meas[i][None]))[0], axis=1)
+            assert np.abs(out[i] - ref).max() < 1e-9  # mm
+        assert 0.01 < out.mean() < 0.05  # the noise, not a wrong fit
