@@ -70,6 +70,7 @@ def diagnosis_text(d) -> str:
         out.append(f"    evidence: F = {ev['F']:.1f}, p = {ev['p_value']:.2g} (Bonferroni over {ev['candidates_tested']}: "
                    f"{ev['p_value_bonferroni']:.2g}), BIC better by {ev['delta_bic']:.1f}")
         out.append(f"    fit after: chi-square per dof {f.after['chi2_per_dof']:.3f}, RMS {_rms(f.after)}{_not_converged(f.after)}")
+        out += _details_text(getattr(f, "details", None) or {})
         if f.confounded_with:
             alts = ", ".join(f"{c['effect']}" + (f"[{c['axis']}]" if c["axis"] else "") for c in f.confounded_with)
             out.append(f"    CONFOUNDED: the data fit {alts} about as well; they cannot be told apart from this recording. "
@@ -81,11 +82,40 @@ def diagnosis_text(d) -> str:
             out.append(f"  the final model explains the recording within its {which} uncertainty")
     if unexplained is not None:
         out += _unexplained_text(unexplained)
+    out += _scan_text(getattr(d, "scan", None) or [])
     for s in d.skipped:
         out.append(f"  skipped {s['effect']}{'[' + s['axis'] + ']' if s['axis'] else ''}: {s['reason']}")
     for s in d.untestable:
         out.append(f"  not testable {s['effect']}{'[' + s['axis'] + ']' if s['axis'] else ''}: {s['reason']}")
     return "\n".join(out)
+
+
+def _details_text(x) -> list:
+    """What the scan of periodic and local terms adds to a finding (docs/diagnose.md, "Periodic and local terms")."""
+    if x.get("kind") == "periodic":
+        per, up = x["period"], x["period_uncertainty"]
+        amp, ua = x["amplitude"], x["amplitude_uncertainty"]
+        return [f"    PERIODIC along {x['along']}: period {per['value']:.4g} {pretty(per['unit'])} +- {up['value']:.2g} "
+                f"{pretty(up['unit'])}, amplitude {amp['value']:.3g} {pretty(amp['unit'])} +- {ua['value']:.2g} "
+                f"{pretty(ua['unit'])} (standard uncertainties, k = 1); a controller's pitch table can hold it"]
+    if x.get("sentence"):
+        return [f"    {'LOCAL' if x.get('kind') == 'local' else 'UNIFORM'}: {x['sentence']}"]
+    return []
+
+
+def _scan_text(scan) -> list:
+    """One line per pass of the scan of periodic and local terms."""
+    out = []
+    for s in scan:
+        b = s.get("best") or {}
+        what = (f"period {b['period']['value']:.4g} mm" if "period" in b else
+                f"boundary {b['boundary']['value']:.6g} mm" if "boundary" in b else "")
+        bound = {"upper": " (a Bonferroni bound)", "lower": " (at least: the smallest nominal p)"}.get(
+            s.get("p_value_bound"), "")
+        out.append(f"  scan of periodic and local terms, pass {s['pass']} ({s.get('terms', 0)} terms, level "
+                   f"{s['level']:.2g}): best {b.get('term', '-')}[{b.get('axis', '-')}] {what}, family-wise "
+                   f"p = {s['p_value']:.2g}{bound}" + (f": added {s['added']}" if s.get("added") else ": nothing added"))
+    return out
 
 
 def outside_sentence(f) -> str:
@@ -143,8 +173,16 @@ def _unexplained_text(u) -> list:
     out = []
     p = u.get("p_value")
     ptxt = f"p = {p:.2g}" if p is not None else "no test possible"
-    out.append(f"  NOT EXPLAINED: the final model leaves a misfit beyond the noise (chi-square per dof "
-               f"{u['chi2_per_dof']:.3f} on {u['dof']} dof; {u['test']}: {ptxt})")
+    if u.get("stand_ins") and u.get("p_value") is None and u["test"].startswith("an effect"):
+        out.append(f"  NOT EXPLAINED: {u['test']}")
+    else:
+        out.append(f"  NOT EXPLAINED: the final model leaves a misfit beyond the noise (chi-square per dof "
+                   f"{u['chi2_per_dof']:.3f} on {u['dof']} dof; {u['test']}: {ptxt})")
+    for x in u.get("stand_ins", []):
+        ax = f"[{x['axis']}]" if x["axis"] else ""
+        est, unc = x["estimate"], x["uncertainty"]
+        out.append(f"    STAND-IN {x['effect']}{ax} ({_fmt_value(est['value'])} +- {_fmt_value(unc['value'], 2)} "
+                   f"{pretty(est['unit'])}, k = 1) {x['sentence']}")
     lof = u.get("lack_of_fit")
     if lof:
         out.append(f"    misfit beyond the scatter of repeated points: {lof['chi2_per_dof']:.2f} per dof vs "
