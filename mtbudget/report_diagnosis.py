@@ -482,6 +482,15 @@ def _unexplained_section(doc: _Doc, u: dict):
         doc.table(["row", "point", "run", f"residual x, y, z [{um}]", "χ²"],
                   [[str(v["row"]), str(v["point"]), str(v["run"]), _vec(v["residual"]), f"{v['chi2']:.1f}"]
                    for v in w["worst_points"]])
+    if u.get("stand_ins"):
+        doc.h(3, "Stand-ins: fit only like a candidate rejected as implausible")
+        doc.p("Each of these effects is significant, but its fitted displacement is what a candidate rejected as "
+              "implausible would give: it stands in for it and is not a finding.")
+        doc.table(["effect", "estimate (k = 1)", "fits like", "why not a finding"],
+                  [[_label(x["effect"], x["axis"]),
+                    f"{_fmt_value(x['estimate']['value'])} ± {_fmt_value(x['uncertainty']['value'], 2)} "
+                    f"{pretty(x['estimate']['unit'])}", _label(x["fits_like"]["effect"], x["fits_like"]["axis"]),
+                    (U(x["fits_like"]["reason"]),)] for x in u["stand_ins"]])
     if u.get("implausible"):
         doc.h(3, "Implausible: would fit, but not a finding")
         doc.p("Each of these candidates alone would reduce the misfit significantly, but only with a value outside "
@@ -625,6 +634,8 @@ def diagnosis_report(d, rec, folder) -> Path:
                    "χ²/dof after", "confounded with", "outside the library"], rows)
         for f in d.findings:
             doc.p(*_label(f.candidate.effect, f.candidate.axis), ": ", U(f.candidate.description))
+            for line in _details_text(getattr(f, "details", None) or {}):
+                doc.p(U(line.strip()), strong=True)
             if f.confounded_with:
                 doc.p("Confounded: the data fit the alternatives about as well. ", U(" ".join(f.hints) or GENERIC_HINT))
             if getattr(f, "outside", None):

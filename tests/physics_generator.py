@@ -114,8 +114,12 @@ def recording(seed: int, effect: dict | None = None, step_x: float = 25.0):
         return read_recording(folder)
 
 
-def draw(kind: str, rng) -> dict:
-    """An effect of ``kind`` with random parameters in the ranges of issue 30 (amplitudes in mm, rates in rad/s)."""
+def draw(kind: str, rng, variant: int = 1) -> dict:
+    """An effect of ``kind`` with random parameters in the ranges of issue 30 (amplitudes in mm, rates in rad/s).
+
+    ``variant`` 2 is the second set, drawn after the method was fixed: other magnitudes, periods and regions."""
+    if variant == 2:
+        return _draw2(kind, rng)
     if kind == "screw":
         return {"kind": kind, "amplitude": rng.uniform(0.005, 0.008), "period": rng.uniform(110.0, 170.0) + 0.37,
                 "phase": rng.uniform(0, 2 * np.pi)}
@@ -131,6 +135,22 @@ def draw(kind: str, rng) -> dict:
     if kind == "none":
         return {}
     raise ValueError(kind)
+
+
+def _draw2(kind, rng):
+    if kind == "screw":
+        return {"kind": kind, "amplitude": rng.uniform(0.004, 0.010), "period": rng.uniform(85.0, 220.0),
+                "phase": rng.uniform(0, 2 * np.pi)}
+    if kind == "adm":
+        return {"kind": kind, "amplitude": rng.uniform(0.004, 0.010), "period": rng.uniform(20.0, 90.0),
+                "phase": rng.uniform(0, 2 * np.pi)}
+    if kind == "range_scale":
+        return {"kind": kind, "scale": rng.choice([-1, 1]) * rng.uniform(10e-6, 30e-6)}
+    if kind == "local_backlash":
+        return {"kind": kind, "B": rng.uniform(0.010, 0.022), "above": rng.choice([937.5, 987.5, 1037.5, 1087.5])}
+    if kind == "rotation":
+        return {"kind": kind, "rate": rng.choice([-1, 1]) * rng.uniform(5e-6, 12e-6) / 3600.0}
+    return {}
 
 
 KINDS = ("none", "screw", "adm", "range_scale", "local_backlash", "rotation")
