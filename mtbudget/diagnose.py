@@ -511,8 +511,10 @@ class _Selector:
             k = col.shape[1]
             F, p = self.ftest(lin.chi2_0, f.chi2, k, lin.dof0 - k)
             why = self.implausible(i, *self.members([i], f)[0]) if p < level else None
+            left = float(np.linalg.norm(lin.project(col)) / max(np.linalg.norm(col), 1e-300))
             considered.append({"effect": c.effect, "axis": c.axis, "delta_chi2": lin.chi2_0 - f.chi2, "F": F,
-                               "p_value": p, "significant": p < level, "implausible": why})
+                               "p_value": p, "significant": p < level, "implausible": why,
+                               "left_by_baseline": left})
             if i in self.exclude:
                 considered[-1]["stand_in"] = True
                 if p < level and why:
