@@ -743,7 +743,8 @@ def _stand_ins(sel, chosen, implausible_alone, alpha) -> list:
             outside = float(np.linalg.norm(sig - QA @ (QA.T @ sig)) / max(np.linalg.norm(sig), 1e-300))
             chi_j, _, F, dof, p = _given(w, Cc, A, dof_rest)
             # j fits what is left at least as well as the finding does: the data look like j at least as much
-            as_well = chi_j <= float(w @ w - sig @ sig)
+            chi_i = float(w @ w - sig @ sig)
+            as_well = chi_j <= chi_i + 1e-9 * max(chi_i, 1.0)
             if as_well and outside < NEARLY_IN_SPAN:
                 c, x = usable[i][0], usable[j][0]
                 est, unc, unit = _present(c, *sel.members(chosen, sel.fit(chosen))[pos])
@@ -755,6 +756,7 @@ def _stand_ins(sel, chosen, implausible_alone, alpha) -> list:
                     "fits_like": {"effect": x.effect, "axis": x.axis, "reason": why},
                     "outside_span": outside,
                     "test": {"F": float(F), "dof": list(dof), "p_value": float(p), "level": alpha},
+                    "separating_measurement": c.hints.get(x.effect) or x.hints.get(c.effect),
                     "sentence": f"fits like {x.label}, which would need an implausible size ({why}): not a finding"}))
                 break
     return out
@@ -1151,13 +1153,19 @@ def _findings(chosen, sel, K, alpha, confound_margin, ctx, whiten=None):
         F, p = ftest(f_rest.chi2, f_all.chi2, len(beta), dof_all)
         d_bic = bic(rest, f_rest) - bic(chosen, f_all)
         conf, hints = [], []
+        given = _given_rest(lin, usable, rest, i)
         for j, (a, _, _) in enumerate(usable):
             if j in chosen:
                 continue
             alt = rest + [j]
             f_alt = fit(alt)
-            if bic(alt, f_alt) - bic(chosen, f_all) < confound_margin:
-                conf.append({"effect": a.effect, "axis": a.axis, "delta_bic": bic(alt, f_alt) - bic(chosen, f_all)})
+            d_alt = bic(alt, f_alt) - bic(chosen, f_all)
+            # a pair the candidates name as easily confused (hints): also confounded when the finding is not significant
+            # with the other in its place (BIC alone favours the one with fewer columns: a rotation of the tracker for
+            # a translation)
+            paired = a.effect in c.hints or c.effect in a.hints
+            if d_alt < confound_margin or (paired and a.effect != c.effect and given(usable[j][1]) >= alpha):
+                conf.append({"effect": a.effect, "axis": a.axis, "delta_bic": d_alt})
                 hint = c.hints.get(a.effect) or a.hints.get(c.effect)
                 if hint and hint not in hints:
                     hints.append(hint)
@@ -1171,6 +1179,20 @@ def _findings(chosen, sel, K, alpha, confound_margin, ctx, whiten=None):
             "delta_bic": d_bic, "candidates_tested": len(usable), "alpha": alpha, "by_run": stab}, {}, conf, hints,
             outside))
     return findings, f_all
+
+
+def _given_rest(lin, usable, rest, i):
+    """A function of columns A: the p-value of the finding ``usable[i]`` given A in its place (the chosen ``rest``
+    kept), the partial F-test of :func:`_given`."""
+    Qr = _orth(np.concatenate([lin.Q0] + [usable[j][1] for j in rest], axis=1))
+
+    def clear(Y):
+        return Y - Qr @ (Qr.T @ Y)
+
+    w = clear(lin.w[:, None])[:, 0]
+    Cc = clear(usable[i][1])
+    dof_rest = lin.n - Qr.shape[1]
+    return lambda A: _given(w, Cc, clear(A), dof_rest)[4]
 
 
 # --------------------------------------------------------------------- alternatives outside the library

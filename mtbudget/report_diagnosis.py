@@ -182,7 +182,8 @@ def _unexplained_text(u) -> list:
         ax = f"[{x['axis']}]" if x["axis"] else ""
         est, unc = x["estimate"], x["uncertainty"]
         out.append(f"    STAND-IN {x['effect']}{ax} ({_fmt_value(est['value'])} +- {_fmt_value(unc['value'], 2)} "
-                   f"{pretty(est['unit'])}, k = 1) {x['sentence']}")
+                   f"{pretty(est['unit'])}, k = 1) {x['sentence']}"
+                   + (f"; to separate them: {x['separating_measurement']}" if x.get("separating_measurement") else ""))
     lof = u.get("lack_of_fit")
     if lof:
         out.append(f"    misfit beyond the scatter of repeated points: {lof['chi2_per_dof']:.2f} per dof vs "
