@@ -37,6 +37,12 @@ Method (docs/diagnose.md has the reasoning and the calibration):
    ``alpha``) with an alternative in its place, it is reported as confounded
    with that alternative, not named alone (an intersection-union test: a
    finding named alone beat every alternative at level ``alpha``).
+   A chosen effect whose fitted displacement lies (nearly) in the span of a
+   candidate rejected as implausible is a *stand-in* (:func:`_stand_ins`):
+   never a finding; the recording is then NOT EXPLAINED.
+   Periodic errors (along each axis, along the tracker's distance) and local
+   reversals are searched by a family-wise calibrated scan
+   (:mod:`mtbudget.diagnose_scan`); a term it finds becomes a candidate.
 5. **After.** The chosen effects are put into the model at their estimates
    and the recording is identified again: chi-square and RMS before and after.
 

@@ -442,9 +442,13 @@ def _by_station_table(doc: _Doc, by: dict):
 def _unexplained_section(doc: _Doc, u: dict):
     doc.h(2, "Not explained")
     p = u.get("p_value")
-    doc.p(f"The final model does not explain the recording: χ²/dof = {u['chi2_per_dof']:.3f} on {u['dof']} degrees of "
-          "freedom, " + (f"p-value {p:.2g}" if p is not None else "no test possible") +
-          f". Test: {u['test']}; noise used: {u.get('noise_used', 'stated')}.", strong=True)
+    if u.get("stand_ins") and p is None and u["test"].startswith("an effect"):
+        doc.p(f"Not explained: {u['test']} (χ²/dof = {u['chi2_per_dof']:.3f} on {u['dof']} degrees of freedom; noise "
+              f"used: {u.get('noise_used', 'stated')}).", strong=True)
+    else:
+        doc.p(f"The final model does not explain the recording: χ²/dof = {u['chi2_per_dof']:.3f} on {u['dof']} degrees "
+              "of freedom, " + (f"p-value {p:.2g}" if p is not None else "no test possible") +
+              f". Test: {u['test']}; noise used: {u.get('noise_used', 'stated')}.", strong=True)
     lof = u.get("lack_of_fit")
     if lof:
         doc.p(f"Misfit beyond the scatter of repeated points: {lof['chi2_per_dof']:.3f} per degree of freedom against a "
