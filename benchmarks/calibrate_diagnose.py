@@ -34,6 +34,7 @@ from __future__ import annotations
 
 import argparse
 import importlib.util
+import sys
 import time
 from collections import Counter
 from pathlib import Path
@@ -112,6 +113,8 @@ def row(title, n, seed0, effects, cands, multiple=2.5, noise=None, imperial_ever
 def _stations_generator():
     """tests/test_diagnose_stations.py's independent generator, loaded from its file."""
     path = Path(__file__).resolve().parents[1] / "tests" / "test_diagnose_stations.py"
+    if str(path.parent) not in sys.path:  # it imports tests/stations_generator.py
+        sys.path.insert(0, str(path.parent))
     spec = importlib.util.spec_from_file_location("_four_station_generator", path)
     mod = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(mod)
