@@ -10,6 +10,7 @@ generator's parameters.
 from __future__ import annotations
 
 import importlib.util
+import json
 import sys
 from pathlib import Path
 
@@ -19,9 +20,24 @@ import pytest
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import physics_generator as gen  # noqa: E402
 
-from mtbudget.diagnose import diagnose  # noqa: E402
+from conftest import unit_fields  # noqa: E402
+
+from mtbudget.diagnose import diagnose, json_unit  # noqa: E402
 from mtbudget.plugins import default_host  # noqa: E402
 from mtbudget.report_diagnosis import diagnosis_text  # noqa: E402
+
+
+def _units_parse(d):
+    """Every unit field of the JSON parses and is spelled the one way (docs/diagnose.md, "Units in JSON")."""
+    from mtbudget.units import parse_unit
+
+    doc = json.loads(json.dumps(d.to_dict()))
+    seen = []
+    for path, unit in unit_fields(doc):
+        parse_unit(unit, where=path)
+        assert json_unit(unit) == unit, (path, unit)
+        seen.append(path)
+    return seen
 
 
 def _finding(d, effect, axis):
@@ -41,6 +57,9 @@ def test_lead_screw_periodic_error_named_with_its_period_and_amplitude():
     assert d.final["chi2_per_dof"] < d.baseline["chi2_per_dof"]  # modelled: the fit shows the improvement
     assert "PERIODIC along x: period" in diagnosis_text(d)
     assert {(g.candidate.effect, g.candidate.axis) for g in d.findings} == {("periodic_error", "x")}
+    seen = _units_parse(d)
+    assert any(p.endswith("details.period_uncertainty.unit") for p in seen)
+    assert any(".scan[].families[].period.unit" in p for p in seen)
 
 
 def test_adm_cyclic_error_named_along_the_beam():
@@ -64,6 +83,7 @@ def test_local_backlash_said_local_and_where():
     assert abs(f.estimate[1] - 14.0) <= 3 * f.uncertainty[1]  # above the boundary: the worn section
     assert abs(f.estimate[0]) <= 3 * f.uncertainty[0]  # below: none
     assert "LOCAL: local: the lost motion is" in diagnosis_text(d)
+    assert any(p.endswith("details.boundary.unit") for p in _units_parse(d))
 
 
 def test_uniform_reversal_said_uniform():
@@ -117,6 +137,7 @@ def test_stand_in_for_a_rejected_effect_is_never_found():
     assert d.stand_ins and d.unexplained is not None
     assert any(s["fits_like"]["effect"] == "tracker_range_scale" for s in d.stand_ins)
     assert "STAND-IN" in diagnosis_text(d) and "fits like tracker_range_scale" in diagnosis_text(d)
+    assert any(".stand_ins[].estimate.unit" in p for p in _units_parse(d))
 
 
 @pytest.mark.slow
