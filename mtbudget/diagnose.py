@@ -986,10 +986,9 @@ def _diagnose_stations(rec, candidates, alpha, max_set, confound_margin, max_deg
         lin, whiten = lin0, _stations_whitener(L)
     steps.done()
     steps.begin(f"candidate scan ({len(usable)} candidates, sets up to {max_set})")
-    K = max(len(usable), 1)
-    level = alpha / K
-    sel = _Selector(lin, usable)
-    considered, chosen, implausible_alone = sel.scan(level, max_set)
+    # the stand-in rule as for one station; the scan of periodic and local terms is not run on several stations yet
+    usable, sel, considered, chosen, implausible_alone, level, K, _, stand_ins = _select(
+        ctx, lin, usable, alpha, max_set, whiten, scan_terms=False)
     steps.done()
     steps.begin(f"refit with the findings ({len(chosen)})")
     findings, f_all = _findings(chosen, sel, K, alpha, confound_margin, ctx, whiten)
@@ -1033,6 +1032,10 @@ def _diagnose_stations(rec, candidates, alpha, max_set, confound_margin, max_deg
         steps, ctx, lin, sel, f_all, chosen, usable, est, pure, gate_alpha, implausible_alone, notes, findings, final,
         res_after, where_now=where_now, base_quality=lambda: _station_quality(base, L), where_base=lambda: mismatch,
         whiten=whiten, data_driven=data_driven, alpha=alpha)
+    if stand_ins:
+        unexplained, findings, final, res_after = _stand_in_verdict(
+            unexplained, stand_ins, lin, sel, f_all, chosen, est, implausible_alone, notes, findings, final, res_after,
+            where_base=lambda: mismatch, base_quality=lambda: _station_quality(base, L))
     return Diagnosis(rec.name, _station_quality(base, L), mismatch, findings, final, skipped, untestable, considered,
                      _settings(rec, candidates, alpha, level, max_set, confound_margin, gate_alpha,
                                stations=[{"id": int(st.id), "kind": st.kind,
@@ -1042,7 +1045,7 @@ def _diagnose_stations(rec, candidates, alpha, max_set, confound_margin, max_deg
                                refit="the findings at their estimates are taken out of the measurements, each in its "
                                      "station's frame, and all stations are identified again"),
                      residuals_before=L.residual_machine, residuals_after=res_after,
-                     noise=est, unexplained=unexplained)
+                     noise=est, unexplained=unexplained, stand_ins=stand_ins)
 
 
 def _station_group_design(groups, L, scale=None) -> np.ndarray:
