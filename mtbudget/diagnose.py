@@ -459,7 +459,7 @@ class _Selector:
     def __init__(self, lin, usable, exclude=()):
         self.lin, self.usable = lin, usable
         #: candidates never chosen (stand-ins for an implausible one): still fitted, still listed in ``considered``
-        self.exclude = set(exclude)
+        self.exclude = dict(exclude) if isinstance(exclude, dict) else {i: "excluded" for i in exclude}
 
     def fit(self, idx):
         return self.lin.fit([self.usable[i][1] for i in idx])
@@ -522,7 +522,8 @@ class _Selector:
                                "p_value": p, "significant": p < level, "implausible": why,
                                "left_by_baseline": left})
             if i in self.exclude:
-                considered[-1]["stand_in"] = True
+                considered[-1]["excluded"] = self.exclude[i]  # "stand-in", "replaced" (by a local reversal), ...
+                considered[-1]["stand_in"] = self.exclude[i] == "stand-in"
                 if p < level and why:
                     implausible_alone[i] = why
                 continue
@@ -678,7 +679,7 @@ def _select(ctx, lin, usable, alpha, max_set, whiten, scan_terms=True):
     scan_level = alpha * len(fams) / (K + len(fams))
     usable = list(usable)
     exclude: dict = {}  # usable index -> "stand-in" or "replaced"
-    log, stand_ins, passes = [], [], 0
+    log, stand_ins, passes, added = [], [], 0, None
     for _ in range(3 * (SCAN_PASSES + 2)):
         sel = _Selector(lin, usable, exclude)
         considered, chosen, implausible_alone = sel.scan(level, max_set)
@@ -688,6 +689,17 @@ def _select(ctx, lin, usable, alpha, max_set, whiten, scan_terms=True):
                 exclude[i] = "stand-in"
                 stand_ins.append(entry)
             continue
+        if added is not None and added not in chosen:
+            log[-1]["note"] = "the term found was not chosen by selection (BIC, significance given the others, " \
+                              "plausibility): the scan stops"
+            restore = [m for m, why in exclude.items() if why == "replaced"]
+            if restore:  # the uniform reversal it would have replaced comes back
+                for m in restore:
+                    del exclude[m]
+                exclude[added] = "not chosen"
+                sel = _Selector(lin, usable, exclude)
+                considered, chosen, implausible_alone = sel.scan(level, max_set)
+            break
         if not fams or passes >= SCAN_PASSES:
             break
         passes += 1
@@ -709,13 +721,14 @@ def _select(ctx, lin, usable, alpha, max_set, whiten, scan_terms=True):
         else:
             c = ds.PiecewiseReversal(axis, vals[j], info)
             for m, (u, _, _) in enumerate(usable):  # the local reversal replaces the uniform one of its axis
-                if u.effect == "reversal" and u.axis == axis:
+                if u.effect == "reversal" and u.axis == axis and m not in exclude:
                     exclude[m] = "replaced"
             res["added"] = f"reversal[{axis}] local, boundary {axis} = {vals[j]:.6g} mm"
         c.plugin = "mtbudget (diagnosis scan)"
         _check_declaration(c)
         raw = _columns(c, ctx)
         usable.append((c, whiten(raw, c.frame), raw))
+        added = len(usable) - 1
     return usable, sel, considered, chosen, implausible_alone, level, K, log, stand_ins
 
 
