@@ -19,7 +19,7 @@ Every candidate declares the physically plausible range of its parameters
 (``plausible``, display units): an estimate outside it is reported as
 implausible, never as a finding.  Each range is derived from the physics the
 candidate stands for, with its source in the comment above it (and in the
-table of docs/diagnose.md, "Plausible ranges"): the refractive index of air
+table of plausible ranges in docs/diagnose.md): the refractive index of air
 for the range scale, the materials' CTE for thermal expansion, a tripod's
 differential expansion for a tracker drift...  They bound what a shop can
 meet with a setup error included (a weather station's altitude not entered),
