@@ -18,6 +18,11 @@ effect named, and named alone), findings declared confounded with an
 explanation outside the library, any finding, and "explained" while the
 misfit is significant (never allowed).
 
+Rows of issue 30 (``--only physics [--set 2]``): recordings of tests/physics_generator.py (a lead-screw periodic
+error of X, an ADM cyclic error, a range scale of 10-30 um/m, a local backlash of X, a tracker azimuth zero
+turning in time, nulls), the physics put into the measured points by plain numpy independent of the candidates;
+``--set 2`` draws other seeds and magnitudes.
+
 Rows of issue 20 (``--only stations``): recordings of four stations (two laser trackers, two tracking
 interferometers), drawn by the independent numpy generator of tests/test_diagnose_stations.py (its own chain,
 rotation and spherical noise; not mtbudget's simulator, nor any candidate's columns), each case its own machine
@@ -29,6 +34,7 @@ from __future__ import annotations
 
 import argparse
 import importlib.util
+import sys
 import time
 from collections import Counter
 from pathlib import Path
@@ -107,6 +113,8 @@ def row(title, n, seed0, effects, cands, multiple=2.5, noise=None, imperial_ever
 def _stations_generator():
     """tests/test_diagnose_stations.py's independent generator, loaded from its file."""
     path = Path(__file__).resolve().parents[1] / "tests" / "test_diagnose_stations.py"
+    if str(path.parent) not in sys.path:  # it imports tests/stations_generator.py
+        sys.path.insert(0, str(path.parent))
     spec = importlib.util.spec_from_file_location("_four_station_generator", path)
     mod = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(mod)
@@ -150,6 +158,81 @@ def stations_row(title, n, seed0, offset, cands, far=False, both=False):
           f"{', '.join(f'{k} {v}' for k, v in what.most_common(3)) or '-'}{zt} |", flush=True)
 
 
+def _physics_generator():
+    """tests/physics_generator.py (issue 30), loaded from its file."""
+    path = Path(__file__).resolve().parents[1] / "tests" / "physics_generator.py"
+    spec = importlib.util.spec_from_file_location("_physics_generator", path)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+#: what a diagnosis should name for each kind of tests/physics_generator.py
+PHYSICS_EXPECTED = {"none": None, "screw": ("periodic_error", "x"), "adm": ("periodic_error", "range"),
+                    "range_scale": ("tracker_range_scale", None), "local_backlash": ("reversal", "x"),
+                    "rotation": ("tracker_rotation_drift", None)}
+
+
+def physics_case(gen, kind, seed, variant=1):
+    """Diagnose one recording of tests/physics_generator.py: (outcome, z-scores, diagnosis).  Outcomes: "right" (the
+    effect named, or declared confounded with a finding, with the right period, region and size: every z within 3),
+    "right name, wrong size", "not explained" (no finding, NOT EXPLAINED), "missed" (explained without it),
+    "wrong" (a finding that is not the effect nor declared confounded with it), "claim" (a finding on a null)."""
+    from mtbudget.diagnose import diagnose
+
+    rng = np.random.default_rng(np.random.SeedSequence([seed, variant, 30]))
+    eff = gen.draw(kind, rng, variant)
+    d = diagnose(gen.recording(seed, eff))
+    want = PHYSICS_EXPECTED[kind]
+    if want is None:
+        return ("claim" if d.findings else "no claim"), {}, d
+    z = {}
+    hit = None
+    for f in d.findings:
+        key = (f.candidate.effect, f.candidate.axis)
+        conf = {(c["effect"], c["axis"]) for c in f.confounded_with}
+        if key == want:
+            hit = f
+        elif want not in conf and not f.outside:
+            return "wrong", z, d
+    if hit is None:
+        if any(want in {(c["effect"], c["axis"]) for c in f.confounded_with} for f in d.findings):
+            return "right (declared confounded)", z, d
+        return ("not explained" if d.unexplained is not None else "missed"), z, d
+    x = hit.details
+    if kind in ("screw", "adm"):
+        z["period"] = (x["period"]["value"] - eff["period"]) / x["period_uncertainty"]["value"]
+        z["amplitude"] = (hit.estimate[0] - eff["amplitude"] * 1e3) / hit.uncertainty[0]
+    elif kind == "range_scale":
+        z["scale"] = (hit.estimate[0] - eff["scale"] * 1e6) / hit.uncertainty[0]
+    elif kind == "local_backlash":
+        if x.get("kind") != "local":
+            return "right name, said uniform", z, d
+        z["boundary_mm"] = x["boundary"]["value"] - eff["above"]
+        z["B"] = (hit.estimate[1] - eff["B"] * 1e3) / hit.uncertainty[1]
+        z["B elsewhere"] = hit.estimate[0] / hit.uncertainty[0]
+    elif kind == "rotation":
+        z["azimuth rate"] = (hit.estimate[0] - eff["rate"] * 3.6e9) / hit.uncertainty[0]
+    ok = all(abs(v) <= 3 for k, v in z.items() if k != "boundary_mm") and abs(z.get("boundary_mm", 0.0)) <= 25.0
+    return ("right" if ok else "right name, wrong size"), z, d
+
+
+def physics_rows(n, seed0, variant=1):
+    """The rows of issue 30: each kind of tests/physics_generator.py over n recordings."""
+    gen = _physics_generator()
+    for kind in gen.KINDS:
+        out, zs, t0 = Counter(), {}, time.time()
+        for k in range(n):
+            o, z, _ = physics_case(gen, kind, seed0 + k, variant)
+            out[o] += 1
+            for key, v in z.items():
+                zs.setdefault(key, []).append(v)
+        ztxt = "; ".join(f"{k} mean {np.mean(v):+.2f} sd {np.std(v, ddof=1) if len(v) > 1 else 0:.2f}"
+                         for k, v in zs.items()) or "-"
+        print(f"| {kind} (set {variant}) | {n} | " + ", ".join(f"{k} {v}" for k, v in out.most_common())
+              + f" | {ztxt} | {(time.time() - t0) / n:.1f} s |", flush=True)
+
+
 def want_any(offset, both):
     return bool(offset or both)
 
@@ -158,12 +241,21 @@ def main():
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--cases", type=int, default=100)
     ap.add_argument("--multiple", type=float, default=2.5)
-    ap.add_argument("--only", choices=("all", "new", "library", "noise", "families", "stations"), default="all")
+    ap.add_argument("--only", choices=("all", "new", "library", "noise", "families", "stations", "physics"),
+                    default="all")
+    ap.add_argument("--set", type=int, default=1, choices=(1, 2),
+                    help="--only physics: the first set of recordings, or the second (other seeds and magnitudes)")
     args = ap.parse_args()
     cands = default_host().candidates()
     original = [c for c in cands if c.effect in ORIGINAL]
     n = args.cases
     t0 = time.time()
+    if args.only == "physics":
+        print("| case | recordings | outcomes | (estimate - truth)/u (boundary: estimate - truth, mm) | per case |")
+        print("| --- | --- | --- | --- | --- |")
+        physics_rows(n, 60_000 if args.set == 1 else 970_000, args.set)
+        print(f"\n({time.time() - t0:.0f} s)")
+        return
     if args.only != "stations":
         print("| case | cases | wrong named effect | right (named / named alone) | declared confounded outside the library "
               "| any finding | unexplained | explained with chi2/dof > 1.3 | wrong named | before: wrong named effect "

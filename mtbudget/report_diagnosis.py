@@ -70,6 +70,7 @@ def diagnosis_text(d) -> str:
         out.append(f"    evidence: F = {ev['F']:.1f}, p = {ev['p_value']:.2g} (Bonferroni over {ev['candidates_tested']}: "
                    f"{ev['p_value_bonferroni']:.2g}), BIC better by {ev['delta_bic']:.1f}")
         out.append(f"    fit after: chi-square per dof {f.after['chi2_per_dof']:.3f}, RMS {_rms(f.after)}{_not_converged(f.after)}")
+        out += _details_text(getattr(f, "details", None) or {})
         if f.confounded_with:
             alts = ", ".join(f"{c['effect']}" + (f"[{c['axis']}]" if c["axis"] else "") for c in f.confounded_with)
             out.append(f"    CONFOUNDED: the data fit {alts} about as well; they cannot be told apart from this recording. "
@@ -81,11 +82,40 @@ def diagnosis_text(d) -> str:
             out.append(f"  the final model explains the recording within its {which} uncertainty")
     if unexplained is not None:
         out += _unexplained_text(unexplained)
+    out += _scan_text(getattr(d, "scan", None) or [])
     for s in d.skipped:
         out.append(f"  skipped {s['effect']}{'[' + s['axis'] + ']' if s['axis'] else ''}: {s['reason']}")
     for s in d.untestable:
         out.append(f"  not testable {s['effect']}{'[' + s['axis'] + ']' if s['axis'] else ''}: {s['reason']}")
     return "\n".join(out)
+
+
+def _details_text(x) -> list:
+    """What the scan of periodic and local terms adds to a finding (docs/diagnose.md, "Periodic and local terms")."""
+    if x.get("kind") == "periodic":
+        per, up = x["period"], x["period_uncertainty"]
+        amp, ua = x["amplitude"], x["amplitude_uncertainty"]
+        return [f"    PERIODIC along {x['along']}: period {per['value']:.4g} {pretty(per['unit'])} +- {up['value']:.2g} "
+                f"{pretty(up['unit'])}, amplitude {amp['value']:.3g} {pretty(amp['unit'])} +- {ua['value']:.2g} "
+                f"{pretty(ua['unit'])} (standard uncertainties, k = 1); a controller's pitch table can hold it"]
+    if x.get("sentence"):
+        return [f"    {'LOCAL' if x.get('kind') == 'local' else 'UNIFORM'}: {x['sentence']}"]
+    return []
+
+
+def _scan_text(scan) -> list:
+    """One line per pass of the scan of periodic and local terms."""
+    out = []
+    for s in scan:
+        b = s.get("best") or {}
+        what = (f"period {b['period']['value']:.4g} mm" if "period" in b else
+                f"boundary {b['boundary']['value']:.6g} mm" if "boundary" in b else "")
+        bound = {"upper": " (a Bonferroni bound)", "lower": " (at least: the smallest nominal p)"}.get(
+            s.get("p_value_bound"), "")
+        out.append(f"  scan of periodic and local terms, pass {s['pass']} ({s.get('terms', 0)} terms, level "
+                   f"{s['level']:.2g}): best {b.get('term', '-')}[{b.get('axis', '-')}] {what}, family-wise "
+                   f"p = {s['p_value']:.2g}{bound}" + (f": added {s['added']}" if s.get("added") else ": nothing added"))
+    return out
 
 
 def outside_sentence(f) -> str:
@@ -143,8 +173,17 @@ def _unexplained_text(u) -> list:
     out = []
     p = u.get("p_value")
     ptxt = f"p = {p:.2g}" if p is not None else "no test possible"
-    out.append(f"  NOT EXPLAINED: the final model leaves a misfit beyond the noise (chi-square per dof "
-               f"{u['chi2_per_dof']:.3f} on {u['dof']} dof; {u['test']}: {ptxt})")
+    if u.get("stand_ins") and u.get("p_value") is None and u["test"].startswith("an effect"):
+        out.append(f"  NOT EXPLAINED: {u['test']}")
+    else:
+        out.append(f"  NOT EXPLAINED: the final model leaves a misfit beyond the noise (chi-square per dof "
+                   f"{u['chi2_per_dof']:.3f} on {u['dof']} dof; {u['test']}: {ptxt})")
+    for x in u.get("stand_ins", []):
+        ax = f"[{x['axis']}]" if x["axis"] else ""
+        est, unc = x["estimate"], x["uncertainty"]
+        out.append(f"    STAND-IN {x['effect']}{ax} ({_fmt_value(est['value'])} +- {_fmt_value(unc['value'], 2)} "
+                   f"{pretty(est['unit'])}, k = 1) {x['sentence']}"
+                   + (f"; to separate them: {x['separating_measurement']}" if x.get("separating_measurement") else ""))
     lof = u.get("lack_of_fit")
     if lof:
         out.append(f"    misfit beyond the scatter of repeated points: {lof['chi2_per_dof']:.2f} per dof vs "
@@ -403,9 +442,13 @@ def _by_station_table(doc: _Doc, by: dict):
 def _unexplained_section(doc: _Doc, u: dict):
     doc.h(2, "Not explained")
     p = u.get("p_value")
-    doc.p(f"The final model does not explain the recording: χ²/dof = {u['chi2_per_dof']:.3f} on {u['dof']} degrees of "
-          "freedom, " + (f"p-value {p:.2g}" if p is not None else "no test possible") +
-          f". Test: {u['test']}; noise used: {u.get('noise_used', 'stated')}.", strong=True)
+    if u.get("stand_ins") and p is None and u["test"].startswith("an effect"):
+        doc.p(f"Not explained: {u['test']} (χ²/dof = {u['chi2_per_dof']:.3f} on {u['dof']} degrees of freedom; noise "
+              f"used: {u.get('noise_used', 'stated')}).", strong=True)
+    else:
+        doc.p(f"The final model does not explain the recording: χ²/dof = {u['chi2_per_dof']:.3f} on {u['dof']} degrees "
+              "of freedom, " + (f"p-value {p:.2g}" if p is not None else "no test possible") +
+              f". Test: {u['test']}; noise used: {u.get('noise_used', 'stated')}.", strong=True)
     lof = u.get("lack_of_fit")
     if lof:
         doc.p(f"Misfit beyond the scatter of repeated points: {lof['chi2_per_dof']:.3f} per degree of freedom against a "
@@ -444,6 +487,15 @@ def _unexplained_section(doc: _Doc, u: dict):
         doc.table(["row", "point", "run", f"residual x, y, z [{um}]", "χ²"],
                   [[str(v["row"]), str(v["point"]), str(v["run"]), _vec(v["residual"]), f"{v['chi2']:.1f}"]
                    for v in w["worst_points"]])
+    if u.get("stand_ins"):
+        doc.h(3, "Stand-ins: fit only like a candidate rejected as implausible")
+        doc.p("Each of these effects is significant, but its fitted displacement is what a candidate rejected as "
+              "implausible would give: it stands in for it and is not a finding.")
+        doc.table(["effect", "estimate (k = 1)", "fits like", "why not a finding"],
+                  [[_label(x["effect"], x["axis"]),
+                    f"{_fmt_value(x['estimate']['value'])} ± {_fmt_value(x['uncertainty']['value'], 2)} "
+                    f"{pretty(x['estimate']['unit'])}", _label(x["fits_like"]["effect"], x["fits_like"]["axis"]),
+                    (U(x["fits_like"]["reason"]),)] for x in u["stand_ins"]])
     if u.get("implausible"):
         doc.h(3, "Implausible: would fit, but not a finding")
         doc.p("Each of these candidates alone would reduce the misfit significantly, but only with a value outside "
@@ -587,6 +639,8 @@ def diagnosis_report(d, rec, folder) -> Path:
                    "χ²/dof after", "confounded with", "outside the library"], rows)
         for f in d.findings:
             doc.p(*_label(f.candidate.effect, f.candidate.axis), ": ", U(f.candidate.description))
+            for line in _details_text(getattr(f, "details", None) or {}):
+                doc.p(U(line.strip()), strong=True)
             if f.confounded_with:
                 doc.p("Confounded: the data fit the alternatives about as well. ", U(" ".join(f.hints) or GENERIC_HINT))
             if getattr(f, "outside", None):

@@ -40,6 +40,7 @@ INTERNAL = {
     "[length] / [time]": "mm/s",
     "1 / [temperature]": "1/K",
     "[temperature] / [time]": "K/s",
+    "1 / [time]": "1/s",  # a rate of an angle or a ratio (urad/h: a tracker's zero turning in time)
 }
 
 #: how a quantity string may look: a number (with an optional exponent), then a

@@ -5,7 +5,7 @@ the displacement of every measured point per internal unit of its
 parameters, in the machine or the tracker frame, and says which measurement
 would tell it from the effects it is easily confused with.  The effect names
 are fixed: thermal_expansion, reversal, tracker_drift, tracker_range_offset,
-tracker_range_scale, air_temperature_drift, approximation_degree,
+tracker_rotation_drift, tracker_range_scale, air_temperature_drift, approximation_degree,
 axis_coupling, spindle_growth, column_tilt, tool_length, axis_coupling_quadratic,
 station_range_offset.
 
@@ -17,10 +17,13 @@ displacement along its beam only).
 
 Every candidate declares the physically plausible range of its parameters
 (``plausible``, display units): an estimate outside it is reported as
-implausible, never as a finding.  The ranges are deliberately generous
-(a factor of two or three beyond what a shop meets), so they only reject
-physics that is not there, such as a negative CTE or a tracker range scale
-of 100 um/m.
+implausible, never as a finding.  Each range is derived from the physics the
+candidate stands for, with its source in the comment above it (and in the
+table of plausible ranges in docs/diagnose.md): the refractive index of air
+for the range scale, the materials' CTE for thermal expansion, a tripod's
+differential expansion for a tracker drift...  They bound what a shop can
+meet with a setup error included (a weather station's altitude not entered),
+so they only reject physics that is not there.
 """
 
 from __future__ import annotations
@@ -70,7 +73,8 @@ def _varies(T, what):
 class ThermalExpansion(Candidate):
     effect = "thermal_expansion"
     parameters = {"cte": "um/(m*K)"}
-    #: steel and cast iron 10-12, aluminium 23; glass scales on a steel axis are in between
+    #: materials (e.g. Kaye & Laby, ISO 1:2016 annex): glass-ceramic scales ~0, Invar 1.2, granite 5-8, cast iron
+    #: 9-11, steel 11-13, brass 19, aluminium 23 um/(m*K); an axis follows its scale or its structure, so 0 to 30
     plausible = {"cte": (0.0, 30.0)}
     quantity_names = {"cte": "a CTE"}
     hints = {
@@ -125,7 +129,8 @@ class ThermalExpansion(Candidate):
 class Reversal(Candidate):
     effect = "reversal"
     parameters = {"B": "um"}
-    #: lost motion is positive; a servo overshoot can make it slightly negative
+    #: lost motion is positive (ISO 230-2 reversal values of a few um on a preloaded ball screw, tens of um on a
+    #: worn one or a rack); a servo overshoot can make it slightly negative
     plausible = {"B": (-20.0, 100.0)}
     quantity_names = {"B": "a lost motion B"}
 
@@ -165,11 +170,15 @@ class TrackerDrift(Candidate):
     effect = "tracker_drift"
     description = "the tracker creeps relative to the machine during the test (apparent velocity of the points)"
     parameters = {"velocity": "um/h"}  # a vector: one column per machine axis
-    #: a tracker on a stable stand creeps a few um/h; 30 um/h is a stand that is moving
+    #: a 1.5 m steel tripod (11.5 um/(m*K)) whose temperature changes by 1 K/h grows 17 um/h; a stand on a floor
+    #: that settles a few um/h: +-30 um/h per component is a stand moving, beyond it a stand not set up
     plausible = {"velocity": (-30.0, 30.0)}
     quantity_names = {"velocity": "a tracker drift"}
     hints = {"air_temperature_drift": "Repeat the test with the air temperature held, or measure a fixed reference "
                                       "point every few minutes.",
+             "tracker_rotation_drift": "Measure two fixed reflectors on the table, one near the tracker and one far, "
+                                       "at the start and at the end (a rotation moves the far one more; a "
+                                       "translation moves both alike).",
              "spindle_growth": "Measure a fixed reference point on the table every few minutes (a drift moves it, a "
                                "spindle growth does not)."}
 
@@ -196,6 +205,51 @@ class TrackerDrift(Candidate):
         return drift_offset(ctx.plan, np.asarray(beta, float))
 
 
+class TrackerRotationDrift(Candidate):
+    """The tracker's azimuth and elevation zeros turning in time (the base twisting on its stand, the head's encoders
+    drifting as it warms): a point at distance r moves by rate * t * r across the beam, in the azimuth or the
+    elevation direction.  Beside :class:`TrackerDrift` (a translation): the two differ where the points span a
+    range of azimuths and elevations (a rotation moves near points less than far ones, and in another direction on
+    either side); when they do not, the diagnosis declares them confounded (BIC margin) and says what would separate
+    them."""
+
+    effect = "tracker_rotation_drift"
+    description = ("the tracker's azimuth and elevation zeros turn in time (base twisting on its stand, encoders "
+                   "warming): each point moves across the beam by rate x time x its distance")
+    parameters = {"rate": "urad/h"}  # a vector: azimuth zero, elevation zero
+    frame = "tracker"
+    #: a tripod whose legs (1 m steel, 0.6 m apart) differ by 0.5 K/h tilts 10 urad/h; a tracker's stated angular
+    #: stability is a few urad over hours: +-40 urad/h (80 um at 1 m over a 2 h test) is a stand not set up
+    plausible = {"rate": (-40.0, 40.0)}
+    quantity_names = {"rate": "a tracker rotation drift"}
+    hints = {"tracker_drift": "Measure two fixed reflectors on the table, one near the tracker and one far, at the "
+                              "start and at the end (a rotation moves the far one more; a translation moves both "
+                              "alike), or place the tracker so the points span a wider angle."}
+
+    def requires(self, ctx):
+        return None if np.ptp(ctx.plan.time) > 0 else "all points have the same time"
+
+    def columns(self, ctx):
+        P = np.asarray(ctx.P_LT, float)
+        t = (ctx.plan.time - ctx.plan.time[0])[:, None]
+        r_xy = np.hypot(P[:, 0], P[:, 1])
+        az = np.arctan2(P[:, 1], P[:, 0])
+        el = np.arctan2(P[:, 2], r_xy)
+        r = np.linalg.norm(P, axis=1)
+        d_az = np.stack([-P[:, 1], P[:, 0], np.zeros(len(P))], axis=1)  # d P / d azimuth = e_z x P
+        d_el = r[:, None] * np.stack([-np.sin(el) * np.cos(az), -np.sin(el) * np.sin(az), np.cos(el)], axis=1)
+        return np.stack([d_az * t, d_el * t], axis=2)
+
+    def variables(self, ctx):
+        return ["t"]
+
+    def summary(self, beta, cov):
+        """The azimuth and elevation rates, urad/h."""
+        f = factor("1/s", "urad/h")
+        return ([float(x) * f for x in beta], [float(np.sqrt(max(cov[k, k], 0.0))) * f for k in range(len(beta))],
+                "urad/h")
+
+
 def _xyz_rows(ctx):
     """(M,) True on the rows of laser-tracker (xyz) stations (every row of a one-station recording)."""
     stations = getattr(ctx, "stations", None)
@@ -213,7 +267,8 @@ class TrackerRangeOffset(Candidate):
     description = "a constant error of every tracker distance (ADM zero, reflector of another type or size)"
     parameters = {"offset": "um"}
     frame = "tracker"
-    #: an ADM zero error is a few um; a reflector of another size or type tens of um
+    #: an ADM zero error is a few um (bounded by the tracker's stated distance uncertainty, 4-10 um); a reflector of
+    #: another size or type than the one compensated tens of um; beyond 50 um a gross setup error
     plausible = {"offset": (-50.0, 50.0)}
     quantity_names = {"offset": "a range offset"}
     hints = {"tracker_range_scale": "Measure a calibrated length, or the same points from a second tracker station.",
@@ -300,10 +355,18 @@ class TrackerRangeScale(Candidate):
     description = "tracker distances scaled (wrong air refractive index or weather-station reading)"
     parameters = {"scale": "um/m"}
     frame = "tracker"
-    #: refraction: about 1 um/m per K of air temperature or per 3 hPa of pressure
-    plausible = {"scale": (-10.0, 10.0)}
+    #: the refractive index of air (Edlen 1966, Birch & Downs 1993/94, Ciddor 1996; sensitivities at 20 degC,
+    #: 1013 hPa, 50 %RH): -0.93 um/m per K of air temperature, +0.27 um/m per hPa of pressure, -0.0085 um/m per %RH
+    #: (0.9 um/m from dry to saturated air), +0.015 um/m per 100 ppm CO2; the pressure falls about 12 hPa per 100 m
+    #: near sea level, so a weather station's altitude not entered (or a sea-level pressure read for the station's)
+    #: gives about 3.2 um/m per 100 m.  Bound: an air temperature wrong by up to 10 K (9.3, a sensor in the sun or
+    #: far from the beam), a pressure wrong by up to 100 hPa (27, about 850 m of altitude), humidity (0.9) and the
+    #: ADM's own frequency (about 1): +-40 um/m.  Beyond: refraction compensation switched off (about 270 um/m).
+    plausible = {"scale": (-40.0, 40.0)}
     quantity_names = {"scale": "a range scale error"}
-    hints = {"tool_length": "Measure the reflector holders on a tool presetter, or repeat with the tools swapped."}
+    hints = {"tool_length": "Measure the reflector holders on a tool presetter, or repeat with the tools swapped.",
+             "tracker_range_offset": "Measure a calibrated length, or check the weather station's temperature, "
+                                     "pressure and altitude against a reference barometer and thermometer."}
 
     def columns(self, ctx):
         return ctx.P_LT[:, :, None]
@@ -313,7 +376,7 @@ class AirTemperatureDrift(Candidate):
     effect = "air_temperature_drift"
     description = "the points move with the air temperature (tracker stand, bed or beam path warming), not with time"
     parameters = {"sensitivity": "um/K"}  # a vector: one column per machine axis
-    #: a 1.5 m steel tracker stand grows 17 um/K
+    #: a 1.5 m steel tracker stand grows 17 um/K (11.5 um/(m*K)); the beam path's refraction adds about 1 um/K per m
     plausible = {"sensitivity": (-30.0, 30.0)}
     quantity_names = {"sensitivity": "an air-temperature sensitivity"}
 
@@ -421,7 +484,8 @@ class SpindleGrowth(Candidate):
     description = ("the spindle and tool grow along the tool axis as the spindle head warms (ISO 230-3): the tool point "
                    "moves along its tool vector by G (T - T_start), T of the sensor on the spindle-carrying axis")
     parameters = {"growth": "um/K"}
-    #: spindles grow by a few to about 20 um/K of housing temperature; a negative growth is not physical
+    #: ISO 230-3 tests of spindles: a few to about 20 um/K of housing temperature (a 300 mm steel spindle head
+    #: alone, 3.5 um/K); a negative growth is not physical
     plausible = {"growth": (-2.0, 50.0)}
     quantity_names = {"growth": "a spindle growth"}
     hints = {"tracker_drift": "Measure a fixed reference point on the table every few minutes (a drift moves it, a "
@@ -451,7 +515,8 @@ class ColumnTilt(Candidate):
 
     effect = "column_tilt"
     parameters = {"tilt": "urad/K"}
-    #: a column bends a few urad per K of front-to-back gradient; beyond 50 urad/K is not a machine tool
+    #: a column of depth d bends by alpha dT_front-back / d: 11.5 um/(m*K) over 0.5 m is 23 urad per K of gradient,
+    #: and the gradient is a fraction of the sensor's change; beyond 50 urad/K is not a machine tool
     plausible = {"tilt": (-50.0, 50.0)}
     quantity_names = {"tilt": "a column tilt"}
     hints = {"thermal_expansion": "Measure at two tool lengths (a tilt grows with the lever, an expansion does not).",
@@ -583,7 +648,7 @@ class AxisCouplingQuadratic(Candidate):
 
 def all_candidates():
     out = [ThermalExpansion(a) for a in AXES] + [Reversal(a) for a in AXES]
-    out += [TrackerDrift(), TrackerRangeOffset(), TrackerRangeScale(), AirTemperatureDrift()]
+    out += [TrackerDrift(), TrackerRotationDrift(), TrackerRangeOffset(), TrackerRangeScale(), AirTemperatureDrift()]
     out += [ApproximationDegree(a) for a in AXES] + [AxisCoupling(p) for p in ("xy", "xz", "yz")]
     out += [SpindleGrowth(), ColumnTilt("x"), ColumnTilt("y"), ToolLength()]
     out += [AxisCouplingQuadratic(p) for p in ("xy", "xz", "yz")]

@@ -27,7 +27,7 @@ LAYERS = [
     ["engine"],
     ["simulate"],
     ["scenario", "features"],
-    ["outputs", "identify", "multistation", "plugins", "config", "recording", "mcm"],
+    ["outputs", "identify", "multistation", "plugins", "config", "recording", "mcm", "diagnose_scan"],
     ["contracts", "model", "distributions"],
     ["machine", "tracker", "plan", "stats", "hookspecs", "progress"],
     ["units", "errors", "kernels", "kernels_stations"],

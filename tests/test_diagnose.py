@@ -132,13 +132,20 @@ def test_confounded_candidates_are_said_to_be(tmp_path, candidates):
     for s in cfg.sensors:
         s.cycle_amplitude, s.noise = 0.0, 0.0005
     d = diagnose(simulate_case(cfg, tmp_path / "c"), candidates)
-    assert d.findings
-    f = d.findings[0]
-    pair = {f.candidate.effect} | {c["effect"] for c in f.confounded_with}
-    assert {"tracker_drift", "air_temperature_drift"} <= pair
-    # the measurement that would separate them comes from the candidates' own hints
     hint = "Repeat the test with the air temperature held, or measure a fixed reference point every few minutes."
-    assert hint in f.hints
+    if d.findings:
+        f = d.findings[0]
+        pair = {f.candidate.effect} | {c["effect"] for c in f.confounded_with}
+        assert {"tracker_drift", "air_temperature_drift"} <= pair
+        # the measurement that would separate them comes from the candidates' own hints
+        assert hint in f.hints
+    else:
+        # issue 30: the air-temperature drift it is identical to would need an implausible size (-75 um/K), so the
+        # drift is reported as fitting like it, never found; with the same measurement to separate them
+        s = next(x for x in d.stand_ins if x["effect"] == "tracker_drift")
+        assert s["fits_like"]["effect"] == "air_temperature_drift" and s["outside_span"] < 0.2
+        assert s["separating_measurement"] == hint
+        assert d.unexplained is not None
     assert hint in diagnosis_text(d)
 
 

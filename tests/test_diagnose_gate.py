@@ -92,10 +92,16 @@ def test_negative_cte_is_implausible(candidates):
 @pytest.mark.parametrize("effect", [("spindle_growth", None), ("column_tilt", "x"), ("tool_length", None),
                                     ("axis_polynomial", "xy2")], ids=lambda e: f"{e[0]}-{e[1]}")
 def test_new_families_are_named(effect, candidates):
+    """Named (or declared confounded), or, since issue 30, reported only as fitting like a twin rejected as
+    implausible (a tool-length error of 20-30 um whose range-scale twin would need -175 um/m: the recording cannot
+    tell them apart, so it is NOT EXPLAINED with the tool length and its size in ``stand_ins``, never a wrong name)."""
     hits = 0
     for seed in range(3):
         d, _ = run_case(730 + seed, (effect,), 3.0, candidates=candidates)
-        hits += expected(effect) in named_or_confounded(d)
+        want = expected(effect)
+        stand_in = any((s["effect"], s["axis"]) == want for s in d.stand_ins)
+        assert not stand_in or (d.unexplained is not None and want not in named_or_confounded(d))
+        hits += want in named_or_confounded(d) or stand_in
     assert hits >= 2
 
 
