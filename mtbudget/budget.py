@@ -390,6 +390,8 @@ def _closed_form_noise(sources) -> tuple:
 
 #: measured coordinates whose identifications point_guf runs in one call (a larger plan goes in chunks of this many)
 GUF_DIRECTIONS = 2048
+#: beyond this many measured coordinates (2000 points) point_guf is point_lpu, said in its basis
+GUF_MAX_DIRECTIONS = 6000
 
 
 def _identification_map(sc, meas0, fixed, h):
@@ -441,6 +443,15 @@ def point_guf(scenario, draws: int = 1024, seed: int = 0, h: float = 2e-4) -> di
     from .units import factor
 
     sc = scenario
+    if 3 * len(sc.plan) > GUF_MAX_DIRECTIONS:  # the central differences cost (3 M)^2 point evaluations: too many
+        out = point_lpu(sc)
+        out["basis"] = {"closed_form": ["the stated tracker noise and repeatability (identification covariance)"],
+                        "sampled": [], "no_first_order_effect": [],
+                        "note": f"a plan of {len(sc.plan)} measured points is beyond the {GUF_MAX_DIRECTIONS // 3} "
+                                "for which the GUF on the MCM's inputs is computed (its central differences cost the "
+                                "square of the plan's size): the GUF is the identification covariance of the stated "
+                                "noise; sources without a stated weight are in the MCM only"}
+        return out
     if sc.stations:
         out = point_lpu(sc)
         out["basis"] = {"closed_form": ["the stated noise of every station (identification covariance)"],
