@@ -25,23 +25,10 @@ from .errors import ConfigError
 from .identify import Noise, identify
 from .model import MeasurementModel
 from .recording import read_recording
+from .scenario import rigid_projector
 from .stats import percent, symmetric_interval
 
 UM = 1000.0  # um per mm
-
-
-def rigid_free(points: np.ndarray) -> np.ndarray:
-    """I minus the projector onto rigid motions of the points (M, 3): what the tracker pose absorbs."""
-    M = len(points)
-    A = np.zeros((M, 3, 6))
-    A[:, :, :3] = np.eye(3)
-    c = points - points.mean(0)
-    for k in range(3):
-        e = np.zeros(3)
-        e[k] = 1
-        A[:, :, 3 + k] = np.cross(e, c)
-    A = A.reshape(3 * M, 6)
-    return np.eye(3 * M) - A @ np.linalg.pinv(A)
 
 
 def posterior(folder, trials: int = 2000, seed: int = 1, coverage: float = 0.95, noise: str = "stated",
@@ -70,7 +57,7 @@ def posterior(folder, trials: int = 2000, seed: int = 1, coverage: float = 0.95,
     plan = rec.plan
     rows = np.flatnonzero((plan.run == plan.run.min()) & np.all(plan.tool == plan.tool[0], axis=1))
     F_hat = model.machine_points(theta[None], fixed)[0][rows]
-    Pi = rigid_free(F_hat)
+    Pi = rigid_projector(F_hat)  # the rigid motions the tracker pose absorbs, removed (scenario: rank 6)
     M0 = len(rows)
     rng = np.random.default_rng(np.random.SeedSequence(seed))
     E = np.empty((trials, 3 * M0))

@@ -345,7 +345,7 @@ class RigidFree:
         return np.asarray(np.eye(len(self.Q)) - self.Q @ self.Q.T, dtype=dtype)
 
 
-def _rigid_projector(P: np.ndarray) -> RigidFree:
+def rigid_projector(P: np.ndarray) -> RigidFree:
     """I - projector onto rigid motions of points P (M, 3): removes what the tracker pose absorbs."""
     M = len(P)
     A = np.zeros((M, 3, 6))
@@ -537,7 +537,7 @@ def build_scenario(config: SimulationConfig, host: PluginHost | None = None, sou
         mesh_points = at_tool.machine_points(np.zeros(truth.n_params))[0]
     correction = {k: _read_only(v[None, :]) for k, v in plan.nominal_expansion(config.reference_temperature).items()}
     sc = Scenario(config, plan, truth, theta, pose, noise, drawn, srcs, context, mesh_rows, mesh_points,
-                  _rigid_projector(mesh_points), tool, stations, specs, row_station, correction=correction)
+                  rigid_projector(mesh_points), tool, stations, specs, row_station, correction=correction)
     if tool is not None:
         _unidentified_source(sc, host)
     return sc

@@ -11,7 +11,7 @@ import pytest
 from mtbudget.budget import point_lpu
 from mtbudget.config import default_config_path, load_config
 from mtbudget.engine import Engine
-from mtbudget.scenario import _rigid_projector, build_scenario
+from mtbudget.scenario import build_scenario, rigid_projector as _rigid_projector
 
 from conftest import rigid_free as dense_rigid_free
 
