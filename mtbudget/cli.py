@@ -134,7 +134,11 @@ def simulate(config, out, seed, trial, no_identify, sets):
         _print_identification(out)
 
 
-def _print_identification(folder, as_json=False, max_degree=3, strategy="one-phase"):
+#: a fit this far from its stated noise is not an identification of the machine (units, machine code, geometry)
+ABSURD_CHI2_PER_DOF = 1e3
+
+
+def _print_identification(folder, as_json=False, max_degree=3, strategy="one-phase", rotary_harmonics=0):
     from .identify import Noise, Strategy, identify
     from .model import MeasurementModel, iso_parameter
     from .recording import read_recording
@@ -150,7 +154,8 @@ def _print_identification(folder, as_json=False, max_degree=3, strategy="one-pha
         click.echo(json.dumps(s, indent=1) if as_json else "\n".join(summary_text(rec, res) +
                                                                       [f"  {rec.thermal_correction}"]))
         return s
-    model = MeasurementModel.for_plan(rec.machine, rec.plan, max_degree=max_degree)
+    model = MeasurementModel.for_plan(rec.machine, rec.plan, max_degree=max_degree,
+                                      **({"harmonics": rotary_harmonics} if rec.plan.angles else {}))
     strat = Strategy.one_phase() if strategy == "one-phase" else Strategy.multi_phase()
     res = identify(model, rec.lt, Noise.of(rec), strat, fixed=rec.fixed_inputs())
     u = res.u_theta()[0]
@@ -190,6 +195,13 @@ def _print_identification(folder, as_json=False, max_degree=3, strategy="one-pha
                     "rotary axes' location offsets, nearest the bed first; the tool offsets are exact",
             "weights_unit": "um or urad of each parameter per um or urad of the held one",
         }
+    if summary["chi2_per_dof"] > ABSURD_CHI2_PER_DOF:  # said before any number, on stderr (and in the JSON)
+        warn = (f"warning: {rec.path or rec.name}: the fit leaves chi-square per dof {summary['chi2_per_dof']:.3g} "
+                f"(largest residual {summary['max_residual_um'] / 1000:.3g} mm): this is not an identification of the "
+                "machine; check the units of the columns, the machine code and the rotary axes' pivots and "
+                "directions before using any number below")
+        summary["warning"] = warn
+        click.echo(warn, err=True)
     if as_json:
         click.echo(json.dumps(summary, indent=1))
         return summary
@@ -230,7 +242,10 @@ def _print_identification(folder, as_json=False, max_degree=3, strategy="one-pha
               help="Legendre degree of each error function.")
 @click.option("--strategy", type=click.Choice(["one-phase", "multi-phase"]), default="one-phase", show_default=True,
               help="Optimisation strategy: all errors at once (the paper's choice) or pose, then translational, then all.")
-def identify(recording, example, as_json, max_degree, strategy):
+@click.option("--rotary-harmonics", type=click.IntRange(min=0, max=6), default=0, show_default=True,
+              help="Five-axis recordings: Fourier terms of each rotary axis' commanded angle in its error motions "
+                   "(ISO 230-1 EXC ... ECC); 0 identifies the location and zero errors only (ISO 230-7).")
+def identify(recording, example, as_json, max_degree, strategy, rotary_harmonics):
     """Identify the tracker pose and geometric errors of a recording.
 
     RECORDING is a folder with recording.toml and points.csv. Prints the
@@ -245,7 +260,7 @@ def identify(recording, example, as_json, max_degree, strategy):
     if recording is None and example is None:
         raise click.UsageError("give a RECORDING folder or --example NAME")
     folder = example_recording(example) if example else recording
-    _print_identification(folder, as_json, max_degree, strategy)
+    _print_identification(folder, as_json, max_degree, strategy, rotary_harmonics)
 
 
 @main.command("posterior")

@@ -488,7 +488,7 @@ def _rotary(r: "Reader", code: str) -> tuple[dict, dict]:
         if max(abs(v) for v in pivot) > MAX_LENGTH:
             raise ConfigError(f"{t.where('pivot')}: beyond {MAX_LENGTH:g} mm")
         want = "xyz"[ROTARY_INDEX[a]]
-        d = t.raw("direction", f"+{want}")
+        d = t.raw("direction")
         if not isinstance(d, str) or d.strip().lower() not in (f"+{want}", f"-{want}", want):
             raise ConfigError(f"{t.where('direction')}: {d!r:.40} does not match axis {A}: {A} turns about "
                               f"{want.upper()}, so its direction is \"+{want}\" or \"-{want}\"")

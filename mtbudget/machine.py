@@ -323,7 +323,11 @@ class ErrorModel:
                     raise ConfigError(f"rotary axis {axis.upper()}: no commanded angles for its error motions")
                 n = (p.order + 1) // 2
                 th = np.asarray(angles[axis], float)
-                B[:, j] = np.cos(n * th) if p.order % 2 else np.sin(n * th)
+                col = np.cos(n * th) if p.order % 2 else np.sin(n * th)
+                # a term the plan's angles do not see (sin 2c at 0, 90, 180, 270 deg) is zero, not 1e-16: the rank
+                # decision equilibrates columns, and round-off would make it look identifiable
+                col[np.abs(col) < 1e-12] = 0.0
+                B[:, j] = col
                 continue
             if axis not in cache:
                 cache[axis] = self.normalised(axis, nominal[:, AXIS_INDEX[axis]])

@@ -136,3 +136,46 @@ def test_a_rotary_column_in_format_1_is_refused(tmp_path):
     _edit_csv(src.path, _add_b)
     res = CliRunner().invoke(main, ["identify", str(src.path)])
     assert res.exit_code == 2 and "format = \"mtbudget-recording/3\"" in res.output, res.output
+
+
+def test_a_fit_that_cannot_be_right_is_said_before_any_number(tmp_path):
+    """Angles written in degrees under an `a [rad]` header read as a valid recording (radians are an angle unit), but
+    the fit cannot describe it: identify says so on stderr (and in the JSON) before a number is used."""
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).parent))
+    from fiveaxis_generator import make_recording
+
+    folder = tmp_path / "r"
+    make_recording(folder, "CAFXYZ", seed=2)
+    res = CliRunner().invoke(main, ["identify", str(folder)])
+    assert res.exit_code == 0 and "warning" not in res.output, res.output  # the right units: no warning
+    _edit_csv(folder, _rename_column("a [deg]", "a [rad]"))
+    res = CliRunner().invoke(main, ["identify", str(folder), "--json"])
+    assert res.exit_code == 0
+    assert "warning:" in res.stderr and "not an identification of the machine" in res.stderr
+    import json
+
+    assert "not an identification" in json.loads(res.stdout)["warning"]
+
+
+def test_rotary_harmonics_are_identified_on_request(tmp_path):
+    import json
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).parent))
+    from fiveaxis_generator import make_recording
+
+    folder = tmp_path / "r"
+    make_recording(folder, "CAFXYZ", seed=3)
+    res = CliRunner().invoke(main, ["identify", str(folder), "--json", "--rotary-harmonics", "2"])
+    assert res.exit_code == 0, res.output
+    d = json.loads(res.stdout)
+    names = {p["iso"] for p in d["parameters"]}
+    assert {"ECC[c1]", "ECC[s1]", "EXC[c2]"} <= names and "EXC[c1]" not in names  # radial c1/s1 left out
+    # the plan's C angles 0, 90, 180, 270 deg do not see sin 2c: those terms are named as not identifiable
+    flat = {e["iso"] for c in d["not_identifiable"] for e in c}
+    assert "ECC[s2]" in flat
+    assert 0.8 < d["chi2_per_dof"] < 1.25
