@@ -641,13 +641,7 @@ def identify_stations_batch(model: MeasurementModel, stations: list, row_station
         a = np.flatnonzero(~converged & ~failed)
         if not len(a):
             break
-    res_xyz = np.full((N, M, 3), np.nan)
-    res_rng = np.full((N, M), np.nan)
-    for (st, idx, _, _), e in zip(blocks, raw):
-        if st.kind == "xyz":
-            res_xyz[:, idx] = e
-        else:
-            res_rng[:, idx] = e
+    res_xyz, res_rng = _split_residuals(blocks, raw, N, M)
     return {"theta": x[:, :p], "x": x, "converged": converged, "iterations": iterations, "chi2": cost,
             "dof": int(w.shape[1] - rank), "failed": failed, "residual_xyz": res_xyz, "residual_range": res_rng,
             "basis": (Q, rank), "jacobian": A_first,
@@ -806,13 +800,7 @@ def _batch_chord(model, blocks, x, evaluate, sv, basis, lt_xyz, lt_range, M, N, 
         dist = np.maximum(np.abs((xs - x_start[todo]) * sv).max(axis=1), 1.0)  # moved * (moved / distance)
         failed[todo[moved * moved / dist > chord_bias]] = True
     cost = (w * w).sum(axis=1)
-    res_xyz = np.full((N, M, 3), np.nan)
-    res_rng = np.full((N, M), np.nan)
-    for (st, idx, _, _), e in zip(blocks, raw):
-        if st.kind == "xyz":
-            res_xyz[:, idx] = e
-        else:
-            res_rng[:, idx] = e
+    res_xyz, res_rng = _split_residuals(blocks, raw, N, M)
     return {"theta": x[:, :p], "x": x, "converged": ~failed, "iterations": iterations, "chi2": cost,
             "dof": int(w.shape[1] - rank), "failed": failed, "residual_xyz": res_xyz, "residual_range": res_rng,
             "basis": basis, "jacobian": None}
@@ -957,3 +945,16 @@ def summary_text(rec: Recording, res: MultiIdentification) -> list[str]:
         for combo in combos:
             out.append("    " + " ".join(f"{w:+.2f}*{nm}" for nm, w in combo))
     return out
+
+
+def _split_residuals(blocks, raw, N: int, M: int):
+    """Each station's residuals into the rows it measured: (N, M, 3) of the xyz stations and (N, M) of the range
+    stations, NaN elsewhere."""
+    res_xyz = np.full((N, M, 3), np.nan)
+    res_rng = np.full((N, M), np.nan)
+    for (st, idx, _, _), e in zip(blocks, raw):
+        if st.kind == "xyz":
+            res_xyz[:, idx] = e
+        else:
+            res_rng[:, idx] = e
+    return res_xyz, res_rng

@@ -404,6 +404,15 @@ def budget_text(res: RunResult) -> str:
     return "\n".join(lines)
 
 
+def _save(plt, fig, folder, name: str) -> Path:
+    """Lay out, save (100 dpi) and close a report figure; its path."""
+    fig.tight_layout()
+    path = Path(folder) / name
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+    return path
+
+
 def _pose_map(plt, pts: list, u: np.ndarray, folder: Path, um: str) -> Path:
     """Five-axis: the largest u (k = 1) over the linear points at each rotary pose, per axis, as a grid of the first
     two rotary axes' angles (one row for a single rotary axis)."""
@@ -428,11 +437,7 @@ def _pose_map(plt, pts: list, u: np.ndarray, folder: Path, um: str) -> Path:
         axes[k].set_title(f"largest u of the {a} error over the linear points (k = 1)", fontsize=9)
         fig.colorbar(im, ax=axes[k], shrink=0.8, label=f"u [{um}]")
     fig.suptitle("standard uncertainty of the compensated machine at each rotary pose")
-    fig.tight_layout()
-    path = Path(folder) / "uncertainty_poses.png"
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
-    return path
+    return _save(plt, fig, folder, "uncertainty_poses.png")
 
 
 def _figures(res: RunResult, folder):
@@ -471,10 +476,7 @@ def _figures(res: RunResult, folder):
             fig.colorbar(sc, ax=ax, shrink=0.6, pad=0.12, label=f"u [{um}]")
         fig.suptitle("standard uncertainty per point and axis of the compensated machine (commanded positions)"
                      + ("; largest u over the rotary poses at each point" if "angles" in pts[0] else ""))
-        fig.tight_layout()
-        figs["uncertainty_map"] = folder / "uncertainty_map.png"
-        fig.savefig(figs["uncertainty_map"], dpi=100)
-        plt.close(fig)
+        figs["uncertainty_map"] = _save(plt, fig, folder, "uncertainty_map.png")
         if "angles" in pts[0]:
             figs["uncertainty_poses"] = _pose_map(plt, pts, u, folder, um)
     # distributions of the volume summaries
@@ -494,10 +496,7 @@ def _figures(res: RunResult, folder):
             ax.legend(fontsize=6)
         for ax in axes.ravel()[len(names):]:
             ax.axis("off")
-        fig.tight_layout()
-        figs["distributions"] = folder / "distributions.png"
-        fig.savefig(figs["distributions"], dpi=100)
-        plt.close(fig)
+        figs["distributions"] = _save(plt, fig, folder, "distributions.png")
     # contributions to the per-point measurand, by source, coloured by group
     pb = res.budget.get("points")
     if pb:
@@ -511,10 +510,7 @@ def _figures(res: RunResult, folder):
                 color=[colours.get(r["group"], "grey") for r in rows])
         ax.set_xlabel("share of the variance of the per-point errors, summed over points and axes [%]")
         ax.legend(handles=[Patch(color=c, label=g) for g, c in colours.items()], fontsize=7, loc="lower right")
-        fig.tight_layout()
-        figs["contributions"] = folder / "contributions.png"
-        fig.savefig(figs["contributions"], dpi=100)
-        plt.close(fig)
+        figs["contributions"] = _save(plt, fig, folder, "contributions.png")
     # convergence of the main volume summary
     if res.convergence:
         c = res.convergence
@@ -793,11 +789,7 @@ def compensation_figure(table, folder) -> Path | None:
         ax.set_ylabel(f"residual along {a} [µm]")
         ax.legend(fontsize=6)
     fig.suptitle("fit residual at the recording's points (measured - identified model) and its U (k = 2)")
-    fig.tight_layout()
-    path = Path(folder) / "residual_vs_U.png"
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
-    return path
+    return _save(plt, fig, folder, "residual_vs_U.png")
 
 
 def compensation_report(table, folder, check: dict | None = None) -> dict:
