@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from .errors import ConfigError
-from .machine import AXES, COMPONENT_ERRORS, ROTARY_INDEX, SQUARENESS, Configuration, RotaryAxis, check_code
+from .machine import AXES, COMPONENT_ERRORS, SQUARENESS, Configuration, RotaryAxis, check_code
 from .plan import Plan, Scale, Sensor, build_plan, mesh
 from .recording import ATTACHED_TO, COLUMNS, CTE_RANGE, MAX_TIME, UNCERTAINTIES, uncertainty_problem
 from .units import ABSOLUTE_TEMPERATURE, to_internal
@@ -464,6 +464,8 @@ def _scales(r: "Reader", sensors: list) -> dict:
 
 
 def _rotary(r: "Reader", code: str) -> tuple[dict, dict]:
+    from .model import one_angle_only, rotary_direction
+
     """[rotary.<A|B|C>] pivot, direction, angles: ({letter: RotaryAxis}, {letter: commanded angles (rad)}), one table
     per rotary letter of the machine code, none for another."""
     letters = sorted(ch.lower() for ch in code if ch in "ABC")
@@ -487,12 +489,10 @@ def _rotary(r: "Reader", code: str) -> tuple[dict, dict]:
         pivot = tuple(to_unit(v, "mm", f"{t.where('pivot')}[{i}]") for i, v in enumerate(piv))
         if max(abs(v) for v in pivot) > MAX_LENGTH:
             raise ConfigError(f"{t.where('pivot')}: beyond {MAX_LENGTH:g} mm")
-        want = "xyz"[ROTARY_INDEX[a]]
-        d = t.raw("direction")
-        if not isinstance(d, str) or d.strip().lower() not in (f"+{want}", f"-{want}", want):
-            raise ConfigError(f"{t.where('direction')}: {d!r:.40} does not match axis {A}: {A} turns about "
-                              f"{want.upper()}, so its direction is \"+{want}\" or \"-{want}\"")
-        geometry[a] = RotaryAxis(a, pivot, -1.0 if d.strip().startswith("-") else 1.0)
+        sign, problem = rotary_direction(a, t.raw("direction"))
+        if problem:
+            raise ConfigError(f"{t.where('direction')}: {problem}")
+        geometry[a] = RotaryAxis(a, pivot, sign)
         vals = t.raw("angles")
         if not (isinstance(vals, list) and vals):
             raise ConfigError(f"{t.where('angles')}: expected the commanded angles the plan visits, e.g. [\"0 deg\", "
@@ -502,12 +502,9 @@ def _rotary(r: "Reader", code: str) -> tuple[dict, dict]:
         ang = [to_unit(v, "rad", f"{t.where('angles')}[{i}]") for i, v in enumerate(vals)]
         if max(abs(v) for v in ang) > 200 * np.pi:
             raise ConfigError(f"{t.where('angles')}: beyond 100 turns; not a commanded angle")
-        distinct = np.unique(np.round(np.mod(ang, 2 * np.pi), 9) % np.round(2 * np.pi, 9))
-        if distinct.size < 2:
-            from .machine import rotary_location_parameters
-            from .model import iso_parameter
-
-            lost = ", ".join(iso_parameter(q) for q in rotary_location_parameters(a))
+        single = one_angle_only(a, ang)
+        if single:
+            lost = single[1]
             raise ConfigError(f"{t.where('angles')}: one angle only: the location and zero errors of {A} ({lost}) then "
                               "act as a rigid motion of the tracker and cannot be identified; give three or more")
         angles[a] = ang

@@ -599,10 +599,11 @@ def chain_points(config: Configuration, model: ErrorModel, theta: np.ndarray, in
 
 def _slots(config: Configuration) -> dict:
     """The compiled chain's axis numbering: X, Y, Z are 0, 1, 2; the rotary axes follow in the order a, b, c."""
-    out = dict(AXIS_INDEX)
-    for i, r in enumerate(config.rotary_letters):
-        out[r] = 3 + i
-    return out
+    return _slots_of(config.rotary_letters)
+
+
+def _slots_of(letters: tuple) -> dict:
+    return dict(AXIS_INDEX, **{r: 3 + i for i, r in enumerate(letters)})
 
 
 def _kernel_inputs(config, model, theta, inputs, B):
@@ -668,7 +669,7 @@ def _kernel_layout(config: Configuration, model: ErrorModel, B: np.ndarray):
 
 def _build_kernel_layout(model: ErrorModel, B: np.ndarray, letters: tuple = ()):
     layout = _axis_layout(model, B)
-    slot = dict(AXIS_INDEX, **{r: 3 + i for i, r in enumerate(letters)})
+    slot = _slots_of(letters)
     missing = [a for a in layout if a not in slot]
     if missing:
         raise ConfigError(f"the error model has errors of axis {missing[0].upper()}, which the machine does not have")

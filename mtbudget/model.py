@@ -59,6 +59,28 @@ def iso_parameter(name: str) -> str:
     return iso + sep + rest
 
 
+def rotary_direction(letter: str, text) -> tuple:
+    """A rotary axis' stated direction (recording.toml's and a configuration's ``[rotary.X] direction``): (sign, None),
+    or (None, why it is refused) when it is not "+x"/"-x" for A, "+y"/"-y" for B, "+z"/"-z" for C."""
+    want = AXES[ROTARY_INDEX[letter]]
+    if not isinstance(text, str) or text.strip().lower() not in (f"+{want}", f"-{want}", want):
+        A = letter.upper()
+        return None, (f"{text!r:.40} does not match axis {A}: {A} turns about {want.upper()}, so its direction is "
+                      f"\"+{want}\" or \"-{want}\"")
+    return (-1.0 if text.strip().startswith("-") else 1.0), None
+
+
+def one_angle_only(letter: str, angles) -> tuple | None:
+    """(the angle in deg, the ISO names of the location and zero errors it loses) when a rotary axis is commanded to
+    one angle only (modulo a turn): those errors then act as a rigid motion of the tracker; None otherwise."""
+    from .machine import rotary_location_parameters
+
+    turns = np.unique(np.round(np.mod(np.asarray(angles, float), 2 * np.pi), 9) % np.round(2 * np.pi, 9))
+    if turns.size >= 2:
+        return None
+    return float(np.degrees(turns[0])), ", ".join(iso_parameter(q) for q in rotary_location_parameters(letter))
+
+
 def parameter_from_iso(text: str) -> str | None:
     """The internal name of an ISO 230-1/230-7 parameter name (``EXOC`` -> ``dx(c)[O]``; ``E0C``-style zeros read as
     letter O too), or None."""

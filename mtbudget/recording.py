@@ -473,14 +473,13 @@ def read_recording(folder, *, max_rows: int = MAX_ROWS, max_columns: int = MAX_C
     except OSError as exc:
         raise RecordingError(f"cannot read the file ({exc.strerror or type(exc).__name__})", csv_path) from None
     n = len(columns["point"])
-    for r in letters:  # a rotary axis seen at one angle: its location errors are a rigid motion of the tracker
-        turns = np.unique(np.round(np.mod(columns[r], 2 * np.pi), 9) % np.round(2 * np.pi, 9))
-        if turns.size < 2:
-            from .machine import rotary_location_parameters
-            from .model import iso_parameter
+    from .model import one_angle_only
 
-            lost = ", ".join(iso_parameter(q) for q in rotary_location_parameters(r))
-            raise RecordingError(f"rotary axis {r.upper()} is commanded to one angle only ({np.degrees(turns[0]):g} "
+    for r in letters:  # a rotary axis seen at one angle: its location errors are a rigid motion of the tracker
+        single = one_angle_only(r, columns[r])
+        if single:
+            angle, lost = single
+            raise RecordingError(f"rotary axis {r.upper()} is commanded to one angle only ({angle:g} "
                                  f"deg): its location and zero errors ({lost}) then act as a rigid motion of the "
                                  "tracker and cannot be identified; measure it at three or more angles", csv_path,
                                  column=r)
@@ -527,6 +526,7 @@ def read_recording(folder, *, max_rows: int = MAX_ROWS, max_columns: int = MAX_C
 def _rotary(meta, path, code: str, letters: list) -> dict:
     """Format 3's ``[rotary.<A|B|C>]`` tables: {letter: machine.RotaryAxis}, one per rotary letter of the code."""
     from .machine import RotaryAxis
+    from .model import rotary_direction
 
     tables = meta.get("rotary", {})
     if not isinstance(tables, dict):
@@ -556,12 +556,10 @@ def _rotary(meta, path, code: str, letters: list) -> dict:
             if abs(v) > MAX_LENGTH:
                 raise RecordingError(f"{v:g} mm is not a plausible position (at most {MAX_LENGTH:g} mm)", path,
                                      key=f"rotary.{R}.pivot[{i}]")
-        d = t.get("direction")
-        want = {"a": "x", "b": "y", "c": "z"}[r]
-        if not isinstance(d, str) or d.strip().lower() not in (f"+{want}", f"-{want}", want):
-            raise RecordingError(f"direction {d!r:.40} does not match axis {R}: {R} turns about {want.upper()}, so its "
-                                 f"direction is \"+{want}\" or \"-{want}\"", path, key=f"rotary.{R}.direction")
-        out[r] = RotaryAxis(r, pivot, -1.0 if d.strip().startswith("-") else 1.0)
+        sign, problem = rotary_direction(r, t.get("direction"))
+        if problem:
+            raise RecordingError(f"direction {problem}", path, key=f"rotary.{R}.direction")
+        out[r] = RotaryAxis(r, pivot, sign)
     return out
 
 
