@@ -187,7 +187,7 @@ def _kill_after(proc, log: Path, blocks: int, timeout=120) -> int:
 
 def test_kills_during_a_run_and_a_resume_then_resume_is_bit_identical(tmp_path):
     log = tmp_path / "run.mcap"
-    trials = 400
+    trials = 2000  # enough blocks that the resume is still running when it is killed (chunks of up to 16 blocks)
     args = [str(SMALL), "--trials", str(trials), "--block", "8", "--log", str(log)]
     held = _kill_after(_start(args), log, 3)
     assert held >= 3 and not log.exists() and partial_path(log).exists()
