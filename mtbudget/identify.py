@@ -64,7 +64,7 @@ import numpy as np
 
 from . import tracker as lt
 from .errors import IdentificationError
-from .machine import AXES, AXIS_INDEX, chain_adjoint, skew, skew_basis
+from .machine import AXES, AXIS_INDEX, chain_adjoint, kernel_chain, skew, skew_basis
 from .model import MeasurementModel
 from .units import factor, shown_unit
 
@@ -677,6 +677,22 @@ def _weights(model, meas, noise, strategy):
     return whitener(C)
 
 
+def _weights_information(model, meas, noise, strategy):
+    """Each point's whitener Wh (N, M, 3, 3) (:func:`_weights`) and information matrix C^-1 = Wh^T Wh,
+    component-major (3, 3, N, M): in one compiled pass (:func:`mtbudget.kernels.point_weights`) for the stated
+    scalar noise, else (unweighted, noise given per point, or a covariance numpy must judge) with numpy."""
+    N, M = meas.shape[:2]
+    stated = [noise.angular, noise.distance, noise.distance_per_length, noise.repeatability]
+    if CHORD_KERNEL and strategy.weighted and all(np.ndim(v) == 0 for v in stated):
+        from .kernels import point_weights
+
+        Wh, WLc = np.empty((N, M, 3, 3)), np.empty((3, 3, N, M))
+        if point_weights(np.require(meas, np.float64, _CW), *(float(v) for v in stated), Wh, WLc):
+            return Wh, WLc
+    Wh = _weights(model, meas, noise, strategy)
+    return Wh, np.ascontiguousarray(_gram33(Wh).transpose(2, 3, 0, 1))
+
+
 def _covariances(A, Q, sv):
     """cov_theta (N, p, p) and cov_pose (N, 6, 6) from the whitened design A (N, 3M, 6 + r) in the scaled unknowns."""
     p, n_unknown = Q.shape[0], A.shape[2]
@@ -841,9 +857,8 @@ def _identify_chunk_chord(model, meas, noise, strategy, theta, pose0, fixed, pha
     p = model.n_params
     sv = scale_vector(model)
     lab = _Labels(labels, N)
-    Wh = _weights(model, meas, noise, strategy)
-    WL = _gram33(Wh)  # information matrix of each point, tracker frame: C^-1 = Wh^T Wh
-    WLc = np.ascontiguousarray(WL.transpose(2, 3, 0, 1))  # the same, component-major (3, 3, N, M), for _chord
+    Wh, WLc = _weights_information(model, meas, noise, strategy)
+    WL = WLc.transpose(2, 3, 0, 1)  # information matrix of each point, tracker frame (N, M, 3, 3): C^-1 = Wh^T Wh
     tol = min(strategy.xtol, strategy.chord_tol)
     refresh = max(tol, _REFRESH_STEP)
     theta_start = theta.copy()
@@ -852,7 +867,8 @@ def _identify_chunk_chord(model, meas, noise, strategy, theta, pose0, fixed, pha
     Q_last = phases[-1][2]
     P0, _ = _nominal(model, cache, Q_last)
     c0 = P0.mean(axis=0)
-    P_nom = np.broadcast_to(model.machine_points(np.zeros((1, p)), fixed) if fixed else P0, (N, M, 3))
+    P_fix = model.machine_points(np.zeros((1, p)), fixed) if fixed else P0[None]  # (1 or N, M, 3)
+    P_nom = np.broadcast_to(P_fix, (N, M, 3))
     pose_k = lt.register(P_nom, meas)
     Rk = lt.rotation(pose_k[:, 3], pose_k[:, 4], pose_k[:, 5])
     all_rows = np.arange(N)
@@ -886,11 +902,21 @@ def _identify_chunk_chord(model, meas, noise, strategy, theta, pose0, fixed, pha
 
     # the weighted pose-only fit of the nominal points (Eq. 27 "before"); its gradient is exact, so is its minimum
     nom = {"R": Rk.copy(), "T": pose_k[:, :3].copy(), "theta": np.zeros((N, p))}
-    ok, it = _chord(nom, all_rows, lambda th, rows: P_nom[rows], meas, WLc, matrix(None), None, None, c0, tol,
-                    strategy, lab)
+    kc = _chord_chain(model, fixed, N) if CHORD_KERNEL else None
+
+    def chord(st, rows, evaluate, Hinv, J, Qs, tol_, first=None, predict=False, fixed_points=None):
+        """A chord stage: compiled (:func:`_chord_compiled`) or the numpy reference (:func:`_chord`)."""
+        if kc is None:
+            return _chord(st, rows, evaluate, meas, WLc, Hinv, J, Qs, c0, tol_, strategy, lab, first=first,
+                          predict=predict)
+        adjoint = J if callable(J) else None
+        return _chord_compiled(st, rows, meas, WLc, Hinv, None if adjoint else J, Qs, c0, tol_, strategy, lab, kc,
+                               first=first, fixed_points=fixed_points, adjoint=adjoint, predict=predict)
+
+    ok, it = chord(nom, all_rows, lambda th, rows: P_nom[rows], matrix(None), None, None, tol, fixed_points=P_fix)
     bad |= ~ok
     iters += it
-    initial_error = _apply(nom["R"], meas) + nom["T"][:, None] - P_nom
+    initial_error = None if kc is not None else _apply(nom["R"], meas) + nom["T"][:, None] - P_nom
 
     # the start of the identification: the given pose, else the pose-only fit (theta0 = 0) or a Kabsch registration
     if pose0 is not None:
@@ -916,8 +942,7 @@ def _identify_chunk_chord(model, meas, noise, strategy, theta, pose0, fixed, pha
         Hinv = matrix(J0, Q)
         todo = np.flatnonzero(~bad)
         # stage 1: the nominal Jacobian (earlier phases only give the next one its start)
-        ok, it = _chord(state, todo, evaluate, meas, WLc, Hinv, J0.reshape(3 * M, -1), Qs, c0, refresh, strategy, lab,
-                        predict=True)
+        ok, it = chord(state, todo, evaluate, Hinv, J0.reshape(3 * M, -1), Qs, refresh, predict=True)
         bad[todo[~ok]] = True
         iters += it
         if k < len(phases) - 1:
@@ -935,7 +960,7 @@ def _identify_chunk_chord(model, meas, noise, strategy, theta, pose0, fixed, pha
                     P_c[pos], J_c[pos] = model.machine_points(theta_c[pos], _rows(fixed, todo[pos], N),
                                                               jacobian=True, project=Qs)
                 J_c = np.ascontiguousarray(J_c).reshape(len(todo), 3 * M, Qs.shape[1])  # trial-major, once
-            ok, it = _chord(state, todo, evaluate, meas, WLc, Hinv, J_c, Qs, c0, tol, strategy, lab, first=P_c)
+            ok, it = chord(state, todo, evaluate, Hinv, J_c, Qs, tol, first=P_c)
             iters += it
             # what stage 1's nominal Jacobian left (b1) against the distance it was used over: stage 2's own bias
             # is about b1 * (b1 / distance) (it used a Jacobian b1 away from the minimum)
@@ -952,11 +977,21 @@ def _identify_chunk_chord(model, meas, noise, strategy, theta, pose0, fixed, pha
     pose = np.concatenate([T, angles], axis=1)
     P_W = evaluate(theta, slice(None))
     Rm = lt.rotation(pose[:, 3], pose[:, 4], pose[:, 5])
-    res = meas - _apply_transposed(Rm, P_W - pose[:, None, :3])  # R^T (P_W - T): lt.to_tracker
-    w = _apply(Wh, res)
+    if kc is not None:  # residuals, whitened residuals, chi2 and Eq. 27's "before" in one compiled pass
+        from .kernels import chord_final
+
+        res, res_m, w, initial_error = (np.empty((N, M, 3)) for _ in range(4))
+        chi2 = np.empty(N)
+        chord_final(np.require(P_W, np.float64, _CW), np.require(meas, np.float64, _CW), Wh, Rm,
+                    np.require(pose[:, :3], np.float64, _CW), np.require(P_fix, np.float64, _CW), nom["R"], nom["T"],
+                    res, res_m, w, chi2, initial_error)
+    else:
+        res = meas - _apply_transposed(Rm, P_W - pose[:, None, :3])  # R^T (P_W - T): lt.to_tracker
+        w = _apply(Wh, res)
+        res_m, chi2 = _apply(Rm, res), (w**2).sum(axis=(1, 2))
     out = {
-        "theta": theta, "pose": pose, "residual": res, "residual_machine": _apply(Rm, res),
-        "chi2": (w**2).sum(axis=(1, 2)), "dof": 3 * M - (6 + Q_last.shape[1]), "initial_error": initial_error,
+        "theta": theta, "pose": pose, "residual": res, "residual_machine": res_m,
+        "chi2": chi2, "dof": 3 * M - (6 + Q_last.shape[1]), "initial_error": initial_error,
         "converged": ~bad, "iterations": iters, "whitened": w, "whitener": Wh, "fallback": bad.copy(),
     }
     if bad.any():  # the reference path, from the same start, for the trials the chord could not finish (per label)
@@ -1096,6 +1131,75 @@ def _chord(state, rows, evaluate, meas, WLc, Hinv, J, Qs, c0, tol, strategy, lab
         if not live.size:
             break
     return ok, it
+
+
+#: the chord's stages as one compiled pass per trial (:func:`mtbudget.kernels.chord_stage`); False: :func:`_chord`,
+#: the numpy formulation it is tested against (the same iteration, round-off apart)
+CHORD_KERNEL = True
+
+
+def _chord_chain(model, fixed: dict, N: int) -> dict:
+    """The compiled chain's inputs for a chunk of N trials with its fixed perturbations (``kernels.chord_stage``):
+    :func:`mtbudget.machine.kernel_chain` plus ``toolT`` (3, M), ``gfix`` (1 or N, p) the fixed geometry and
+    ``poff`` (1 or N, M, 3) the fixed point offsets (zero when none)."""
+    M, p = model.n_points, model.n_params
+    k = kernel_chain(model.config, model.errors, model.chain_inputs(fixed), model.B, N)
+    k["toolT"] = np.ascontiguousarray(k["tool"].T)
+    g = np.asarray(fixed.get("geometry", np.zeros((1, p))), float)
+    k["gfix"] = np.require(g.reshape(-1, p), np.float64, _CW)
+    po = np.asarray(fixed.get("point_offset", np.zeros((1, M, 3))), float)
+    k["poff"] = np.require(po.reshape(-1, M, 3), np.float64, _CW)
+    return k
+
+
+def _chord_compiled(state, rows, meas, WLc, Hinv, J, Qs, c0, tol, strategy, lab, chain, first=None, fixed_points=None,
+                    adjoint=None, predict=False):
+    """:func:`_chord` (same arguments and result) in one compiled pass per trial: ``chain`` from :func:`_chord_chain`;
+    ``fixed_points`` (1 or N, M, 3): the machine points when they do not move (the pose-only fit); ``adjoint``: the
+    chain's operator at the stage's start (:func:`mtbudget.machine.chain_adjoint`), whose kept forward pass gives
+    each trial's J^T v."""
+    from .kernels import chord_stage
+
+    n = len(rows)
+    ok = np.zeros(n, bool)
+    if not n:
+        return ok, 0
+    N, M = meas.shape[:2]
+    p = state["theta"].shape[1]
+    if fixed_points is not None:
+        mode, J3 = 0, np.zeros((1, 1, 1))
+    elif adjoint is not None:
+        mode, J3 = 3, np.zeros((1, 1, 1))
+    elif J.ndim == 2:
+        mode, J3 = 1, J[None]
+    else:
+        mode, J3 = 2, J
+    mats = [Hinv[k] for k in range(lab.n)]
+    if all(m is mats[0] for m in mats):  # one matrix for every label (the engine's nominal iteration matrix)
+        H3, label = mats[0][None], np.zeros(N, np.int64)
+    else:
+        H3, label = np.stack(mats), lab.of.astype(np.int64)
+    Qs_ = np.zeros((p, 0)) if Qs is None else Qs
+    if adjoint is not None:
+        eps, vin, wout = adjoint.kept
+        tool_order, params, basis = adjoint.tool_order, adjoint.params, adjoint.basis
+    else:
+        eps = vin = wout = np.zeros((1, 1, 3, 1))
+        tool_order, params, basis = np.zeros(0, np.int64), np.zeros((0, 3), np.int64), np.zeros((0, M))
+    for key in ("theta", "R", "T"):
+        state[key] = np.require(state[key], np.float64, _CW)
+    c = chain
+    req = lambda x: np.require(x, np.float64, _CW)  # noqa: E731
+    it = chord_stage(
+        mode, np.asarray(rows, np.int64), label, state["theta"], state["R"], state["T"], req(meas), req(WLc), req(c0),
+        1.0 / POSE_SCALE, req(H3), req(Qs_), req(J3),
+        req(first) if first is not None else np.zeros((0, M, 3)),
+        req(fixed_points) if fixed_points is not None else np.zeros((1, M, 3)),
+        c["tool_axes"], c["wp_axes"], c["side"], c["px"], c["py"], c["pz"], c["toolT"], c["L"], c["src"], c["dst"],
+        c["sqi"], c["rdir"], c["pivot"], c["rcos"], c["rsin"], c["poff"], c["gfix"],
+        tool_order, req(eps), req(vin), req(wout), np.require(params, np.int64, _CW), req(basis),
+        float(tol), float(strategy.ftol), int(strategy.chord_iter), bool(predict), float(_MAX_RATE), ok)
+    return ok, int(it)
 
 
 def range_basis(active: np.ndarray, null: np.ndarray | None) -> np.ndarray:

@@ -195,103 +195,160 @@ def chain_vjp(tool_order, wp_axes, side, px, py, pz, rdir, rcos, rsin, eps, vin,
     gd = np.zeros((A, 3, M))  # a workpiece-side rotary axis: the cotangent at its error rotation's output
     h = np.zeros((A, 3, 3, M))  # (axis, kind, component): what each parameter's basis values are summed against
     u = np.empty((3, M))
-    pos = (px, py, pz)
     for q in range(rows.shape[0]):
-        n = rows[q]
-        for m in range(M):
-            u[0, m], u[1, m], u[2, m] = vec[q, m, 0], vec[q, m, 1], vec[q, m, 2]
-        # G_a^T v = Rinv_a^T ... Rinv_wm^T v, Rinv^T u = (u + eps x u + eps (eps . u)) / (1 + |eps|^2)
-        # (a rotary axis' turn back, R(theta)^T, transposed: R(theta), first)
-        for j in range(wp_axes.shape[0] - 1, -1, -1):
-            a = wp_axes[j]
-            e0, e1, e2, ga = eps[n, a, 0], eps[n, a, 1], eps[n, a, 2], g[a]
-            if a >= 3:
-                r = a - 3
-                k = rdir[r]
-                cr, sr = rcos[r, n if rcos.shape[1] > 1 else 0], rsin[r, n if rsin.shape[1] > 1 else 0]
-                for m in range(M):
-                    u0, u1, u2 = _rotate(k, cr[m], sr[m], u[0, m], u[1, m], u[2, m])
-                    gd[a, 0, m], gd[a, 1, m], gd[a, 2, m] = u0, u1, u2
-                    u0, u1, u2 = _rot2(e0[m], e1[m], e2[m], u0, u1, u2, 1.0)  # R2(-eps)^T
-                    u[0, m], u[1, m], u[2, m] = u0, u1, u2
-                    ga[0, m], ga[1, m], ga[2, m] = u0, u1, u2
-                continue
+        _vjp_row(rows[q], tool_order, wp_axes, side, px, py, pz, rdir, rcos, rsin, eps, vin, wout, vec[q], params,
+                 basis, g, gd, h, u, out[q])
+    return out
+
+
+@_compiled
+def _vjp_row(n, tool_order, wp_axes, side, px, py, pz, rdir, rcos, rsin, eps, vin, wout, vec, params, basis, g, gd, h,
+             u, out):  # pragma: no cover - compiled
+    """One trial of :func:`chain_vjp`: trial n's (row of eps, vin, wout) J^T v for vec (M, 3) into out (p,); g, gd,
+    h, u: scratch as :func:`chain_vjp` allocates it."""
+    M = vec.shape[0]
+    A = eps.shape[1]
+    pos = (px, py, pz)
+    for m in range(M):
+        u[0, m], u[1, m], u[2, m] = vec[m, 0], vec[m, 1], vec[m, 2]
+    # G_a^T v = Rinv_a^T ... Rinv_wm^T v, Rinv^T u = (u + eps x u + eps (eps . u)) / (1 + |eps|^2)
+    # (a rotary axis' turn back, R(theta)^T, transposed: R(theta), first)
+    for j in range(wp_axes.shape[0] - 1, -1, -1):
+        a = wp_axes[j]
+        e0, e1, e2, ga = eps[n, a, 0], eps[n, a, 1], eps[n, a, 2], g[a]
+        if a >= 3:
+            r = a - 3
+            k = rdir[r]
+            cr, sr = rcos[r, n if rcos.shape[1] > 1 else 0], rsin[r, n if rsin.shape[1] > 1 else 0]
             for m in range(M):
-                f0, f1, f2 = e0[m], e1[m], e2[m]
-                u0, u1, u2 = u[0, m], u[1, m], u[2, m]
-                dot = f0 * u0 + f1 * u1 + f2 * u2
-                den = 1.0 / (1.0 + (f0 * f0 + f1 * f1 + f2 * f2))
-                u[0, m] = (u0 + (f1 * u2 - f2 * u1) + f0 * dot) * den
-                u[1, m] = (u1 + (f2 * u0 - f0 * u2) + f1 * dot) * den
-                u[2, m] = (u2 + (f0 * u1 - f1 * u0) + f2 * dot) * den
-                ga[0, m], ga[1, m], ga[2, m] = u[0, m], u[1, m], u[2, m]
-        # G_a^T v = R_a-1^T ... R_1^T MW^T v on the tool side, R^T u = u - eps x u (a rotary axis then R(theta)^T)
-        for j in range(tool_order.shape[0]):
-            a = tool_order[j]
-            e0, e1, e2, ga = eps[n, a, 0], eps[n, a, 1], eps[n, a, 2], g[a]
-            last = j == tool_order.shape[0] - 1
-            for m in range(M):
-                u0, u1, u2 = u[0, m], u[1, m], u[2, m]
+                u0, u1, u2 = _rotate(k, cr[m], sr[m], u[0, m], u[1, m], u[2, m])
+                gd[a, 0, m], gd[a, 1, m], gd[a, 2, m] = u0, u1, u2
+                u0, u1, u2 = _rot2(e0[m], e1[m], e2[m], u0, u1, u2, 1.0)  # R2(-eps)^T
+                u[0, m], u[1, m], u[2, m] = u0, u1, u2
                 ga[0, m], ga[1, m], ga[2, m] = u0, u1, u2
-                if not last:
-                    f0, f1, f2 = e0[m], e1[m], e2[m]
-                    if a >= 3:  # R2(eps)^T
-                        u[0, m], u[1, m], u[2, m] = _rot2(f0, f1, f2, u0, u1, u2, -1.0)
-                    else:
-                        u[0, m] = u0 - (f1 * u2 - f2 * u1)
-                        u[1, m] = u1 - (f2 * u0 - f0 * u2)
-                        u[2, m] = u2 - (f0 * u1 - f1 * u0)
-            if a >= 3 and not last:
-                r = a - 3
-                k = rdir[r]
-                cr, sr = rcos[r, n if rcos.shape[1] > 1 else 0], rsin[r, n if rsin.shape[1] > 1 else 0]
-                for m in range(M):
-                    u[0, m], u[1, m], u[2, m] = _rotate(k, cr[m], -sr[m], u[0, m], u[1, m], u[2, m])
-        for a in range(A):
-            ga, s = g[a], side[a]
-            w = vin[n, a] if s > 0 else wout[n, a]
-            if a >= 3:  # a rotary axis' second-order error rotation: translation as above, rotation with its terms
-                e0, e1, e2 = eps[n, a, 0], eps[n, a, 1], eps[n, a, 2]
-                gg = ga if s > 0 else gd[a]
-                for m in range(M):
-                    g0, g1, g2 = ga[0, m], ga[1, m], ga[2, m]
-                    h[a, 0, 0, m], h[a, 0, 1, m], h[a, 0, 2, m] = s * g0, s * g1, s * g2
-                    c0, c1, c2 = gg[0, m], gg[1, m], gg[2, m]
-                    w0, w1, w2 = w[0, m], w[1, m], w[2, m]
-                    f0, f1, f2 = e0[m], e1[m], e2[m]
-                    fg, fw, wg = f0 * c0 + f1 * c1 + f2 * c2, f0 * w0 + f1 * w1 + f2 * w2, w0 * c0 + w1 * c1 + w2 * c2
-                    # d/deps of R2(+-eps) w, transposed, applied to g: +-(w x g) ... (tool: w x g; workpiece: g x w)
-                    x0, x1, x2 = s * (w1 * c2 - w2 * c1), s * (w2 * c0 - w0 * c2), s * (w0 * c1 - w1 * c0)
-                    h[a, 1, 0, m] = x0 + 0.5 * (fg * w0 + fw * c0 - 2.0 * wg * f0)
-                    h[a, 1, 1, m] = x1 + 0.5 * (fg * w1 + fw * c1 - 2.0 * wg * f1)
-                    h[a, 1, 2, m] = x2 + 0.5 * (fg * w2 + fw * c2 - 2.0 * wg * f2)
-                continue
+            continue
+        for m in range(M):
+            f0, f1, f2 = e0[m], e1[m], e2[m]
+            u0, u1, u2 = u[0, m], u[1, m], u[2, m]
+            dot = f0 * u0 + f1 * u1 + f2 * u2
+            den = 1.0 / (1.0 + (f0 * f0 + f1 * f1 + f2 * f2))
+            u[0, m] = (u0 + (f1 * u2 - f2 * u1) + f0 * dot) * den
+            u[1, m] = (u1 + (f2 * u0 - f0 * u2) + f1 * dot) * den
+            u[2, m] = (u2 + (f0 * u1 - f1 * u0) + f2 * dot) * den
+            ga[0, m], ga[1, m], ga[2, m] = u[0, m], u[1, m], u[2, m]
+    # G_a^T v = R_a-1^T ... R_1^T MW^T v on the tool side, R^T u = u - eps x u (a rotary axis then R(theta)^T)
+    for j in range(tool_order.shape[0]):
+        a = tool_order[j]
+        e0, e1, e2, ga = eps[n, a, 0], eps[n, a, 1], eps[n, a, 2], g[a]
+        last = j == tool_order.shape[0] - 1
+        for m in range(M):
+            u0, u1, u2 = u[0, m], u[1, m], u[2, m]
+            ga[0, m], ga[1, m], ga[2, m] = u0, u1, u2
+            if not last:
+                f0, f1, f2 = e0[m], e1[m], e2[m]
+                if a >= 3:  # R2(eps)^T
+                    u[0, m], u[1, m], u[2, m] = _rot2(f0, f1, f2, u0, u1, u2, -1.0)
+                else:
+                    u[0, m] = u0 - (f1 * u2 - f2 * u1)
+                    u[1, m] = u1 - (f2 * u0 - f0 * u2)
+                    u[2, m] = u2 - (f0 * u1 - f1 * u0)
+        if a >= 3 and not last:
+            r = a - 3
+            k = rdir[r]
+            cr, sr = rcos[r, n if rcos.shape[1] > 1 else 0], rsin[r, n if rsin.shape[1] > 1 else 0]
+            for m in range(M):
+                u[0, m], u[1, m], u[2, m] = _rotate(k, cr[m], -sr[m], u[0, m], u[1, m], u[2, m])
+    for a in range(A):
+        ga, s = g[a], side[a]
+        w = vin[n, a] if s > 0 else wout[n, a]
+        if a >= 3:  # a rotary axis' second-order error rotation: translation as above, rotation with its terms
+            e0, e1, e2 = eps[n, a, 0], eps[n, a, 1], eps[n, a, 2]
+            gg = ga if s > 0 else gd[a]
             for m in range(M):
                 g0, g1, g2 = ga[0, m], ga[1, m], ga[2, m]
-                # translation: dP/dt_a = +G (tool side) or -G (workpiece side)
                 h[a, 0, 0, m], h[a, 0, 1, m], h[a, 0, 2, m] = s * g0, s * g1, s * g2
+                c0, c1, c2 = gg[0, m], gg[1, m], gg[2, m]
                 w0, w1, w2 = w[0, m], w[1, m], w[2, m]
-                if s > 0:  # rotation, tool side: d/deps of (v + eps x v) is -G [v_in]x; transposed: v_in x g
-                    h[a, 1, 0, m] = w1 * g2 - w2 * g1
-                    h[a, 1, 1, m] = w2 * g0 - w0 * g2
-                    h[a, 1, 2, m] = w0 * g1 - w1 * g0
-                else:  # workpiece side: + G [w_out]x; transposed: g x w_out
-                    h[a, 1, 0, m] = g1 * w2 - g2 * w1
-                    h[a, 1, 1, m] = g2 * w0 - g0 * w2
-                    h[a, 1, 2, m] = g0 * w1 - g1 * w0
-            if a < 3:
-                # squareness: -position times the translation's column G
-                pa = pos[a][n if pos[a].shape[0] > 1 else 0]
-                for m in range(M):
-                    pm = -pa[m]
-                    h[a, 2, 0, m], h[a, 2, 1, m], h[a, 2, 2, m] = ga[0, m] * pm, ga[1, m] * pm, ga[2, m] * pm
-        for j in range(params.shape[0]):
-            hr, br = h[params[j, 0], params[j, 1], params[j, 2]], basis[j]
-            acc = 0.0
+                f0, f1, f2 = e0[m], e1[m], e2[m]
+                fg, fw, wg = f0 * c0 + f1 * c1 + f2 * c2, f0 * w0 + f1 * w1 + f2 * w2, w0 * c0 + w1 * c1 + w2 * c2
+                # d/deps of R2(+-eps) w, transposed, applied to g: +-(w x g) ... (tool: w x g; workpiece: g x w)
+                x0, x1, x2 = s * (w1 * c2 - w2 * c1), s * (w2 * c0 - w0 * c2), s * (w0 * c1 - w1 * c0)
+                h[a, 1, 0, m] = x0 + 0.5 * (fg * w0 + fw * c0 - 2.0 * wg * f0)
+                h[a, 1, 1, m] = x1 + 0.5 * (fg * w1 + fw * c1 - 2.0 * wg * f1)
+                h[a, 1, 2, m] = x2 + 0.5 * (fg * w2 + fw * c2 - 2.0 * wg * f2)
+            continue
+        for m in range(M):
+            g0, g1, g2 = ga[0, m], ga[1, m], ga[2, m]
+            # translation: dP/dt_a = +G (tool side) or -G (workpiece side)
+            h[a, 0, 0, m], h[a, 0, 1, m], h[a, 0, 2, m] = s * g0, s * g1, s * g2
+            w0, w1, w2 = w[0, m], w[1, m], w[2, m]
+            if s > 0:  # rotation, tool side: d/deps of (v + eps x v) is -G [v_in]x; transposed: v_in x g
+                h[a, 1, 0, m] = w1 * g2 - w2 * g1
+                h[a, 1, 1, m] = w2 * g0 - w0 * g2
+                h[a, 1, 2, m] = w0 * g1 - w1 * g0
+            else:  # workpiece side: + G [w_out]x; transposed: g x w_out
+                h[a, 1, 0, m] = g1 * w2 - g2 * w1
+                h[a, 1, 1, m] = g2 * w0 - g0 * w2
+                h[a, 1, 2, m] = g0 * w1 - g1 * w0
+        if a < 3:
+            # squareness: -position times the translation's column G
+            pa = pos[a][n if pos[a].shape[0] > 1 else 0]
             for m in range(M):
-                acc += hr[m] * br[m]
-            out[q, j] = acc
-    return out
+                pm = -pa[m]
+                h[a, 2, 0, m], h[a, 2, 1, m], h[a, 2, 2, m] = ga[0, m] * pm, ga[1, m] * pm, ga[2, m] * pm
+    for j in range(params.shape[0]):
+        hr, br = h[params[j, 0], params[j, 1], params[j, 2]], basis[j]
+        acc = 0.0
+        for m in range(M):
+            acc += hr[m] * br[m]
+        out[j] = acc
+
+
+@_compiled
+def _residual_row(P, x, WLc, i, Rn, t0, t1, t2, c0, vout, G, r, u):  # pragma: no cover - compiled
+    """One trial of :func:`chord_residual`: machine points P (M, 3), measured x (M, 3), information matrices
+    ``WLc[:, :, i]``, pose Rn (3, 3), (t0, t1, t2); the machine-frame weighted residual into vout (M, 3), the rigid
+    gradient (unscaled) into G[:6]; returns the cost.  r, u: (3, M) scratch."""
+    M = P.shape[0]
+    for m in range(M):  # r = x - (P - T) R
+        d0, d1, d2 = P[m, 0] - t0, P[m, 1] - t1, P[m, 2] - t2
+        r[0, m] = x[m, 0] - (d0 * Rn[0, 0] + d1 * Rn[1, 0] + d2 * Rn[2, 0])
+        r[1, m] = x[m, 1] - (d0 * Rn[0, 1] + d1 * Rn[1, 1] + d2 * Rn[2, 1])
+        r[2, m] = x[m, 2] - (d0 * Rn[0, 2] + d1 * Rn[1, 2] + d2 * Rn[2, 2])
+    for a in range(3):  # u = C^-1 r, each point's information matrix (symmetric)
+        w0, w1, w2 = WLc[a, 0, i], WLc[a, 1, i], WLc[a, 2, i]
+        ua = u[a]
+        for m in range(M):
+            ua[m] = w0[m] * r[0, m] + w1[m] * r[1, m] + w2[m] * r[2, m]
+    c = 0.0
+    g0 = g1 = g2 = 0.0
+    s01 = s10 = s02 = s20 = s12 = s21 = 0.0
+    for m in range(M):
+        u0, u1, u2 = u[0, m], u[1, m], u[2, m]
+        c += r[0, m] * u0 + r[1, m] * u1 + r[2, m] * u2
+        v0 = Rn[0, 0] * u0 + Rn[0, 1] * u1 + Rn[0, 2] * u2
+        v1 = Rn[1, 0] * u0 + Rn[1, 1] * u1 + Rn[1, 2] * u2
+        v2 = Rn[2, 0] * u0 + Rn[2, 1] * u1 + Rn[2, 2] * u2
+        vout[m, 0] = v0
+        vout[m, 1] = v1
+        vout[m, 2] = v2
+        g0 += v0
+        g1 += v1
+        g2 += v2
+        q0, q1, q2 = P[m, 0] - c0[0], P[m, 1] - c0[1], P[m, 2] - c0[2]
+        s12 += q1 * v2
+        s21 += q2 * v1
+        s20 += q2 * v0
+        s02 += q0 * v2
+        s01 += q0 * v1
+        s10 += q1 * v0
+    G[0] = g0
+    G[1] = g1
+    G[2] = g2
+    G[3] = s12 - s21
+    G[4] = s20 - s02
+    G[5] = s01 - s10
+    return c
 
 
 @_compiled
@@ -309,50 +366,250 @@ def chord_residual(P, meas, WL, idx, R, T, c0, v, G, cost):  # pragma: no cover 
     u = np.empty((3, M))
     for n in range(n_rows):
         i = idx[n]
-        Rn = R[n]
-        t0, t1, t2 = T[n, 0], T[n, 1], T[n, 2]
-        for m in range(M):  # r = x - (P - T) R
-            d0, d1, d2 = P[n, m, 0] - t0, P[n, m, 1] - t1, P[n, m, 2] - t2
-            r[0, m] = meas[i, m, 0] - (d0 * Rn[0, 0] + d1 * Rn[1, 0] + d2 * Rn[2, 0])
-            r[1, m] = meas[i, m, 1] - (d0 * Rn[0, 1] + d1 * Rn[1, 1] + d2 * Rn[2, 1])
-            r[2, m] = meas[i, m, 2] - (d0 * Rn[0, 2] + d1 * Rn[1, 2] + d2 * Rn[2, 2])
-        for a in range(3):  # u = C^-1 r, each point's information matrix (symmetric)
-            w0, w1, w2 = WL[a, 0, i], WL[a, 1, i], WL[a, 2, i]
-            ua = u[a]
-            for m in range(M):
-                ua[m] = w0[m] * r[0, m] + w1[m] * r[1, m] + w2[m] * r[2, m]
-        c = 0.0
-        g0 = g1 = g2 = 0.0
-        s01 = s10 = s02 = s20 = s12 = s21 = 0.0
+        cost[n] = _residual_row(P[n], meas[i], WL, i, R[n], T[n, 0], T[n, 1], T[n, 2], c0, v[n], G[n], r, u)
+
+
+@_compiled
+def _rodrigues(o0, o1, o2, Rot):  # pragma: no cover - compiled
+    """The exact rotation expm([o]x) into Rot (3, 3): ``identify._rotation`` for one rotation vector."""
+    t2 = o0 * o0 + o1 * o1 + o2 * o2
+    if t2 < 1e-12:  # series: exact to double precision below |o| = 1e-6 rad
+        a = 1.0 - t2 / 6.0
+        b = 0.5 - t2 / 24.0
+    else:
+        t = np.sqrt(t2)
+        a = np.sin(t) / t
+        b = (1.0 - np.cos(t)) / t2
+    d = 1.0 - b * t2
+    Rot[0, 0], Rot[0, 1], Rot[0, 2] = o0 * o0 * b + d, -o2 * a + o0 * o1 * b, o1 * a + o0 * o2 * b
+    Rot[1, 0], Rot[1, 1], Rot[1, 2] = o2 * a + o1 * o0 * b, o1 * o1 * b + d, -o0 * a + o1 * o2 * b
+    Rot[2, 0], Rot[2, 1], Rot[2, 2] = -o1 * a + o2 * o0 * b, o0 * a + o2 * o1 * b, o2 * o2 * b + d
+
+
+@_compiled
+def chord_stage(mode, rows, label, theta, Rs, Ts, meas, WLc, c0, inv_ps, Hinv, Qs, J, first, Pfix,
+                tool_axes, wp_axes, side, px, py, pz, toolT, L, src, dst, sqi, rdir, pivot, rcos, rsin, poff, gfix,
+                tool_order, eps, vin, wout, params, basis,
+                tol, ftol, chord_iter, predict, max_rate, ok):  # pragma: no cover - compiled
+    """One stage of the chord solver (``identify._chord``), every iteration of a trial in one compiled pass.
+
+    For each trial n = rows[q] until it converges, stops contracting or has had ``chord_iter`` iterations: the
+    machine points (mode 0: fixed, ``Pfix``; otherwise the chain at ``theta[n]``, :func:`_forward`, or ``first[q]``
+    on the first iteration when given), the weighted residual and rigid gradient (:func:`_residual_row`), the
+    geometric gradient along the scaled directions Qs (p, r) (mode 1: the shared Jacobian J (3M, r); mode 2: the
+    trial's own J[q] (3M, r); mode 3: the trial's J^T v from what the forward pass at the stage's start kept,
+    :func:`_vjp_row` on row q of eps/vin/wout, times Qs), the step ``z = -G Hinv[label[n]]``, the small rigid
+    motion about c0 applied to ``Rs[n]``, ``Ts[n]`` and the step along Qs to ``theta[n]`` (in place).  ok[q]:
+    whether the trial converged.  Returns the largest number of iterations any trial took.
+
+    Chain inputs as :func:`chain_points` (``toolT`` (3, M), the coefficient table filled from ``theta[n] + gfix``
+    through ``src``/``dst``, squareness through ``sqi`` (-1: not modelled)), ``poff`` (1 or N, M, 3) added to the
+    points.  Every number of a trial depends on that trial's inputs only (no sum across trials).
+    """
+    N, p = theta.shape[0], theta.shape[1]
+    M = meas.shape[1]
+    A, K = L.shape[0], L.shape[1]
+    b = Hinv.shape[1]
+    nr = b - 6
+    coef = np.zeros((N, A, 6, K))
+    sq = np.zeros((N, 3))
+    comp, t, v = np.empty((A, 6, M)), np.empty((A, 3, M)), np.empty((3, M))
+    vin_s, wout_s = np.empty((A, 3, M)), np.empty((A, 3, M))
+    g, gd, h = np.zeros((A, 3, M)), np.zeros((A, 3, M)), np.zeros((A, 3, 3, M))
+    r, u, u2 = np.empty((3, M)), np.empty((3, M)), np.empty((3, M))
+    P = np.empty((M, 3))
+    vout = np.empty((M, 3))
+    G = np.empty(b)
+    z = np.empty(b)
+    Av = np.empty(p)
+    th = np.empty(p)
+    Rot = np.empty((3, 3))
+    Rn = np.empty((3, 3))
+    iters = 0
+    for q in range(rows.shape[0]):
+        n = rows[q]
+        Hk = Hinv[label[n]]
+        for i in range(3):
+            for j in range(3):
+                Rn[i, j] = Rs[n, i, j]
+        t0, t1, t2 = Ts[n, 0], Ts[n, 1], Ts[n, 2]
+        prev = np.inf
+        its = 0
+        for it in range(1, chord_iter + 1):
+            its = it
+            if mode == 0:
+                Pn = Pfix[n if Pfix.shape[0] > 1 else 0]
+                for m in range(M):
+                    P[m, 0], P[m, 1], P[m, 2] = Pn[m, 0], Pn[m, 1], Pn[m, 2]
+            elif it == 1 and first.shape[0] > 0:
+                for m in range(M):
+                    P[m, 0], P[m, 1], P[m, 2] = first[q, m, 0], first[q, m, 1], first[q, m, 2]
+            else:  # the chain at theta[n] (+ the fixed inputs)
+                gf = gfix[n if gfix.shape[0] > 1 else 0]
+                for k in range(p):
+                    th[k] = theta[n, k] + gf[k]
+                cf = coef[n].reshape(A * 6 * K)
+                for k in range(src.shape[0]):
+                    cf[dst[k]] = th[src[k]]
+                for c in range(3):
+                    sq[n, c] = th[sqi[c]] if sqi[c] >= 0 else 0.0
+                _forward(n, tool_axes, wp_axes, side, px, py, pz, toolT, coef, L, sq, rdir, pivot, rcos, rsin, comp,
+                         t, v, vin_s, wout_s)
+                po = poff[n if poff.shape[0] > 1 else 0]
+                for m in range(M):
+                    P[m, 0], P[m, 1], P[m, 2] = v[0, m] + po[m, 0], v[1, m] + po[m, 1], v[2, m] + po[m, 2]
+            cost = _residual_row(P, meas[n], WLc, n, Rn, t0, t1, t2, c0, vout, G, r, u)
+            for j in range(6):
+                G[j] *= inv_ps[j]
+            if mode == 1 or mode == 2:
+                Jq = J[0] if mode == 1 else J[q]
+                for j in range(nr):
+                    G[6 + j] = 0.0
+                for m in range(M):
+                    for c in range(3):
+                        x = vout[m, c]
+                        row = Jq[3 * m + c]
+                        for j in range(nr):
+                            G[6 + j] -= x * row[j]
+            elif mode == 3:
+                _vjp_row(q, tool_order, wp_axes, side, px, py, pz, rdir, rcos, rsin, eps, vin, wout, vout, params,
+                         basis, g, gd, h, u2, Av)
+                for j in range(nr):
+                    G[6 + j] = 0.0
+                for k in range(p):
+                    x = Av[k]
+                    for j in range(nr):
+                        G[6 + j] -= x * Qs[k, j]
+            # z = -G Hinv, the step's largest component and its energy sqrt(-G.z)
+            for j in range(b):
+                z[j] = 0.0
+            for i in range(b):
+                x = G[i]
+                for j in range(b):
+                    z[j] -= x * Hk[i, j]
+            step = 0.0
+            gz = 0.0
+            for j in range(b):
+                step = max(step, abs(z[j]))
+                gz += G[j] * z[j]
+            energy = np.sqrt(max(-gz, 0.0))
+            # the step, applied: a small rigid motion about c0, then the parameters along Qs
+            _rodrigues(z[3] * inv_ps[3], z[4] * inv_ps[4], z[5] * inv_ps[5], Rot)
+            d0, d1, d2 = t0 - c0[0], t1 - c0[1], t2 - c0[2]
+            t0 = Rot[0, 0] * d0 + Rot[0, 1] * d1 + Rot[0, 2] * d2 + c0[0] + z[0] * inv_ps[0]
+            t1 = Rot[1, 0] * d0 + Rot[1, 1] * d1 + Rot[1, 2] * d2 + c0[1] + z[1] * inv_ps[1]
+            t2 = Rot[2, 0] * d0 + Rot[2, 1] * d1 + Rot[2, 2] * d2 + c0[2] + z[2] * inv_ps[2]
+            for j in range(3):
+                a0, a1, a2 = Rn[0, j], Rn[1, j], Rn[2, j]
+                for i in range(3):
+                    Rs[n, i, j] = Rot[i, 0] * a0 + Rot[i, 1] * a1 + Rot[i, 2] * a2
+            for i in range(3):
+                for j in range(3):
+                    Rn[i, j] = Rs[n, i, j]
+            if mode > 0:
+                for k in range(p):
+                    acc = 0.0
+                    for j in range(nr):
+                        acc += z[6 + j] * Qs[k, j]
+                    theta[n, k] += acc
+            rate = energy / prev if np.isfinite(prev) else np.inf
+            done = step < tol or energy * energy <= ftol * cost
+            if predict and step * rate < tol:
+                done = True
+            if done:
+                ok[q] = True
+                break
+            prev = energy
+            if np.isfinite(rate) and rate > max_rate:
+                break
+        Ts[n, 0], Ts[n, 1], Ts[n, 2] = t0, t1, t2
+        iters = max(iters, its)
+    return iters
+
+
+@_compiled
+def point_weights(P, angular, distance, distance_per_length, repeatability, Wh, WLc):  # pragma: no cover - compiled
+    """Each tracker point's whitener and information matrix from the stated noise, in one pass: the covariance of
+    ``tracker.covariance`` (Eq. 23, from the coordinates) plus the repeatability on the diagonal
+    (``MeasurementModel.covariance``), its inverse Cholesky factor ``Wh[n, m]`` (``identify.whitener``'s closed
+    form) and ``WLc[:, :, n, m]`` = Wh^T Wh = C^-1 (``identify._gram33``, component-major).  P (N, M, 3), scalar
+    noise.  Returns False where a covariance is not positive definite (nothing is then to be trusted: the caller
+    takes numpy's path, which says so)."""
+    N, M = P.shape[0], P.shape[1]
+    rep2 = repeatability * repeatability
+    good = True
+    for n in range(N):
         for m in range(M):
-            u0, u1, u2 = u[0, m], u[1, m], u[2, m]
-            c += r[0, m] * u0 + r[1, m] * u1 + r[2, m] * u2
-            v0 = Rn[0, 0] * u0 + Rn[0, 1] * u1 + Rn[0, 2] * u2
-            v1 = Rn[1, 0] * u0 + Rn[1, 1] * u1 + Rn[1, 2] * u2
-            v2 = Rn[2, 0] * u0 + Rn[2, 1] * u1 + Rn[2, 2] * u2
-            v[n, m, 0] = v0
-            v[n, m, 1] = v1
-            v[n, m, 2] = v2
-            g0 += v0
-            g1 += v1
-            g2 += v2
-            q0, q1, q2 = P[n, m, 0] - c0[0], P[n, m, 1] - c0[1], P[n, m, 2] - c0[2]
-            s12 += q1 * v2
-            s21 += q2 * v1
-            s20 += q2 * v0
-            s02 += q0 * v2
-            s01 += q0 * v1
-            s10 += q1 * v0
-        cost[n] = c
-        G[n, 0] = g0
-        G[n, 1] = g1
-        G[n, 2] = g2
-        G[n, 3] = s12 - s21
-        G[n, 4] = s20 - s02
-        G[n, 5] = s01 - s10
+            x, y, z = P[n, m, 0], P[n, m, 1], P[n, m, 2]
+            rho = np.hypot(x, y)
+            r = np.hypot(rho, z)
+            ca = x / rho if rho > 0 else 1.0
+            sa = y / rho if rho > 0 else 0.0
+            ce = rho / r if r > 0 else 1.0
+            se = z / r if r > 0 else 0.0
+            ur = distance + distance_per_length * r
+            A = ur * ur
+            Bv = (angular * rho) ** 2
+            Cv = (angular * r) ** 2
+            rx, ry = ce * ca, ce * sa
+            ex, ey = se * ca, se * sa
+            c00 = A * rx * rx + Bv * sa * sa + Cv * ex * ex + rep2
+            c11 = A * ry * ry + Bv * ca * ca + Cv * ey * ey + rep2
+            c22 = A * se * se + Cv * ce * ce + rep2
+            c10 = A * rx * ry - Bv * sa * ca + Cv * ex * ey
+            c20 = A * rx * se - Cv * ex * ce
+            c21 = A * ry * se - Cv * ey * ce
+            l00 = np.sqrt(c00)
+            l10, l20 = c10 / l00, c20 / l00
+            l11 = np.sqrt(c11 - l10 * l10)
+            l21 = (c21 - l20 * l10) / l11
+            l22 = np.sqrt(c22 - l20 * l20 - l21 * l21)
+            i00, i11, i22 = 1.0 / l00, 1.0 / l11, 1.0 / l22
+            w10 = -l10 * i00 * i11
+            w21 = -l21 * i11 * i22
+            w20 = (l10 * l21 - l20 * l11) * i00 * i11 * i22
+            if not (np.isfinite(i00) and np.isfinite(i11) and np.isfinite(i22) and np.isfinite(w10)
+                    and np.isfinite(w21) and np.isfinite(w20)):
+                good = False
+            W = Wh[n, m]
+            W[0, 0], W[0, 1], W[0, 2] = i00, 0.0, 0.0
+            W[1, 0], W[1, 1], W[1, 2] = w10, i11, 0.0
+            W[2, 0], W[2, 1], W[2, 2] = w20, w21, i22
+            for i in range(3):
+                for j in range(i, 3):
+                    v = W[0, i] * W[0, j] + W[1, i] * W[1, j] + W[2, i] * W[2, j]
+                    WLc[i, j, n, m] = v
+                    WLc[j, i, n, m] = v
+    return good
 
 
-KERNELS = (chain_points, chain_vjp, chord_residual)
+@_compiled
+def chord_final(P, meas, Wh, R, T, Pnom, Rnom, Tnom, res, res_machine, w, chi2, initial):  # pragma: no cover
+    """The chord solver's results, trial by trial: the tracker-frame residual ``res`` = x - R^T (P - T), its
+    machine-frame ``res_machine`` = R res, the whitened ``w`` = Wh res and ``chi2`` = |w|^2; and Eq. 27's
+    ``initial`` = Rnom x + Tnom - Pnom (the pose-only fit of the nominal points Pnom (1 or N, M, 3))."""
+    N, M = P.shape[0], P.shape[1]
+    for n in range(N):
+        Rn, Qn, Pn = R[n], Rnom[n], Pnom[n if Pnom.shape[0] > 1 else 0]
+        c = 0.0
+        for m in range(M):
+            d0, d1, d2 = P[n, m, 0] - T[n, 0], P[n, m, 1] - T[n, 1], P[n, m, 2] - T[n, 2]
+            x0, x1, x2 = meas[n, m, 0], meas[n, m, 1], meas[n, m, 2]
+            r0 = x0 - (Rn[0, 0] * d0 + Rn[1, 0] * d1 + Rn[2, 0] * d2)
+            r1 = x1 - (Rn[0, 1] * d0 + Rn[1, 1] * d1 + Rn[2, 1] * d2)
+            r2 = x2 - (Rn[0, 2] * d0 + Rn[1, 2] * d1 + Rn[2, 2] * d2)
+            res[n, m, 0], res[n, m, 1], res[n, m, 2] = r0, r1, r2
+            for i in range(3):
+                res_machine[n, m, i] = Rn[i, 0] * r0 + Rn[i, 1] * r1 + Rn[i, 2] * r2
+                wi = Wh[n, m, i, 0] * r0 + Wh[n, m, i, 1] * r1 + Wh[n, m, i, 2] * r2
+                w[n, m, i] = wi
+                c += wi * wi
+                initial[n, m, i] = (Qn[i, 0] * x0 + Qn[i, 1] * x1 + Qn[i, 2] * x2) + Tnom[n, i] - Pn[m, i]
+        chi2[n] = c
+
+
+#: the kernels a run of the engine compiles (what :func:`compiled_here` looks for)
+KERNELS = (chain_points, chord_stage, point_weights, chord_final)
 
 
 def compiled_here() -> bool | None:

@@ -609,30 +609,42 @@ def _slots_of(letters: tuple) -> dict:
 def _kernel_inputs(config, model, theta, inputs, B):
     """The compiled chain's inputs: (tool axes, workpiece axes, sides, px, py, pz, tool, coef, L, sq, rdir, pivot,
     rcos, rsin)."""
-    N, M = theta.shape[0], inputs.nominal.shape[0]
-    tool_axes, wp_axes, side = _kernel_axes(config)
-    L, src, dst, K = _kernel_layout(config, model, B)
-    A = L.shape[0]
-    coef = np.zeros((N, A * 6 * K))
-    coef[:, dst] = theta[:, src]
+    N = theta.shape[0]
+    k = kernel_chain(config, model, inputs, B, N)
+    L, K = k["L"], k["L"].shape[1]
+    coef = np.zeros((N, L.shape[0] * 6 * K))
+    coef[:, k["dst"]] = theta[:, k["src"]]
     sq = np.zeros((N, 3))
-    for c, s in enumerate(SQUARENESS):  # columns sxy, sxz, syz
-        j = _squareness_index(model).get(s)
-        if j is not None:
+    for c, j in enumerate(k["sqi"]):  # columns sxy, sxz, syz
+        if j >= 0:
             sq[:, c] = theta[:, j]
+    return (k["tool_axes"], k["wp_axes"], k["side"], k["px"], k["py"], k["pz"], k["tool"],
+            coef.reshape(N, L.shape[0], 6, K), L, sq, k["rdir"], k["pivot"], k["rcos"], k["rsin"])
+
+
+def kernel_chain(config, model, inputs, B, N: int) -> dict:
+    """What the compiled chain takes besides the parameters, for N trials: the axes (``tool_axes``, ``wp_axes``,
+    ``side``), the effective positions ``px``, ``py``, ``pz`` (1 or N, M), ``tool`` (M, 3), the basis values ``L``
+    (A, K, M) and where each parameter goes in the coefficient table (``src`` -> ``dst``), the squareness
+    parameters' indices ``sqi`` (sxy, sxz, syz; -1 where not modelled) and the rotary axes' ``rdir``, ``pivot``,
+    ``rcos``, ``rsin``: all C-contiguous, writable float64 or int64 (one compiled signature whatever the caller's
+    arrays: a read-only view would be another type to numba, and another compilation)."""
+    M = inputs.nominal.shape[0]
+    tool_axes, wp_axes, side = _kernel_axes(config)
+    L, src, dst, _ = _kernel_layout(config, model, B)
+    where = _squareness_index(model)
+    sqi = np.array([where.get(s, -1) for s in SQUARENESS], np.int64)
     pos = []
     for a in AXES:
         p = np.asarray(inputs.effective(a), float)
         if p.shape[0] not in (1, N) or p.shape[1] != M:
             p = np.broadcast_to(p, (N, M))
-        pos.append(p)
-    tool = np.broadcast_to(np.asarray(inputs.tool, float), (M, 3))
-    # C-contiguous, writable float64: one compiled signature whatever the caller's arrays (a read-only view
-    # would be another type to numba, and another compilation)
-    pos, tool = [np.require(x, np.float64, ["C", "W"]) for x in pos], np.require(tool, np.float64, ["C", "W"])
+        pos.append(np.require(p, np.float64, ["C", "W"]))
+    tool = np.require(np.broadcast_to(np.asarray(inputs.tool, float), (M, 3)), np.float64, ["C", "W"])
     rdir, pivot, rcos, rsin = _rotary_inputs(config, inputs, N, M)
-    return (tool_axes, wp_axes, side, pos[0], pos[1], pos[2], tool, coef.reshape(N, A, 6, K), L, sq,
-            rdir, pivot, rcos, rsin)
+    return {"tool_axes": tool_axes, "wp_axes": wp_axes, "side": side, "px": pos[0], "py": pos[1], "pz": pos[2],
+            "tool": tool, "L": L, "src": src.astype(np.int64), "dst": dst.astype(np.int64), "sqi": sqi, "rdir": rdir,
+            "pivot": pivot, "rcos": rcos, "rsin": rsin}
 
 
 def _rotary_inputs(config, inputs, N, M):

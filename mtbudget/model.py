@@ -154,12 +154,7 @@ class MeasurementModel:
         theta = np.atleast_2d(np.asarray(theta, float))
         if "geometry" in pert:
             theta = theta + pert["geometry"]
-        inp = ChainInputs(
-            self.plan.nominal, self.plan.tool,
-            offset={a: pert[f"axis_offset.{a}"] for a in AXES + ROTARY if f"axis_offset.{a}" in pert},
-            scale={a: pert[f"axis_scale.{a}"] for a in AXES if f"axis_scale.{a}" in pert},
-            angles=self.plan.angles,
-        )
+        inp = self.chain_inputs(pert)
         out = chain(self.config, self.errors, theta, inp, exact=exact, jacobian=jacobian, B=self.B, project=project)
         if "point_offset" in pert:
             if jacobian:
@@ -167,6 +162,17 @@ class MeasurementModel:
             else:
                 out = out + pert["point_offset"]
         return out
+
+    def chain_inputs(self, perturbations: dict | None = None) -> ChainInputs:
+        """The chain's per-point inputs with the perturbations' axis offsets and scales (``geometry`` and
+        ``point_offset`` are added by :meth:`machine_points`)."""
+        pert = perturbations or {}
+        return ChainInputs(
+            self.plan.nominal, self.plan.tool,
+            offset={a: pert[f"axis_offset.{a}"] for a in AXES + ROTARY if f"axis_offset.{a}" in pert},
+            scale={a: pert[f"axis_scale.{a}"] for a in AXES if f"axis_scale.{a}" in pert},
+            angles=self.plan.angles,
+        )
 
     def predict(self, theta, pose, perturbations: dict | None = None, *, exact=False) -> np.ndarray:
         """Tracker coordinates (N, M, 3) of every point."""

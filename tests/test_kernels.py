@@ -95,6 +95,8 @@ def test_one_compiled_signature_per_kernel_across_the_engine_identify_and_diagno
     import subprocess
     import sys
 
+    from mtbudget import kernels
+
     code = """
 import numpy as np
 from mtbudget import kernels
@@ -110,10 +112,12 @@ meas = np.asarray(rec.lt, float)
 meas.setflags(write=False)
 identify(MeasurementModel.for_plan(rec.machine, rec.plan), meas, Noise.of(rec))
 diagnose(rec)
-print([len(k.signatures) for k in (kernels.chain_points, kernels.chain_vjp, kernels.chord_residual)])
+print([len(k.signatures) for k in kernels.KERNELS], [len(k.signatures) for k in (kernels.chain_vjp, kernels.chord_residual)])
 """
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
-    assert out.strip().splitlines()[-1] == "[1, 1, 1]", out
+    used, others = out.strip().splitlines()[-1].split("] [")
+    assert used == "[" + ", ".join(["1"] * len(kernels.KERNELS)), out  # every kernel the engine uses: compiled once
+    assert all(c in "01" for c in others.rstrip("]").split(", ")), out  # the references: at most once
 
 
 def test_the_first_run_after_installing_says_it_compiles(monkeypatch, capsys, setup):
