@@ -64,7 +64,7 @@ import numpy as np
 
 from . import tracker as lt
 from .errors import IdentificationError
-from .machine import AXES, AXIS_INDEX, chain_adjoint, kernel_chain, skew, skew_basis
+from .machine import AXES, AXIS_INDEX, chain_adjoint, kernel_chain, skew, skew_basis, vjp_layout
 from .model import MeasurementModel
 from .units import factor, shown_unit
 
@@ -909,9 +909,10 @@ def _identify_chunk_chord(model, meas, noise, strategy, theta, pose0, fixed, pha
         if kc is None:
             return _chord(st, rows, evaluate, meas, WLc, Hinv, J, Qs, c0, tol_, strategy, lab, first=first,
                           predict=predict)
-        adjoint = J if callable(J) else None
+        adjoint = J is _ADJOINT
         return _chord_compiled(st, rows, meas, WLc, Hinv, None if adjoint else J, Qs, c0, tol_, strategy, lab, kc,
-                               first=first, fixed_points=fixed_points, adjoint=adjoint, predict=predict)
+                               first=first, fixed_points=fixed_points, adjoint=model if adjoint else None,
+                               predict=predict)
 
     ok, it = chord(nom, all_rows, lambda th, rows: P_nom[rows], matrix(None), None, None, tol, fixed_points=P_fix)
     bad |= ~ok
@@ -951,7 +952,10 @@ def _identify_chunk_chord(model, meas, noise, strategy, theta, pose0, fixed, pha
         todo = np.flatnonzero(~bad)
         if todo.size:
             theta_c = state["theta"][todo].copy()
-            if not fixed:  # the Jacobian as an operator: J^T v propagated back through the chain, J never formed
+            P_c = None
+            if not fixed and kc is not None:  # compiled: each trial's J^T v from its own forward pass at this start
+                J_c = _ADJOINT
+            elif not fixed:  # the Jacobian as an operator: J^T v propagated back through the chain, J never formed
                 P_c, J_c = chain_adjoint(model.config, model.errors, theta_c, model.inputs, B=model.B)
             else:
                 P_c = np.empty((len(todo), M, 3))
@@ -1152,12 +1156,16 @@ def _chord_chain(model, fixed: dict, N: int) -> dict:
     return k
 
 
+#: stage 2 of the compiled chord: each trial's J^T v from its own forward pass at the stage's start
+_ADJOINT = object()
+
+
 def _chord_compiled(state, rows, meas, WLc, Hinv, J, Qs, c0, tol, strategy, lab, chain, first=None, fixed_points=None,
                     adjoint=None, predict=False):
     """:func:`_chord` (same arguments and result) in one compiled pass per trial: ``chain`` from :func:`_chord_chain`;
     ``fixed_points`` (1 or N, M, 3): the machine points when they do not move (the pose-only fit); ``adjoint``: the
-    chain's operator at the stage's start (:func:`mtbudget.machine.chain_adjoint`), whose kept forward pass gives
-    each trial's J^T v."""
+    model whose chain's J^T v each trial takes at its start (the chain's Jacobian there as an operator, never
+    formed: :func:`mtbudget.machine.chain_adjoint`'s, kept per trial inside the kernel)."""
     from .kernels import chord_stage
 
     n = len(rows)
@@ -1181,10 +1189,8 @@ def _chord_compiled(state, rows, meas, WLc, Hinv, J, Qs, c0, tol, strategy, lab,
         H3, label = np.stack(mats), lab.of.astype(np.int64)
     Qs_ = np.zeros((p, 0)) if Qs is None else Qs
     if adjoint is not None:
-        eps, vin, wout = adjoint.kept
-        tool_order, params, basis = adjoint.tool_order, adjoint.params, adjoint.basis
+        tool_order, params, basis = vjp_layout(adjoint.config, adjoint.errors, adjoint.B)
     else:
-        eps = vin = wout = np.zeros((1, 1, 3, 1))
         tool_order, params, basis = np.zeros(0, np.int64), np.zeros((0, 3), np.int64), np.zeros((0, M))
     for key in ("theta", "R", "T"):
         state[key] = np.require(state[key], np.float64, _CW)
@@ -1197,7 +1203,7 @@ def _chord_compiled(state, rows, meas, WLc, Hinv, J, Qs, c0, tol, strategy, lab,
         req(fixed_points) if fixed_points is not None else np.zeros((1, M, 3)),
         c["tool_axes"], c["wp_axes"], c["side"], c["px"], c["py"], c["pz"], c["toolT"], c["L"], c["src"], c["dst"],
         c["sqi"], c["rdir"], c["pivot"], c["rcos"], c["rsin"], c["poff"], c["gfix"],
-        tool_order, req(eps), req(vin), req(wout), np.require(params, np.int64, _CW), req(basis),
+        tool_order, np.require(params, np.int64, _CW), req(basis),
         float(tol), float(strategy.ftol), int(strategy.chord_iter), bool(predict), float(_MAX_RATE), ok)
     return ok, int(it)
 

@@ -389,16 +389,15 @@ def _rodrigues(o0, o1, o2, Rot):  # pragma: no cover - compiled
 @_compiled
 def chord_stage(mode, rows, label, theta, Rs, Ts, meas, WLc, c0, inv_ps, Hinv, Qs, J, first, Pfix,
                 tool_axes, wp_axes, side, px, py, pz, toolT, L, src, dst, sqi, rdir, pivot, rcos, rsin, poff, gfix,
-                tool_order, eps, vin, wout, params, basis,
-                tol, ftol, chord_iter, predict, max_rate, ok):  # pragma: no cover - compiled
+                tool_order, params, basis, tol, ftol, chord_iter, predict, max_rate, ok):  # pragma: no cover - compiled
     """One stage of the chord solver (``identify._chord``), every iteration of a trial in one compiled pass.
 
     For each trial n = rows[q] until it converges, stops contracting or has had ``chord_iter`` iterations: the
     machine points (mode 0: fixed, ``Pfix``; otherwise the chain at ``theta[n]``, :func:`_forward`, or ``first[q]``
     on the first iteration when given), the weighted residual and rigid gradient (:func:`_residual_row`), the
     geometric gradient along the scaled directions Qs (p, r) (mode 1: the shared Jacobian J (3M, r); mode 2: the
-    trial's own J[q] (3M, r); mode 3: the trial's J^T v from what the forward pass at the stage's start kept,
-    :func:`_vjp_row` on row q of eps/vin/wout, times Qs), the step ``z = -G Hinv[label[n]]``, the small rigid
+    trial's own J[q] (3M, r); mode 3: the trial's J^T v (:func:`_vjp_row`) from what its own forward pass at the
+    stage's start kept, times Qs: the Jacobian held at the start, as chain_adjoint's operator), the step ``z = -G Hinv[label[n]]``, the small rigid
     motion about c0 applied to ``Rs[n]``, ``Ts[n]`` and the step along Qs to ``theta[n]`` (in place).  ok[q]:
     whether the trial converged.  Returns the largest number of iterations any trial took.
 
@@ -415,12 +414,15 @@ def chord_stage(mode, rows, label, theta, Rs, Ts, meas, WLc, c0, inv_ps, Hinv, Q
     sq = np.zeros((N, 3))
     comp, t, v = np.empty((A, 6, M)), np.empty((A, 3, M)), np.empty((3, M))
     vin_s, wout_s = np.empty((A, 3, M)), np.empty((A, 3, M))
+    eps1, vin1, wout1 = np.empty((1, A, 3, M)), np.empty((1, A, 3, M)), np.empty((1, A, 3, M))  # mode 3: kept
     g, gd, h = np.zeros((A, 3, M)), np.zeros((A, 3, M)), np.zeros((A, 3, 3, M))
     r, u, u2 = np.empty((3, M)), np.empty((3, M)), np.empty((3, M))
     P = np.empty((M, 3))
     vout = np.empty((M, 3))
     G = np.empty(b)
     z = np.empty(b)
+    zz, gg, dth = np.empty(b), np.empty(nr), np.empty(p)
+    QsT = np.ascontiguousarray(Qs.T)
     Av = np.empty(p)
     th = np.empty(p)
     Rot = np.empty((3, 3))
@@ -453,40 +455,49 @@ def chord_stage(mode, rows, label, theta, Rs, Ts, meas, WLc, c0, inv_ps, Hinv, Q
                     cf[dst[k]] = th[src[k]]
                 for c in range(3):
                     sq[n, c] = th[sqi[c]] if sqi[c] >= 0 else 0.0
+                keep = mode == 3 and it == 1
                 _forward(n, tool_axes, wp_axes, side, px, py, pz, toolT, coef, L, sq, rdir, pivot, rcos, rsin, comp,
-                         t, v, vin_s, wout_s)
+                         t, v, vin1[0] if keep else vin_s, wout1[0] if keep else wout_s)
+                if keep:
+                    for a in range(A):
+                        for c in range(3):
+                            for m in range(M):
+                                eps1[0, a, c, m] = comp[a, 3 + c, m]
                 po = poff[n if poff.shape[0] > 1 else 0]
                 for m in range(M):
                     P[m, 0], P[m, 1], P[m, 2] = v[0, m] + po[m, 0], v[1, m] + po[m, 1], v[2, m] + po[m, 2]
             cost = _residual_row(P, meas[n], WLc, n, Rn, t0, t1, t2, c0, vout, G, r, u)
             for j in range(6):
                 G[j] *= inv_ps[j]
+            # products as sums of rows (axpy on contiguous rows: the compiler vectorises them), into their own arrays
             if mode == 1 or mode == 2:
                 Jq = J[0] if mode == 1 else J[q]
-                for j in range(nr):
-                    G[6 + j] = 0.0
+                gg[:] = 0.0
                 for m in range(M):
                     for c in range(3):
                         x = vout[m, c]
                         row = Jq[3 * m + c]
                         for j in range(nr):
-                            G[6 + j] -= x * row[j]
+                            gg[j] -= x * row[j]
+                G[6:] = gg
             elif mode == 3:
-                _vjp_row(q, tool_order, wp_axes, side, px, py, pz, rdir, rcos, rsin, eps, vin, wout, vout, params,
+                _vjp_row(0, tool_order, wp_axes, side, px, py, pz, rdir, rcos, rsin, eps1, vin1, wout1, vout, params,
                          basis, g, gd, h, u2, Av)
-                for j in range(nr):
-                    G[6 + j] = 0.0
+                gg[:] = 0.0
                 for k in range(p):
                     x = Av[k]
+                    row = Qs[k]
                     for j in range(nr):
-                        G[6 + j] -= x * Qs[k, j]
+                        gg[j] -= x * row[j]
+                G[6:] = gg
             # z = -G Hinv, the step's largest component and its energy sqrt(-G.z)
-            for j in range(b):
-                z[j] = 0.0
+            zz[:] = 0.0
             for i in range(b):
                 x = G[i]
+                row = Hk[i]
                 for j in range(b):
-                    z[j] -= x * Hk[i, j]
+                    zz[j] -= x * row[j]
+            z[:] = zz
             step = 0.0
             gz = 0.0
             for j in range(b):
@@ -507,11 +518,14 @@ def chord_stage(mode, rows, label, theta, Rs, Ts, meas, WLc, c0, inv_ps, Hinv, Q
                 for j in range(3):
                     Rn[i, j] = Rs[n, i, j]
             if mode > 0:
+                dth[:] = 0.0
+                for j in range(nr):
+                    x = z[6 + j]
+                    row = QsT[j]
+                    for k in range(p):
+                        dth[k] += x * row[k]
                 for k in range(p):
-                    acc = 0.0
-                    for j in range(nr):
-                        acc += z[6 + j] * Qs[k, j]
-                    theta[n, k] += acc
+                    theta[n, k] += dth[k]
             rate = energy / prev if np.isfinite(prev) else np.inf
             done = step < tol or energy * energy <= ftol * cost
             if predict and step * rate < tol:
@@ -608,8 +622,35 @@ def chord_final(P, meas, Wh, R, T, Pnom, Rnom, Tnom, res, res_machine, w, chi2, 
         chi2[n] = c
 
 
+@_compiled
+def tracker_points(P_W, R, T, noise, out):  # pragma: no cover - compiled
+    """What the tracker reads of the machine points P_W (N, M, 3), in one pass: ``tracker.to_tracker`` with the
+    pose R (1 or N, 3, 3), T (1 or N, 3) (R^T (P - T)), then ``tracker.add_spherical_noise`` with the offsets
+    noise (N, M, 3) (range, azimuth, elevation; an empty (0, M, 3) array: none), exactly as those functions
+    compute it (spherical coordinates, offsets added, back to Cartesian)."""
+    N, M = P_W.shape[0], P_W.shape[1]
+    noisy = noise.shape[0] > 0
+    for n in range(N):
+        Rn = R[n if R.shape[0] > 1 else 0]
+        Tn = T[n if T.shape[0] > 1 else 0]
+        for m in range(M):
+            d0, d1, d2 = P_W[n, m, 0] - Tn[0], P_W[n, m, 1] - Tn[1], P_W[n, m, 2] - Tn[2]
+            x = d0 * Rn[0, 0] + d1 * Rn[1, 0] + d2 * Rn[2, 0]
+            y = d0 * Rn[0, 1] + d1 * Rn[1, 1] + d2 * Rn[2, 1]
+            z = d0 * Rn[0, 2] + d1 * Rn[1, 2] + d2 * Rn[2, 2]
+            if noisy:
+                rho = np.hypot(x, y)
+                r = np.hypot(rho, z) + noise[n, m, 0]
+                az = np.arctan2(y, x) + noise[n, m, 1]
+                el = np.arctan2(z, rho) + noise[n, m, 2]
+                ce = np.cos(el)
+                x, y, z = r * ce * np.cos(az), r * ce * np.sin(az), r * np.sin(el)
+            out[n, m, 0], out[n, m, 1], out[n, m, 2] = x, y, z
+    return out
+
+
 #: the kernels a run of the engine compiles (what :func:`compiled_here` looks for)
-KERNELS = (chain_points, chord_stage, point_weights, chord_final)
+KERNELS = (chain_points, chord_stage, point_weights, chord_final, tracker_points)
 
 
 def compiled_here() -> bool | None:

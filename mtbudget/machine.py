@@ -746,22 +746,30 @@ def chain_adjoint(config: Configuration, model: ErrorModel, theta: np.ndarray, i
     return out, _AdjointCompiled(config, model, B, args, kept)
 
 
+def vjp_layout(config: Configuration, model: ErrorModel, B: np.ndarray):
+    """What the compiled J^T v (:func:`mtbudget.kernels.chain_vjp`) takes besides the forward pass: the tool-side
+    axes from the bed (``tool_order``), each parameter's (axis, kind, component) (``params``, (p, 3)) and its basis
+    values at the points (``basis``, (p, M)); cached per model and basis."""
+    slot = _slots(config)
+
+    def build():
+        ref = _Adjoint.layout(model, B)
+        params = np.array([(slot[ref["cols"][k][0]], ref["cols"][k][1], ref["cols"][k][2])
+                           for k in ref["col_of"]], np.int64).reshape(-1, 3)
+        return params, np.require(ref["basis"], np.float64, ["C", "W"])
+
+    params, basis = _per_basis(model, "_vjp_layout_cache", B, build, extra=config.rotary_letters)
+    return np.array([slot[a] for a in config.tool], np.int64), params, basis
+
+
 class _AdjointCompiled:
     """J^T v of the small-angle chain at fixed parameters, compiled (:func:`mtbudget.kernels.chain_vjp`), from
     what the forward pass kept; the numbers of :class:`_Adjoint` to round-off."""
 
     def __init__(self, config, model, B, args, kept):
         self.args, self.kept = args, kept
-        slot = _slots(config)
-        self.tool_order = np.array([slot[a] for a in config.tool], np.int64)
         self.N = args[7].shape[0]
-        def build():
-            ref = _Adjoint.layout(model, B)
-            params = np.array([(slot[ref["cols"][k][0]], ref["cols"][k][1], ref["cols"][k][2])
-                               for k in ref["col_of"]], np.int64).reshape(-1, 3)
-            return params, ref["basis"]
-
-        self.params, self.basis = _per_basis(model, "_vjp_layout_cache", B, build, extra=config.rotary_letters)
+        self.tool_order, self.params, self.basis = vjp_layout(config, model, B)
 
     def __call__(self, v: np.ndarray, idx=None) -> np.ndarray:
         from .kernels import chain_vjp

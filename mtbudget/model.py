@@ -181,9 +181,15 @@ class MeasurementModel:
         if "pose" in pert:
             pose = pose + pert["pose"]
         P_W = self.machine_points(theta, pert, exact=exact)
-        P = lt.to_tracker(P_W, pose)
-        if "spherical_noise" in pert:
-            P = lt.add_spherical_noise(P, pert["spherical_noise"])
+        noise = pert.get("spherical_noise")
+        if noise is not None and np.shape(noise) != P_W.shape:
+            noise = np.broadcast_to(noise, P_W.shape)
+        # to_tracker and add_spherical_noise in one compiled pass (their numbers, round-off apart)
+        from .kernels import tracker_points
+
+        req = lambda x: np.require(x, np.float64, ["C", "W"])  # noqa: E731
+        P = tracker_points(req(P_W), req(lt.rotation(pose[:, 3], pose[:, 4], pose[:, 5])), req(pose[:, :3]),
+                           req(noise) if noise is not None else np.zeros((0,) + P_W.shape[1:]), np.empty(P_W.shape))
         if "tracker_offset" in pert:
             P = P + pert["tracker_offset"]
         return P

@@ -186,3 +186,24 @@ def test_without_a_writable_cache_the_kernels_compile_in_memory(tmp_path):
     out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, cwd=tmp_path)
     assert out.returncode == 0, out.stderr[-2000:]
     assert out.stdout.split() == ["36.0", "None"]  # r = -1 per coordinate, C^-1 all ones: r.u = 3 x 3 per point
+
+
+def test_tracker_points_equal_to_tracker_then_spherical_noise():
+    """The compiled measurement step (MeasurementModel.predict) against tracker.to_tracker followed by
+    tracker.add_spherical_noise, the numpy formulation: points all round a tracker and at its centre, one pose per
+    trial or one for all, with and without noise.  (Not on its vertical axis: there the azimuth is whatever the
+    round-off of x and y makes it, in either formulation.)"""
+    from mtbudget import tracker as lt
+    from mtbudget.kernels import tracker_points
+
+    rng = np.random.default_rng(3)
+    P = rng.normal(0, 800, (6, 9, 3))
+    pose = np.c_[rng.normal(0, 300, (6, 3)), rng.normal(0, 1, (6, 3))]
+    P[:, 0] = pose[:, :3]  # the tracker's centre
+    noise = rng.normal(0, 1e-3, P.shape)
+    R = np.ascontiguousarray(lt.rotation(pose[:, 3], pose[:, 4], pose[:, 5]))
+    T = np.ascontiguousarray(pose[:, :3])
+    got = tracker_points(P, R, T, noise, np.empty(P.shape))
+    assert np.abs(got - lt.add_spherical_noise(lt.to_tracker(P, pose), noise)).max() < 1e-10
+    got = tracker_points(P, R[:1].copy(), T[:1].copy(), np.zeros((0, 9, 3)), np.empty(P.shape))
+    assert np.abs(got - lt.to_tracker(P, np.broadcast_to(pose[:1], (6, 6)))).max() < 1e-10
