@@ -555,8 +555,8 @@ def point_weights(P, angular, distance, distance_per_length, repeatability, Wh, 
     for n in range(N):
         for m in range(M):
             x, y, z = P[n, m, 0], P[n, m, 1], P[n, m, 2]
-            rho = np.hypot(x, y)
-            r = np.hypot(rho, z)
+            rho = np.sqrt(x * x + y * y)  # hypot's overflow guard is not needed at a tracker's ranges (mm)
+            r = np.sqrt(rho * rho + z * z)
             ca = x / rho if rho > 0 else 1.0
             sa = y / rho if rho > 0 else 0.0
             ce = rho / r if r > 0 else 1.0
@@ -627,7 +627,9 @@ def tracker_points(P_W, R, T, noise, out):  # pragma: no cover - compiled
     """What the tracker reads of the machine points P_W (N, M, 3), in one pass: ``tracker.to_tracker`` with the
     pose R (1 or N, 3, 3), T (1 or N, 3) (R^T (P - T)), then ``tracker.add_spherical_noise`` with the offsets
     noise (N, M, 3) (range, azimuth, elevation; an empty (0, M, 3) array: none), exactly as those functions
-    compute it (spherical coordinates, offsets added, back to Cartesian)."""
+    compute it (spherical coordinates, offsets added, back to Cartesian), round-off apart: the angles' cosines
+    and sines are taken from the coordinates and the offsets added by the addition theorems, without trigonometry
+    (a point on the tracker's vertical axis, whose azimuth is undefined, gets azimuth 0)."""
     N, M = P_W.shape[0], P_W.shape[1]
     noisy = noise.shape[0] > 0
     for n in range(N):
@@ -638,15 +640,29 @@ def tracker_points(P_W, R, T, noise, out):  # pragma: no cover - compiled
             x = d0 * Rn[0, 0] + d1 * Rn[1, 0] + d2 * Rn[2, 0]
             y = d0 * Rn[0, 1] + d1 * Rn[1, 1] + d2 * Rn[2, 1]
             z = d0 * Rn[0, 2] + d1 * Rn[1, 2] + d2 * Rn[2, 2]
-            if noisy:
-                rho = np.hypot(x, y)
-                r = np.hypot(rho, z) + noise[n, m, 0]
-                az = np.arctan2(y, x) + noise[n, m, 1]
-                el = np.arctan2(z, rho) + noise[n, m, 2]
-                ce = np.cos(el)
-                x, y, z = r * ce * np.cos(az), r * ce * np.sin(az), r * np.sin(el)
+            if noisy:  # the angles' cosines and sines from the coordinates, the offsets by the addition theorems
+                rho = np.sqrt(x * x + y * y)
+                r = np.sqrt(rho * rho + z * z)
+                ca, sa = (x / rho, y / rho) if rho > 0 else (1.0, 0.0)  # arctan2(0, 0) = 0
+                ce, se = (rho / r, z / r) if r > 0 else (1.0, 0.0)
+                cda, sda = _cos_sin(noise[n, m, 1])
+                cde, sde = _cos_sin(noise[n, m, 2])
+                ca, sa = ca * cda - sa * sda, sa * cda + ca * sda  # azimuth + its offset
+                ce, se = ce * cde - se * sde, se * cde + ce * sde  # elevation + its offset
+                r += noise[n, m, 0]
+                x, y, z = r * ce * ca, r * ce * sa, r * se
             out[n, m, 0], out[n, m, 1], out[n, m, 2] = x, y, z
     return out
+
+
+@_compiled
+def _cos_sin(d):  # pragma: no cover - compiled
+    """(cos d, sin d): by their series below 1e-3 rad (the terms left out are below 1e-22 relative: exact in double
+    precision), by the functions above."""
+    if abs(d) < 1e-3:
+        d2 = d * d
+        return 1.0 - d2 * (0.5 - d2 * (1.0 / 24.0 - d2 / 720.0)), d * (1.0 - d2 * (1.0 / 6.0 - d2 / 120.0))
+    return np.cos(d), np.sin(d)
 
 
 #: the kernels a run of the engine compiles (what :func:`compiled_here` looks for)
