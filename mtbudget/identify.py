@@ -869,12 +869,23 @@ def _identify_chunk_chord(model, meas, noise, strategy, theta, pose0, fixed, pha
     c0 = P0.mean(axis=0)
     P_fix = model.machine_points(np.zeros((1, p)), fixed) if fixed else P0[None]  # (1 or N, M, 3)
     P_nom = np.broadcast_to(P_fix, (N, M, 3))
-    pose_k = lt.register(P_nom, meas)
-    Rk = lt.rotation(pose_k[:, 3], pose_k[:, 4], pose_k[:, 5])
     all_rows = np.arange(N)
     shared = iteration_pose is not None and all(np.ndim(v) == 0 or np.shape(v)[0] == 1 for v in fixed.values())
-    if shared:  # the nominal points' information seen from the nominal pose: one matrix for every trial
+    if shared:  # the trials' nominal pose is known: the pose-only fit starts there, Kabsch only where it cannot
         pose_n = np.asarray(iteration_pose, float).reshape(1, 6)
+        pose_k = np.repeat(pose_n, N, axis=0)
+        Rk = np.repeat(lt.rotation(pose_n[:, 3], pose_n[:, 4], pose_n[:, 5]), N, axis=0)
+        registered = np.zeros(N, bool)
+    else:  # a Kabsch registration of every trial
+        pose_k = lt.register(P_nom, meas)
+        Rk = lt.rotation(pose_k[:, 3], pose_k[:, 4], pose_k[:, 5])
+        registered = np.ones(N, bool)
+
+    def register(idx):  # the Kabsch start of the trials idx, where the nominal pose was the start so far
+        pk = lt.register(P_nom[idx], meas[idx])
+        pose_k[idx], Rk[idx], registered[idx] = pk, lt.rotation(pk[:, 3], pk[:, 4], pk[:, 5]), True
+
+    if shared:  # the nominal points' information seen from the nominal pose: one matrix for every trial
         key_n = ("iteration", pose_n.tobytes(), _noise_key(noise), strategy.weighted,
                  tuple(sorted((k, np.asarray(v).tobytes()) for k, v in fixed.items())))
 
@@ -915,6 +926,14 @@ def _identify_chunk_chord(model, meas, noise, strategy, theta, pose0, fixed, pha
                                predict=predict)
 
     ok, it = chord(nom, all_rows, lambda th, rows: P_nom[rows], matrix(None), None, None, tol, fixed_points=P_fix)
+    again = np.flatnonzero(~ok & ~registered)
+    if again.size:  # started at the nominal pose and not converged from there: again from a Kabsch registration
+        register(again)
+        nom["R"][again], nom["T"][again] = Rk[again], pose_k[again, :3]
+        ok_again, it_again = chord(nom, again, lambda th, rows: P_nom[rows], matrix(None), None, None, tol,
+                                   fixed_points=P_fix)
+        ok[again] = ok_again
+        it = max(it, it_again)
     bad |= ~ok
     iters += it
     initial_error = None if kc is not None else _apply(nom["R"], meas) + nom["T"][:, None] - P_nom
@@ -975,6 +994,8 @@ def _identify_chunk_chord(model, meas, noise, strategy, theta, pose0, fixed, pha
 
     # the solution: exact residuals at the final parameters (trials left to Gauss-Newton: at their start, for now)
     theta, R, T = state["theta"], state["R"], state["T"]
+    if (bad & ~registered).any():
+        register(np.flatnonzero(bad & ~registered))
     theta[bad], R[bad], T[bad] = theta_start[bad], Rk[bad], pose_k[bad, :3]
     angles = lt.euler_from_rotation(R)
     angles = angles0 + (angles - angles0 + np.pi) % (2 * np.pi) - np.pi  # the branch nearest the start

@@ -104,3 +104,22 @@ def test_the_engine_blocks_with_the_numpy_chord(monkeypatch):
         assert np.abs(x.parameters - y.parameters).max() < 1e-6  # um, urad
         for k, v in x.scalars.items():
             assert np.abs(v - y.scalars[k]).max() < 1e-6 * max(1.0, np.abs(v).max()), k
+
+
+def test_a_tracker_far_from_the_nominal_pose_is_registered_first(rng):
+    """The engine's identification starts the pose-only fit at the nominal pose (no Kabsch registration); a trial
+    whose tracker stands elsewhere (here turned 0.5 rad about the machine's z) does not converge from there and is
+    registered and fitted again: its Eq. 27 'before' errors and its solution are Gauss-Newton's (which always
+    registers first), and nothing is lost."""
+    from mtbudget import tracker as lt
+
+    model, meas = simulate(paper_plan(), 8, rng)
+    moved = POSE + [0, 0, 0, 0, 0, 0.5]
+    P_W = lt.to_machine(meas[4:], np.broadcast_to(POSE, (4, 6)))  # the same readings, from a tracker turned
+    meas = np.concatenate([meas[:4], lt.to_tracker(P_W, np.broadcast_to(moved, (4, 6)))])
+    fast = identify(model, meas, NOISE, Strategy(), iteration_pose=POSE, groups=np.repeat([0, 1], 4))
+    ref = identify(model, meas, NOISE, Strategy(solver="gauss-newton"))
+    assert np.abs(fast.initial_error - ref.initial_error).max() < 1e-6
+    assert np.abs(fast.residual - ref.residual).max() < 1e-6
+    assert np.abs(model.machine_points(fast.theta) - model.machine_points(ref.theta)).max() < 1e-6
+    assert np.abs(fast.pose[4:, 5] - fast.pose[:4, 5] - 0.5).max() < 1e-3  # the turned trials found turned
