@@ -102,7 +102,7 @@ class Engine:
             not_converged[idx] = ~res.converged
             if res.fallback is not None:
                 fallbacks[idx] = res.fallback
-            F_id[idx] = sc.evaluate(model, res.theta)
+            F_id[idx] = sc.evaluate(model, res.theta, points=res.points)
             if fs is not None:
                 Ff_id[idx] = fs.evaluate(model, res.theta)
             out_scalars["mean_error_after"][idx] = res.mean_error_after * um

@@ -199,6 +199,9 @@ class Identification:
     scale: np.ndarray | None = None  # (p,) scale_vector(model): um per mm, urad per rad
     solver: str = "gauss-newton"
     fallback: np.ndarray | None = None  # (N,) bool: trials the chord solver handed to Gauss-Newton
+    #: (N, M, 3) the machine points at the solution, ``model.machine_points(theta)`` (the same numbers, computed once
+    #: by the chord solver for its residuals); None where the identification had fixed perturbations or another solver
+    points: np.ndarray | None = None
     # design (N, 3M, 6 + r), cov_theta (N, p, p), cov_pose (N, 6, 6): properties below, at the solution
     _at_solution: dict = field(default_factory=dict, repr=False, compare=False)
     _solution_inputs: dict | None = field(default=None, repr=False, compare=False)
@@ -250,16 +253,23 @@ class Identification:
     @property
     def mean_error_before(self):
         """Paper Eq. 27 before compensation (mm): mean distance nominal vs measured after registration."""
-        return np.linalg.norm(self.initial_error, axis=-1).mean(axis=-1)
+        return lt._norm3(self.initial_error).mean(axis=-1)
 
     @property
     def mean_error_after(self):
         """Paper Eq. 27 after compensation (mm): mean residual distance."""
-        return np.linalg.norm(self.residual, axis=-1).mean(axis=-1)
+        return self._residual_distance().mean(axis=-1)
 
     @property
     def max_residual(self):
-        return np.linalg.norm(self.residual, axis=-1).max(axis=-1)
+        return self._residual_distance().max(axis=-1)
+
+    def _residual_distance(self) -> np.ndarray:
+        """|residual| per point (N, M), computed once (the residuals are not changed after identification)."""
+        hit = self._at_solution.get("residual_distance")
+        if hit is None or hit[0] is not self.residual:
+            hit = self._at_solution["residual_distance"] = (self.residual, lt._norm3(self.residual))
+        return hit[1]
 
     @property
     def rms(self):
@@ -649,7 +659,8 @@ def identify(
         initial_error=cat("initial_error"), converged=cat("converged"),
         iterations=max(q["iterations"] for q in parts), identifiability=phases[-1][1], whitened=cat("whitened"),
         whitener=cat("whitener"), basis=phases[-1][2], scale=scale_vector(model), solver=strategy.solver,
-        fallback=cat("fallback") if chord else None)
+        fallback=cat("fallback") if chord else None,
+        points=cat("points") if all(q.get("points") is not None for q in parts) else None)
     if chord:  # design and covariances at the solution: exact, computed when first asked for
         res._solution_inputs = {"measured": meas, "fixed": fixed, "chunk": chunk}
     else:
@@ -1018,6 +1029,7 @@ def _identify_chunk_chord(model, meas, noise, strategy, theta, pose0, fixed, pha
         "theta": theta, "pose": pose, "residual": res, "residual_machine": res_m,
         "chi2": chi2, "dof": 3 * M - (6 + Q_last.shape[1]), "initial_error": initial_error,
         "converged": ~bad, "iterations": iters, "whitened": w, "whitener": Wh, "fallback": bad.copy(),
+        "points": None if fixed else P_W,
     }
     if bad.any():  # the reference path, from the same start, for the trials the chord could not finish (per label)
         for _, pos in lab.split(np.flatnonzero(bad)):
@@ -1029,6 +1041,8 @@ def _identify_chunk_chord(model, meas, noise, strategy, theta, pose0, fixed, pha
                         "whitened"):
                 out[key][idx] = gn[key]
             out["iterations"] += gn["iterations"]
+            if out["points"] is not None:
+                out["points"][idx] = evaluate(out["theta"][idx], idx)
     return out
 
 

@@ -138,11 +138,15 @@ class Scenario:
         verification's first tool."""
         return self.plan.tool[self.mesh_rows[0]] if self.measurand_tool is None else self.measurand_tool
 
-    def evaluate(self, model: MeasurementModel, theta, jacobian: bool = False):
+    def evaluate(self, model: MeasurementModel, theta, jacobian: bool = False, points=None):
         """Tool points of ``model`` with parameters ``theta`` at the mesh points and the measurand's tool: (N, M0, 3)
         (and the Jacobian (N, M0, 3, p)).  At the verification's own tool these are the plan's mesh rows; at
-        another tool the same error functions evaluated there (the verification's ranges and basis)."""
+        another tool the same error functions evaluated there (the verification's ranges and basis).  points:
+        ``model.machine_points(theta)`` when already computed (an identification's ``points``), used at the
+        verification's own tool."""
         if self.measurand_tool is None:
+            if points is not None and not jacobian:
+                return points[:, self.mesh_rows]
             out = model.machine_points(theta, jacobian=jacobian)
             return (out[0][:, self.mesh_rows], out[1][:, self.mesh_rows]) if jacobian else out[:, self.mesh_rows]
         key = ("at tool", id(model))

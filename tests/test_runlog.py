@@ -72,14 +72,15 @@ def test_verify_recomputes_bit_for_bit(logged):
 
 def test_killed_run_is_readable_and_resumes_bit_identical(tmp_path):
     path = tmp_path / "killed.mcap"
-    # long enough that it cannot end between two looks at its log (chunks of 6 blocks at 1600 trials sometimes did)
-    cmd = [sys.executable, "-m", "mtbudget", "run", str(SMALL), "--trials", "6400", "--log", str(path),
+    # long enough that it cannot end between two looks at its log (chunks of 6 blocks at 1600 trials sometimes did;
+    # 6400 trials sometimes did once the identification was compiled)
+    cmd = [sys.executable, "-m", "mtbudget", "run", str(SMALL), "--trials", "25600", "--log", str(path),
            "--attribution-trials", "0", "--quiet"]
     proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     deadline = time.time() + 120
     blocks = 0
     while time.time() < deadline and proc.poll() is None:
-        time.sleep(0.3)
+        time.sleep(0.05)
         try:
             blocks = len(read_runlog(path).blocks)
         except (RunLogError, OSError):
@@ -94,8 +95,8 @@ def test_killed_run_is_readable_and_resumes_bit_identical(tmp_path):
     res = CliRunner().invoke(main, ["replay", str(path)])
     assert res.exit_code == 0 and "INCOMPLETE" in res.output
     resumed = execute(resume_path=path, progress=False, attribution_trials=0)
-    full = run(load_config(SMALL), trials=6400, attribution_trials=0)
-    assert resumed.trials == 6400
+    full = run(load_config(SMALL), trials=25600, attribution_trials=0)
+    assert resumed.trials == 25600
     for k in SCALARS:
         assert np.array_equal(resumed.acc.scalar_samples(k), full.acc.scalar_samples(k)), k
         assert resumed.summary(k) == full.summary(k)
