@@ -173,6 +173,8 @@ class _StationsResult:
     distance between measured and compensated points: it is taken over the laser trackers' rows (an interferometer
     measures a distance, not a point), or over the range residuals when every station is an interferometer."""
 
+    points = None  # the machine points at the solution are not kept: the compensated field is evaluated anew
+
     def __init__(self, model, sc: Scenario, meas: np.ndarray, ranges: np.ndarray):
         from .multistation import identify_stations, identify_stations_batch, multilaterate
 

@@ -153,6 +153,14 @@ class VectorHistogram:
         self.over = np.zeros(first.shape[1], np.int64)
 
     def add(self, x: np.ndarray):
+        """Count the rows of x (n, K) (compiled: :func:`mtbudget.kernels.histogram_add`; :meth:`add_reference` the
+        numpy formulation it is tested against)."""
+        from .kernels import histogram_add
+
+        histogram_add(np.require(x, np.float64, ["C"]), np.require(self.low, np.float64, ["C"]),
+                      np.require(self.high, np.float64, ["C"]), int(self.bins), self.counts, self.under, self.over)
+
+    def add_reference(self, x: np.ndarray):
         f = (x - self.low) / (self.high - self.low)
         self.under += (f < 0).sum(axis=0)
         self.over += (f >= 1).sum(axis=0)

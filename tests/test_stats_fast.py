@@ -133,3 +133,19 @@ def test_a_message_is_serialised_once_with_the_same_bytes(body):
     crc = zlib.crc32(json.dumps(rest).encode(), zlib.crc32(topic.encode() + b"\n"))
     assert _with_crc(topic, body) == json.dumps({**rest, "crc32": crc}).encode()
     assert json.loads(_with_crc(topic, body))["crc32"] == crc
+
+
+def test_compiled_histogram_counts_as_the_numpy_formulation():
+    """VectorHistogram.add (compiled) against add_reference (numpy): the same counts, underflow and overflow for
+    values inside, below, above, on the edges of the range, and NaN (counted nowhere by either)."""
+    rng = np.random.default_rng(11)
+    first = rng.normal(0.0, 1.0, (64, 5))
+    a, b = VectorHistogram(first), VectorHistogram(first)
+    for x in (rng.normal(0.0, 1.0, (64, 5)), rng.normal(0.0, 3.0, (64, 5)),
+              np.array([a.low, a.high, np.nextafter(a.high, -np.inf), np.full(5, np.nan)])):
+        a.add(x)
+        b.add_reference(x)
+    np.testing.assert_array_equal(a.counts, b.counts)
+    np.testing.assert_array_equal(a.under, b.under)
+    np.testing.assert_array_equal(a.over, b.over)
+    assert a.over.sum() > 0 and a.under.sum() > 0
