@@ -69,11 +69,13 @@ def range_residual(P, idx, x, c0, meas, W, t, off, w, e):  # pragma: no cover
 
 
 @_compiled
-def xyz_gradient(wa, off, W, t, R, pj, pos, idx, c0, v, g):  # pragma: no cover
+def xyz_gradient(wa, off, W, t, R, dR, D, pos, idx, c0, v, g):  # pragma: no cover
     """A laser tracker's part of A^T w for trials ``t``: b = W^T w per row; R b added to the machine-frame vectors
-    ``v`` (k, M, 3) at its rows (the chain's J^T v takes them) and pj^T b summed over its rows into the pose's
-    columns c0..c0+5 of ``g`` (k, n).  R (K, 3, 3) and pj (K, m, 3, 6): the pose's rotation and the pose Jacobian
-    of the prediction where the stage began, row pos[j] for trial j."""
+    ``v`` (k, M, 3) at its rows (the chain's J^T v takes them) and the pose Jacobian's transpose times b summed over
+    its rows into the pose's columns c0..c0+5 of ``g`` (k, n): -R b for the translation (the prediction is
+    R^T (P - T)) and (dR_a b).(P - T) for each angle a.  R (K, 3, 3), dR (K, 3, 3, 3) (dR[s, a] = dR / d angle a) and
+    D (K, m, 3) = P - T: the pose's rotation, its derivatives and the station-frame lever of every row where the stage
+    began, row pos[j] for trial j (what :func:`mtbudget.tracker.pose_jacobian` holds, without forming it)."""
     k, m = wa.shape[0], idx.shape[0]
     for j in range(k):
         i, s = t[j], pos[j]
@@ -84,9 +86,14 @@ def xyz_gradient(wa, off, W, t, R, pj, pos, idx, c0, v, g):  # pragma: no cover
             b2 = W[i, r, 0, 2] * w0 + W[i, r, 1, 2] * w1 + W[i, r, 2, 2] * w2
             p = idx[r]
             for c in range(3):
-                v[j, p, c] += R[s, c, 0] * b0 + R[s, c, 1] * b1 + R[s, c, 2] * b2
-            for col in range(6):
-                g[j, c0 + col] += pj[s, r, 0, col] * b0 + pj[s, r, 1, col] * b1 + pj[s, r, 2, col] * b2
+                rb = R[s, c, 0] * b0 + R[s, c, 1] * b1 + R[s, c, 2] * b2
+                v[j, p, c] += rb
+                g[j, c0 + c] -= rb
+            d0, d1, d2 = D[s, r, 0], D[s, r, 1], D[s, r, 2]
+            for a in range(3):
+                g[j, c0 + 3 + a] += ((dR[s, a, 0, 0] * b0 + dR[s, a, 0, 1] * b1 + dR[s, a, 0, 2] * b2) * d0
+                                     + (dR[s, a, 1, 0] * b0 + dR[s, a, 1, 1] * b1 + dR[s, a, 1, 2] * b2) * d1
+                                     + (dR[s, a, 2, 0] * b0 + dR[s, a, 2, 1] * b1 + dR[s, a, 2, 2] * b2) * d2)
 
 
 @_compiled
