@@ -239,8 +239,9 @@ def _station_basis(sc: Scenario, model, fixed, hold) -> tuple:
         xyz, ranges = measure_stations(sc, sc.truth.machine_points(sc.theta[None, :], truth), truth)
         b = identify_stations_batch(model, sc.stations, sc.row_station, xyz, ranges, sc.noise.repeatability,
                                     fixed=fixed, hold=hold, max_iter=1)
-        # with the chord's shared iteration matrix from the same Jacobian (used when nothing is fixed: [scales])
-        return model, chord_basis(b)  # the model is kept beside its basis (its id)
+        # with the chord's shared iteration matrix from the same Jacobian (used when nothing is fixed: [scales]);
+        # the model is kept beside its basis (its id)
+        return model, chord_basis(b, model, sc.stations, sc.row_station, hold=hold, fixed=fixed)
 
     return sc.cached(("station basis", id(model)), make)[1]
 

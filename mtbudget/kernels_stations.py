@@ -69,31 +69,74 @@ def range_residual(P, idx, x, c0, meas, W, t, off, w, e):  # pragma: no cover
 
 
 @_compiled
-def xyz_gradient(wa, off, W, t, R, dR, D, pos, idx, c0, v, g):  # pragma: no cover
-    """A laser tracker's part of A^T w for trials ``t``: b = W^T w per row; R b added to the machine-frame vectors
-    ``v`` (k, M, 3) at its rows (the chain's J^T v takes them) and the pose Jacobian's transpose times b summed over
-    its rows into the pose's columns c0..c0+5 of ``g`` (k, n): -R b for the translation (the prediction is
-    R^T (P - T)) and (dR_a b).(P - T) for each angle a.  R (K, 3, 3), dR (K, 3, 3, 3) (dR[s, a] = dR / d angle a) and
-    D (K, m, 3) = P - T: the pose's rotation, its derivatives and the station-frame lever of every row where the stage
-    began, row pos[j] for trial j (what :func:`mtbudget.tracker.pose_jacobian` holds, without forming it)."""
+def xyz_gradient(wa, off, W, t, R, P, idx, cen, c0, v, g):  # pragma: no cover
+    """A laser tracker's part of A^T w for trials ``t``, its pose as a small rigid motion of the station (translation
+    t, then rotation w about ``cen``: the chord's coordinates): b = W^T w per row, R b added to the machine-frame
+    vectors ``v`` (k, M, 3) at its rows (the chain's J^T v takes them), and into the pose's columns c0..c0+5 of ``g``
+    (k, n): -R b for the translation and (R b) x (P - cen) for the rotation (the prediction R^T (P - T) moves by
+    R^T (-t + (P - cen) x w)).  R (k, 3, 3) each trial's rotation, P (k, M, 3) its machine points, row j for trial j;
+    W (N, m, 3, 3) the whiteners of every trial, row t[j] for trial j."""
     k, m = wa.shape[0], idx.shape[0]
     for j in range(k):
-        i, s = t[j], pos[j]
+        i = t[j]
         for r in range(m):
             w0, w1, w2 = wa[j, off + 3 * r], wa[j, off + 3 * r + 1], wa[j, off + 3 * r + 2]
             b0 = W[i, r, 0, 0] * w0 + W[i, r, 1, 0] * w1 + W[i, r, 2, 0] * w2
             b1 = W[i, r, 0, 1] * w0 + W[i, r, 1, 1] * w1 + W[i, r, 2, 1] * w2
             b2 = W[i, r, 0, 2] * w0 + W[i, r, 1, 2] * w1 + W[i, r, 2, 2] * w2
             p = idx[r]
+            q0 = R[j, 0, 0] * b0 + R[j, 0, 1] * b1 + R[j, 0, 2] * b2
+            q1 = R[j, 1, 0] * b0 + R[j, 1, 1] * b1 + R[j, 1, 2] * b2
+            q2 = R[j, 2, 0] * b0 + R[j, 2, 1] * b1 + R[j, 2, 2] * b2
+            v[j, p, 0] += q0
+            v[j, p, 1] += q1
+            v[j, p, 2] += q2
+            d0, d1, d2 = P[j, p, 0] - cen[0], P[j, p, 1] - cen[1], P[j, p, 2] - cen[2]
+            g[j, c0] -= q0
+            g[j, c0 + 1] -= q1
+            g[j, c0 + 2] -= q2
+            g[j, c0 + 3] += q1 * d2 - q2 * d1
+            g[j, c0 + 4] += q2 * d0 - q0 * d2
+            g[j, c0 + 5] += q0 * d1 - q1 * d0
+
+
+@_compiled
+def rigid_step(R, x, z, c0, cen):  # pragma: no cover
+    """A laser tracker's pose moved by the chord's step, trial by trial: z (k, 6) the translation t (mm) then the
+    rotation vector w (rad) about ``cen``; R (k, 3, 3) <- Rot(w) R and T = x[:, c0:c0+3] <- Rot(w) (T - cen) + cen + t,
+    Rot(w) the exact rotation (Rodrigues, its series below |w| = 1e-6 rad)."""
+    k = R.shape[0]
+    Rot = np.empty((3, 3))
+    Rn = np.empty((3, 3))
+    for j in range(k):
+        o0, o1, o2 = z[j, 3], z[j, 4], z[j, 5]
+        t2 = o0 * o0 + o1 * o1 + o2 * o2
+        if t2 < 1e-12:
+            a = 1.0 - t2 / 6.0
+            b = 0.5 - t2 / 24.0
+        else:
+            th = math.sqrt(t2)
+            a = math.sin(th) / th
+            b = (1.0 - math.cos(th)) / t2
+        # Rot = I + a [w]x + b [w]x^2, [w]x^2 = w w^T - |w|^2 I
+        Rot[0, 0] = 1.0 + b * (o0 * o0 - t2)
+        Rot[1, 1] = 1.0 + b * (o1 * o1 - t2)
+        Rot[2, 2] = 1.0 + b * (o2 * o2 - t2)
+        Rot[0, 1] = -a * o2 + b * o0 * o1
+        Rot[1, 0] = a * o2 + b * o0 * o1
+        Rot[0, 2] = a * o1 + b * o0 * o2
+        Rot[2, 0] = -a * o1 + b * o0 * o2
+        Rot[1, 2] = -a * o0 + b * o1 * o2
+        Rot[2, 1] = a * o0 + b * o1 * o2
+        for r in range(3):
             for c in range(3):
-                rb = R[s, c, 0] * b0 + R[s, c, 1] * b1 + R[s, c, 2] * b2
-                v[j, p, c] += rb
-                g[j, c0 + c] -= rb
-            d0, d1, d2 = D[s, r, 0], D[s, r, 1], D[s, r, 2]
-            for a in range(3):
-                g[j, c0 + 3 + a] += ((dR[s, a, 0, 0] * b0 + dR[s, a, 0, 1] * b1 + dR[s, a, 0, 2] * b2) * d0
-                                     + (dR[s, a, 1, 0] * b0 + dR[s, a, 1, 1] * b1 + dR[s, a, 1, 2] * b2) * d1
-                                     + (dR[s, a, 2, 0] * b0 + dR[s, a, 2, 1] * b1 + dR[s, a, 2, 2] * b2) * d2)
+                Rn[r, c] = Rot[r, 0] * R[j, 0, c] + Rot[r, 1] * R[j, 1, c] + Rot[r, 2] * R[j, 2, c]
+        for r in range(3):
+            for c in range(3):
+                R[j, r, c] = Rn[r, c]
+        e0, e1, e2 = x[j, c0] - cen[0], x[j, c0 + 1] - cen[1], x[j, c0 + 2] - cen[2]
+        for r in range(3):
+            x[j, c0 + r] = Rot[r, 0] * e0 + Rot[r, 1] * e1 + Rot[r, 2] * e2 + cen[r] + z[j, r]
 
 
 @_compiled
@@ -112,19 +155,6 @@ def range_gradient(wa, off, W, t, U, pos, idx, c0, v, g):  # pragma: no cover
                 v[j, p, q] += uc
                 g[j, c0 + q] -= uc
             g[j, c0 + 3] += c
-
-
-@_compiled
-def back_whiten_xyz(wa, off, W, t, c):  # pragma: no cover
-    """W^T w of a laser tracker's rows for trials ``t`` into ``c`` (k, n_res) from column ``off``: what the chord's
-    first stage multiplies with the noise-free Jacobian before whitening."""
-    k, m = wa.shape[0], W.shape[1]
-    for j in range(k):
-        i = t[j]
-        for r in range(m):
-            w0, w1, w2 = wa[j, off + 3 * r], wa[j, off + 3 * r + 1], wa[j, off + 3 * r + 2]
-            for q in range(3):
-                c[j, off + 3 * r + q] = W[i, r, 0, q] * w0 + W[i, r, 1, q] * w1 + W[i, r, 2, q] * w2
 
 
 @_compiled

@@ -235,6 +235,7 @@ def test_the_station_kernels_equal_the_numpy_residuals_and_the_exact_gradient(mo
     t = np.array([4, 1, 3])  # trials out of order, a subset
     w_ref, raw_ref, A = got["evaluate"](x[t], t, jacobian=True)
     P = model.machine_points(x[t][:, :p])
+    P0 = model.machine_points(np.zeros((1, p)))[0]
     xt = np.ascontiguousarray(x[t])
     w = np.empty_like(w_ref)
     v, g = np.zeros((3, model.n_points, 3)), np.zeros_like(xt)
@@ -253,15 +254,19 @@ def test_the_station_kernels_equal_the_numpy_residuals_and_the_exact_gradient(mo
         assert np.abs(e - e_ref).max() < 1e-12  # mm
         off += e[0].size
     assert np.abs(w - w_ref).max() < 1e-9 * np.abs(w_ref).max()
+    # the gradient: the chain's part against A^T w from the exact Jacobian; a laser tracker's pose, moved by a small
+    # rigid motion of the station (the chord's coordinates), against central differences of the numpy residuals
+    # along ks.rigid_step
     off = 0
+    centre = {}
     for st, idx, W, sl in got["blocks"]:
         idx = np.ascontiguousarray(idx, np.int64)
         W, pos = np.ascontiguousarray(W), np.arange(3)
         if st.kind == "xyz":
             pose = xt[:, sl]
             R = np.ascontiguousarray(lt.rotation(pose[:, 3], pose[:, 4], pose[:, 5]))
-            D = np.ascontiguousarray(P[:, idx] - pose[:, None, :3])
-            ks.xyz_gradient(w, off, W, t, R, ms.rotation_derivatives(pose[:, 3:]), D, pos, idx, sl.start, v, g)
+            centre[sl.start] = cen = np.ascontiguousarray(P0[idx].mean(axis=0))
+            ks.xyz_gradient(w, off, W, t, R, np.ascontiguousarray(P), idx, cen, sl.start, v, g)
             off += 3 * len(idx)
         else:
             d = P[:, idx] - xt[:, None, sl.start:sl.start + 3]
@@ -270,7 +275,25 @@ def test_the_station_kernels_equal_the_numpy_residuals_and_the_exact_gradient(mo
             off += len(idx)
     g[:, :p] = adjoint(v)
     ref = np.einsum("kri,kr->ki", A, w)  # A^T w from the exact whitened Jacobian (scaled unknowns)
-    assert np.abs(g / sv - ref).max() < 1e-9 * np.abs(ref).max()
+    rigid = np.zeros(g.shape[1], bool)
+    for c0 in centre:
+        rigid[c0:c0 + 6] = True
+    assert np.abs((g / sv - ref)[:, ~rigid]).max() < 1e-9 * np.abs(ref).max()
+    for c0, cen in centre.items():
+        for k in range(6):
+            h = 1e-4 if k < 3 else 1e-7  # mm, rad
+            diff = []
+            for sign in (1, -1):
+                xk = xt.copy()
+                Rk = np.ascontiguousarray(lt.rotation(xk[:, c0 + 3], xk[:, c0 + 4], xk[:, c0 + 5]))
+                z = np.zeros((3, 6))
+                z[:, k] = sign * h
+                ks.rigid_step(Rk, xk, z, c0, cen)
+                xk[:, c0 + 3:c0 + 6] = lt.euler_from_rotation(Rk)
+                diff.append(got["evaluate"](xk, t, jacobian=False)[0])
+            dw = (diff[0] - diff[1]) / (2 * h)  # d(whitened residual) = -d(whitened prediction)
+            fd = -(dw * w).sum(axis=1)
+            assert np.abs(g[:, c0 + k] - fd).max() < 1e-6 * np.abs(fd).max(), (c0, k)
 
 
 def test_several_stations_with_stated_scales_take_the_reference_batch():
