@@ -48,6 +48,10 @@ from .units import display, shown_unit
 
 #: scaled unknowns: a station position and a dead-path offset in um (mm -> um)
 UM_PER_MM = 1e3
+#: the most trials one call of the several-station chord iterates together: its working set (every trial's machine
+#: points, whiteners and the chain's adjoint) then stays in cache (measured on one station: 0.101 ms per trial in
+#: calls of 256 trials, 0.108 in calls of 1024, 0.127 in calls of 64); a trial's result does not depend on it
+CHORD_CHUNK = 256
 RIGID_FREEDOMS = ("translation along X", "translation along Y", "translation along Z", "rotation about X",
                   "rotation about Y", "rotation about Z")
 
@@ -502,6 +506,14 @@ def identify_stations_batch(model: MeasurementModel, stations: list, row_station
                                       np.repeat(lt_range, 2, axis=0), repeatability, fixed=fixed, max_iter=max_iter,
                                       xtol=xtol, rank_tol=rank_tol, hold=hold, basis=basis)
         return {k: (v[:1] if isinstance(v, np.ndarray) and v.ndim and v.shape[0] == 2 else v) for k, v in two.items()}
+    N = np.shape(lt_xyz)[0]
+    if basis is not None and len(basis) == 5 and not fixed and N > CHORD_CHUNK:  # the chord's working set in cache
+        parts = [identify_stations_batch(model, stations, row_station, lt_xyz[lo:lo + CHORD_CHUNK],
+                                         lt_range[lo:lo + CHORD_CHUNK], repeatability, max_iter=max_iter, xtol=xtol,
+                                         rank_tol=rank_tol, hold=hold, basis=basis, chord_bias=chord_bias)
+                 for lo in range(0, N, CHORD_CHUNK)]
+        return {k: (np.concatenate([q[k] for q in parts]) if isinstance(v, np.ndarray) and v.ndim and
+                    v.shape[0] == len(lt_xyz[:CHORD_CHUNK]) else v) for k, v in parts[0].items()}
     fixed = dict(fixed or {})
     lt_xyz = np.asarray(lt_xyz, float)
     lt_range = np.asarray(lt_range, float)

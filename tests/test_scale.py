@@ -218,6 +218,36 @@ def test_several_stations_with_one_shared_matrix_agree_with_identify_stations(st
 STEPS_ONE_STATION = 7
 
 
+def test_the_several_station_chord_in_pieces_gives_the_same_bits(monkeypatch):
+    """More trials than multistation.CHORD_CHUNK are iterated in pieces (the working set kept in cache): every result
+    equals that of one call over all of them, bit for bit (a piece of one trial included: 301 = 3 x 100 + 1)."""
+    import tomllib
+
+    import mtbudget.multistation as ms
+    from mtbudget.config import bundled_config, parse_config
+    from mtbudget.engine import _station_basis
+
+    d = tomllib.loads(bundled_config("four_stations").read_text())
+    d["stations"] = d["stations"][:1] + d["stations"][2:3]  # a tracker and an interferometer
+    sc = build_scenario(parse_config(d))
+    sim = Engine(sc, block=301, seed=5).simulate(0)
+    model, hold = sc.id_model, sc.unidentifiable(sc.id_model)
+    basis = _station_basis(sc, model, None, hold)
+
+    def batch():
+        return ms.identify_stations_batch(model, sc.stations, sc.row_station, sim[0], sim.ranges,
+                                          sc.noise.repeatability, hold=hold, basis=basis)
+
+    monkeypatch.setattr(ms, "CHORD_CHUNK", 100)
+    pieces = batch()
+    monkeypatch.setattr(ms, "CHORD_CHUNK", 10**6)
+    whole = batch()
+    assert sorted(pieces) == sorted(whole) and pieces["dof"] == whole["dof"]
+    for k, v in whole.items():
+        if isinstance(v, np.ndarray):
+            assert v.shape[0] == 301 and np.array_equal(pieces[k], v, equal_nan=True), k
+
+
 def test_one_station_poses_the_one_tracker_identification_problem():
     """A [[stations]] list of one laser tracker states the identification [tracker] states: the same unknowns (its
     pose and the geometric parameters), weights, datum (what one tracker cannot identify held at zero) and degrees of
