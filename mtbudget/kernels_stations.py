@@ -2,15 +2,17 @@
 
 :func:`mtbudget.multistation._batch_chord` iterates every trial with one shared matrix; what is left per
 iteration is, per station, the whitened residual of its rows (a laser tracker's R^T (P - T) against its
-measured points, an interferometer's |P - S| + o against its ranges) and, in the chord's second stage, the
-trial's exact gradient A^T w: the machine-frame vectors the chain's ``J^T v`` takes
-(:func:`mtbudget.kernels.chain_vjp`) plus the columns of the station's own unknowns.  In numpy these are
-a dozen passes over (trials, rows, 3, 3) arrays each; here one pass per trial and row.
+measured points, an interferometer's |P - S| + o against its ranges), the trial's gradient A^T w: the
+machine-frame vectors the chain's ``J^T v`` takes (:func:`mtbudget.kernels.chain_vjp`) plus the columns of the
+station's own unknowns (a laser tracker's pose as a small rigid motion of the station), and the step of a laser
+tracker's pose (:func:`rigid_step`).  In numpy these are a dozen passes over (trials, rows, 3, 3) arrays each;
+here one pass per trial and row.
 
 Every number a trial gets depends on that trial's inputs only (no reduction across trials): results do not
-depend on how trials are grouped.  The numpy formulations are the references they are tested against
-(``multistation.identify_stations_batch``'s ``evaluate`` for the residuals; ``tests/test_scale.py`` writes the
-gradient's from the exact Jacobian).  Only plain float64 and int64 arrays cross this boundary.
+depend on how trials are grouped.  The references they are tested against (``tests/test_scale.py``):
+``multistation.identify_stations_batch``'s ``evaluate`` for the residuals, the exact Jacobian for the chain's and an
+interferometer's gradient, central differences along :func:`rigid_step` for a tracker's pose, scipy's rotation
+of a rotation vector for :func:`rigid_step`.  Only plain float64 and int64 arrays cross this boundary.
 """
 
 from __future__ import annotations

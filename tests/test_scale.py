@@ -218,6 +218,33 @@ def test_several_stations_with_one_shared_matrix_agree_with_identify_stations(st
 STEPS_ONE_STATION = 7
 
 
+def test_a_tracker_step_is_an_exact_rigid_motion_about_the_centre():
+    """kernels_stations.rigid_step against scipy's rotation of a rotation vector (a second implementation): the new
+    rotation is Rot(w) R, the new position Rot(w) (T - c) + c + t, for rotations of 1e-9 to 0.3 rad (the series
+    below 1e-6 rad and Rodrigues above), to 1e-15 and 1e-12 mm."""
+    from scipy.spatial.transform import Rotation
+
+    from mtbudget import tracker as lt
+    from mtbudget.kernels_stations import rigid_step
+
+    rng = np.random.default_rng(8)
+    k = 8
+    angles = rng.normal(0, 0.5, (k, 3))
+    R = np.ascontiguousarray(lt.rotation(angles[:, 0], angles[:, 1], angles[:, 2]))
+    x = rng.normal(0, 1000, (k, 9))  # the pose's translation at columns 2..4
+    om = rng.normal(size=(k, 3))
+    om *= (np.logspace(-9, np.log10(0.3), k) / np.linalg.norm(om, axis=1))[:, None]
+    z = np.ascontiguousarray(np.concatenate([rng.normal(0, 0.01, (k, 3)), om], axis=1))
+    cen = np.array([1000.0, 300.0, 300.0])
+    R1, x1 = R.copy(), x.copy()
+    rigid_step(R1, x1, z, 2, cen)
+    Rot = Rotation.from_rotvec(om).as_matrix()
+    assert np.abs(R1 - Rot @ R).max() < 1e-15
+    T = (Rot @ (x[:, 2:5] - cen)[:, :, None])[:, :, 0] + cen + z[:, :3]
+    assert np.abs(x1[:, 2:5] - T).max() < 1e-12
+    assert np.array_equal(np.delete(x1, [2, 3, 4], axis=1), np.delete(x, [2, 3, 4], axis=1))  # the rest untouched
+
+
 def test_the_several_station_chord_in_pieces_gives_the_same_bits(monkeypatch):
     """More trials than multistation.CHORD_CHUNK are iterated in pieces (the working set kept in cache): every result
     equals that of one call over all of them, bit for bit (a piece of one trial included: 301 = 3 x 100 + 1)."""
