@@ -20,7 +20,7 @@ Configurations are the built-in ``paper_xfyz.toml`` with one thing changed:
   ``[[stations]]``, and the paper configuration's ``[tracker]`` (the same station), 64 -> 320 trials,
   ``--attribution-trials 0``.
 * ``engine-stations``: the same three configurations in process (``Engine.run_blocks`` of 4 blocks of 64 trials,
-  best of ``--rounds``, CPU): the identification's cost without the command's fixed cost, which makes the slope of
+  CPU, the three alternated in each of ``--rounds`` rounds; each round's ratios, their median and the best times): the identification's cost without the command's fixed cost, which makes the slope of
   short runs noisy on a loaded machine.
 * ``chunks``: in process, ``runner.run`` of the built-in configuration, 4096 trials, ``attribution_trials=0``,
   with ``chunk_blocks`` 4, 8, 16, 32 alternated, CPU per trial (the rule ``runner.auto_chunk_blocks`` is chosen
@@ -159,15 +159,22 @@ def main():
             engs = {k: Engine(build_scenario(load_config(c)), block=64, seed=3) for k, c in cfgs.items()}
             for e in engs.values():
                 e.run_blocks([0])
-            best = {}
-            for _ in range(args.rounds):
+            per = {k: [] for k in engs}  # CPU per trial of every round, the arms alternated within a round
+            for r in range(args.rounds):
                 for k, e in engs.items():
                     c = time.process_time()
                     e.run_blocks([1, 2, 3, 4])
-                    best[k] = min(best.get(k, float("inf")), (time.process_time() - c) / 256)
-            print(f"engine-stations ({load()}): " + ", ".join(f"{k} {v * 1e3:.3f} ms/trial" for k, v in best.items())
-                  + f"; one [[stations]] / [tracker] {best['one [[stations]]'] / best['[tracker]']:.2f}x, four / "
-                  f"[tracker] {best['four'] / best['[tracker]']:.2f}x", flush=True)
+                    per[k].append((time.process_time() - c) / 256)
+                print(f"engine-stations round {r + 1} ({load()}): " + ", ".join(f"{k} {v[-1] * 1e3:.3f} ms/trial"
+                                                                               for k, v in per.items())
+                      + f"; one [[stations]] / [tracker] {per['one [[stations]]'][-1] / per['[tracker]'][-1]:.2f}x, "
+                      f"four / [tracker] {per['four'][-1] / per['[tracker]'][-1]:.2f}x", flush=True)
+            best = {k: min(v) for k, v in per.items()}
+            one = statistics.median(a / b for a, b in zip(per["one [[stations]]"], per["[tracker]"]))
+            four_ = statistics.median(a / b for a, b in zip(per["four"], per["[tracker]"]))
+            print(f"engine-stations ({load()}): best " + ", ".join(f"{k} {v * 1e3:.3f} ms/trial" for k, v in best.items())
+                  + f"; median of the rounds' ratios: one [[stations]] / [tracker] {one:.2f}x, four / [tracker] "
+                  f"{four_:.2f}x", flush=True)
         if "chunks" in what:
             from mtbudget.config import load_config  # noqa: PLC0415
             from mtbudget.runner import run  # noqa: PLC0415

@@ -85,14 +85,22 @@ class Engine:
         fs = self.features
         Ff_id = None if fs is None else np.empty((nb * n, len(fs.points), 3))  # identified machine at the features
         um = self._um
+        calls: dict = {}  # one identification call per setting: {call: (model, strategy, the trials' keys)}
         for key in np.unique(keys):
-            idx = np.flatnonzero(keys == key)
             settings: dict = {}
             rem = int(key)
             for _, opts in reversed(options):
                 settings.update(opts[rem % len(opts)])
                 rem //= len(opts)
             model, strategy = self._identification_setup(settings)
+            # [[stations]]: the identification over several stations takes the model only (its own solver and
+            # tolerances: the strategy's phases, xtol and max_iter do not apply), so the settings that differ in
+            # the strategy alone are one call, not one each (a trial's result does not depend on the trials
+            # identified with it: the same bits, a quarter of the per-call cost with the default sources)
+            call = ("model", id(model)) if sc.stations else key
+            calls.setdefault(call, (model, strategy, []))[2].append(key)
+        for model, strategy, group in calls.values():
+            idx = np.flatnonzero(np.isin(keys, group))
             if sc.stations:
                 ranges = np.concatenate([s.ranges for s in sims]) if nb > 1 else sims[0].ranges
                 res = _StationsResult(model, sc, meas[idx], ranges[idx])
@@ -233,8 +241,9 @@ def _station_basis(sc: Scenario, model, fixed, hold) -> tuple:
         xyz, ranges = measure_stations(sc, sc.truth.machine_points(sc.theta[None, :], truth), truth)
         b = identify_stations_batch(model, sc.stations, sc.row_station, xyz, ranges, sc.noise.repeatability,
                                     fixed=fixed, hold=hold, max_iter=1)
-        # with the chord's shared iteration matrix from the same Jacobian (used when nothing is fixed: [scales])
-        return model, chord_basis(b)  # the model is kept beside its basis (its id)
+        # with the chord's shared iteration matrix from the same Jacobian (used when nothing is fixed: [scales]);
+        # the model is kept beside its basis (its id)
+        return model, chord_basis(b, model, sc.stations, sc.row_station, hold=hold, fixed=fixed)
 
     return sc.cached(("station basis", id(model)), make)[1]
 

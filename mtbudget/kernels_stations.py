@@ -2,15 +2,17 @@
 
 :func:`mtbudget.multistation._batch_chord` iterates every trial with one shared matrix; what is left per
 iteration is, per station, the whitened residual of its rows (a laser tracker's R^T (P - T) against its
-measured points, an interferometer's |P - S| + o against its ranges) and, in the chord's second stage, the
-trial's exact gradient A^T w: the machine-frame vectors the chain's ``J^T v`` takes
-(:func:`mtbudget.kernels.chain_vjp`) plus the columns of the station's own unknowns.  In numpy these are
-a dozen passes over (trials, rows, 3, 3) arrays each; here one pass per trial and row.
+measured points, an interferometer's |P - S| + o against its ranges), the trial's gradient A^T w: the
+machine-frame vectors the chain's ``J^T v`` takes (:func:`mtbudget.kernels.chain_vjp`) plus the columns of the
+station's own unknowns (a laser tracker's pose as a small rigid motion of the station), and the step of a laser
+tracker's pose (:func:`rigid_step`).  In numpy these are a dozen passes over (trials, rows, 3, 3) arrays each;
+here one pass per trial and row.
 
 Every number a trial gets depends on that trial's inputs only (no reduction across trials): results do not
-depend on how trials are grouped.  The numpy formulations are the references they are tested against
-(``multistation.identify_stations_batch``'s ``evaluate`` for the residuals; ``tests/test_scale.py`` writes the
-gradient's from the exact Jacobian).  Only plain float64 and int64 arrays cross this boundary.
+depend on how trials are grouped.  The references they are tested against (``tests/test_scale.py``):
+``multistation.identify_stations_batch``'s ``evaluate`` for the residuals, the exact Jacobian for the chain's and an
+interferometer's gradient, central differences along :func:`rigid_step` for a tracker's pose, scipy's rotation
+of a rotation vector for :func:`rigid_step`.  Only plain float64 and int64 arrays cross this boundary.
 """
 
 from __future__ import annotations
@@ -69,24 +71,74 @@ def range_residual(P, idx, x, c0, meas, W, t, off, w, e):  # pragma: no cover
 
 
 @_compiled
-def xyz_gradient(wa, off, W, t, R, pj, pos, idx, c0, v, g):  # pragma: no cover
-    """A laser tracker's part of A^T w for trials ``t``: b = W^T w per row; R b added to the machine-frame vectors
-    ``v`` (k, M, 3) at its rows (the chain's J^T v takes them) and pj^T b summed over its rows into the pose's
-    columns c0..c0+5 of ``g`` (k, n).  R (K, 3, 3) and pj (K, m, 3, 6): the pose's rotation and the pose Jacobian
-    of the prediction where the stage began, row pos[j] for trial j."""
+def xyz_gradient(wa, off, W, t, R, P, idx, cen, c0, v, g):  # pragma: no cover
+    """A laser tracker's part of A^T w for trials ``t``, its pose as a small rigid motion of the station (translation
+    t, then rotation w about ``cen``: the chord's coordinates): b = W^T w per row, R b added to the machine-frame
+    vectors ``v`` (k, M, 3) at its rows (the chain's J^T v takes them), and into the pose's columns c0..c0+5 of ``g``
+    (k, n): -R b for the translation and (R b) x (P - cen) for the rotation (the prediction R^T (P - T) moves by
+    R^T (-t + (P - cen) x w)).  R (k, 3, 3) each trial's rotation, P (k, M, 3) its machine points, row j for trial j;
+    W (N, m, 3, 3) the whiteners of every trial, row t[j] for trial j."""
     k, m = wa.shape[0], idx.shape[0]
     for j in range(k):
-        i, s = t[j], pos[j]
+        i = t[j]
         for r in range(m):
             w0, w1, w2 = wa[j, off + 3 * r], wa[j, off + 3 * r + 1], wa[j, off + 3 * r + 2]
             b0 = W[i, r, 0, 0] * w0 + W[i, r, 1, 0] * w1 + W[i, r, 2, 0] * w2
             b1 = W[i, r, 0, 1] * w0 + W[i, r, 1, 1] * w1 + W[i, r, 2, 1] * w2
             b2 = W[i, r, 0, 2] * w0 + W[i, r, 1, 2] * w1 + W[i, r, 2, 2] * w2
             p = idx[r]
+            q0 = R[j, 0, 0] * b0 + R[j, 0, 1] * b1 + R[j, 0, 2] * b2
+            q1 = R[j, 1, 0] * b0 + R[j, 1, 1] * b1 + R[j, 1, 2] * b2
+            q2 = R[j, 2, 0] * b0 + R[j, 2, 1] * b1 + R[j, 2, 2] * b2
+            v[j, p, 0] += q0
+            v[j, p, 1] += q1
+            v[j, p, 2] += q2
+            d0, d1, d2 = P[j, p, 0] - cen[0], P[j, p, 1] - cen[1], P[j, p, 2] - cen[2]
+            g[j, c0] -= q0
+            g[j, c0 + 1] -= q1
+            g[j, c0 + 2] -= q2
+            g[j, c0 + 3] += q1 * d2 - q2 * d1
+            g[j, c0 + 4] += q2 * d0 - q0 * d2
+            g[j, c0 + 5] += q0 * d1 - q1 * d0
+
+
+@_compiled
+def rigid_step(R, x, z, c0, cen):  # pragma: no cover
+    """A laser tracker's pose moved by the chord's step, trial by trial: z (k, 6) the translation t (mm) then the
+    rotation vector w (rad) about ``cen``; R (k, 3, 3) <- Rot(w) R and T = x[:, c0:c0+3] <- Rot(w) (T - cen) + cen + t,
+    Rot(w) the exact rotation (Rodrigues, its series below |w| = 1e-6 rad)."""
+    k = R.shape[0]
+    Rot = np.empty((3, 3))
+    Rn = np.empty((3, 3))
+    for j in range(k):
+        o0, o1, o2 = z[j, 3], z[j, 4], z[j, 5]
+        t2 = o0 * o0 + o1 * o1 + o2 * o2
+        if t2 < 1e-12:
+            a = 1.0 - t2 / 6.0
+            b = 0.5 - t2 / 24.0
+        else:
+            th = math.sqrt(t2)
+            a = math.sin(th) / th
+            b = (1.0 - math.cos(th)) / t2
+        # Rot = I + a [w]x + b [w]x^2, [w]x^2 = w w^T - |w|^2 I
+        Rot[0, 0] = 1.0 + b * (o0 * o0 - t2)
+        Rot[1, 1] = 1.0 + b * (o1 * o1 - t2)
+        Rot[2, 2] = 1.0 + b * (o2 * o2 - t2)
+        Rot[0, 1] = -a * o2 + b * o0 * o1
+        Rot[1, 0] = a * o2 + b * o0 * o1
+        Rot[0, 2] = a * o1 + b * o0 * o2
+        Rot[2, 0] = -a * o1 + b * o0 * o2
+        Rot[1, 2] = -a * o0 + b * o1 * o2
+        Rot[2, 1] = a * o0 + b * o1 * o2
+        for r in range(3):
             for c in range(3):
-                v[j, p, c] += R[s, c, 0] * b0 + R[s, c, 1] * b1 + R[s, c, 2] * b2
-            for col in range(6):
-                g[j, c0 + col] += pj[s, r, 0, col] * b0 + pj[s, r, 1, col] * b1 + pj[s, r, 2, col] * b2
+                Rn[r, c] = Rot[r, 0] * R[j, 0, c] + Rot[r, 1] * R[j, 1, c] + Rot[r, 2] * R[j, 2, c]
+        for r in range(3):
+            for c in range(3):
+                R[j, r, c] = Rn[r, c]
+        e0, e1, e2 = x[j, c0] - cen[0], x[j, c0 + 1] - cen[1], x[j, c0 + 2] - cen[2]
+        for r in range(3):
+            x[j, c0 + r] = Rot[r, 0] * e0 + Rot[r, 1] * e1 + Rot[r, 2] * e2 + cen[r] + z[j, r]
 
 
 @_compiled
@@ -105,19 +157,6 @@ def range_gradient(wa, off, W, t, U, pos, idx, c0, v, g):  # pragma: no cover
                 v[j, p, q] += uc
                 g[j, c0 + q] -= uc
             g[j, c0 + 3] += c
-
-
-@_compiled
-def back_whiten_xyz(wa, off, W, t, c):  # pragma: no cover
-    """W^T w of a laser tracker's rows for trials ``t`` into ``c`` (k, n_res) from column ``off``: what the chord's
-    first stage multiplies with the noise-free Jacobian before whitening."""
-    k, m = wa.shape[0], W.shape[1]
-    for j in range(k):
-        i = t[j]
-        for r in range(m):
-            w0, w1, w2 = wa[j, off + 3 * r], wa[j, off + 3 * r + 1], wa[j, off + 3 * r + 2]
-            for q in range(3):
-                c[j, off + 3 * r + q] = W[i, r, 0, q] * w0 + W[i, r, 1, q] * w1 + W[i, r, 2, q] * w2
 
 
 @_compiled
