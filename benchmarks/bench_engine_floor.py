@@ -28,6 +28,7 @@ Times are ratios to what is measured in the same run; the machines are shared.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import subprocess
 import sys
 import time
@@ -182,6 +183,22 @@ def engine_at(rev: str, short: int, long: int, paths=None, chunk_blocks=None):
     """(wall, CPU) seconds per trial of the engine of git revision ``rev`` (its mtbudget and built-in plugins,
     unpacked into a temporary directory and run in a subprocess), by the same slope as :func:`engine_per_trial`.
     paths: only these files (repository paths) from ``rev``, the rest from the working tree."""
+    import os
+
+    with unpacked(rev, paths) as tmp:
+        env = dict(os.environ, PYTHONPATH=tmp)
+        out = subprocess.run([sys.executable, "-c", _BEFORE, str(short), str(long),
+                              "-" if chunk_blocks is None else str(chunk_blocks)], check=True, env=env,
+                             capture_output=True, text=True, cwd=tmp).stdout
+    wall, cpu = map(float, out.split())
+    return wall, cpu
+
+
+@contextlib.contextmanager
+def unpacked(rev: str, paths=None):
+    """A temporary directory holding ``mtbudget`` and its built-in plugins (as ``mtbudget_plugins``) of git revision
+    ``rev``: a Python path under which that revision runs (``PYTHONPATH`` comes before the editable install).
+    paths: only these files (repository paths) from ``rev``, the rest from the working tree."""
     import io
     import os
     import shutil
@@ -201,12 +218,7 @@ def engine_at(rev: str, short: int, long: int, paths=None, chunk_blocks=None):
                                  capture_output=True).stdout
             tarfile.open(fileobj=io.BytesIO(tar)).extractall(tmp)
         os.rename(Path(tmp) / "plugins", Path(tmp) / "mtbudget_plugins")
-        env = dict(os.environ, PYTHONPATH=tmp)
-        out = subprocess.run([sys.executable, "-c", _BEFORE, str(short), str(long),
-                              "-" if chunk_blocks is None else str(chunk_blocks)], check=True, env=env,
-                             capture_output=True, text=True, cwd=tmp).stdout
-    wall, cpu = map(float, out.split())
-    return wall, cpu
+        yield tmp
 
 
 def engine_per_trial(arm, short, long, chunk_blocks=None):

@@ -2,7 +2,7 @@
 several stations, memory.
 
 Run:  OPENBLAS_NUM_THREADS=1 python benchmarks/bench_scale.py [--what floor,command,mesh,stations,memory]
-          [--rounds 3] [--short 2000] [--long 32000] [--memory-trials 100000]
+          [--rounds 3] [--short 2000] [--long 32000] [--memory-trials 100000] [--before REV]
 
 Every arm is ``python -m mtbudget run CONFIG --trials N --json --quiet`` in a subprocess, timed by
 ``/usr/bin/time`` (user + system CPU of the command, its peak resident memory); per-trial CPU is the slope
@@ -35,6 +35,7 @@ average is printed with every round.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import os
 import re
 import statistics
@@ -48,11 +49,17 @@ ROOT = Path(__file__).resolve().parents[1]
 DATA = ROOT / "mtbudget" / "data"
 
 
-def command(cfg: Path, trials: int, *extra: str) -> tuple[float, float, float]:
+#: a Python path under which the "before" arm's revision runs (``--before``), else None
+BEFORE_PATH = None
+
+
+def command(cfg: Path, trials: int, *extra: str, before: bool = False) -> tuple[float, float, float]:
     """(CPU s, wall s, peak RSS MB) of ``mtbudget run cfg --trials N`` in a subprocess (its log written in a
-    temporary directory, as a user's run writes one)."""
+    temporary directory, as a user's run writes one); ``before``: the revision of ``--before``."""
     fmt = "%U %S %e %M"
     env = dict(os.environ, OPENBLAS_NUM_THREADS="1")
+    if before:
+        env["PYTHONPATH"] = BEFORE_PATH
     with tempfile.TemporaryDirectory() as cwd:  # the run log goes where the command runs (its default mtbudget-run.mcap)
         p = subprocess.run(["/usr/bin/time", "-f", fmt, sys.executable, "-m", "mtbudget", "run", str(cfg), "--trials",
                             str(trials), "--json", "--quiet", *extra], capture_output=True, text=True, env=env, cwd=cwd)
@@ -62,10 +69,10 @@ def command(cfg: Path, trials: int, *extra: str) -> tuple[float, float, float]:
     return float(u) + float(s), float(e), float(m) / 1024
 
 
-def slope(cfg: Path, short: int, long: int, *extra: str) -> float:
+def slope(cfg: Path, short: int, long: int, *extra: str, before: bool = False) -> float:
     """CPU seconds per trial of the command between ``short`` and ``long`` trials."""
-    a = command(cfg, short, *extra)[0]
-    b = command(cfg, long, *extra)[0]
+    a = command(cfg, short, *extra, before=before)[0]
+    b = command(cfg, long, *extra, before=before)[0]
     return (b - a) / (long - short)
 
 
@@ -113,21 +120,41 @@ def main():
     ap.add_argument("--steps", type=int, nargs="+", default=[100, 40, 20])
     ap.add_argument("--slope", type=int, nargs=2, default=[256, 1280],
                     help="the two trial counts of the mesh and stations arms")
+    ap.add_argument("--before", metavar="REV", help="command: also the git revision REV (its mtbudget and plugins "
+                    "unpacked into a temporary directory), alternating with this tree in every round")
     args = ap.parse_args()
     what = set(args.what.split(","))
     paper = DATA / "paper_xfyz.toml"
+    with contextlib.ExitStack() as stack:
+        if args.before:
+            global BEFORE_PATH
+            sys.path.insert(0, str(ROOT / "benchmarks"))
+            from bench_engine_floor import unpacked  # noqa: PLC0415
+
+            BEFORE_PATH = stack.enter_context(unpacked(args.before))
+            command(paper, 2, "--attribution-trials", "0", before=True)  # its kernels compiled, not in a timed arm
+        measure(args, what, paper)
+
+
+def measure(args, what, paper):
     command(paper, 2, "--attribution-trials", "0")  # compiles the kernels once (cached), not inside a timed arm
     with tempfile.TemporaryDirectory() as t:
         tmp = Path(t)
         if "command" in what:
-            ratios = []
+            ratios, before = [], []
             for r in range(args.rounds):
                 f = floor_cpu()
                 c = slope(paper, args.short, args.long)
                 ratios.append(c / f)
+                extra = ""
+                if args.before:
+                    cb = slope(paper, args.short, args.long, before=True)
+                    before.append(cb / f)
+                    extra = f"; {args.before}: {cb * 1e3:.4f} ms, {cb / f:.1f}x (this tree {cb / c:.2f}x faster)"
                 print(f"command round {r + 1} ({load()}): mtbudget run {c * 1e3:.4f} ms CPU/trial "
-                      f"({args.short} -> {args.long} trials), floor {f * 1e3:.4f} ms: {c / f:.1f}x", flush=True)
-            print(f"command: median {statistics.median(ratios):.1f}x the floor", flush=True)
+                      f"({args.short} -> {args.long} trials), floor {f * 1e3:.4f} ms: {c / f:.1f}x{extra}", flush=True)
+            print(f"command: median {statistics.median(ratios):.1f}x the floor"
+                  + (f", {args.before} {statistics.median(before):.1f}x" if args.before else ""), flush=True)
         if "mesh" in what:
             cfgs = {s: variant(tmp, f"step{s}", paper, with_step(s)) for s in args.steps}
             from mtbudget.config import load_config  # noqa: PLC0415

@@ -20,6 +20,7 @@ from .outputs import POINT_UNIT, SCALARS, BlockResult
 from .plugins import call
 from .scenario import Scenario, target_shapes
 from .simulate import sample_source, simulate_block
+from .tracker import norm3
 from .units import factor, shown_unit
 
 
@@ -136,7 +137,7 @@ class Engine:
             # the compensated field, rigid motions removed: one product per block, the same for any grouping
             D = (F_true - F_id[sl]).reshape(n, -1) @ sc.rigid_free.T
             comp = D.reshape(n, -1, 3) * um
-            e = _norm3(D.reshape(n, -1, 3)) * um
+            e = norm3(D.reshape(n, -1, 3)) * um
             sc_b = {k: v[sl].copy() for k, v in out_scalars.items()}
             sc_b["compensation_rms"] = np.sqrt((e**2).mean(axis=1))
             sc_b["compensation_mean"] = e.mean(axis=1)
@@ -202,7 +203,7 @@ class _StationsResult:
             res_xyz[i], res_rng[i] = r.residual_xyz, r.residual_range
         xyz_rows = np.isin(sc.row_station, [st.id for st in sc.stations if st.kind == "xyz"])
         # reduced within each trial's row, so that a trial's figures do not depend on the trials identified with it
-        after = _norm3(res_xyz[:, xyz_rows]) if xyz_rows.any() else np.abs(res_rng)  # (k, rows), each row its trial's
+        after = norm3(res_xyz[:, xyz_rows]) if xyz_rows.any() else np.abs(res_rng)  # (k, rows), each row its trial's
         self.mean_error_after = after.mean(axis=1)
         self.max_residual = after.max(axis=1)
         # before compensation: the nominal machine, each station placed by its closed-form start (unweighted Kabsch
@@ -246,8 +247,3 @@ def _station_basis(sc: Scenario, model, fixed, hold) -> tuple:
         return model, chord_basis(b, model, sc.stations, sc.row_station, hold=hold, fixed=fixed)
 
     return sc.cached(("station basis", id(model)), make)[1]
-
-
-def _norm3(x: np.ndarray) -> np.ndarray:
-    """Euclidean length over the last axis of length 3 (elementwise: faster than ``np.linalg.norm`` there)."""
-    return np.sqrt(x[..., 0] * x[..., 0] + x[..., 1] * x[..., 1] + x[..., 2] * x[..., 2])

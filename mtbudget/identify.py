@@ -253,7 +253,7 @@ class Identification:
     @property
     def mean_error_before(self):
         """Paper Eq. 27 before compensation (mm): mean distance nominal vs measured after registration."""
-        return lt._norm3(self.initial_error).mean(axis=-1)
+        return lt.norm3(self.initial_error).mean(axis=-1)
 
     @property
     def mean_error_after(self):
@@ -268,7 +268,7 @@ class Identification:
         """|residual| per point (N, M), computed once (the residuals are not changed after identification)."""
         hit = self._at_solution.get("residual_distance")
         if hit is None or hit[0] is not self.residual:
-            hit = self._at_solution["residual_distance"] = (self.residual, lt._norm3(self.residual))
+            hit = self._at_solution["residual_distance"] = (self.residual, lt.norm3(self.residual))
         return hit[1]
 
     @property

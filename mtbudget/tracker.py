@@ -106,7 +106,7 @@ def spherical_jacobian(P_LT: np.ndarray) -> np.ndarray:
     return J
 
 
-def _norm3(P: np.ndarray) -> np.ndarray:
+def norm3(P: np.ndarray) -> np.ndarray:
     """|P| over the last axis of length 3: the sum of squares in order, as ``np.linalg.norm`` (the same bits), without
     its general-purpose overhead."""
     x, y, z = P[..., 0], P[..., 1], P[..., 2]
@@ -169,7 +169,7 @@ def point_uncertainty(P_LT: np.ndarray, angular, distance, distance_per_length, 
     The trace of J S J^T is u_r^2 + (r cos(el) u_az)^2 + (r u_el)^2, since the
     columns of the spherical Jacobian have lengths 1, r cos(el) and r.
     """
-    r = _norm3(P_LT)
+    r = norm3(P_LT)
     rho = np.hypot(P_LT[..., 0], P_LT[..., 1])  # r cos(el)
     ur = np.asarray(distance) + np.asarray(distance_per_length) * r
     ue = angular if angular_elevation is None else angular_elevation

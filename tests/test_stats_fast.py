@@ -144,7 +144,8 @@ def test_compiled_histogram_counts_as_the_numpy_formulation():
     for x in (rng.normal(0.0, 1.0, (64, 5)), rng.normal(0.0, 3.0, (64, 5)),
               np.array([a.low, a.high, np.nextafter(a.high, -np.inf), np.full(5, np.nan)])):
         a.add(x)
-        b.add_reference(x)
+        with np.errstate(invalid="ignore"):  # NaN cast to a bin number (then dropped): numpy warns, counts nothing
+            b.add_reference(x)
     np.testing.assert_array_equal(a.counts, b.counts)
     np.testing.assert_array_equal(a.under, b.under)
     np.testing.assert_array_equal(a.over, b.over)
