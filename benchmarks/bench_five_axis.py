@@ -20,12 +20,10 @@ Prints CPU seconds per trial and per measured row, and five-axis / three-axis.
 from __future__ import annotations
 
 import argparse
-import io
 import os
 import statistics
 import subprocess
 import sys
-import tarfile
 import tempfile
 import time
 from pathlib import Path
@@ -103,11 +101,10 @@ def slope(cfg, short: int, long: int) -> float:
 
 
 def before(rev: str, cfg_path: Path, short: int, long: int) -> float:
-    with tempfile.TemporaryDirectory() as tmp:
-        tar = subprocess.run(["git", "-C", str(ROOT), "archive", rev, "mtbudget", "plugins"], check=True,
-                             capture_output=True).stdout
-        tarfile.open(fileobj=io.BytesIO(tar)).extractall(tmp)
-        os.rename(Path(tmp) / "plugins", Path(tmp) / "mtbudget_plugins")
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    from bench_engine_floor import unpacked  # noqa: PLC0415
+
+    with unpacked(rev) as tmp:
         out = subprocess.run([sys.executable, "-c", _CHILD, str(cfg_path), str(short), str(long)], check=True,
                              env=dict(os.environ, PYTHONPATH=tmp), capture_output=True, text=True, cwd=tmp).stdout
     return float(out.split()[-1])
