@@ -370,7 +370,7 @@ def chord_residual(P, meas, WL, idx, R, T, c0, v, G, cost):  # pragma: no cover 
 
 
 @_compiled
-def _rodrigues(o0, o1, o2, Rot):  # pragma: no cover - compiled
+def rodrigues(o0, o1, o2, Rot):  # pragma: no cover - compiled
     """The exact rotation expm([o]x) into Rot (3, 3): ``identify._rotation`` for one rotation vector."""
     t2 = o0 * o0 + o1 * o1 + o2 * o2
     if t2 < 1e-12:  # series: exact to double precision below |o| = 1e-6 rad
@@ -384,6 +384,17 @@ def _rodrigues(o0, o1, o2, Rot):  # pragma: no cover - compiled
     Rot[0, 0], Rot[0, 1], Rot[0, 2] = o0 * o0 * b + d, -o2 * a + o0 * o1 * b, o1 * a + o0 * o2 * b
     Rot[1, 0], Rot[1, 1], Rot[1, 2] = o2 * a + o1 * o0 * b, o1 * o1 * b + d, -o0 * a + o1 * o2 * b
     Rot[2, 0], Rot[2, 1], Rot[2, 2] = -o1 * a + o2 * o0 * b, o0 * a + o2 * o1 * b, o2 * o2 * b + d
+
+
+@_compiled
+def _minus_vecmat(x, A, out):  # pragma: no cover - compiled
+    """out = -(x A) for a vector x (n,) and a matrix A (n, k), as a sum of A's rows (contiguous: vectorised)."""
+    out[:] = 0.0
+    for i in range(x.shape[0]):
+        xi = x[i]
+        row = A[i]
+        for j in range(out.shape[0]):
+            out[j] -= xi * row[j]
 
 
 @_compiled
@@ -469,34 +480,16 @@ def chord_stage(mode, rows, label, theta, Rs, Ts, meas, WLc, c0, inv_ps, Hinv, Q
             cost = _residual_row(P, meas[n], WLc, n, Rn, t0, t1, t2, c0, vout, G, r, u)
             for j in range(6):
                 G[j] *= inv_ps[j]
-            # products as sums of rows (axpy on contiguous rows: the compiler vectorises them), into their own arrays
-            if mode == 1 or mode == 2:
-                Jq = J[0] if mode == 1 else J[q]
-                gg[:] = 0.0
-                for m in range(M):
-                    for c in range(3):
-                        x = vout[m, c]
-                        row = Jq[3 * m + c]
-                        for j in range(nr):
-                            gg[j] -= x * row[j]
+            if mode == 1 or mode == 2:  # the geometric gradient -(v J) along the directions
+                _minus_vecmat(vout.reshape(3 * M), J[0] if mode == 1 else J[q], gg)
                 G[6:] = gg
-            elif mode == 3:
+            elif mode == 3:  # -(J^T v) Qs, J^T v from the trial's kept forward pass
                 _vjp_row(0, tool_order, wp_axes, side, px, py, pz, rdir, rcos, rsin, eps1, vin1, wout1, vout, params,
                          basis, g, gd, h, u2, Av)
-                gg[:] = 0.0
-                for k in range(p):
-                    x = Av[k]
-                    row = Qs[k]
-                    for j in range(nr):
-                        gg[j] -= x * row[j]
+                _minus_vecmat(Av, Qs, gg)
                 G[6:] = gg
             # z = -G Hinv, the step's largest component and its energy sqrt(-G.z)
-            zz[:] = 0.0
-            for i in range(b):
-                x = G[i]
-                row = Hk[i]
-                for j in range(b):
-                    zz[j] -= x * row[j]
+            _minus_vecmat(G, Hk, zz)
             z[:] = zz
             step = 0.0
             gz = 0.0
@@ -505,7 +498,7 @@ def chord_stage(mode, rows, label, theta, Rs, Ts, meas, WLc, c0, inv_ps, Hinv, Q
                 gz += G[j] * z[j]
             energy = np.sqrt(max(-gz, 0.0))
             # the step, applied: a small rigid motion about c0, then the parameters along Qs
-            _rodrigues(z[3] * inv_ps[3], z[4] * inv_ps[4], z[5] * inv_ps[5], Rot)
+            rodrigues(z[3] * inv_ps[3], z[4] * inv_ps[4], z[5] * inv_ps[5], Rot)
             d0, d1, d2 = t0 - c0[0], t1 - c0[1], t2 - c0[2]
             t0 = Rot[0, 0] * d0 + Rot[0, 1] * d1 + Rot[0, 2] * d2 + c0[0] + z[0] * inv_ps[0]
             t1 = Rot[1, 0] * d0 + Rot[1, 1] * d1 + Rot[1, 2] * d2 + c0[1] + z[1] * inv_ps[1]

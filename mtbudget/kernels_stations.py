@@ -22,6 +22,8 @@ import math
 import numpy as np
 from numba import njit
 
+from .kernels import rodrigues
+
 
 def _compiled(f):
     """As :mod:`mtbudget.kernels`: numba's ``njit`` without Python objects or division checks, cached on disk where
@@ -111,25 +113,7 @@ def rigid_step(R, x, z, c0, cen):  # pragma: no cover
     Rot = np.empty((3, 3))
     Rn = np.empty((3, 3))
     for j in range(k):
-        o0, o1, o2 = z[j, 3], z[j, 4], z[j, 5]
-        t2 = o0 * o0 + o1 * o1 + o2 * o2
-        if t2 < 1e-12:
-            a = 1.0 - t2 / 6.0
-            b = 0.5 - t2 / 24.0
-        else:
-            th = math.sqrt(t2)
-            a = math.sin(th) / th
-            b = (1.0 - math.cos(th)) / t2
-        # Rot = I + a [w]x + b [w]x^2, [w]x^2 = w w^T - |w|^2 I
-        Rot[0, 0] = 1.0 + b * (o0 * o0 - t2)
-        Rot[1, 1] = 1.0 + b * (o1 * o1 - t2)
-        Rot[2, 2] = 1.0 + b * (o2 * o2 - t2)
-        Rot[0, 1] = -a * o2 + b * o0 * o1
-        Rot[1, 0] = a * o2 + b * o0 * o1
-        Rot[0, 2] = a * o1 + b * o0 * o2
-        Rot[2, 0] = -a * o1 + b * o0 * o2
-        Rot[1, 2] = -a * o0 + b * o1 * o2
-        Rot[2, 1] = a * o0 + b * o1 * o2
+        rodrigues(z[j, 3], z[j, 4], z[j, 5], Rot)  # the one-tracker chord's rotation of its step
         for r in range(3):
             for c in range(3):
                 Rn[r, c] = Rot[r, 0] * R[j, 0, c] + Rot[r, 1] * R[j, 1, c] + Rot[r, 2] * R[j, 2, c]
