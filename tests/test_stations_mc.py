@@ -557,3 +557,32 @@ def test_several_stations_are_bit_identical_for_any_grouping_of_the_trials():
     a = run(load_config(FOUR), trials=48, block=8, chunk_blocks=1, attribution_trials=0)
     b = run(load_config(FOUR), trials=48, block=8, chunk_blocks=3, attribution_trials=0)
     assert a.outputs() == b.outputs() and a.points() == b.points()
+
+
+def test_one_station_run_is_bit_for_bit_under_any_grouping_replays_and_says_stations(tmp_path):
+    """A one-station run, now identified as [tracker] (labels per block, shared iteration matrices from the station's
+    pose): blocks identified together equal each block alone bit for bit; its log recomputes bit for bit (replay
+    --verify); and what it prints says it was measured from one [[stations]] station, with the strategy acting."""
+    from mtbudget.report import _idle_sources, measurand_text
+    from mtbudget.runner import execute, verify
+
+    cfg, _ = one_station("paper")
+    sc = build_scenario(cfg)
+    together = Engine(sc, block=8).run_blocks([0, 1, 2])
+    for b, res in zip([0, 1, 2], together):
+        alone = Engine(sc, block=8).run_block(b)
+        assert np.array_equal(res.components, alone.components) and np.array_equal(res.parameters, alone.parameters)
+        assert all(np.array_equal(res.scalars[k], alone.scalars[k]) for k in res.scalars)
+    path = tmp_path / "one.mcap"
+    text = FOUR.read_text()
+    (tmp_path / "one.toml").write_text(text[:text.index("[[stations]]                 # a second tracker")])
+    res = execute(load_config(tmp_path / "one.toml"), trials=48, log_path=path, progress=False, attribution_trials=0,
+                  block=16)
+    v = verify(path)
+    assert v["identical"] and v["trials"] == 48
+    said = measurand_text(res)
+    assert "1 station (xyz, [[stations]])" in said and "strategy's phases and tolerance apply" in said
+    assert _idle_sources(res.spec) == {}
+    d = four()
+    d["stations"] = d["stations"][:2]
+    assert set(_idle_sources({"config": {"stations": d["stations"]}})) == {"convergence_criteria", "phase_sequence"}
