@@ -127,10 +127,9 @@ def test_one_laser_tracker_station_agrees_with_identify_stations(monkeypatch):
 
 def test_several_stations_are_not_the_one_tracker_path():
     """Two stations, or one interferometer with a tracker, keep the identification over all stations at once."""
-    for keep in (slice(0, 2), [0, 2]):
+    for keep in ([0, 1], [0, 2]):  # two trackers; a tracker and an interferometer
         d = four()
-        d["stations"] = [d["stations"][i] for i in range(4)][keep] if isinstance(keep, slice) else \
-            [d["stations"][i] for i in keep]
+        d["stations"] = [d["stations"][i] for i in keep]
         assert build_scenario(parse_config(d)).one_tracker is None
     d = four()
     d["stations"] = d["stations"][:1]
