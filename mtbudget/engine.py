@@ -87,6 +87,9 @@ class Engine:
         Ff_id = None if fs is None else np.empty((nb * n, len(fs.points), 3))  # identified machine at the features
         um = self._um
         calls: dict = {}  # one identification call per setting: {call: (model, strategy, the trials' keys)}
+        # the one-tracker identification's (noise, pose): [tracker], or a [[stations]] list of one laser tracker (its
+        # own stated noise and pose; the same problem, so the same identification); None: several stations
+        one = sc.one_tracker
         for key in np.unique(keys):
             settings: dict = {}
             rem = int(key)
@@ -94,20 +97,20 @@ class Engine:
                 settings.update(opts[rem % len(opts)])
                 rem //= len(opts)
             model, strategy = self._identification_setup(settings)
-            # [[stations]]: the identification over several stations takes the model only (its own solver and
+            # several stations: the identification over all of them takes the model only (its own solver and
             # tolerances: the strategy's phases, xtol and max_iter do not apply), so the settings that differ in
             # the strategy alone are one call, not one each (a trial's result does not depend on the trials
             # identified with it: the same bits, a quarter of the per-call cost with the default sources)
-            call = ("model", id(model)) if sc.stations else key
+            call = ("model", id(model)) if one is None else key
             calls.setdefault(call, (model, strategy, []))[2].append(key)
         for model, strategy, group in calls.values():
             idx = np.flatnonzero(np.isin(keys, group))
-            if sc.stations:
+            if one is None:
                 ranges = np.concatenate([s.ranges for s in sims]) if nb > 1 else sims[0].ranges
                 res = _StationsResult(model, sc, meas[idx], ranges[idx])
             else:  # [scales]: the stated nominal expansion at the read temperatures is a known input, (1, M) arrays
-                res = identify(model, meas[idx], sc.noise, strategy, chunk=n, groups=label[idx],
-                               fixed=sc.correction or None, iteration_pose=sc.pose)
+                res = identify(model, meas[idx], one[0], strategy, chunk=n, groups=label[idx],
+                               fixed=sc.correction or None, iteration_pose=one[1])
             not_converged[idx] = ~res.converged
             if res.fallback is not None:
                 fallbacks[idx] = res.fallback
@@ -175,7 +178,8 @@ class Engine:
 
 
 class _StationsResult:
-    """The trials of a verification from several stations ([[stations]]), identified over all their stations at
+    """The trials of a verification from several stations ([[stations]]: two or more, or any interferometer; one laser
+    tracker alone is identified as [tracker] is, ``Scenario.one_tracker``), identified over all their stations at
     once (:func:`mtbudget.multistation.identify_stations_batch`; a trial it cannot finish is solved again by
     :func:`mtbudget.multistation.identify_stations`, the reference, and counted in ``fallback``).  Holds what the
     engine reads of an identification: theta, convergence and the paper's Eq. 27 scalars.  Eq. 27 is a mean

@@ -152,13 +152,21 @@ def _scales_clause(spec: dict) -> str:
 
 
 #: sources whose options the identification over several stations does not take (Gauss-Newton to convergence)
-STATIONS_IDLE = {"convergence_criteria": "does not act with [[stations]]", "phase_sequence": "does not act with [[stations]]"}
+STATIONS_IDLE = {"convergence_criteria": "does not act with several [[stations]]",
+                 "phase_sequence": "does not act with several [[stations]]"}
+
+
+def _several_stations(spec: dict) -> bool:
+    """[[stations]] identified over all stations at once: two or more, or an interferometer.  One laser tracker
+    alone states the one-tracker problem and is identified as [tracker] is (``Scenario.one_tracker``)."""
+    stations = (spec.get("config") or {}).get("stations") or []
+    return len(stations) > 1 or any(st.get("kind") != "xyz" for st in stations)
 
 
 def _idle_sources(spec: dict, rows: list | None = None) -> dict:
     """{source: why its row is zero by construction} for this run (and a systematic source that leaves nothing at the
     mesh points: its sentence under the table says why)."""
-    out = dict(STATIONS_IDLE) if (spec.get("config") or {}).get("stations") else {}
+    out = dict(STATIONS_IDLE) if _several_stations(spec) else {}
     for r in rows or []:
         if r.get("systematic") and not max(r["u_rms_over_mesh"]) > 1e-6:  # um: nothing but round-off
             out[r["source"]] = "nothing at the mesh points: see how it was bounded, below"
@@ -194,6 +202,10 @@ def _stations_clause(spec: dict) -> str:
     stations = (spec.get("config") or {}).get("stations") or []
     if not stations:
         return ""
+    if not _several_stations(spec):
+        return ("; verified from 1 station (xyz, [[stations]]): its pose identified with the errors by the one-tracker "
+                "identification, as [tracker] (its own stated noise; the optimisation strategy's phases and tolerance "
+                "apply)")
     kinds = ", ".join(str(st.get("kind")) for st in stations)
     return (f"; verified from {len(stations)} station(s) ({kinds}) measuring the plan one after the other, every "
             "station's pose (xyz) or position and dead path (range) identified with the errors (Gauss-Newton over all "

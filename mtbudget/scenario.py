@@ -252,6 +252,22 @@ class Scenario:
         return out
 
     @property
+    def one_tracker(self) -> tuple | None:
+        """(noise, pose) of the one-tracker identification this verification states, or None when it is measured
+        from several stations.  ``[tracker]``: its stated noise and pose.  A ``[[stations]]`` list of exactly one
+        laser tracker (kind "xyz") states the same problem (the same unknowns, weights, datum and degrees of freedom;
+        tests/test_stations_mc.py): the station's own stated noise (else ``[tracker]``'s or ``[weights]``'), the
+        machine's repeatability and the station's pose.  Two or more stations, or any interferometer, are identified
+        over all stations at once (:mod:`mtbudget.multistation`): None."""
+        if not self.stations:
+            return self.noise, self.pose
+        if len(self.stations) > 1 or self.stations[0].kind != "xyz":
+            return None
+        st, spec = self.stations[0], self.station_specs[0]
+        return (Noise(st.angular, st.distance, st.distance_per_length, self.noise.repeatability),
+                np.asarray(spec.tracker_pose, float))
+
+    @property
     def id_model(self) -> MeasurementModel:
         return self.identification_model()
 
