@@ -180,16 +180,7 @@ class MeasurementModel:
         pose = np.atleast_2d(np.asarray(pose, float))
         if "pose" in pert:
             pose = pose + pert["pose"]
-        P_W = self.machine_points(theta, pert, exact=exact)
-        noise = pert.get("spherical_noise")
-        if noise is not None and np.shape(noise) != P_W.shape:
-            noise = np.broadcast_to(noise, P_W.shape)
-        # to_tracker and add_spherical_noise in one compiled pass (their numbers, round-off apart)
-        from .kernels import tracker_points
-
-        req = lambda x: np.require(x, np.float64, ["C", "W"])  # noqa: E731
-        P = tracker_points(req(P_W), req(lt.rotation(pose[:, 3], pose[:, 4], pose[:, 5])), req(pose[:, :3]),
-                           req(noise) if noise is not None else np.zeros((0,) + P_W.shape[1:]), np.empty(P_W.shape))
+        P = lt.read(self.machine_points(theta, pert, exact=exact), pose, pert.get("spherical_noise"))
         if "tracker_offset" in pert:
             P = P + pert["tracker_offset"]
         return P

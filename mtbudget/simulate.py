@@ -144,9 +144,8 @@ def measure_stations(scenario: Scenario, P_W: np.ndarray, pert: dict):
     offset = pert.get("tracker_offset")
     for st, spec in zip(scenario.stations, scenario.station_specs):
         rows = np.flatnonzero(scenario.row_station == st.id)
-        P = lt.to_tracker(P_W[:, rows], spec.tracker_pose[None] + dpose)
-        if noise is not None:
-            P = lt.add_spherical_noise(P, np.broadcast_to(noise, (n, M, 3))[:, rows])
+        P = lt.read(P_W[:, rows], spec.tracker_pose[None] + dpose,
+                    None if noise is None else np.broadcast_to(noise, (n, M, 3))[:, rows])
         if offset is not None:
             P = P + np.broadcast_to(offset, (n, M, 3))[:, rows]
         if st.kind == "xyz":

@@ -190,6 +190,20 @@ def eq23_variances(P_LT: np.ndarray, u_r, u_angle) -> np.ndarray:
     return np.stack([ux2, uy2, uz2], axis=-1)
 
 
+def read(P_W: np.ndarray, pose: np.ndarray, noise: np.ndarray | None = None) -> np.ndarray:
+    """What the tracker reads of the machine points P_W (N, M, 3) from pose (1 or N, 6): :func:`to_tracker`, then
+    :func:`add_spherical_noise` with ``noise`` (broadcastable to P_W's shape; None: none), in one compiled pass
+    (:func:`mtbudget.kernels.tracker_points`: their numbers, round-off apart)."""
+    from .kernels import tracker_points
+
+    pose = np.atleast_2d(np.asarray(pose, float))
+    req = lambda x: np.require(x, np.float64, ["C", "W"])  # noqa: E731
+    if noise is not None and np.shape(noise) != P_W.shape:
+        noise = np.broadcast_to(noise, P_W.shape)
+    return tracker_points(req(P_W), req(rotation(pose[:, 3], pose[:, 4], pose[:, 5])), req(pose[:, :3]),
+                          req(noise) if noise is not None else np.zeros((0,) + P_W.shape[1:]), np.empty(P_W.shape))
+
+
 def add_spherical_noise(P_LT: np.ndarray, noise: np.ndarray) -> np.ndarray:
     """Apply (dr, daz, del) offsets (..., 3) in spherical coordinates exactly."""
     r, az, el = spherical(P_LT)
