@@ -461,9 +461,13 @@ def plugins_cmd(config, as_json):
 @click.option("--seed", type=click.IntRange(min=0), default=None, help="Seed of the run (default: the config's seed).")
 @click.option("--coverage", type=click.FloatRange(0, 1, min_open=True, max_open=True), default=0.95, show_default=True,
               help="Coverage probability of the intervals.")
-@click.option("--executor", type=click.Choice(["inline", "process", "dask"]), default="inline", show_default=True,
-              help="Where trials run: this process, a local process pool, or a Dask cluster (extra 'dask').")
-@click.option("--workers", type=click.IntRange(min=1), default=None, help="Workers of the process pool or local Dask cluster.")
+@click.option("--executor", type=click.Choice(["inline", "thread", "process", "dask"]), default="inline", show_default=True,
+              help="Where trials run: this process, threads of this process (one copy of the engine's libraries in "
+                   "memory), a local process pool, or a Dask cluster (extra 'dask'); the numbers are the same "
+                   "(docs/performance.md, \"Executors\").")
+@click.option("--workers", type=click.IntRange(min=1), default=None,
+              help="Worker threads (default: this machine's cores), worker processes (default 2) or local Dask "
+                   "workers (default 2).")
 @click.option("--address", default=None,
               help="Address of an existing Dask scheduler with --executor dask, e.g. tcp://host:8786 (worked example: "
                    "docs/performance.md); results are bit-identical to an inline run.")

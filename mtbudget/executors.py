@@ -1,9 +1,19 @@
-"""Where blocks of trials run: in this process, in a local process pool, or on a Dask cluster.
+"""Where blocks of trials run: in this process, on threads of this process, in a local process pool, or on a
+Dask cluster.
 
 Workers rebuild the engine from a JSON spec (configuration, seed, block
 size, sources): nothing is pickled but plain data, and a worker's blocks are
 bit-identical to the same blocks run in process (the random streams depend
 on seed, block and source only).
+
+Threads (``thread``): each worker thread rebuilds its own engine from the same spec (its own scenario, sources,
+identification models and their plan caches, about 1.5 MB and 15 ms each), so no engine state is shared between
+threads and nothing in the hot path takes a lock; the engines are built one at a time (pint's registry and the
+plugins' ``configure`` are not promised to be thread-safe).  What the threads still share is read-only or
+memoising module state (the unit registry, ``identify``'s plan cache dictionary keyed per model object, the CRC
+of source names, compiled kernels).  The kernels are compiled ``nogil`` and numpy releases the GIL inside its
+larger loops, so threads overlap there; the identification's Python and small numpy operations hold it
+(docs/performance.md, "Executors").  One process: numpy, pint, numba and the engine are loaded once.
 """
 
 from __future__ import annotations
@@ -12,7 +22,7 @@ import json
 
 from .errors import ConfigError
 
-EXECUTORS = ("inline", "process", "dask")
+EXECUTORS = ("inline", "thread", "process", "dask")
 
 
 def engine_from_spec(spec: dict):
@@ -27,10 +37,25 @@ def engine_from_spec(spec: dict):
 
 def one_blas_thread():
     """A context in which BLAS uses one thread: the engine's matrices are small (a few hundred rows), and on a
-    shared or busy machine a second BLAS thread makes them 10-100x slower, never faster (docs/performance.md)."""
+    shared or busy machine a second BLAS thread makes them 10-100x slower, never faster (docs/performance.md).
+
+    Its scope is the library's: OpenBLAS built with pthreads (numpy's wheels) has one process-wide pool, which
+    threadpoolctl (>= 3.8) lets only one "controlling" thread limit (other threads' calls do nothing); MKL and
+    OpenBLAS on OpenMP limit the calling thread only.  The thread executor therefore limits in the thread that
+    opens it (for as long as it is open) and again in each worker thread around every chunk."""
     from threadpoolctl import threadpool_limits
 
     return threadpool_limits(limits=1, user_api="blas")
+
+
+def default_workers() -> int:
+    """The cores this process may run on (its CPU affinity; ``os.cpu_count()`` where that is not known)."""
+    import os
+
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except (AttributeError, OSError):
+        return max(1, os.cpu_count() or 1)
 
 
 _WORKER_CACHE: dict = {}
@@ -40,31 +65,78 @@ _WORKER_CACHE: dict = {}
 IN_CODE = "(registered in code)"
 
 
+def _rebuild(spec_json: str):
+    """The engine of ``spec_json``, rebuilt where a worker runs; a configuration it cannot rebuild is one error."""
+    try:
+        return engine_from_spec(json.loads(spec_json))
+    except ConfigError as exc:
+        import socket
+
+        raise ConfigError(f"a worker on {socket.gethostname()} could not rebuild the engine: {exc} (workers "
+                          "rebuild it from the configuration and the plugins installed where they run: "
+                          "install the same plugins there)", key="executor") from None
+
+
+def _worker_blocks(eng, blocks: list, active: list | None) -> list:
+    """``blocks`` run on a worker's engine, with the moments the main process merges computed there."""
+    act = None if active is None else [s for s in eng.sources if s.name in active]
+    results = eng.run_blocks(blocks, act)
+    # the moments the main process merges, computed here rather than there: the main process merges, logs and
+    # histograms every worker's blocks, so work moved off it keeps it from holding up the workers
+    for r in results:
+        if active is None:  # a run: every vector output's moments (merged and logged)
+            r.vector_moments()
+        else:  # the budget: only the per-point components' co-moments
+            r.component_comoments()
+    return results
+
+
 def run_blocks_from_spec(spec_json: str, blocks: list, active: list | None = None) -> list:
     """Worker entry point: run ``blocks`` of the engine described by ``spec_json``."""
     with one_blas_thread():  # the engine built and run with one BLAS thread, as in process: bit-identical
         eng = _WORKER_CACHE.get(spec_json)
         if eng is None:
-            try:
-                eng = engine_from_spec(json.loads(spec_json))
-            except ConfigError as exc:
-                import socket
-
-                raise ConfigError(f"a worker on {socket.gethostname()} could not rebuild the engine: {exc} (workers "
-                                  "rebuild it from the configuration and the plugins installed where they run: "
-                                  "install the same plugins there)", key="executor") from None
+            eng = _rebuild(spec_json)
             _WORKER_CACHE.clear()
             _WORKER_CACHE[spec_json] = eng
-        act = None if active is None else [s for s in eng.sources if s.name in active]
-        results = eng.run_blocks(blocks, act)
-        # the moments the main process merges, computed here rather than there: the main process merges, logs and
-        # histograms every worker's blocks, so work moved off it keeps it from holding up the workers
-        for r in results:
-            if active is None:  # a run: every vector output's moments (merged and logged)
-                r.vector_moments()
-            else:  # the budget: only the per-point components' co-moments
-                r.component_comoments()
-        return results
+        return _worker_blocks(eng, blocks, active)
+
+
+class _ThreadWorkers:
+    """Worker threads of this process, each with its own engine rebuilt from the spec (see the module docstring)."""
+
+    def __init__(self, spec_json: str, workers: int):
+        import threading
+        from concurrent.futures import ThreadPoolExecutor
+
+        self.spec_json = spec_json
+        self.local = threading.local()
+        self.build_lock = threading.Lock()  # engines are built one at a time; never taken while blocks run
+        # one BLAS thread for as long as the pool is open: OpenBLAS's pool is process-wide and only the thread that
+        # limits it first can (threadpoolctl >= 3.8), so the limit is set here, in the thread that opens the pool
+        self.blas = one_blas_thread()
+        self.blas.__enter__()  # (closed in the same thread: threadpoolctl counts a thread's limits per thread)
+        self.pool = ThreadPoolExecutor(max_workers=workers, thread_name_prefix="mtbudget-worker")
+
+    def engine(self):
+        eng = getattr(self.local, "engine", None)
+        if eng is None:
+            with self.build_lock:
+                eng = self.local.engine = _rebuild(self.spec_json)
+        return eng
+
+    def run(self, blocks: list, active: list | None) -> list:
+        with one_blas_thread():  # MKL and OpenBLAS on OpenMP limit per thread; OpenBLAS on pthreads: the pool's
+            return _worker_blocks(self.engine(), blocks, active)
+
+    def submit(self, blocks: list, active: list | None):
+        return self.pool.submit(self.run, blocks, active)
+
+    def close(self):
+        try:
+            self.pool.shutdown(wait=True, cancel_futures=True)
+        finally:
+            self.blas.__exit__(None, None, None)
 
 
 def in_order(submit, chunks: list, window: int):
@@ -103,9 +175,12 @@ class Executor:
         if kind != "inline":
             check_sources_reach_workers(engine, kind)
         self.spec_json = json.dumps(spec, sort_keys=True, default=str)
-        self.pool = self.client = self.cluster = None
+        self.pool = self.client = self.cluster = self.threads = None
         self.n_workers = 1
-        if kind == "process":
+        if kind == "thread":
+            self.n_workers = workers or default_workers()
+            self.threads = _ThreadWorkers(self.spec_json, self.n_workers)
+        elif kind == "process":
             from concurrent.futures import ProcessPoolExecutor
 
             self.pool = ProcessPoolExecutor(max_workers=workers or 2)
@@ -135,6 +210,8 @@ class Executor:
                 with one_blas_thread():
                     results = self.engine.run_blocks(ch, act)
                 yield results
+        elif self.kind == "thread":
+            yield from in_order(lambda ch: self.threads.submit(ch, active_names), chunks, 2 * self.n_workers + 2)
         elif self.kind == "process":
             yield from in_order(lambda ch: self.pool.submit(run_blocks_from_spec, self.spec_json, ch, active_names),
                                  chunks, 2 * self.n_workers + 2)
@@ -144,6 +221,9 @@ class Executor:
                                  chunks, 2 * self.n_workers + 2)
 
     def close(self):
+        if self.threads:
+            self.threads.close()
+            self.threads = None
         if self.pool:
             self.pool.shutdown()
         if self.client:

@@ -58,6 +58,64 @@ def test_blocks_together_also_with_a_source_subset_and_the_default_configuration
     assert not np.array_equal(together[0].point_error, eng.run_block(2).point_error)
 
 
+def test_worker_threads_run_the_default_configuration_block_for_block_as_in_process():
+    """The thread executor on the paper's configuration (75 points, every source), chunks of one and two blocks on two
+    threads, all sources and then a subset: each block equals the inline engine's run of that block alone."""
+    from mtbudget.executors import Executor
+    from mtbudget.runner import RunSettings, make_spec
+
+    eng = Engine(build_scenario(load_config()), block=8, seed=5)
+    spec = make_spec(eng.scenario, eng, RunSettings())
+    subset = ["tracker_noise", "phase_sequence", "repeatability"]
+    with Executor(eng, spec, "thread", 2) as ex:
+        threaded = {None: [r for ch in ex.map([[0], [1, 2], [3], [4, 5]]) for r in ch],
+                    "subset": [r for ch in ex.map([[5], [2, 0], [1]], subset) for r in ch]}
+    with one_blas_thread():
+        for r in threaded[None]:
+            assert same_block(r, eng.run_block(r.block)), r.block
+        act = [s for s in eng.sources if s.name in subset]
+        for r in threaded["subset"]:
+            assert same_block(r, eng.run_block(r.block, act)), r.block
+    assert [r.block for r in threaded[None]] == [0, 1, 2, 3, 4, 5]  # in chunk order, whichever thread finished first
+
+
+def test_the_thread_executor_holds_blas_to_one_thread_while_it_is_open_and_gives_it_back():
+    """OpenBLAS (numpy's wheels: pthreads) has one process-wide pool: the executor limits it from the thread that
+    opens it, and the worker threads see that limit; closing it restores what was there."""
+    threadpoolctl = pytest.importorskip("threadpoolctl")
+    from mtbudget.executors import Executor
+
+    def blas_threads():
+        return {i["internal_api"]: i["num_threads"] for i in threadpoolctl.threadpool_info() if i["user_api"] == "blas"}
+
+    eng = Engine(build_scenario(load_config(SMALL)), block=4, seed=1)
+    with threadpoolctl.threadpool_limits(limits=2, user_api="blas"):
+        before = blas_threads()
+        if not before or set(before.values()) != {2}:
+            pytest.skip(f"this BLAS cannot be set to two threads here: {before}")
+        ex = Executor(eng, {"config": load_config(SMALL).source, "config_path": str(SMALL), "seed": 1, "block": 4,
+                            "sources": [s.name for s in eng.sources]}, "thread", 2)
+        try:
+            assert set(blas_threads().values()) == {1}
+            seen = ex.threads.pool.submit(blas_threads).result()  # what a worker thread's BLAS calls get
+            assert set(seen.values()) == {1}, seen
+            assert [r.block for ch in ex.map([[0], [1]]) for r in ch] == [0, 1]
+        finally:
+            ex.close()
+        assert blas_threads() == before
+
+
+def test_a_run_on_threads_is_logged_and_verifies_bit_for_bit(small, tmp_path):
+    from mtbudget.runner import execute, verify
+
+    res = execute(small, trials=48, block=16, attribution_trials=0, executor="thread", workers=2,
+                  log_path=tmp_path / "t.mcap")
+    inline = run(small, trials=48, block=16, attribution_trials=0)
+    assert np.array_equal(res.acc.scalar_samples("compensation_rms"), inline.acc.scalar_samples("compensation_rms"))
+    v = verify(tmp_path / "t.mcap")
+    assert v["identical"] and v["trials"] == 48, v
+
+
 def test_a_multiprocess_dask_cluster_at_an_address_gives_the_numbers_of_the_inline_run(small):
     distributed = pytest.importorskip("dask.distributed", reason="the dask extra is not installed")
     inline = run(small, trials=48, block=16, attribution_trials=16)
@@ -86,7 +144,7 @@ def test_a_source_registered_in_code_runs_inline(small):
     assert res.spec["sources"] == ["tracker_noise", "in_code_offset"]
 
 
-@pytest.mark.parametrize("executor", ["process", "dask"])
+@pytest.mark.parametrize("executor", ["thread", "process", "dask"])
 def test_a_source_registered_in_code_cannot_reach_workers_and_says_so(small, executor):
     if executor == "dask":
         pytest.importorskip("dask.distributed", reason="the dask extra is not installed")
