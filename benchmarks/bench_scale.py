@@ -27,6 +27,17 @@ Configurations are the built-in ``paper_xfyz.toml`` with one thing changed:
   from it).
 * ``memory``: peak resident memory of the command at ``--memory-trials`` trials (``--attribution-trials 0``,
   inline).
+* ``executors``: the command on the built-in configuration with ``--executor inline``, ``process --workers 2`` and
+  ``thread --workers 2`` (``--executors`` to choose), ``--attribution-trials 0``, alternated in each of ``--rounds``
+  rounds: CPU (every process of the command, workers included) and wall per trial, each the slope between
+  ``--short`` and ``--exec-long`` trials, and the peak of the memory summed over the command's processes, sampled
+  every ``--every`` s while the longer run runs: resident (RSS, a page shared by forked processes counted in each)
+  and proportional (PSS, from ``/proc/PID/smaps_rollup``: a shared page split between its processes, so the sum
+  counts it once).  Linux only.
+* ``big``: the 10^6-trial run with its budget (issue 12's command: ``--big-trials`` trials, ``--attribution-trials
+  10000``, ``--json --quiet --log``) on each of ``--big-executors`` (``--workers 2``), once each: wall, CPU, peak
+  summed RSS and PSS, the main process's peak RSS, and the main result, to compare with the figures in
+  docs/performance.md.
 
 The machines are shared: only ratios between arms measured in the same round mean something; the load
 average is printed with every round.
@@ -60,6 +71,78 @@ def command(cfg: Path, trials: int, *extra: str) -> tuple[float, float, float]:
         raise SystemExit(f"mtbudget run {cfg.name} --trials {trials} failed:\n{p.stderr[-2000:]}")
     u, s, e, m = p.stderr.strip().splitlines()[-1].split()
     return float(u) + float(s), float(e), float(m) / 1024
+
+
+def descendants(pid: int) -> list:
+    """``pid`` and every process below it (from /proc/*/stat)."""
+    children: dict = {}
+    for d in os.listdir("/proc"):
+        if d.isdigit():
+            try:
+                with open(f"/proc/{d}/stat") as f:
+                    st = f.read()
+            except OSError:
+                continue
+            children.setdefault(int(st[st.rfind(")") + 2:].split()[1]), []).append(int(d))
+    out, todo = [], [pid]
+    while todo:
+        p = todo.pop()
+        out.append(p)
+        todo += children.get(p, [])
+    return out
+
+
+def rss_pss(pids: list) -> tuple[float, float, float]:
+    """(summed RSS, summed PSS, RSS of the first pid), MB (2^20 bytes), from /proc/PID/smaps_rollup."""
+    rss = pss = first = 0
+    for i, p in enumerate(pids):
+        try:
+            with open(f"/proc/{p}/smaps_rollup") as f:
+                text = f.read()
+        except OSError:
+            continue
+        for line in text.splitlines():
+            if line.startswith("Rss:"):
+                rss += int(line.split()[1])
+                first = first or (int(line.split()[1]) if i == 0 else 0)
+            elif line.startswith("Pss:"):
+                pss += int(line.split()[1])
+    return rss / 1024, pss / 1024, first / 1024
+
+
+def watched(argv: list, cwd: str, every: float = 0.25) -> dict:
+    """Run ``argv``; its CPU (user + system of it and of every process it waited for: the growth of this process's
+    RUSAGE_CHILDREN, the commands run one at a time), wall, and the peaks of the memory summed over its process
+    tree, sampled every ``every`` s."""
+    import resource  # noqa: PLC0415
+    import threading  # noqa: PLC0415
+
+    env = dict(os.environ, OPENBLAS_NUM_THREADS="1")
+    before = resource.getrusage(resource.RUSAGE_CHILDREN)
+    t0 = time.perf_counter()
+    p = subprocess.Popen(argv, cwd=cwd, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    peak = {"rss": 0.0, "pss": 0.0, "main": 0.0, "procs": 0}
+    done = threading.Event()
+
+    def sample():
+        while not done.is_set():
+            pids = descendants(p.pid)
+            r, s, m = rss_pss(pids)
+            peak["rss"], peak["pss"], peak["main"] = max(peak["rss"], r), max(peak["pss"], s), max(peak["main"], m)
+            peak["procs"] = max(peak["procs"], len(pids))
+            done.wait(every)
+
+    th = threading.Thread(target=sample, daemon=True)
+    th.start()
+    out, err = p.communicate()
+    wall = time.perf_counter() - t0
+    done.set()
+    th.join()
+    after = resource.getrusage(resource.RUSAGE_CHILDREN)
+    if p.returncode != 0:
+        raise SystemExit(f"{' '.join(argv)} failed:\n{err[-2000:]}")
+    cpu = (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
+    return {"cpu": cpu, "wall": wall, "out": out, **peak}
 
 
 def slope(cfg: Path, short: int, long: int, *extra: str) -> float:
@@ -113,6 +196,13 @@ def main():
     ap.add_argument("--steps", type=int, nargs="+", default=[100, 40, 20])
     ap.add_argument("--slope", type=int, nargs=2, default=[256, 1280],
                     help="the two trial counts of the mesh and stations arms")
+    ap.add_argument("--executors", default="inline,process,thread", help="the executors arm's executors")
+    ap.add_argument("--workers", type=int, default=2, help="workers of the process and thread executors")
+    ap.add_argument("--exec-long", type=int, default=20000, help="the executors arm's longer run (trials)")
+    ap.add_argument("--every", type=float, default=0.25, help="memory sampling interval, s")
+    ap.add_argument("--big-trials", type=int, nargs="+", default=[1_000_000])
+    ap.add_argument("--big-executors", default="process,thread")
+    ap.add_argument("--big-budget", type=int, default=10000, help="--attribution-trials of the big run")
     args = ap.parse_args()
     what = set(args.what.split(","))
     paper = DATA / "paper_xfyz.toml"
@@ -185,6 +275,53 @@ def main():
                                                                       for cb, v in res.items()), flush=True)
             med = {cb: statistics.median(v) for cb, v in res.items()}
             print("chunks: median " + ", ".join(f"{cb}: {med[4] / v:.2f}x the speed of 4" for cb, v in med.items()))
+        if "executors" in what:
+            execs = args.executors.split(",")
+
+            def arm(ex: str, n: int) -> dict:
+                extra = ["--executor", ex] + (["--workers", str(args.workers)] if ex != "inline" else [])
+                with tempfile.TemporaryDirectory() as cwd:
+                    return watched([sys.executable, "-m", "mtbudget", "run", str(paper), "--trials", str(n), "--json",
+                                    "--quiet", "--attribution-trials", "0", *extra], cwd, args.every)
+
+            rows: dict = {e: [] for e in execs}
+            for r in range(args.rounds):
+                for ex in execs:
+                    a, b = arm(ex, args.short), arm(ex, args.exec_long)
+                    dn = args.exec_long - args.short
+                    row = {"cpu": (b["cpu"] - a["cpu"]) / dn, "wall": (b["wall"] - a["wall"]) / dn, "rss": b["rss"],
+                           "pss": b["pss"], "main": b["main"], "procs": b["procs"], "wall_long": b["wall"],
+                           "cpu_long": b["cpu"]}
+                    rows[ex].append(row)
+                    print(f"executors round {r + 1} ({load()}): {ex:<8} CPU {row['cpu'] * 1e3:.4f} ms/trial, wall "
+                          f"{row['wall'] * 1e3:.4f} ms/trial ({args.short} -> {args.exec_long} trials); at "
+                          f"{args.exec_long}: {b['wall']:.1f} s wall, {b['cpu']:.1f} s CPU, peak summed RSS "
+                          f"{b['rss']:.0f} MB, PSS {b['pss']:.0f} MB over {b['procs']} processes (main RSS "
+                          f"{b['main']:.0f} MB)", flush=True)
+            med = {e: {k: statistics.median(x[k] for x in v) for k in v[0]} for e, v in rows.items()}
+            base = med[execs[0]]
+            for e, m in med.items():
+                print(f"executors median: {e:<8} CPU {m['cpu'] * 1e3:.4f} ms/trial ({m['cpu'] / base['cpu']:.2f}x "
+                      f"{execs[0]}), wall {m['wall'] * 1e3:.4f} ms/trial (speed {base['wall'] / m['wall']:.2f}x "
+                      f"{execs[0]}), peak RSS {m['rss']:.0f} MB, PSS {m['pss']:.0f} MB", flush=True)
+        if "big" in what:
+            import json  # noqa: PLC0415
+
+            for n in args.big_trials:
+                for ex in args.big_executors.split(","):
+                    extra = ["--executor", ex] + (["--workers", str(args.workers)] if ex != "inline" else [])
+                    print(f"big: {n} trials, --executor {ex}, starting ({load()}; uptime: "
+                          f"{subprocess.run(['uptime'], capture_output=True, text=True).stdout.strip()})", flush=True)
+                    with tempfile.TemporaryDirectory() as cwd:
+                        b = watched([sys.executable, "-m", "mtbudget", "run", str(paper), "--trials", str(n),
+                                     "--attribution-trials", str(args.big_budget), "--json", "--quiet", "--log",
+                                     "big.mcap", *extra], cwd, max(args.every, 0.5))
+                    out = json.loads(b["out"])
+                    o = out.get("outputs", {}).get("compensation_rms", {})
+                    print(f"big: {n} trials + budget {args.big_budget}, {ex}: {b['wall']:.1f} s wall, {b['cpu']:.1f} s "
+                          f"CPU, peak summed RSS {b['rss']:.0f} MB, PSS {b['pss']:.0f} MB over {b['procs']} processes, "
+                          f"main process RSS {b['main']:.0f} MB ({load()}); compensation_rms mean "
+                          f"{o.get('mean')} std {o.get('std')}", flush=True)
         if "memory" in what:
             for n in args.memory_trials:
                 t0 = time.time()
