@@ -34,6 +34,11 @@ Configurations are the built-in ``paper_xfyz.toml`` with one thing changed:
   every ``--every`` s while the longer run runs: resident (RSS, a page shared by forked processes counted in each)
   and proportional (PSS, from ``/proc/PID/smaps_rollup``: a shared page split between its processes, so the sum
   counts it once).  Linux only.
+* ``engine-threads``: in process, without the command's start-up: the same ``--thread-chunks`` chunks of 16 blocks
+  of 64 trials (the built-in configuration, all sources) run by ``Engine.run_blocks`` on one thread, then on
+  ``--workers`` threads (each its own engine, as the thread executor has), alternated, ``--rounds`` rounds: the
+  wall-clock speed-up and the CPU the threads spend against one thread.  What the GIL costs, without the noise
+  of start-up; run it on an idle machine (the other arms' load is printed too).
 * ``big``: the 10^6-trial run with its budget (issue 12's command: ``--big-trials`` trials, ``--attribution-trials
   10000``, ``--json --quiet --log``) on each of ``--big-executors`` (``--workers 2``), once each: wall, CPU, peak
   summed RSS and PSS, the main process's peak RSS, and the main result, to compare with the figures in
@@ -200,6 +205,7 @@ def main():
     ap.add_argument("--workers", type=int, default=2, help="workers of the process and thread executors")
     ap.add_argument("--exec-long", type=int, default=20000, help="the executors arm's longer run (trials)")
     ap.add_argument("--every", type=float, default=0.25, help="memory sampling interval, s")
+    ap.add_argument("--thread-chunks", type=int, default=12)
     ap.add_argument("--big-trials", type=int, nargs="+", default=[1_000_000])
     ap.add_argument("--big-executors", default="process,thread")
     ap.add_argument("--big-budget", type=int, default=10000, help="--attribution-trials of the big run")
@@ -304,6 +310,47 @@ def main():
                 print(f"executors median: {e:<8} CPU {m['cpu'] * 1e3:.4f} ms/trial ({m['cpu'] / base['cpu']:.2f}x "
                       f"{execs[0]}), wall {m['wall'] * 1e3:.4f} ms/trial (speed {base['wall'] / m['wall']:.2f}x "
                       f"{execs[0]}), peak RSS {m['rss']:.0f} MB, PSS {m['pss']:.0f} MB", flush=True)
+        if "engine-threads" in what:
+            from concurrent.futures import ThreadPoolExecutor  # noqa: PLC0415
+
+            from mtbudget.config import load_config  # noqa: PLC0415
+            from mtbudget.engine import Engine  # noqa: PLC0415
+            from mtbudget.executors import one_blas_thread  # noqa: PLC0415
+            from mtbudget.scenario import build_scenario  # noqa: PLC0415
+
+            with one_blas_thread():
+                engs = [Engine(build_scenario(load_config()), block=64, seed=3) for _ in range(args.workers)]
+                for e in engs:
+                    e.run_blocks([0, 1])
+                chunks = [list(range(16 * i, 16 * i + 16)) for i in range(args.thread_chunks)]
+                trials = 64 * 16 * len(chunks)
+                speed, cpu = [], []
+                for r in range(args.rounds):
+                    t, c = time.perf_counter(), time.process_time()
+                    for ch in chunks:
+                        engs[0].run_blocks(ch)
+                    w1, c1 = time.perf_counter() - t, time.process_time() - c
+                    import itertools  # noqa: PLC0415
+                    import threading  # noqa: PLC0415
+
+                    mine, ids = threading.local(), itertools.count()  # next() of a count is atomic under the GIL
+
+                    def work(ch):
+                        if not hasattr(mine, "engine"):
+                            mine.engine = engs[next(ids)]
+                        return mine.engine.run_blocks(ch)
+
+                    t, c = time.perf_counter(), time.process_time()
+                    with ThreadPoolExecutor(args.workers) as pool:
+                        list(pool.map(work, chunks))
+                    wn, cn = time.perf_counter() - t, time.process_time() - c
+                    speed.append(w1 / wn)
+                    cpu.append(cn / c1)
+                    print(f"engine-threads round {r + 1} ({load()}): one thread {w1 / trials * 1e3:.4f} ms/trial wall "
+                          f"({c1 / trials * 1e3:.4f} CPU), {args.workers} threads {wn / trials * 1e3:.4f} ms/trial wall "
+                          f"({cn / trials * 1e3:.4f} CPU): speed-up {w1 / wn:.2f}x, CPU {cn / c1:.2f}x", flush=True)
+            print(f"engine-threads: median speed-up {statistics.median(speed):.2f}x on {args.workers} threads, CPU "
+                  f"{statistics.median(cpu):.2f}x one thread's", flush=True)
         if "big" in what:
             import json  # noqa: PLC0415
 
