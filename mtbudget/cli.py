@@ -10,6 +10,7 @@ import click
 
 from . import __version__
 from .errors import MtbudgetError
+from .executors import AUTO_MIN_TRIALS, AUTO_PARALLEL
 
 
 class _Group(click.Group):
@@ -461,10 +462,11 @@ def plugins_cmd(config, as_json):
 @click.option("--seed", type=click.IntRange(min=0), default=None, help="Seed of the run (default: the config's seed).")
 @click.option("--coverage", type=click.FloatRange(0, 1, min_open=True, max_open=True), default=0.95, show_default=True,
               help="Coverage probability of the intervals.")
-@click.option("--executor", type=click.Choice(["inline", "thread", "process", "dask"]), default="inline", show_default=True,
-              help="Where trials run: this process, threads of this process (one copy of the engine's libraries in "
+@click.option("--executor", type=click.Choice(["auto", "inline", "thread", "process", "dask"]), default="inline", show_default=True,
+              help=f"Where trials run: auto (inline below {AUTO_MIN_TRIALS:,} trials, budget included, else "
+                   f"{AUTO_PARALLEL} workers on every core), this process, threads of this process (one copy of the engine's libraries in "
                    "memory), a local process pool, or a Dask cluster (extra 'dask'); the numbers are the same "
-                   "(docs/performance.md, \"Executors\").")
+                   "(docs/performance.md, \"Executors on two cores\").")
 @click.option("--workers", type=click.IntRange(min=1), default=None,
               help="Worker threads (default: this machine's cores), worker processes (default 2) or local Dask "
                    "workers (default 2).")

@@ -22,7 +22,15 @@ import json
 
 from .errors import ConfigError
 
-EXECUTORS = ("inline", "thread", "process", "dask")
+EXECUTORS = ("auto", "inline", "thread", "process", "dask")
+
+#: ``auto``: the trials a run computes (its own and its budget's) from which it uses every core, and the executor it
+#: uses them with; below, or on one core, or with a source registered in code, it runs inline.  Chosen by
+#: measurement (docs/performance.md, "Executors on two cores"): worker processes forked from this one share its
+#: libraries' pages, and two of them ran the engine 2x as fast as inline on two idle cores, where two threads ran
+#: it 1.1-1.3x (the identification holds the GIL in its Python and small numpy steps).
+AUTO_MIN_TRIALS = 20_000
+AUTO_PARALLEL = "process"
 
 
 def engine_from_spec(spec: dict):
@@ -165,12 +173,26 @@ def check_sources_reach_workers(engine, kind: str) -> None:
                           "a package installed on every worker, or run with --executor inline", key="executor")
 
 
-class Executor:
-    """Runs chunks of blocks and yields their results in chunk order."""
+def auto_executor(engine, workers: int | None, work: int | None) -> tuple[str, int | None]:
+    """What ``--executor auto`` runs on: (kind, workers).  ``work``: the trials the run computes (None: many)."""
+    cores = default_workers()
+    in_code = any(getattr(s, "dist_name", "") == IN_CODE for s in engine.sources)
+    if in_code or (workers or cores) < 2 or (work is not None and work < AUTO_MIN_TRIALS):
+        return "inline", None
+    return AUTO_PARALLEL, workers or cores
 
-    def __init__(self, engine, spec: dict, kind: str = "inline", workers: int | None = None, address=None):
+
+class Executor:
+    """Runs chunks of blocks and yields their results in chunk order.
+
+    ``work``: the trials the caller will run on it (``auto`` chooses by it, :func:`auto_executor`)."""
+
+    def __init__(self, engine, spec: dict, kind: str = "inline", workers: int | None = None, address=None,
+                 work: int | None = None):
         if kind not in EXECUTORS:
             raise ConfigError(f"unknown executor {kind!r}; expected one of {', '.join(EXECUTORS)}", key="executor")
+        if kind == "auto":
+            kind, workers = auto_executor(engine, workers, work)
         self.engine, self.kind = engine, kind
         if kind != "inline":
             check_sources_reach_workers(engine, kind)
@@ -183,7 +205,7 @@ class Executor:
         elif kind == "process":
             from concurrent.futures import ProcessPoolExecutor
 
-            self.pool = ProcessPoolExecutor(max_workers=workers or 2)
+            self.pool = ProcessPoolExecutor(max_workers=workers or 2)  # forked on Linux: pages shared (performance.md)
             self.n_workers = workers or 2
         elif kind == "dask":
             try:

@@ -123,7 +123,7 @@ def test_bad_run_arguments(small):
         run(small, trials=10, coverage=1.5)
     with pytest.raises(ConfigError, match="--attribution-trials: must be 0"):
         run(small, trials=10, attribution_trials=-1)
-    with pytest.raises(ConfigError, match="--executor: must be one of inline, thread, process, dask"):
+    with pytest.raises(ConfigError, match="--executor: must be one of auto, inline, thread, process, dask"):
         run(small, trials=10, executor="threads")
 
 

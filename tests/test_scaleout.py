@@ -105,6 +105,29 @@ def test_the_thread_executor_holds_blas_to_one_thread_while_it_is_open_and_gives
         assert blas_threads() == before
 
 
+def test_auto_runs_short_runs_inline_and_long_ones_on_every_core(small, monkeypatch):
+    from mtbudget import executors
+
+    eng = Engine(build_scenario(small), block=16, seed=1)
+    monkeypatch.setattr(executors, "default_workers", lambda: 2)
+    assert executors.auto_executor(eng, None, executors.AUTO_MIN_TRIALS - 1) == ("inline", None)
+    assert executors.auto_executor(eng, None, executors.AUTO_MIN_TRIALS) == (executors.AUTO_PARALLEL, 2)
+    assert executors.auto_executor(eng, 3, None) == (executors.AUTO_PARALLEL, 3)  # adaptive: many trials
+    assert executors.auto_executor(eng, 1, None) == ("inline", None)  # --workers 1: one core
+    monkeypatch.setattr(executors, "default_workers", lambda: 1)
+    assert executors.auto_executor(eng, None, 10**6) == ("inline", None)  # a one-core machine
+    monkeypatch.setattr(executors, "default_workers", lambda: 2)
+    coded = Engine(build_scenario(small, _in_code_host(), ["tracker_noise", "in_code_offset"]), block=16, seed=1)
+    assert executors.auto_executor(coded, None, 10**6) == ("inline", None)  # workers could not rebuild it
+    res = run(small, trials=32, block=16, attribution_trials=0, executor="auto")
+    assert res.executor == {"kind": "inline", "workers": 1}
+    monkeypatch.setattr(executors, "AUTO_MIN_TRIALS", 16)
+    a = run(small, trials=48, block=16, attribution_trials=0, executor="auto", workers=2)
+    assert a.executor == {"kind": executors.AUTO_PARALLEL, "workers": 2}
+    b = run(small, trials=48, block=16, attribution_trials=0)
+    assert np.array_equal(a.acc.scalar_samples("compensation_rms"), b.acc.scalar_samples("compensation_rms"))
+
+
 def test_a_run_on_threads_is_logged_and_verifies_bit_for_bit(small, tmp_path):
     from mtbudget.runner import execute, verify
 
