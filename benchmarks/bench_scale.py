@@ -115,6 +115,13 @@ def rss_pss(pids: list) -> tuple[float, float, float]:
     return rss / 1024, pss / 1024, first / 1024
 
 
+def machine_busy() -> float:
+    """CPU seconds every core of the machine has been busy so far (user, nice, system, irq, softirq; /proc/stat)."""
+    with open("/proc/stat") as f:
+        v = f.readline().split()[1:]
+    return (int(v[0]) + int(v[1]) + int(v[2]) + int(v[5]) + int(v[6])) / os.sysconf("SC_CLK_TCK")
+
+
 def watched(argv: list, cwd: str, every: float = 0.25) -> dict:
     """Run ``argv``; its CPU (user + system of it and of every process it waited for: the growth of this process's
     RUSAGE_CHILDREN, the commands run one at a time), wall, and the peaks of the memory summed over its process
@@ -124,14 +131,23 @@ def watched(argv: list, cwd: str, every: float = 0.25) -> dict:
 
     env = dict(os.environ, OPENBLAS_NUM_THREADS="1")
     before = resource.getrusage(resource.RUSAGE_CHILDREN)
+    busy0 = machine_busy()
     t0 = time.perf_counter()
     p = subprocess.Popen(argv, cwd=cwd, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    peak = {"rss": 0.0, "pss": 0.0, "main": 0.0, "procs": 0}
+    peak = {"rss": 0.0, "pss": 0.0, "main": 0.0, "procs": 0, "main_cpu": 0.0}
     done = threading.Event()
+    tick = os.sysconf("SC_CLK_TCK")
 
     def sample():
         while not done.is_set():
             pids = descendants(p.pid)
+            try:  # the command's own process (not its workers): user + system CPU so far, at the last sample
+                with open(f"/proc/{p.pid}/stat") as f:
+                    st = f.read()
+                fields = st[st.rfind(")") + 2:].split()
+                peak["main_cpu"] = (int(fields[11]) + int(fields[12])) / tick
+            except (OSError, IndexError):
+                pass
             r, s, m = rss_pss(pids)
             peak["rss"], peak["pss"], peak["main"] = max(peak["rss"], r), max(peak["pss"], s), max(peak["main"], m)
             peak["procs"] = max(peak["procs"], len(pids))
@@ -147,7 +163,10 @@ def watched(argv: list, cwd: str, every: float = 0.25) -> dict:
     if p.returncode != 0:
         raise SystemExit(f"{' '.join(argv)} failed:\n{err[-2000:]}")
     cpu = (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
-    return {"cpu": cpu, "wall": wall, "out": out, **peak}
+    # what the machine's other processes used meanwhile, in cores: a round where they used one of two is no
+    # measure of scaling
+    others = max(0.0, (machine_busy() - busy0 - cpu) / wall)
+    return {"cpu": cpu, "wall": wall, "out": out, "others": others, **peak}
 
 
 def slope(cfg: Path, short: int, long: int, *extra: str) -> float:
@@ -297,15 +316,21 @@ def main():
                     dn = args.exec_long - args.short
                     row = {"cpu": (b["cpu"] - a["cpu"]) / dn, "wall": (b["wall"] - a["wall"]) / dn, "rss": b["rss"],
                            "pss": b["pss"], "main": b["main"], "procs": b["procs"], "wall_long": b["wall"],
-                           "cpu_long": b["cpu"]}
+                           "cpu_long": b["cpu"], "others": max(a["others"], b["others"])}
                     rows[ex].append(row)
-                    print(f"executors round {r + 1} ({load()}): {ex:<8} CPU {row['cpu'] * 1e3:.4f} ms/trial, wall "
+                    print(f"executors round {r + 1} ({load()}; other processes {row['others']:.2f} cores): {ex:<8} CPU {row['cpu'] * 1e3:.4f} ms/trial, wall "
                           f"{row['wall'] * 1e3:.4f} ms/trial ({args.short} -> {args.exec_long} trials); at "
                           f"{args.exec_long}: {b['wall']:.1f} s wall, {b['cpu']:.1f} s CPU, peak summed RSS "
                           f"{b['rss']:.0f} MB, PSS {b['pss']:.0f} MB over {b['procs']} processes (main RSS "
-                          f"{b['main']:.0f} MB)", flush=True)
+                          f"{b['main']:.0f} MB; its own CPU {b['main_cpu']:.1f} s)", flush=True)
             med = {e: {k: statistics.median(x[k] for x in v) for k in v[0]} for e, v in rows.items()}
             base = med[execs[0]]
+            clean = [r for r in range(args.rounds) if all(rows[e][r]["others"] < 0.25 for e in execs)]
+            if clean:  # the rounds in which no arm shared the cores with other work
+                cm = {e: {k: statistics.median(rows[e][r][k] for r in clean) for k in ("cpu", "wall")} for e in execs}
+                print(f"executors, the {len(clean)} rounds where other processes used < 0.25 cores in every arm: " +
+                      ", ".join(f"{e} wall {cm[e]['wall'] * 1e3:.4f} ms/trial (speed {cm[execs[0]]['wall'] / cm[e]['wall']:.2f}x"
+                                f"), CPU {cm[e]['cpu'] / cm[execs[0]]['cpu']:.2f}x" for e in execs), flush=True)
             for e, m in med.items():
                 print(f"executors median: {e:<8} CPU {m['cpu'] * 1e3:.4f} ms/trial ({m['cpu'] / base['cpu']:.2f}x "
                       f"{execs[0]}), wall {m['wall'] * 1e3:.4f} ms/trial (speed {base['wall'] / m['wall']:.2f}x "
@@ -367,7 +392,8 @@ def main():
                     o = out.get("outputs", {}).get("compensation_rms", {})
                     print(f"big: {n} trials + budget {args.big_budget}, {ex}: {b['wall']:.1f} s wall, {b['cpu']:.1f} s "
                           f"CPU, peak summed RSS {b['rss']:.0f} MB, PSS {b['pss']:.0f} MB over {b['procs']} processes, "
-                          f"main process RSS {b['main']:.0f} MB ({load()}); compensation_rms mean "
+                          f"main process RSS {b['main']:.0f} MB, CPU {b['main_cpu']:.1f} s ({load()}; other processes used "
+                          f"{b['others']:.2f} cores meanwhile); compensation_rms mean "
                           f"{o.get('mean')} std {o.get('std')}", flush=True)
         if "memory" in what:
             for n in args.memory_trials:
