@@ -19,6 +19,7 @@ larger loops, so threads overlap there; the identification's Python and small nu
 from __future__ import annotations
 
 import json
+import os
 
 from .errors import ConfigError
 
@@ -108,6 +109,21 @@ def run_blocks_from_spec(spec_json: str, blocks: list, active: list | None = Non
             _WORKER_CACHE.clear()
             _WORKER_CACHE[spec_json] = eng
         return _worker_blocks(eng, blocks, active)
+
+
+def exit_with_parent(parent: int, every: float = 1.0) -> None:
+    """In a worker process: end it when the process that started it is gone.  A run killed hard (``kill -9``, the
+    out-of-memory killer) cannot shut its pool down, and its workers, waiting for work that never comes, would
+    otherwise stay (measured: orphaned, sleeping, holding their memory)."""
+    import threading
+    import time
+
+    def watch():
+        while os.getppid() == parent:
+            time.sleep(every)
+        os._exit(1)
+
+    threading.Thread(target=watch, name="mtbudget-parent-watch", daemon=True).start()
 
 
 class _ThreadWorkers:
@@ -205,7 +221,9 @@ class Executor:
         elif kind == "process":
             from concurrent.futures import ProcessPoolExecutor
 
-            self.pool = ProcessPoolExecutor(max_workers=workers or 2)  # forked on Linux: pages shared (performance.md)
+            # forked on Linux: the libraries' pages shared with this process (docs/performance.md)
+            self.pool = ProcessPoolExecutor(max_workers=workers or 2, initializer=exit_with_parent,
+                                            initargs=(os.getpid(),))
             self.n_workers = workers or 2
         elif kind == "dask":
             try:

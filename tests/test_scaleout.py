@@ -205,3 +205,40 @@ def test_workers_get_a_bounded_window_of_chunks_and_results_come_back_in_order()
                 g._taken = True
     assert out == [c * 10 for c in range(50)]
     assert most[0] == 5  # the window plus the one being handed over, never the whole run
+
+
+def test_worker_processes_end_when_the_run_is_killed_hard(tmp_path):
+    """A run killed with SIGKILL cannot shut its pool down: its worker processes notice and end (they stayed,
+    orphaned, before)."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    script = tmp_path / "run.py"
+    script.write_text(
+        "import os, sys\n"
+        "from mtbudget.config import load_config\n"
+        "from mtbudget.engine import Engine\n"
+        "from mtbudget.executors import Executor\n"
+        "from mtbudget.runner import RunSettings, make_spec\n"
+        "from mtbudget.scenario import build_scenario\n"
+        f"cfg = load_config({str(SMALL)!r})\n"
+        "eng = Engine(build_scenario(cfg), block=4, seed=1)\n"
+        "ex = Executor(eng, make_spec(eng.scenario, eng, RunSettings()), 'process', 2)\n"
+        "list(ex.map([[0], [1], [2], [3]]))\n"
+        "print(' '.join(str(p) for p in ex.pool._processes), flush=True)\n"
+        "sys.stdin.read()\n")
+    proc = subprocess.Popen([sys.executable, str(script)], stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+    workers = [int(p) for p in proc.stdout.readline().split()]
+    assert workers
+    os.kill(proc.pid, signal.SIGKILL)
+    proc.wait()
+    deadline = time.monotonic() + 15
+    alive = workers
+    while alive and time.monotonic() < deadline:
+        time.sleep(0.2)
+        alive = [p for p in alive if os.path.exists(f"/proc/{p}") and
+                 open(f"/proc/{p}/stat").read().split(")")[-1].split()[0] != "Z"]
+    assert not alive, f"worker processes {alive} outlived the killed run"
