@@ -111,12 +111,15 @@ def run_blocks_from_spec(spec_json: str, blocks: list, active: list | None = Non
         return _worker_blocks(eng, blocks, active)
 
 
-def exit_with_parent(parent: int, every: float = 1.0) -> None:
+def exit_with_parent(every: float = 1.0) -> None:
     """In a worker process: end it when the process that started it is gone.  A run killed hard (``kill -9``, the
     out-of-memory killer) cannot shut its pool down, and its workers, waiting for work that never comes, would
-    otherwise stay (measured: orphaned, sleeping, holding their memory)."""
+    otherwise stay (measured: orphaned, sleeping, holding their memory).  The parent is the one seen at the start:
+    the run (fork, spawn) or the fork server, which ends with the run (forkserver)."""
     import threading
     import time
+
+    parent = os.getppid()
 
     def watch():
         while os.getppid() == parent:
@@ -222,8 +225,7 @@ class Executor:
             from concurrent.futures import ProcessPoolExecutor
 
             # forked on Linux: the libraries' pages shared with this process (docs/performance.md)
-            self.pool = ProcessPoolExecutor(max_workers=workers or 2, initializer=exit_with_parent,
-                                            initargs=(os.getpid(),))
+            self.pool = ProcessPoolExecutor(max_workers=workers or 2, initializer=exit_with_parent)
             self.n_workers = workers or 2
         elif kind == "dask":
             try:
