@@ -39,6 +39,12 @@ Configurations are the built-in ``paper_xfyz.toml`` with one thing changed:
   ``--workers`` threads (each its own engine, as the thread executor has), alternated, ``--rounds`` rounds: the
   wall-clock speed-up and the CPU the threads spend against one thread.  What the GIL costs, without the noise
   of start-up; run it on an idle machine (the other arms' load is printed too).
+* ``engine-executors``: in process, the same chunks through ``executors.Executor`` of each of ``--executors``
+  (``--workers`` workers, started before the clock), alternated, ``--rounds`` rounds: wall per trial and the cores
+  the machine's other processes used meanwhile (a round they shared says nothing of scaling).
+* ``start-methods``: the memory of a process pool of ``--workers`` workers started by fork, forkserver (with and
+  without the engine's modules preloaded) and spawn, each in a fresh interpreter after 8 chunks of 4 blocks:
+  summed RSS and PSS of the parent and its workers (each start method's pages shared or not).
 * ``big``: the 10^6-trial run with its budget (issue 12's command: ``--big-trials`` trials, ``--attribution-trials
   10000``, ``--json --quiet --log``) on each of ``--big-executors`` (``--workers 2``), once each: wall, CPU, peak
   summed RSS and PSS, the main process's peak RSS, and the main result, to compare with the figures in
@@ -376,6 +382,80 @@ def main():
                           f"({cn / trials * 1e3:.4f} CPU): speed-up {w1 / wn:.2f}x, CPU {cn / c1:.2f}x", flush=True)
             print(f"engine-threads: median speed-up {statistics.median(speed):.2f}x on {args.workers} threads, CPU "
                   f"{statistics.median(cpu):.2f}x one thread's", flush=True)
+        if "engine-executors" in what:
+            from mtbudget.config import load_config  # noqa: PLC0415
+            from mtbudget.engine import Engine  # noqa: PLC0415
+            from mtbudget.executors import Executor, one_blas_thread  # noqa: PLC0415
+            from mtbudget.runner import RunSettings, make_spec  # noqa: PLC0415
+            from mtbudget.scenario import build_scenario  # noqa: PLC0415
+
+            execs = args.executors.split(",")
+            with one_blas_thread():
+                eng = Engine(build_scenario(load_config()), block=64, seed=3)
+                eng.run_blocks([0, 1])
+                spec = make_spec(eng.scenario, eng, RunSettings())
+                chunks = [list(range(16 * i, 16 * i + 16)) for i in range(args.thread_chunks)]
+                trials = 64 * 16 * len(chunks)
+                res: dict = {e: [] for e in execs}
+                for r in range(args.rounds):
+                    row = []
+                    for kind in execs:
+                        with Executor(eng, spec, kind, args.workers) as ex:
+                            for _ in ex.map([[10_000 + i] for i in range(args.workers)]):  # workers up, engines built
+                                pass
+                            b0, t = machine_busy(), time.perf_counter()
+                            c0 = time.process_time()
+                            for got in ex.map(chunks):
+                                for blk in got:
+                                    blk.vector_moments()  # as the run's merge does (computed already by workers)
+                            w = time.perf_counter() - t
+                            mine = time.process_time() - c0 if kind != "process" else None
+                            others = max(0.0, machine_busy() - b0 - (mine if mine is not None else 0.0))
+                        res[kind].append(w / trials)
+                        row.append(f"{kind} {w / trials * 1e3:.4f} ms/trial (machine busy {others / w:.2f} cores "
+                                   f"besides this process{'' if kind != 'process' else ' and its workers'})")
+                    print(f"engine-executors round {r + 1} ({load()}): " + ", ".join(row), flush=True)
+            med = {e: statistics.median(v) for e, v in res.items()}
+            print("engine-executors: median " + ", ".join(f"{e} {v * 1e3:.4f} ms/trial (speed {med[execs[0]] / v:.2f}x "
+                                                           f"{execs[0]})" for e, v in med.items()), flush=True)
+        if "start-methods" in what:
+            for method in ("fork", "forkserver", "forkserver+preload", "spawn"):
+                code = (
+                    "import json, multiprocessing as mp, os, sys\n"
+                    f"sys.path.insert(0, {str(ROOT / 'benchmarks')!r})\n"
+                    "from concurrent.futures import ProcessPoolExecutor\n"
+                    "from bench_scale import descendants, rss_pss\n"
+                    "from mtbudget.config import load_config\n"
+                    "from mtbudget.engine import Engine\n"
+                    "from mtbudget.executors import one_blas_thread, run_blocks_from_spec\n"
+                    "from mtbudget.runner import RunSettings, make_spec\n"
+                    "from mtbudget.scenario import build_scenario\n"
+                    "if __name__ == '__main__':\n"
+                    "    with one_blas_thread():\n"
+                    "        eng = Engine(build_scenario(load_config()), block=64, seed=1)\n"
+                    "        eng.run_blocks([0, 1])\n"
+                    "        spec = json.dumps(make_spec(eng.scenario, eng, RunSettings()), sort_keys=True, default=str)\n"
+                    f"        ctx = mp.get_context({method.split('+')[0]!r})\n"
+                    + ("        ctx.set_forkserver_preload(['mtbudget.engine', 'mtbudget.executors'])\n"
+                       if method.endswith("preload") else "") +
+                    f"        with ProcessPoolExecutor({args.workers}, mp_context=ctx) as pool:\n"
+                    "            [f.result() for f in [pool.submit(run_blocks_from_spec, spec, list(range(4 * i, 4 * i + 4)))\n"
+                    "                                  for i in range(8)]]\n"
+                    "            pids = descendants(os.getpid())\n"
+                    "            print(json.dumps([len(pids), *rss_pss(pids)[:2], [rss_pss([q])[:2] for q in pids]]))\n")
+                with tempfile.TemporaryDirectory() as cwd:
+                    f = Path(cwd) / "pool.py"
+                    f.write_text(code)
+                    out = subprocess.run([sys.executable, str(f)], capture_output=True, text=True, cwd=cwd,
+                                         env=dict(os.environ, OPENBLAS_NUM_THREADS="1"))
+                if out.returncode:
+                    print(f"start-methods {method}: failed: {out.stderr[-500:]}", flush=True)
+                    continue
+                import json  # noqa: PLC0415
+
+                n, rss, pss, each = json.loads(out.stdout.strip().splitlines()[-1])
+                print(f"start-methods ({load()}): {method:<18} {n} processes, summed RSS {rss:.0f} MB, PSS {pss:.0f} MB; "
+                      "each RSS/PSS " + ", ".join(f"{a:.0f}/{b:.0f}" for a, b in each), flush=True)
         if "big" in what:
             import json  # noqa: PLC0415
 
