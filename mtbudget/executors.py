@@ -253,7 +253,7 @@ class Executor:
                     results = self.engine.run_blocks(ch, act)
                 yield results
         elif self.kind == "thread":
-            yield from in_order(lambda ch: self.threads.submit(ch, active_names), chunks, 2 * self.n_workers + 2)
+            yield from in_order(lambda ch: self.threads.submit(ch, active_names), chunks, self.n_workers + 1)
         elif self.kind == "process":
             yield from in_order(lambda ch: self.pool.submit(run_blocks_from_spec, self.spec_json, ch, active_names),
                                  chunks, 2 * self.n_workers + 2)
