@@ -403,17 +403,26 @@ def main():
                         with Executor(eng, spec, kind, args.workers) as ex:
                             for _ in ex.map([[10_000 + i] for i in range(args.workers)]):  # workers up, engines built
                                 pass
-                            b0, t = machine_busy(), time.perf_counter()
-                            c0 = time.process_time()
+                            def ours():  # CPU s of this process and of its worker processes so far
+                                own = time.process_time()
+                                for q in (getattr(ex.pool, "_processes", None) or {}):
+                                    try:
+                                        with open(f"/proc/{q}/stat") as f:
+                                            st = f.read()
+                                        v = st[st.rfind(")") + 2:].split()
+                                        own += (int(v[11]) + int(v[12])) / os.sysconf("SC_CLK_TCK")
+                                    except OSError:
+                                        pass
+                                return own
+
+                            b0, t, c0 = machine_busy(), time.perf_counter(), ours()
                             for got in ex.map(chunks):
                                 for blk in got:
                                     blk.vector_moments()  # as the run's merge does (computed already by workers)
                             w = time.perf_counter() - t
-                            mine = time.process_time() - c0 if kind != "process" else None
-                            others = max(0.0, machine_busy() - b0 - (mine if mine is not None else 0.0))
+                            others = max(0.0, machine_busy() - b0 - (ours() - c0))
                         res[kind].append(w / trials)
-                        row.append(f"{kind} {w / trials * 1e3:.4f} ms/trial (machine busy {others / w:.2f} cores "
-                                   f"besides this process{'' if kind != 'process' else ' and its workers'})")
+                        row.append(f"{kind} {w / trials * 1e3:.4f} ms/trial (other processes {others / w:.2f} cores)")
                     print(f"engine-executors round {r + 1} ({load()}): " + ", ".join(row), flush=True)
             med = {e: statistics.median(v) for e, v in res.items()}
             print("engine-executors: median " + ", ".join(f"{e} {v * 1e3:.4f} ms/trial (speed {med[execs[0]] / v:.2f}x "
