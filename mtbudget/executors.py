@@ -13,7 +13,8 @@ plugins' ``configure`` are not promised to be thread-safe).  What the threads st
 memoising module state (the unit registry, ``identify``'s plan cache dictionary keyed per model object, the CRC
 of source names, compiled kernels).  The kernels are compiled ``nogil`` and numpy releases the GIL inside its
 larger loops, so threads overlap there; the identification's Python and small numpy operations hold it
-(docs/performance.md, "Executors").  One process: numpy, pint, numba and the engine are loaded once.
+(docs/performance.md, "Executors on two cores").  One process: numpy, pint, numba and the engine are loaded
+once.
 """
 
 from __future__ import annotations
@@ -25,13 +26,16 @@ from .errors import ConfigError
 
 EXECUTORS = ("auto", "inline", "thread", "process", "dask")
 
-#: ``auto``: the trials a run computes (its own and its budget's) from which it uses every core, and the executor it
-#: uses them with; below, or on one core, or with a source registered in code, it runs inline.  Chosen by
-#: measurement (docs/performance.md, "Executors on two cores"): worker processes forked from this one share its
-#: libraries' pages, and two of them ran the engine 2x as fast as inline on two idle cores, where two threads ran
-#: it 1.1-1.3x (the identification holds the GIL in its Python and small numpy steps).
+#: ``auto``: the trials a run computes (its own and its budget's) from which it uses several cores, the executor it
+#: uses them with, and at most how many workers (default: the cores, up to this); below, on one core, or with a
+#: source registered in code, it runs inline.  Chosen by measurement (docs/performance.md, "Executors on two
+#: cores"): with the compiled chord, two threads run the engine 1.45-1.5x as fast as one on two idle cores (two
+#: processes 1.7x), and 10^6 trials with the budget in 73 s within 300 MB, where two processes took 83 s and
+#: 547 MB (368 MB PSS); threads leave no worker behind when a run is killed.  Each thread adds its engine's
+#: working set (about 35 MB) and the GIL limits how many help: not measured beyond two cores, hence the cap.
 AUTO_MIN_TRIALS = 20_000
-AUTO_PARALLEL = "process"
+AUTO_PARALLEL = "thread"
+AUTO_MAX_WORKERS = 4
 
 
 def engine_from_spec(spec: dict):
@@ -198,7 +202,7 @@ def auto_executor(engine, workers: int | None, work: int | None) -> tuple[str, i
     in_code = any(getattr(s, "dist_name", "") == IN_CODE for s in engine.sources)
     if in_code or (workers or cores) < 2 or (work is not None and work < AUTO_MIN_TRIALS):
         return "inline", None
-    return AUTO_PARALLEL, workers or cores
+    return AUTO_PARALLEL, workers or min(cores, AUTO_MAX_WORKERS)
 
 
 class Executor:

@@ -114,6 +114,8 @@ def test_auto_runs_short_runs_inline_and_long_ones_on_every_core(small, monkeypa
     assert executors.auto_executor(eng, None, executors.AUTO_MIN_TRIALS) == (executors.AUTO_PARALLEL, 2)
     assert executors.auto_executor(eng, 3, None) == (executors.AUTO_PARALLEL, 3)  # adaptive: many trials
     assert executors.auto_executor(eng, 1, None) == ("inline", None)  # --workers 1: one core
+    monkeypatch.setattr(executors, "default_workers", lambda: 64)
+    assert executors.auto_executor(eng, None, 10**6) == (executors.AUTO_PARALLEL, executors.AUTO_MAX_WORKERS)
     monkeypatch.setattr(executors, "default_workers", lambda: 1)
     assert executors.auto_executor(eng, None, 10**6) == ("inline", None)  # a one-core machine
     monkeypatch.setattr(executors, "default_workers", lambda: 2)
