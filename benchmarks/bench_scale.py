@@ -27,6 +27,28 @@ Configurations are the built-in ``paper_xfyz.toml`` with one thing changed:
   from it).
 * ``memory``: peak resident memory of the command at ``--memory-trials`` trials (``--attribution-trials 0``,
   inline).
+* ``executors``: the command on the built-in configuration with ``--executor inline``, ``process --workers 2`` and
+  ``thread --workers 2`` (``--executors`` to choose), ``--attribution-trials 0``, alternated in each of ``--rounds``
+  rounds: CPU (every process of the command, workers included) and wall per trial, each the slope between
+  ``--short`` and ``--exec-long`` trials, and the peak of the memory summed over the command's processes, sampled
+  every ``--every`` s while the longer run runs: resident (RSS, a page shared by forked processes counted in each)
+  and proportional (PSS, from ``/proc/PID/smaps_rollup``: a shared page split between its processes, so the sum
+  counts it once).  Linux only.
+* ``engine-threads``: in process, without the command's start-up: the same ``--thread-chunks`` chunks of 16 blocks
+  of 64 trials (the built-in configuration, all sources) run by ``Engine.run_blocks`` on one thread, then on
+  ``--workers`` threads (each its own engine, as the thread executor has), alternated, ``--rounds`` rounds: the
+  wall-clock speed-up and the CPU the threads spend against one thread.  What the GIL costs, without the noise
+  of start-up; run it on an idle machine (the other arms' load is printed too).
+* ``engine-executors``: in process, the same chunks through ``executors.Executor`` of each of ``--executors``
+  (``--workers`` workers, started before the clock), alternated, ``--rounds`` rounds: wall per trial and the cores
+  the machine's other processes used meanwhile (a round they shared says nothing of scaling).
+* ``start-methods``: the memory of a process pool of ``--workers`` workers started by fork, forkserver (with and
+  without the engine's modules preloaded) and spawn, each in a fresh interpreter after 8 chunks of 4 blocks:
+  summed RSS and PSS of the parent and its workers (each start method's pages shared or not).
+* ``big``: the 10^6-trial run with its budget (issue 12's command: ``--big-trials`` trials, ``--attribution-trials
+  10000``, ``--json --quiet --log``) on each of ``--big-executors`` (``--workers 2``), once each: wall, CPU, peak
+  summed RSS and PSS, the main process's peak RSS, and the main result, to compare with the figures in
+  docs/performance.md.
 
 The machines are shared: only ratios between arms measured in the same round mean something; the load
 average is printed with every round.
@@ -67,6 +89,97 @@ def command(cfg: Path, trials: int, *extra: str, before: bool = False) -> tuple[
         raise SystemExit(f"mtbudget run {cfg.name} --trials {trials} failed:\n{p.stderr[-2000:]}")
     u, s, e, m = p.stderr.strip().splitlines()[-1].split()
     return float(u) + float(s), float(e), float(m) / 1024
+
+
+def descendants(pid: int) -> list:
+    """``pid`` and every process below it (from /proc/*/stat)."""
+    children: dict = {}
+    for d in os.listdir("/proc"):
+        if d.isdigit():
+            try:
+                with open(f"/proc/{d}/stat") as f:
+                    st = f.read()
+            except OSError:
+                continue
+            children.setdefault(int(st[st.rfind(")") + 2:].split()[1]), []).append(int(d))
+    out, todo = [], [pid]
+    while todo:
+        p = todo.pop()
+        out.append(p)
+        todo += children.get(p, [])
+    return out
+
+
+def rss_pss(pids: list) -> tuple[float, float, float]:
+    """(summed RSS, summed PSS, RSS of the first pid), MB (2^20 bytes), from /proc/PID/smaps_rollup."""
+    rss = pss = first = 0
+    for i, p in enumerate(pids):
+        try:
+            with open(f"/proc/{p}/smaps_rollup") as f:
+                text = f.read()
+        except OSError:
+            continue
+        for line in text.splitlines():
+            if line.startswith("Rss:"):
+                rss += int(line.split()[1])
+                first = first or (int(line.split()[1]) if i == 0 else 0)
+            elif line.startswith("Pss:"):
+                pss += int(line.split()[1])
+    return rss / 1024, pss / 1024, first / 1024
+
+
+def machine_busy() -> float:
+    """CPU seconds every core of the machine has been busy so far (user, nice, system, irq, softirq; /proc/stat)."""
+    with open("/proc/stat") as f:
+        v = f.readline().split()[1:]
+    return (int(v[0]) + int(v[1]) + int(v[2]) + int(v[5]) + int(v[6])) / os.sysconf("SC_CLK_TCK")
+
+
+def watched(argv: list, cwd: str, every: float = 0.25) -> dict:
+    """Run ``argv``; its CPU (user + system of it and of every process it waited for: the growth of this process's
+    RUSAGE_CHILDREN, the commands run one at a time), wall, and the peaks of the memory summed over its process
+    tree, sampled every ``every`` s."""
+    import resource  # noqa: PLC0415
+    import threading  # noqa: PLC0415
+
+    env = dict(os.environ, OPENBLAS_NUM_THREADS="1")
+    before = resource.getrusage(resource.RUSAGE_CHILDREN)
+    busy0 = machine_busy()
+    t0 = time.perf_counter()
+    p = subprocess.Popen(argv, cwd=cwd, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    peak = {"rss": 0.0, "pss": 0.0, "main": 0.0, "procs": 0, "main_cpu": 0.0}
+    done = threading.Event()
+    tick = os.sysconf("SC_CLK_TCK")
+
+    def sample():
+        while not done.is_set():
+            pids = descendants(p.pid)
+            try:  # the command's own process (not its workers): user + system CPU so far, at the last sample
+                with open(f"/proc/{p.pid}/stat") as f:
+                    st = f.read()
+                fields = st[st.rfind(")") + 2:].split()
+                peak["main_cpu"] = (int(fields[11]) + int(fields[12])) / tick
+            except (OSError, IndexError):
+                pass
+            r, s, m = rss_pss(pids)
+            peak["rss"], peak["pss"], peak["main"] = max(peak["rss"], r), max(peak["pss"], s), max(peak["main"], m)
+            peak["procs"] = max(peak["procs"], len(pids))
+            done.wait(every)
+
+    th = threading.Thread(target=sample, daemon=True)
+    th.start()
+    out, err = p.communicate()
+    wall = time.perf_counter() - t0
+    done.set()
+    th.join()
+    after = resource.getrusage(resource.RUSAGE_CHILDREN)
+    if p.returncode != 0:
+        raise SystemExit(f"{' '.join(argv)} failed:\n{err[-2000:]}")
+    cpu = (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
+    # what the machine's other processes used meanwhile, in cores: a round where they used one of two is no
+    # measure of scaling
+    others = max(0.0, (machine_busy() - busy0 - cpu) / wall)
+    return {"cpu": cpu, "wall": wall, "out": out, "others": others, **peak}
 
 
 def slope(cfg: Path, short: int, long: int, *extra: str, before: bool = False) -> float:
@@ -122,6 +235,14 @@ def main():
                     help="the two trial counts of the mesh and stations arms")
     ap.add_argument("--before", metavar="REV", help="command: also the git revision REV (its mtbudget and plugins "
                     "unpacked into a temporary directory), alternating with this tree in every round")
+    ap.add_argument("--executors", default="inline,process,thread", help="the executors arm's executors")
+    ap.add_argument("--workers", type=int, default=2, help="workers of the process and thread executors")
+    ap.add_argument("--exec-long", type=int, default=20000, help="the executors arm's longer run (trials)")
+    ap.add_argument("--every", type=float, default=0.25, help="memory sampling interval, s")
+    ap.add_argument("--thread-chunks", type=int, default=12)
+    ap.add_argument("--big-trials", type=int, nargs="+", default=[1_000_000])
+    ap.add_argument("--big-executors", default="process,thread")
+    ap.add_argument("--big-budget", type=int, default=10000, help="--attribution-trials of the big run")
     args = ap.parse_args()
     what = set(args.what.split(","))
     paper = DATA / "paper_xfyz.toml"
@@ -219,6 +340,184 @@ def measure(args, what, paper):
                                                                       for cb, v in res.items()), flush=True)
             med = {cb: statistics.median(v) for cb, v in res.items()}
             print("chunks: median " + ", ".join(f"{cb}: {med[4] / v:.2f}x the speed of 4" for cb, v in med.items()))
+        if "executors" in what:
+            execs = args.executors.split(",")
+
+            def arm(ex: str, n: int) -> dict:
+                extra = ["--executor", ex] + (["--workers", str(args.workers)] if ex != "inline" else [])
+                with tempfile.TemporaryDirectory() as cwd:
+                    return watched([sys.executable, "-m", "mtbudget", "run", str(paper), "--trials", str(n), "--json",
+                                    "--quiet", "--attribution-trials", "0", *extra], cwd, args.every)
+
+            rows: dict = {e: [] for e in execs}
+            for r in range(args.rounds):
+                for ex in execs:
+                    a, b = arm(ex, args.short), arm(ex, args.exec_long)
+                    dn = args.exec_long - args.short
+                    row = {"cpu": (b["cpu"] - a["cpu"]) / dn, "wall": (b["wall"] - a["wall"]) / dn, "rss": b["rss"],
+                           "pss": b["pss"], "main": b["main"], "procs": b["procs"], "wall_long": b["wall"],
+                           "cpu_long": b["cpu"], "others": max(a["others"], b["others"])}
+                    rows[ex].append(row)
+                    print(f"executors round {r + 1} ({load()}; other processes {row['others']:.2f} cores): {ex:<8} CPU {row['cpu'] * 1e3:.4f} ms/trial, wall "
+                          f"{row['wall'] * 1e3:.4f} ms/trial ({args.short} -> {args.exec_long} trials); at "
+                          f"{args.exec_long}: {b['wall']:.1f} s wall, {b['cpu']:.1f} s CPU, peak summed RSS "
+                          f"{b['rss']:.0f} MB, PSS {b['pss']:.0f} MB over {b['procs']} processes (main RSS "
+                          f"{b['main']:.0f} MB; its own CPU {b['main_cpu']:.1f} s)", flush=True)
+            med = {e: {k: statistics.median(x[k] for x in v) for k in v[0]} for e, v in rows.items()}
+            base = med[execs[0]]
+            clean = [r for r in range(args.rounds) if all(rows[e][r]["others"] < 0.25 for e in execs)]
+            if clean:  # the rounds in which no arm shared the cores with other work
+                cm = {e: {k: statistics.median(rows[e][r][k] for r in clean) for k in ("cpu", "wall")} for e in execs}
+                print(f"executors, the {len(clean)} rounds where other processes used < 0.25 cores in every arm: " +
+                      ", ".join(f"{e} wall {cm[e]['wall'] * 1e3:.4f} ms/trial (speed {cm[execs[0]]['wall'] / cm[e]['wall']:.2f}x"
+                                f"), CPU {cm[e]['cpu'] / cm[execs[0]]['cpu']:.2f}x" for e in execs), flush=True)
+            for e, m in med.items():
+                print(f"executors median: {e:<8} CPU {m['cpu'] * 1e3:.4f} ms/trial ({m['cpu'] / base['cpu']:.2f}x "
+                      f"{execs[0]}), wall {m['wall'] * 1e3:.4f} ms/trial (speed {base['wall'] / m['wall']:.2f}x "
+                      f"{execs[0]}), peak RSS {m['rss']:.0f} MB, PSS {m['pss']:.0f} MB", flush=True)
+        if "engine-threads" in what:
+            from concurrent.futures import ThreadPoolExecutor  # noqa: PLC0415
+
+            from mtbudget.config import load_config  # noqa: PLC0415
+            from mtbudget.engine import Engine  # noqa: PLC0415
+            from mtbudget.executors import one_blas_thread  # noqa: PLC0415
+            from mtbudget.scenario import build_scenario  # noqa: PLC0415
+
+            with one_blas_thread():
+                engs = [Engine(build_scenario(load_config()), block=64, seed=3) for _ in range(args.workers)]
+                for e in engs:
+                    e.run_blocks([0, 1])
+                chunks = [list(range(16 * i, 16 * i + 16)) for i in range(args.thread_chunks)]
+                trials = 64 * 16 * len(chunks)
+                speed, cpu = [], []
+                for r in range(args.rounds):
+                    t, c = time.perf_counter(), time.process_time()
+                    for ch in chunks:
+                        engs[0].run_blocks(ch)
+                    w1, c1 = time.perf_counter() - t, time.process_time() - c
+                    import itertools  # noqa: PLC0415
+                    import threading  # noqa: PLC0415
+
+                    mine, ids = threading.local(), itertools.count()  # next() of a count is atomic under the GIL
+
+                    def work(ch):
+                        if not hasattr(mine, "engine"):
+                            mine.engine = engs[next(ids)]
+                        return mine.engine.run_blocks(ch)
+
+                    t, c = time.perf_counter(), time.process_time()
+                    with ThreadPoolExecutor(args.workers) as pool:
+                        list(pool.map(work, chunks))
+                    wn, cn = time.perf_counter() - t, time.process_time() - c
+                    speed.append(w1 / wn)
+                    cpu.append(cn / c1)
+                    print(f"engine-threads round {r + 1} ({load()}): one thread {w1 / trials * 1e3:.4f} ms/trial wall "
+                          f"({c1 / trials * 1e3:.4f} CPU), {args.workers} threads {wn / trials * 1e3:.4f} ms/trial wall "
+                          f"({cn / trials * 1e3:.4f} CPU): speed-up {w1 / wn:.2f}x, CPU {cn / c1:.2f}x", flush=True)
+            print(f"engine-threads: median speed-up {statistics.median(speed):.2f}x on {args.workers} threads, CPU "
+                  f"{statistics.median(cpu):.2f}x one thread's", flush=True)
+        if "engine-executors" in what:
+            from mtbudget.config import load_config  # noqa: PLC0415
+            from mtbudget.engine import Engine  # noqa: PLC0415
+            from mtbudget.executors import Executor, one_blas_thread  # noqa: PLC0415
+            from mtbudget.runner import RunSettings, make_spec  # noqa: PLC0415
+            from mtbudget.scenario import build_scenario  # noqa: PLC0415
+
+            execs = args.executors.split(",")
+            with one_blas_thread():
+                eng = Engine(build_scenario(load_config()), block=64, seed=3)
+                eng.run_blocks([0, 1])
+                spec = make_spec(eng.scenario, eng, RunSettings())
+                chunks = [list(range(16 * i, 16 * i + 16)) for i in range(args.thread_chunks)]
+                trials = 64 * 16 * len(chunks)
+                res: dict = {e: [] for e in execs}
+                for r in range(args.rounds):
+                    row = []
+                    for kind in execs:
+                        with Executor(eng, spec, kind, args.workers) as ex:
+                            for _ in ex.map([[10_000 + i] for i in range(args.workers)]):  # workers up, engines built
+                                pass
+                            def ours():  # CPU s of this process and of its worker processes so far
+                                own = time.process_time()
+                                for q in (getattr(ex.pool, "_processes", None) or {}):
+                                    try:
+                                        with open(f"/proc/{q}/stat") as f:
+                                            st = f.read()
+                                        v = st[st.rfind(")") + 2:].split()
+                                        own += (int(v[11]) + int(v[12])) / os.sysconf("SC_CLK_TCK")
+                                    except OSError:
+                                        pass
+                                return own
+
+                            b0, t, c0 = machine_busy(), time.perf_counter(), ours()
+                            for got in ex.map(chunks):
+                                for blk in got:
+                                    blk.vector_moments()  # as the run's merge does (computed already by workers)
+                            w = time.perf_counter() - t
+                            others = max(0.0, machine_busy() - b0 - (ours() - c0))
+                        res[kind].append(w / trials)
+                        row.append(f"{kind} {w / trials * 1e3:.4f} ms/trial (other processes {others / w:.2f} cores)")
+                    print(f"engine-executors round {r + 1} ({load()}): " + ", ".join(row), flush=True)
+            med = {e: statistics.median(v) for e, v in res.items()}
+            print("engine-executors: median " + ", ".join(f"{e} {v * 1e3:.4f} ms/trial (speed {med[execs[0]] / v:.2f}x "
+                                                           f"{execs[0]})" for e, v in med.items()), flush=True)
+        if "start-methods" in what:
+            for method in ("fork", "forkserver", "forkserver+preload", "spawn"):
+                code = (
+                    "import json, multiprocessing as mp, os, sys\n"
+                    f"sys.path.insert(0, {str(ROOT / 'benchmarks')!r})\n"
+                    "from concurrent.futures import ProcessPoolExecutor\n"
+                    "from bench_scale import descendants, rss_pss\n"
+                    "from mtbudget.config import load_config\n"
+                    "from mtbudget.engine import Engine\n"
+                    "from mtbudget.executors import one_blas_thread, run_blocks_from_spec\n"
+                    "from mtbudget.runner import RunSettings, make_spec\n"
+                    "from mtbudget.scenario import build_scenario\n"
+                    "if __name__ == '__main__':\n"
+                    "    with one_blas_thread():\n"
+                    "        eng = Engine(build_scenario(load_config()), block=64, seed=1)\n"
+                    "        eng.run_blocks([0, 1])\n"
+                    "        spec = json.dumps(make_spec(eng.scenario, eng, RunSettings()), sort_keys=True, default=str)\n"
+                    f"        ctx = mp.get_context({method.split('+')[0]!r})\n"
+                    + ("        ctx.set_forkserver_preload(['mtbudget.engine', 'mtbudget.executors'])\n"
+                       if method.endswith("preload") else "") +
+                    f"        with ProcessPoolExecutor({args.workers}, mp_context=ctx) as pool:\n"
+                    "            [f.result() for f in [pool.submit(run_blocks_from_spec, spec, list(range(4 * i, 4 * i + 4)))\n"
+                    "                                  for i in range(8)]]\n"
+                    "            pids = descendants(os.getpid())\n"
+                    "            print(json.dumps([len(pids), *rss_pss(pids)[:2], [rss_pss([q])[:2] for q in pids]]))\n")
+                with tempfile.TemporaryDirectory() as cwd:
+                    f = Path(cwd) / "pool.py"
+                    f.write_text(code)
+                    out = subprocess.run([sys.executable, str(f)], capture_output=True, text=True, cwd=cwd,
+                                         env=dict(os.environ, OPENBLAS_NUM_THREADS="1"))
+                if out.returncode:
+                    print(f"start-methods {method}: failed: {out.stderr[-500:]}", flush=True)
+                    continue
+                import json  # noqa: PLC0415
+
+                n, rss, pss, each = json.loads(out.stdout.strip().splitlines()[-1])
+                print(f"start-methods ({load()}): {method:<18} {n} processes, summed RSS {rss:.0f} MB, PSS {pss:.0f} MB; "
+                      "each RSS/PSS " + ", ".join(f"{a:.0f}/{b:.0f}" for a, b in each), flush=True)
+        if "big" in what:
+            import json  # noqa: PLC0415
+
+            for n in args.big_trials:
+                for ex in args.big_executors.split(","):
+                    extra = ["--executor", ex] + (["--workers", str(args.workers)] if ex != "inline" else [])
+                    print(f"big: {n} trials, --executor {ex}, starting ({load()}; uptime: "
+                          f"{subprocess.run(['uptime'], capture_output=True, text=True).stdout.strip()})", flush=True)
+                    with tempfile.TemporaryDirectory() as cwd:
+                        b = watched([sys.executable, "-m", "mtbudget", "run", str(paper), "--trials", str(n),
+                                     "--attribution-trials", str(args.big_budget), "--json", "--quiet", "--log",
+                                     "big.mcap", *extra], cwd, max(args.every, 0.5))
+                    out = json.loads(b["out"])
+                    o = out.get("outputs", {}).get("compensation_rms", {})
+                    print(f"big: {n} trials + budget {args.big_budget}, {ex}: {b['wall']:.1f} s wall, {b['cpu']:.1f} s "
+                          f"CPU, peak summed RSS {b['rss']:.0f} MB, PSS {b['pss']:.0f} MB over {b['procs']} processes, "
+                          f"main process RSS {b['main']:.0f} MB, CPU {b['main_cpu']:.1f} s ({load()}; other processes used "
+                          f"{b['others']:.2f} cores meanwhile); compensation_rms mean "
+                          f"{o.get('mean')} std {o.get('std')}", flush=True)
         if "memory" in what:
             for n in args.memory_trials:
                 t0 = time.time()

@@ -10,6 +10,7 @@ import click
 
 from . import __version__
 from .errors import MtbudgetError
+from .executors import AUTO_MAX_WORKERS, AUTO_MIN_TRIALS, AUTO_PARALLEL
 
 
 class _Group(click.Group):
@@ -461,9 +462,15 @@ def plugins_cmd(config, as_json):
 @click.option("--seed", type=click.IntRange(min=0), default=None, help="Seed of the run (default: the config's seed).")
 @click.option("--coverage", type=click.FloatRange(0, 1, min_open=True, max_open=True), default=0.95, show_default=True,
               help="Coverage probability of the intervals.")
-@click.option("--executor", type=click.Choice(["inline", "process", "dask"]), default="inline", show_default=True,
-              help="Where trials run: this process, a local process pool, or a Dask cluster (extra 'dask').")
-@click.option("--workers", type=click.IntRange(min=1), default=None, help="Workers of the process pool or local Dask cluster.")
+@click.option("--executor", type=click.Choice(["auto", "inline", "thread", "process", "dask"]), default="auto", show_default=True,
+              help=f"Where trials run: auto (inline below {AUTO_MIN_TRIALS:,} trials of work, the budget's included; "
+                   f"above, {AUTO_PARALLEL} workers on the machine's cores, at most {AUTO_MAX_WORKERS}), inline (this "
+                   "process, one core: best when the cores are busy with other work), threads of this process, a "
+                   "local process pool, or a Dask cluster (extra 'dask'); the numbers are the same whichever "
+                   "(docs/performance.md, \"Executors on two cores\").")
+@click.option("--workers", type=click.IntRange(min=1), default=None,
+              help=f"Worker threads (default: this machine's cores; with auto at most {AUTO_MAX_WORKERS}), worker "
+                   "processes (default 2) or local Dask workers (default 2).")
 @click.option("--address", default=None,
               help="Address of an existing Dask scheduler with --executor dask, e.g. tcp://host:8786 (worked example: "
                    "docs/performance.md); results are bit-identical to an inline run.")

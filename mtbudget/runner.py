@@ -201,7 +201,9 @@ def _run(config, settings, *, on_chunk, resume_blocks, engine, host, resume_hist
     # the budget's "all sources" row is this run's first attribution_trials trials: collected as they are merged
     prefix = RunPrefix(engine, settings.attribution_trials) if settings.attribution_trials else None
     result.prefix = prefix
-    ex = Executor(engine, spec, settings.executor, settings.workers, settings.address)
+    work = None if trials is None else int(trials) + settings.attribution_trials * (len(engine.sources) + 1)
+    ex = Executor(engine, spec, settings.executor, settings.workers, settings.address, work=work)
+    result.executor = {"kind": ex.kind, "workers": ex.n_workers}  # what ran the trials (auto: what it chose)
     bar = progress_bar(trials, "Monte Carlo", "trial", settings.progress)
     chunk_blocks = chunk_blocks_for(settings, engine.block, len(scenario.plan))
     try:

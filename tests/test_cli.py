@@ -125,3 +125,16 @@ def test_run_resume_of_nothing_and_of_a_complete_log_are_one_line(tmp_path):
     res = CliRunner().invoke(main, ["run", "--resume", str(log), "--quiet"])
     assert res.exit_code == 2 and "the run is complete" in res.output and len(res.output.strip().splitlines()) == 1
     assert sorted(p.name for p in tmp_path.iterdir()) == ["done.mcap"]  # no lock, partial or temporary file left
+
+
+def test_run_on_threads_prints_the_numbers_of_the_inline_run(tmp_path):
+    small = str(__import__("pathlib").Path(__file__).parent / "data" / "small.toml")
+    out = {}
+    for ex in ("inline", "thread", "auto"):
+        res = CliRunner().invoke(main, ["run", small, "--trials", "48", "--block", "8", "--attribution-trials", "8",
+                                        "--executor", ex, "--workers", "2", "--json", "--quiet",
+                                        "--log", str(tmp_path / f"{ex}.mcap")])
+        assert res.exit_code == 0, res.output
+        out[ex] = json.loads(res.output)
+    assert out["thread"]["outputs"] == out["inline"]["outputs"] and out["thread"]["budget"] == out["inline"]["budget"]
+    assert out["auto"]["outputs"] == out["inline"]["outputs"]

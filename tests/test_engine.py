@@ -41,6 +41,20 @@ def test_process_pool_gives_bit_identical_results(small):
     assert a.budget == b.budget
 
 
+def test_worker_threads_give_bit_identical_results(small):
+    """Three threads, one block per chunk: the blocks finish out of order and every thread runs run and budget rows
+    (a source subset each) on its own engine; every number equals the inline run's."""
+    a = run(small, trials=96, block=16, attribution_trials=32, chunk_blocks=1)
+    b = run(small, trials=96, block=16, attribution_trials=32, chunk_blocks=1, executor="thread", workers=3)
+    for k in SCALARS:
+        assert np.array_equal(samples(a)[k], samples(b)[k]), k
+    assert set(a.acc.moments) == set(b.acc.moments)
+    for name, m in a.acc.moments.items():
+        assert np.array_equal(m.mean, b.acc.moments[name].mean), name
+        assert np.array_equal(m.std, b.acc.moments[name].std), name
+    assert a.budget == b.budget
+
+
 def test_dask_local_cluster_gives_the_same_numbers(small):
     pytest.importorskip("dask.distributed", reason="the dask extra is not installed")
     a = run(small, trials=48, block=16, attribution_trials=0)
@@ -109,7 +123,7 @@ def test_bad_run_arguments(small):
         run(small, trials=10, coverage=1.5)
     with pytest.raises(ConfigError, match="--attribution-trials: must be 0"):
         run(small, trials=10, attribution_trials=-1)
-    with pytest.raises(ConfigError, match="--executor: must be one of inline, process, dask"):
+    with pytest.raises(ConfigError, match="--executor: must be one of auto, inline, thread, process, dask"):
         run(small, trials=10, executor="threads")
 
 
