@@ -50,7 +50,13 @@ Solvers (``Strategy.solver``):
   ``Strategy.chord_iter`` iterations, is solved again with Gauss-Newton from
   its start (``Identification.fallback``, counted in ``n_fallback``).
   Covariances and the design at the solution are computed exactly, from the
-  chain's Jacobian at the solution, when first asked for.
+  chain's Jacobian at the solution, when first asked for.  Each stage runs
+  every iteration of a trial in one compiled pass
+  (:func:`mtbudget.kernels.chord_stage`; the weights and the results too:
+  ``point_weights``, ``chord_final``); :func:`_chord` is the numpy formulation
+  it is tested against (``CHORD_KERNEL = False``).  With ``iteration_pose``
+  (the engine) the pose-only fit starts at that pose, and Kabsch registers
+  only the trials that do not converge from there.
 """
 
 from __future__ import annotations
