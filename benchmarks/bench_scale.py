@@ -233,6 +233,9 @@ def main():
     ap.add_argument("--steps", type=int, nargs="+", default=[100, 40, 20])
     ap.add_argument("--slope", type=int, nargs=2, default=[256, 1280],
                     help="the two trial counts of the mesh and stations arms")
+    ap.add_argument("--command-args", default="", help="command: more options of this tree's `mtbudget run`, e.g. "
+                    "'--executor inline' (the default executor, auto, runs the longer run on threads: more CPU, less "
+                    "wall time)")
     ap.add_argument("--before", metavar="REV", help="command: also the git revision REV (its mtbudget and plugins "
                     "unpacked into a temporary directory), alternating with this tree in every round")
     ap.add_argument("--executors", default="inline,process,thread", help="the executors arm's executors")
@@ -265,11 +268,11 @@ def measure(args, what, paper):
             ratios, before = [], []
             for r in range(args.rounds):
                 f = floor_cpu()
-                c = slope(paper, args.short, args.long)
+                c = slope(paper, args.short, args.long, *args.command_args.split())
                 ratios.append(c / f)
                 extra = ""
                 if args.before:
-                    cb = slope(paper, args.short, args.long, before=True)
+                    cb = slope(paper, args.short, args.long, before=True)  # its default: inline
                     before.append(cb / f)
                     extra = f"; {args.before}: {cb * 1e3:.4f} ms, {cb / f:.1f}x (this tree {cb / c:.2f}x faster)"
                 print(f"command round {r + 1} ({load()}): mtbudget run {c * 1e3:.4f} ms CPU/trial "
