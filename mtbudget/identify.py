@@ -888,7 +888,10 @@ def _identify_chunk_chord(model, meas, noise, strategy, theta, pose0, fixed, pha
     P_nom = np.broadcast_to(P_fix, (N, M, 3))
     all_rows = np.arange(N)
     shared = iteration_pose is not None and all(np.ndim(v) == 0 or np.shape(v)[0] == 1 for v in fixed.values())
-    if shared:  # the trials' nominal pose is known: the pose-only fit starts there, Kabsch only where it cannot
+    # the trials' nominal pose is known (the engine's simulated poses scatter about it): the pose-only fit starts
+    # there, and Kabsch registers only the trials whose fit does not converge from it (the fit's minimum is then
+    # the one next to the nominal pose; a tracker far from it is found by Kabsch, as without a nominal pose)
+    if shared:
         pose_n = np.asarray(iteration_pose, float).reshape(1, 6)
         pose_k = np.repeat(pose_n, N, axis=0)
         Rk = np.repeat(lt.rotation(pose_n[:, 3], pose_n[:, 4], pose_n[:, 5]), N, axis=0)
@@ -950,7 +953,7 @@ def _identify_chunk_chord(model, meas, noise, strategy, theta, pose0, fixed, pha
         ok_again, it_again = chord(nom, again, lambda th, rows: P_nom[rows], matrix(None), None, None, tol,
                                    fixed_points=P_fix)
         ok[again] = ok_again
-        it = max(it, it_again)
+        it += it_again  # the trials fitted again ran both
     bad |= ~ok
     iters += it
     initial_error = None if kc is not None else _apply(nom["R"], meas) + nom["T"][:, None] - P_nom
@@ -1230,6 +1233,10 @@ def _chord_compiled(state, rows, meas, WLc, Hinv, J, Qs, c0, tol, strategy, lab,
         H3, label = np.stack(mats), lab.of.astype(np.int64)
     Qs_ = np.zeros((p, 0)) if Qs is None else Qs
     if adjoint is not None:
+        # the kernel's J^T v reads the chain's inputs of one trial for all (the engine's: nothing fixed per trial)
+        if max(chain["px"].shape[0], chain["py"].shape[0], chain["pz"].shape[0], chain["rcos"].shape[1]) > 1:
+            raise ValueError("the compiled stage 2 takes chain inputs shared by every trial; with per-trial inputs "
+                             "the Jacobian is formed (mode 2)")
         tool_order, params, basis = vjp_layout(adjoint.config, adjoint.errors, adjoint.B)
     else:
         tool_order, params, basis = np.zeros(0, np.int64), np.zeros((0, 3), np.int64), np.zeros((0, M))

@@ -496,6 +496,8 @@ def chord_stage(mode, rows, label, theta, Rs, Ts, meas, WLc, c0, inv_ps, Hinv, Q
             for j in range(b):
                 step = max(step, abs(z[j]))
                 gz += G[j] * z[j]
+            if gz != gz:  # a NaN step (numba's max skips NaN): never converged, as numpy's max says
+                step = np.nan
             energy = np.sqrt(max(-gz, 0.0))
             # the step, applied: a small rigid motion about c0, then the parameters along Qs
             rodrigues(z[3] * inv_ps[3], z[4] * inv_ps[4], z[5] * inv_ps[5], Rot)

@@ -157,8 +157,8 @@ class VectorHistogram:
         numpy formulation it is tested against)."""
         from .kernels import histogram_add
 
-        histogram_add(np.require(x, np.float64, ["C"]), np.require(self.low, np.float64, ["C"]),
-                      np.require(self.high, np.float64, ["C"]), int(self.bins), self.counts, self.under, self.over)
+        histogram_add(np.require(x, np.float64, ["C", "W"]), np.require(self.low, np.float64, ["C", "W"]),
+                      np.require(self.high, np.float64, ["C", "W"]), int(self.bins), self.counts, self.under, self.over)
 
     def add_reference(self, x: np.ndarray):
         f = (x - self.low) / (self.high - self.low)

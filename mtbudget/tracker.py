@@ -197,9 +197,16 @@ def read(P_W: np.ndarray, pose: np.ndarray, noise: np.ndarray | None = None) -> 
     from .kernels import tracker_points
 
     pose = np.atleast_2d(np.asarray(pose, float))
+    P_W = np.asarray(P_W, float)
+    # the trials of the points, the pose and the noise broadcast together (to_tracker and add_spherical_noise's rule;
+    # shapes that do not broadcast raise ValueError, as there)
+    n = np.broadcast_shapes(P_W.shape[:1], pose.shape[:1], () if noise is None else np.shape(noise)[:1])
+    shape = n + P_W.shape[1:]
+    P_W = np.broadcast_to(P_W, shape)
+    if noise is not None:
+        noise = np.broadcast_to(noise, shape)
+    pose = np.broadcast_to(pose, n + (6,))
     req = lambda x: np.require(x, np.float64, ["C", "W"])  # noqa: E731
-    if noise is not None and np.shape(noise) != P_W.shape:
-        noise = np.broadcast_to(noise, P_W.shape)
     return tracker_points(req(P_W), req(rotation(pose[:, 3], pose[:, 4], pose[:, 5])), req(pose[:, :3]),
                           req(noise) if noise is not None else np.zeros((0,) + P_W.shape[1:]), np.empty(P_W.shape))
 

@@ -119,7 +119,21 @@ def test_a_tracker_far_from_the_nominal_pose_is_registered_first(rng):
     meas = np.concatenate([meas[:4], lt.to_tracker(P_W, np.broadcast_to(moved, (4, 6)))])
     fast = identify(model, meas, NOISE, Strategy(), iteration_pose=POSE, groups=np.repeat([0, 1], 4))
     ref = identify(model, meas, NOISE, Strategy(solver="gauss-newton"))
+    assert fast.n_fallback == 0  # registered and fitted again by the chord, not handed to Gauss-Newton
     assert np.abs(fast.initial_error - ref.initial_error).max() < 1e-6
     assert np.abs(fast.residual - ref.residual).max() < 1e-6
     assert np.abs(model.machine_points(fast.theta) - model.machine_points(ref.theta)).max() < 1e-6
     assert np.abs(fast.pose[4:, 5] - fast.pose[:4, 5] - 0.5).max() < 1e-3  # the turned trials found turned
+
+
+def test_the_points_at_the_solution_are_the_chain_at_theta(rng):
+    """Identification.points (what the engine takes for the compensated field instead of evaluating the chain
+    again) is model.machine_points(theta) exactly, also for trials handed to Gauss-Newton; None where fixed
+    perturbations move the points or with the Gauss-Newton solver."""
+    model, meas = simulate(paper_plan(), 8, rng, scale=300.0)  # errors of millimetres: some trials fall back
+    res = identify(model, meas, NOISE, Strategy(), iteration_pose=POSE)
+    assert res.n_fallback > 0 and res.points is not None
+    np.testing.assert_array_equal(res.points, model.machine_points(res.theta))
+    assert identify(model, meas[:2], NOISE, Strategy(solver="gauss-newton")).points is None
+    fixed = {"point_offset": np.full((1, model.n_points, 3), 1e-3)}
+    assert identify(model, meas[:2], NOISE, Strategy(), fixed=fixed).points is None

@@ -207,3 +207,23 @@ def test_tracker_points_equal_to_tracker_then_spherical_noise():
     assert np.abs(got - lt.add_spherical_noise(lt.to_tracker(P, pose), noise)).max() < 1e-10
     got = tracker_points(P, R[:1].copy(), T[:1].copy(), np.zeros((0, 9, 3)), np.empty(P.shape))
     assert np.abs(got - lt.to_tracker(P, np.broadcast_to(pose[:1], (6, 6)))).max() < 1e-10
+
+
+def test_tracker_read_broadcasts_trials_as_to_tracker_does():
+    """tracker.read: one set of points seen from several poses, several from one, per-trial noise on one set of
+    points: the trials broadcast as to_tracker and add_spherical_noise broadcast them; shapes that do not broadcast
+    are refused (never a read beyond an array)."""
+    from mtbudget import tracker as lt
+
+    rng = np.random.default_rng(4)
+    P1, P3 = rng.normal(0, 800, (1, 5, 3)), rng.normal(0, 800, (3, 5, 3))
+    poses = np.c_[rng.normal(0, 300, (3, 3)), rng.normal(0, 1, (3, 3))]
+    noise = rng.normal(0, 1e-3, (3, 5, 3))
+    for P, pose, nz in ((P1, poses, None), (P3, poses[:1], None), (P1, poses[:1], noise), (P3, poses, noise)):
+        ref = lt.to_tracker(np.broadcast_to(P, (3, 5, 3)), np.broadcast_to(pose, (3, 6)))
+        if nz is not None:
+            ref = lt.add_spherical_noise(ref, nz)
+        got = lt.read(P, pose, nz)
+        assert got.shape == (3, 5, 3) and np.abs(got - ref).max() < 1e-10
+    with pytest.raises(ValueError):
+        lt.read(rng.normal(0, 800, (5, 4, 3)), poses[:2])
