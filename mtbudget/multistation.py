@@ -175,10 +175,39 @@ def multilaterate(points: np.ndarray, ranges: np.ndarray) -> tuple[np.ndarray, f
     scale[scale == 0] = 1.0
     sol, _, rank, sv = np.linalg.lstsq(A / scale, b, rcond=None)
     if rank < 5 or sv[-1] < 1e-10 * sv[0]:
-        raise IdentificationError("the ranges of a station do not fix its position and dead path in closed form "
-                                  "(its points lie on one plane or one sphere, or there are fewer than 5)")
+        raise IdentificationError(_NOT_MULTILATERATED)
     sol = sol / scale
     return sol[:3] + c, float(sol[3])
+
+
+_NOT_MULTILATERATED = ("the ranges of a station do not fix its position and dead path in closed form (its points lie "
+                       "on one plane or one sphere, or there are fewer than 5)")
+
+
+def multilaterate_trials(points: np.ndarray, ranges: np.ndarray) -> np.ndarray:
+    """:func:`multilaterate` of N trials at once (the same points, ranges (N, n)): (N, 4), each row (S, o).  The same
+    least squares, by one batched SVD of the N scaled systems (each solved alone: a trial's numbers do not depend on
+    the others); :func:`multilaterate` is the reference it is tested against."""
+    P = np.asarray(points, float)
+    rho = np.asarray(ranges, float)
+    N, n = rho.shape
+    c = P.mean(axis=0)
+    Q = P - c
+    A = np.empty((N, n, 5))
+    A[:, :, :3] = 2.0 * Q
+    A[:, :, 3] = -2.0 * rho
+    A[:, :, 4] = 1.0
+    b = (Q * Q).sum(axis=1) - rho * rho  # (N, n)
+    scale = np.sqrt((A * A).sum(axis=1))  # (N, 5)
+    scale[scale == 0] = 1.0
+    U, sv, Vt = np.linalg.svd(A / scale[:, None, :], full_matrices=False)
+    if n < 5 or ((sv[:, -1] < 1e-10 * sv[:, 0]) | (sv[:, -1] <= 0)).any():
+        raise IdentificationError(_NOT_MULTILATERATED)
+    sol = np.einsum("nji,nj->ni", Vt, np.einsum("nmj,nm->nj", U, b) / sv) / scale  # V diag(1/s) U^T b, unscaled
+    out = np.empty((N, 4))
+    out[:, :3] = sol[:, :3] + c
+    out[:, 3] = sol[:, 3]
+    return out
 
 
 @dataclass
@@ -322,10 +351,11 @@ def _gauge(model, fixed, stations, P0, J_W) -> list:
     return out
 
 
-def _range_start(st, points: np.ndarray, ranges: np.ndarray) -> tuple[np.ndarray, float]:
-    """:func:`multilaterate` of one range station, its failure naming the station and what to change."""
+def _range_start(st, points: np.ndarray, ranges: np.ndarray):
+    """:func:`multilaterate` of one range station (ranges (n,)), or :func:`multilaterate_trials` of N trials (ranges
+    (N, n)), its failure naming the station and what to change."""
     try:
-        return multilaterate(points, ranges)
+        return multilaterate(points, ranges) if np.ndim(ranges) == 1 else multilaterate_trials(points, ranges)
     except IdentificationError as exc:
         raise IdentificationError(f"{st.label}: {exc.reason}; measure points on more than one plane (the mesh's z "
                                   "range) and at different distances from it") from None
@@ -534,8 +564,7 @@ def identify_stations_batch(model: MeasurementModel, stations: list, row_station
             k += 6
         else:
             meas = lt_range[:, idx]
-            starts = np.array([np.concatenate([S, [o]]) for S, o in (_range_start(st, P0[idx], meas[i])
-                                                                     for i in range(N))])
+            starts = _range_start(st, P0[idx], meas)  # (N, 4): every trial's closed-form start at once
             r = np.sqrt(((P0[idx][None] - starts[:, None, :3]) ** 2).sum(-1))
             sigma = np.sqrt((st.distance + st.distance_per_length * r) ** 2 + repeatability**2)
             blocks.append((st, idx, 1.0 / sigma, slice(k, k + 4)))

@@ -404,3 +404,29 @@ def test_fuzz_format2_reads_or_names_the_problem(data, small_v2, tmp_path):
     is_range = np.array([kind[int(s)] == "range" for s in rec.station])
     assert np.isfinite(rec.lt_range[is_range]).all() and np.isnan(rec.lt_range[~is_range]).all()
     assert np.isfinite(rec.lt[~is_range]).all() and np.isnan(rec.lt[is_range]).all()
+
+
+def test_multilateration_of_many_trials_is_each_trial_alone():
+    """multilaterate_trials (the several-station start of every trial at once) against multilaterate (numpy's lstsq,
+    one trial): the same position and dead path to round-off, a trial's numbers the same alone or among others, and
+    the same refusal when the points lie on one plane."""
+    from mtbudget.errors import IdentificationError
+    from mtbudget.multistation import multilaterate, multilaterate_trials
+
+    rng = np.random.default_rng(8)
+    P = rng.uniform(-500, 500, (30, 3))
+    S, o = np.array([1500.0, -300.0, 200.0]), 12.0
+    R = np.sqrt(((P - S) ** 2).sum(axis=1)) + o + rng.normal(0, 1e-3, (6, 30))
+    many = multilaterate_trials(P, R)
+    for i in range(6):
+        Si, oi = multilaterate(P, R[i])
+        assert np.abs(many[i, :3] - Si).max() < 1e-9 and abs(many[i, 3] - oi) < 1e-9
+        np.testing.assert_array_equal(multilaterate_trials(P, R[i:i + 1])[0], many[i])
+    assert np.abs(many[:, :3] - S).max() < 0.05 and np.abs(many[:, 3] - o).max() < 0.05
+    flat = P.copy()
+    flat[:, 2] = 0.0
+    Rf = np.sqrt(((flat - S) ** 2).sum(axis=1))[None] + o
+    with pytest.raises(IdentificationError):
+        multilaterate(flat, Rf[0])
+    with pytest.raises(IdentificationError):
+        multilaterate_trials(flat, Rf)
