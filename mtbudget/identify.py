@@ -143,6 +143,10 @@ class Identifiability:
     #: the datum of a machine with rotary axes: the parameters held at zero (indices), one per null direction
     #: (:func:`datum_parameters`); None: the minimum-norm convention (three-axis machines)
     held: list | None = None
+    #: (6, k) the rigid motion of the machine points (scaled: translation then rotation about the plan's centroid, as
+    #: :func:`analyse`'s columns) that each null direction's geometric part (a column of ``null_space``) brings with
+    #: it; None where the geometric parts do not determine them (the pose itself not identifiable)
+    null_rigid: np.ndarray | None = None
 
     @property
     def identifiable(self) -> int:
@@ -339,6 +343,7 @@ def analyse(model: MeasurementModel, active: np.ndarray | None = None, rank_tol:
     sr = np.linalg.svd(rigid.reshape(3 * M, 6) / np.linalg.norm(rigid.reshape(3 * M, 6), axis=0), compute_uv=False)
     pose_ok = bool(sr[-1] > rank_tol * sr[0])
     null_geo = np.zeros((p, null.shape[1]))
+    null_rigid = np.zeros((6, 0))
     if null.shape[1]:
         # orthonormal basis of the geometric part of the null space
         ng = null[6:, :]
@@ -346,8 +351,10 @@ def analyse(model: MeasurementModel, active: np.ndarray | None = None, rank_tol:
         keep = np.abs(np.diag(r)) > 1e-12 if r.size else np.zeros(0, bool)
         null_geo[active] = q[:, keep] if keep.size else q
         null_geo = null_geo[:, : int(keep.sum())] if keep.size else null_geo
+        # q = ng r^-1: the same combinations of the joint null vectors carry the rigid motions null[:6] r^-1
+        null_rigid = null[:6, :] @ np.linalg.inv(r) if keep.all() else None
     names = model.errors.names
-    return Identifiability(names, rank, int(active.sum()), s, null_geo, pose_ok)
+    return Identifiability(names, rank, int(active.sum()), s, null_geo, pose_ok, null_rigid=null_rigid)
 
 
 def whitener(C: np.ndarray) -> np.ndarray:
@@ -763,6 +770,17 @@ def _identify_chunk(model, meas, noise, strategy, theta, pose, fixed, phases, wi
         theta, pose, conv, it, (P_W, J, w) = _gauss_newton(model, meas, Wh, theta, pose, Q, strategy, fixed)
         iters += it
         converged &= conv
+    if len(phases) > 1:  # the solution on the last phase's datum (see _on_datum), evaluated there
+        R = lt.rotation(pose[:, 3], pose[:, 4], pose[:, 5])
+        T = pose[:, :3].copy()
+        c0 = model.machine_points(np.zeros((1, p)))[0].mean(axis=0)  # analyse's centroid
+        theta = theta.copy()
+        _on_datum(model, phases[-1][1], theta, R, T, c0)
+        angles = lt.euler_from_rotation(R)
+        angles = pose[:, 3:] + (angles - pose[:, 3:] + np.pi) % (2 * np.pi) - np.pi
+        pose = np.concatenate([T, angles], axis=1)
+        P_W, J = model.machine_points(theta, fixed, jacobian=True, project=phases[-1][2] / sv[:, None])
+        w = _whitened_residual(meas, P_W, pose, Wh)
 
     # final quantities and covariance at the solution (the last Gauss-Newton evaluation)
     Q = phases[-1][2]
@@ -1012,6 +1030,12 @@ def _identify_chunk_chord(model, meas, noise, strategy, theta, pose0, fixed, pha
             ok &= b1 * b1 / dist <= strategy.chord_bias
             bad[todo[~ok]] = True
 
+    # several phases: the solution on the last phase's datum (the earlier ones leave what it cannot see)
+    if len(phases) > 1:
+        ok_rows = np.flatnonzero(~bad)
+        th, Rr, Tt = state["theta"][ok_rows], state["R"][ok_rows], state["T"][ok_rows]
+        _on_datum(model, phases[-1][1], th, Rr, Tt, c0)
+        state["theta"][ok_rows], state["R"][ok_rows], state["T"][ok_rows] = th, Rr, Tt
     # the solution: exact residuals at the final parameters (trials left to Gauss-Newton: at their start, for now)
     theta, R, T = state["theta"], state["R"], state["T"]
     if (bad & ~registered).any():
@@ -1053,6 +1077,31 @@ def _identify_chunk_chord(model, meas, noise, strategy, theta, pose0, fixed, pha
             if out["points"] is not None:
                 out["points"][idx] = evaluate(out["theta"][idx], idx)
     return out
+
+
+def _on_datum(model, ident: Identifiability, theta, R, T, c0):
+    """Put a solution on the datum of ``ident`` (the last phase of a multi-phase identification, whose earlier
+    phases moved the parameters along directions the last one cannot see): theta (N, p), R (N, 3, 3), T (N, 3) in
+    place.  The null combination c (:func:`null_coordinates`: minimum norm, or the held parameters at zero) is
+    removed from the scaled parameters and the rigid motion it carries applied to the tracker pose, so that the
+    predicted tracker points, the residuals and the compensated field stay the same (to second order in c, the
+    size of the move: a few um or urad) and one-phase and multi-phase trials report their parameters on one datum."""
+    N = ident.null_space
+    if not N.size or ident.null_rigid is None or not len(theta):
+        return
+    sv = scale_vector(model)
+    ts = theta * sv
+    # every product trial by trial (einsum's own loops, not BLAS, which rounds a row differently with the number of
+    # rows): a trial's numbers do not depend on the trials identified with it
+    if ident.held is None:
+        c = np.einsum("np,pk->nk", ts, N)  # (n, k)
+    else:
+        c = np.einsum("kh,nh->nk", np.linalg.inv(N[ident.held, :]), ts[:, ident.held])
+    theta[:] = (ts - np.einsum("nk,pk->np", c, N)) / sv
+    m = np.einsum("nk,jk->nj", c, ident.null_rigid)  # (n, 6): the machine points' rigid motion, scaled
+    Rot = _rotation(m[:, 3:] / POSE_SCALE[3:])
+    T[:] = (Rot @ (T - c0)[:, :, None])[:, :, 0] + c0 + m[:, :3] / POSE_SCALE[:3]
+    R[:] = Rot @ R
 
 
 def _iteration_matrices(G0, J, W_bars):

@@ -223,3 +223,41 @@ def test_identifiability_is_computed_once_per_model_and_mask(rng, monkeypatch):
     del model, first
     gc.collect()
     assert key not in identify_module._PLAN_CACHE
+
+
+def test_multi_phase_reports_its_parameters_on_the_one_phase_datum(rng):
+    """The earlier phases of a multi-phase identification move the parameters along directions the last phase
+    cannot see (on the paper's plan up to 3 urad in ex(z)/ey(z) and dx(z)/dy(z) of degree 2); the result is put on
+    the last phase's datum with the rigid motion those directions carry moved to the tracker pose: the same
+    parameters as the one-phase identification (minimum norm), the same residuals and chi2, by both solvers."""
+    model, meas = simulate(paper_plan(), 12, rng)
+    sv = scale_vector(model)
+    one = identify(model, meas, NOISE, Strategy.one_phase(solver="gauss-newton"))
+    N = one.identifiability.null_space
+    assert N.shape[1] > 0
+    for solver in ("chord", "gauss-newton"):
+        multi = identify(model, meas, NOISE, Strategy.multi_phase(solver=solver), iteration_pose=POSE)
+        assert not multi.n_fallback
+        assert np.abs((multi.theta * sv) @ N).max() < 1e-9  # nothing left in the null space
+        assert np.abs((multi.theta - one.theta) * sv).max() < 1e-3  # um, urad: the one-phase parameters
+        assert np.abs(multi.residual - one.residual).max() < 1e-7  # mm
+        assert np.abs(multi.chi2 / one.chi2 - 1).max() < 1e-8
+
+
+def test_multi_phase_on_a_five_axis_datum_holds_its_parameters_at_zero():
+    """A machine with rotary axes: the datum rule's held parameters are zero after several phases too (its phases
+    never move them; the datum move must keep them there: a wrong solve for the held set would not)."""
+    from mtbudget.config import bundled_config
+    from mtbudget.engine import Engine
+    from mtbudget.scenario import build_scenario
+
+    sc = build_scenario(load_config(bundled_config("five_axis_cafxyz")))
+    meas = Engine(sc, block=6).simulate(0)[0]
+    one = identify(sc.id_model, meas, sc.noise, Strategy.one_phase(), iteration_pose=sc.pose)
+    held = one.identifiability.held
+    assert held
+    multi = identify(sc.id_model, meas, sc.noise, Strategy.multi_phase(), iteration_pose=sc.pose)
+    assert np.abs(multi.theta[:, held]).max() < 1e-15
+    sv = scale_vector(sc.id_model)
+    assert np.abs((multi.theta - one.theta) * sv).max() < 1e-2
+    assert np.abs(multi.chi2 / one.chi2 - 1).max() < 1e-8
