@@ -4,7 +4,7 @@ Internal unit system of every hot-path array: mm, rad, K, s (see :mod:`mtbudget.
 ``ureg``, ``Q_`` and ``hookimpl`` are imported on first use, so ``mtbudget --help`` starts fast.
 """
 
-__version__ = "0.2.0"
+__version__ = "0.3.0"
 
 __all__ = ["ureg", "Q_", "hookimpl", "__version__"]
 

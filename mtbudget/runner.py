@@ -575,6 +575,10 @@ def verify(path, progress: bool = False) -> dict:
             notes.append(f"source {p['source']!r} (plugin {p['name']}, {p['package']} {p['version']}) is not installed now")
         elif now[1] != p["version"]:
             notes.append(f"source {p['source']!r}: logged with {p['package']} {p['version']}, installed now {now[0]} {now[1]}")
+    logged_with = h.get("mtbudget_version")
+    if logged_with and logged_with != __version__:
+        notes.append(f"logged with mtbudget {logged_with}, recomputed with {__version__}: where the computation changed "
+                     "between them (docs/performance.md says what changed in which round), the numbers differ")
     with one_blas_thread():
         return _verify(log, h, notes, progress)
 

@@ -70,6 +70,17 @@ def test_verify_recomputes_bit_for_bit(logged):
     assert v["identical"] and v["trials"] == 80 and v["notes"] == []
 
 
+def test_verify_says_when_another_mtbudget_recomputes(logged, monkeypatch):
+    """A log recomputed by another mtbudget version is compared all the same, with a note saying whose numbers
+    are whose (a version that changed the computation gives other numbers, and verify must not leave that unsaid)."""
+    import mtbudget.runner as runner
+
+    path, _ = logged
+    monkeypatch.setattr(runner, "__version__", "9.9.9")
+    v = verify(path)
+    assert any("recomputed with 9.9.9" in n and "logged with mtbudget" in n for n in v["notes"]), v["notes"]
+
+
 def test_killed_run_is_readable_and_resumes_bit_identical(tmp_path):
     path = tmp_path / "killed.mcap"
     # long enough that it cannot end between two looks at its log (chunks of 6 blocks at 1600 trials sometimes did;
