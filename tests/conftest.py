@@ -203,3 +203,20 @@ def stated_noise_propagation(field, m0, noise, h=2e-4):
         s = np.diag([(noise.distance + noise.distance_per_length * r[i]) ** 2, noise.angular**2, noise.angular**2])
         C[3 * i:3 * i + 3, 3 * i:3 * i + 3] = sph[i] @ s @ sph[i].T + noise.repeatability**2 * np.eye(3)
     return np.sqrt(np.diag(S @ C @ S.T))
+
+
+def compensated_field_propagation(sc, h=2e-4):
+    """u (um) of each mesh point's compensated error of scenario ``sc``, by :func:`stated_noise_propagation` of
+    simulate -> identify -> compensate about the noise-free verification: the independent linear propagation the
+    per-point maps (tests/test_measurand.py, tests/test_fiveaxis_mc.py) are compared against (mm written here)."""
+    from mtbudget.identify import identify
+
+    m0 = sc.truth.predict(sc.theta[None, :], sc.pose)[0]  # (M, 3) noise-free tracker points
+    F_true = sc.truth.machine_points(sc.theta[None, :])[0][sc.mesh_rows]
+
+    def field(meas):  # (K, M, 3) -> (K, 3 M0): error after compensation, rigid part removed
+        res = identify(sc.id_model, meas, sc.noise)
+        F_id = sc.id_model.machine_points(res.theta)[:, sc.mesh_rows]
+        return (F_true[None] - F_id).reshape(len(meas), -1) @ sc.rigid_free.T
+
+    return stated_noise_propagation(field, m0, sc.noise, h).reshape(-1, 3) * 1000.0  # um per mm

@@ -8,7 +8,7 @@ import copy
 
 import numpy as np
 import pytest
-from conftest import stated_noise_propagation
+from conftest import compensated_field_propagation
 from click.testing import CliRunner
 
 from mtbudget.cli import main
@@ -18,7 +18,6 @@ from mtbudget.identify import identify
 from mtbudget.runner import run
 from mtbudget.scenario import build_scenario
 
-UM_PER_MM = 1000.0
 
 
 def small_five_axis(sources=("tracker_noise", "repeatability"), **edits):
@@ -37,20 +36,6 @@ def small_five_axis(sources=("tracker_noise", "repeatability"), **edits):
     return parse_config(raw)
 
 
-def finite_difference_propagation(sc, h=2e-4):
-    """u of each point's compensated error by central differences in the measured tracker coordinates, with the
-    stated tracker and machine covariance of each point (written here, as tests/test_measurand.py does)."""
-    m0 = sc.truth.predict(sc.theta[None, :], sc.pose)[0]
-    F_true = sc.truth.machine_points(sc.theta[None, :])[0][sc.mesh_rows]
-
-    def field(meas):
-        res = identify(sc.id_model, meas, sc.noise)
-        F_id = sc.id_model.machine_points(res.theta)[:, sc.mesh_rows]
-        return (F_true[None] - F_id).reshape(len(meas), -1) @ sc.rigid_free.T
-
-    return stated_noise_propagation(field, m0, sc.noise, h).reshape(-1, 3) * UM_PER_MM
-
-
 @pytest.fixture(scope="module")
 def tracker_run():
     cfg = small_five_axis()
@@ -60,7 +45,7 @@ def tracker_run():
 def test_per_point_map_agrees_with_a_linear_propagation(tracker_run):
     cfg, sc, res = tracker_run
     assert len(sc.mesh_rows) == 8 * 9
-    u_lin = finite_difference_propagation(sc)
+    u_lin = compensated_field_propagation(sc)
     pts = res.points()
     u_mcm = np.array([p["u"]["value"] for p in pts])
     ratio = u_mcm / u_lin

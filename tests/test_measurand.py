@@ -7,20 +7,17 @@ import json
 
 import numpy as np
 import pytest
-from conftest import stated_noise_propagation
+from conftest import compensated_field_propagation
 from click.testing import CliRunner
 
 from mtbudget.budget import conformance, point_lpu
 from mtbudget.cli import main
 from mtbudget.config import load_config, parse_config
-from mtbudget.identify import identify
 from mtbudget.report import result_json
 from mtbudget.runner import execute, replay, run
 from mtbudget.scenario import build_scenario
 from mtbudget.stats import interval_indices, shortest_interval, symmetric_interval
 from mtbudget.units import ureg
-
-UM_PER_MM = 1000.0  # written out here on purpose: the tests check the product's conversions, they do not reuse them
 
 
 # ----------------------------------------------------------------------------- JCGM 101 7.7
@@ -56,20 +53,6 @@ def tracker_only_config():
     return parse_config(raw)
 
 
-def finite_difference_propagation(sc, h=2e-4):
-    """u of each point's compensated error, by central differences of simulate -> identify -> compensate in the
-    measured coordinates, and the stated tracker and machine covariance of each point (mm, written here)."""
-    m0 = sc.truth.predict(sc.theta[None, :], sc.pose)[0]  # (M, 3) noise-free tracker points
-    F_true = sc.truth.machine_points(sc.theta[None, :])[0][sc.mesh_rows]
-
-    def field(meas):  # (K, M, 3) -> (K, 3 M0): error after compensation, rigid part removed
-        res = identify(sc.id_model, meas, sc.noise)
-        F_id = sc.id_model.machine_points(res.theta)[:, sc.mesh_rows]
-        return (F_true[None] - F_id).reshape(len(meas), -1) @ sc.rigid_free.T
-
-    return stated_noise_propagation(field, m0, sc.noise, h).reshape(-1, 3) * UM_PER_MM
-
-
 @pytest.fixture(scope="module")
 def paper_tracker_run():
     cfg = tracker_only_config()
@@ -78,7 +61,7 @@ def paper_tracker_run():
 
 def test_per_point_u_agrees_with_an_independent_linear_propagation(paper_tracker_run):
     cfg, sc, res = paper_tracker_run
-    u_lin = finite_difference_propagation(sc)
+    u_lin = compensated_field_propagation(sc)
     pts = res.points()
     u_mcm = np.array([p["u"]["value"] for p in pts])
     ratio = u_mcm / u_lin
