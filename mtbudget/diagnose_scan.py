@@ -34,6 +34,7 @@ from scipy import stats
 
 from .contracts import Candidate
 from .machine import AXES, AXIS_INDEX
+from .model import between_runs_columns
 from .units import factor
 
 #: periods: from this many mesh spacings (or gaps between distances) ...
@@ -139,15 +140,13 @@ class PiecewiseReversal(Candidate):
         return [f"dir_{self.axis}"]
 
     def alternatives(self, ctx):
-        runs = np.unique(ctx.plan.run)
-        if len(runs) < 2:
+        C = between_runs_columns(ctx.plan, self.axis)
+        if C is None:
             return []
-        C = np.stack([(ctx.plan.run == k).astype(float) for k in runs[1:]], axis=1)
-        e = np.eye(3)[AXIS_INDEX[self.axis]]
         return [{"name": "a change between runs",
                  "description": f"anything that changes along {self.axis} between the plan's runs",
                  "separate": "Repeat a run in the same direction as the one before it.",
-                 "columns": C[:, None, :] * e[None, :, None]}]
+                 "columns": C}]
 
 
 def periodic_columns(u, direction, freqs) -> np.ndarray:

@@ -15,8 +15,8 @@ import numpy as np
 
 from . import tracker as lt
 from .errors import ConfigError
-from .machine import (AXES, ROTARY, ROTARY_INDEX, ChainInputs, Configuration, ErrorModel, chain, is_rotary,
-                      parse_error_name)
+from .machine import (AXES, AXIS_INDEX, ROTARY, ROTARY_INDEX, ChainInputs, Configuration, ErrorModel, chain,
+                      is_rotary, parse_error_name)
 from .plan import Plan, Scale
 
 # ----------------------------------------------------------------------------- ISO 230-1 names (the one map)
@@ -201,6 +201,19 @@ def thermal_scale(plan: Plan, cte: dict, reference: float, fixed_point: dict | N
 def reversal_offset(plan: Plan, reversal: dict) -> dict:
     """``axis_offset`` of a reversal ``{axis: B (mm)}``: the axis stops B/2 short of its target."""
     return {f"axis_offset.{a}": (-plan.direction_of(a) * b / 2.0)[None, :] for a, b in reversal.items() if b}
+
+
+def between_runs_columns(plan: Plan, axis: str) -> np.ndarray | None:
+    """Columns (M, 3, runs - 1) of "anything that changes along ``axis`` between the plan's runs": one offset per run
+    after the first (an indicator of its points along the axis), the alternative a diagnosis weighs against an
+    effect that follows the approach direction (the runs alternate it with time); None with fewer than two runs."""
+    runs = np.unique(plan.run)
+    if len(runs) < 2:
+        return None
+    C = np.stack([(plan.run == k).astype(float) for k in runs[1:]], axis=1)  # (M, runs - 1)
+    e = np.zeros(3)
+    e[AXIS_INDEX[axis]] = 1.0
+    return C[:, None, :] * e[None, :, None]
 
 
 def drift_offset(plan: Plan, velocity) -> dict:

@@ -35,7 +35,7 @@ import numpy as np
 from mtbudget.contracts import Candidate
 from mtbudget.hookspecs import hookimpl
 from mtbudget.machine import AXES, AXIS_INDEX, ChainInputs, ErrorModel, chain
-from mtbudget.model import drift_offset, reversal_offset, thermal_scale
+from mtbudget.model import between_runs_columns, drift_offset, reversal_offset, thermal_scale
 from mtbudget.units import factor, internal_unit_of
 
 MIN_TEMPERATURE_RANGE = 0.01  # K: below this a temperature carries no information
@@ -151,16 +151,15 @@ class Reversal(Candidate):
 
     def alternatives(self, ctx):
         """Anything that changes between the plan's runs: the runs alternate the approach direction with time."""
-        runs = np.unique(ctx.plan.run)
-        if len(runs) < 2:
+        C = between_runs_columns(ctx.plan, self.axis)
+        if C is None:
             return []
-        C = np.stack([(ctx.plan.run == k).astype(float) for k in runs[1:]], axis=1)  # (M, runs - 1)
         return [{"name": "a change between runs",
                  "description": f"anything that changes along {self.axis} between the plan's runs (a thermal state, a "
                                 "re-clamping), since the runs alternate the approach direction with time",
                  "separate": "Repeat a run in the same direction as the one before it (a reversal needs the direction "
                              "to change, a change between runs does not).",
-                 "columns": C[:, None, :] * _e(self.axis)[None, :, None]}]
+                 "columns": C}]
 
     def perturbation(self, ctx, beta):
         return reversal_offset(ctx.plan, {self.axis: float(beta[0])})
