@@ -129,25 +129,45 @@ class Engine:
                 for j, nm in enumerate(model.errors.names):
                     if nm in names:
                         params[idx, names.index(nm)] = res.theta[:, j] * scale[j]
+        # the truth at the mesh for the whole chunk in one chain call (each trial's points depend on its own
+        # parameters only: the same bits as one call per block); the compensated field's rigid motions removed
+        # with one product per block (a BLAS product mixes trials: the same rows as a block alone), then the
+        # per-point errors and the scalars of every trial of the chunk at once (elementwise, or reduced within
+        # each trial's row: the same bits as per block), each block a view of them (issue 31)
+        F_true = sc.evaluate(sc.truth, np.concatenate(theta_true) if nb > 1 else theta_true[0])
+        if sc.null_bias is not None:  # the truth's own unidentifiable part at this tool: its prior is drawn instead
+            F_true = F_true - sc.null_bias
+        offsets = [s.measurand_offset for s in sims]
+        if any(o is not None for o in offsets):  # the machine in use, the unidentified part at the tool
+            if all(o is not None for o in offsets):
+                F_true = F_true + np.concatenate(offsets)[:, rows]
+            else:
+                F_true = F_true.copy()
+                for i, o in enumerate(offsets):
+                    if o is not None:
+                        F_true[i * n:(i + 1) * n] = F_true[i * n:(i + 1) * n] + o[:, rows]
+        diff = (F_true - F_id).reshape(nb * n, -1)  # the compensated field before the rigid motions are removed
+        D = diff @ sc.rigid_free.T if nb == 1 else np.concatenate(
+            [diff[i * n:(i + 1) * n] @ sc.rigid_free.T for i in range(nb)])
+        D3 = D.reshape(nb * n, -1, 3)
+        comp = D3 * um
+        e = norm3(D3) * um
+        out_scalars["compensation_rms"] = np.sqrt((e**2).mean(axis=1))
+        out_scalars["compensation_mean"] = e.mean(axis=1)
+        out_scalars["compensation_max"] = e.max(axis=1)
+        a = np.abs(comp).max(axis=1)  # the whole machine's figures (outputs.MACHINE_SCALARS), as BlockResult does
+        whole = {"largest_abs_component_x": a[:, 0].copy(), "largest_abs_component_y": a[:, 1].copy(),
+                 "largest_abs_component_z": a[:, 2].copy(), "largest_abs_component": a.max(axis=1)}
+        nc_counts = not_converged.reshape(nb, n).sum(axis=1)
+        fb_counts = fallbacks.reshape(nb, n).sum(axis=1)
         results = []
         for i, b in enumerate(blocks):
             sl = slice(i * n, (i + 1) * n)
-            F_true = sc.evaluate(sc.truth, theta_true[i])
-            if sc.null_bias is not None:  # the truth's own unidentifiable part at this tool: its prior is drawn instead
-                F_true = F_true - sc.null_bias
-            if sims[i].measurand_offset is not None:  # the machine in use, the unidentified part at the tool
-                F_true = F_true + sims[i].measurand_offset[:, rows]
-            # the compensated field, rigid motions removed: one product per block, the same for any grouping
-            D = (F_true - F_id[sl]).reshape(n, -1) @ sc.rigid_free.T
-            comp = D.reshape(n, -1, 3) * um
-            e = norm3(D.reshape(n, -1, 3)) * um
-            sc_b = {k: v[sl].copy() for k, v in out_scalars.items()}
-            sc_b["compensation_rms"] = np.sqrt((e**2).mean(axis=1))
-            sc_b["compensation_mean"] = e.mean(axis=1)
-            sc_b["compensation_max"] = e.max(axis=1)
-            results.append(BlockResult(b, n, sc_b, e, params[sl].copy(), int(not_converged[sl].sum()), components=comp,
-                                       fallbacks=int(fallbacks[sl].sum()), trial_not_converged=not_converged[sl].copy(),
-                                       trial_fallbacks=fallbacks[sl].copy()))
+            sc_b = {k: out_scalars[k][sl] for k in SCALARS}
+            sc_b.update((k, v[sl]) for k, v in whole.items())
+            results.append(BlockResult(b, n, sc_b, e[sl], params[sl], int(nc_counts[i]), components=comp[sl],
+                                       fallbacks=int(fb_counts[i]), trial_not_converged=not_converged[sl],
+                                       trial_fallbacks=fallbacks[sl]))
             if fs is not None:  # the same state of the compensated machine at every probed point, rigid part kept
                 results[-1].features = fs.block_values(fs.evaluate(sc.truth, theta_true[i]) - Ff_id[sl], self.seed, b)
         return results
