@@ -16,7 +16,7 @@ import numpy as np
 from .errors import ConfigError
 from .features import FeatureSet
 from .identify import Strategy, identify, scale_vector
-from .outputs import POINT_UNIT, SCALARS, BlockResult
+from .outputs import MACHINE_SCALARS, POINT_UNIT, SCALARS, BlockResult
 from .plugins import call
 from .scenario import Scenario, target_shapes
 from .simulate import sample_source, simulate_block
@@ -149,15 +149,7 @@ class Engine:
         diff = (F_true - F_id).reshape(nb * n, -1)  # the compensated field before the rigid motions are removed
         D = diff @ sc.rigid_free.T if nb == 1 else np.concatenate(
             [diff[i * n:(i + 1) * n] @ sc.rigid_free.T for i in range(nb)])
-        D3 = D.reshape(nb * n, -1, 3)
-        comp = D3 * um
-        e = norm3(D3) * um
-        out_scalars["compensation_rms"] = np.sqrt((e**2).mean(axis=1))
-        out_scalars["compensation_mean"] = e.mean(axis=1)
-        out_scalars["compensation_max"] = e.max(axis=1)
-        a = np.abs(comp).max(axis=1)  # the whole machine's figures (outputs.MACHINE_SCALARS), as BlockResult does
-        whole = {"largest_abs_component_x": a[:, 0].copy(), "largest_abs_component_y": a[:, 1].copy(),
-                 "largest_abs_component_z": a[:, 2].copy(), "largest_abs_component": a.max(axis=1)}
+        comp, e, whole = compensation_figures(D.reshape(nb * n, -1, 3), um, out_scalars)
         nc_counts = not_converged.reshape(nb, n).sum(axis=1)
         fb_counts = fallbacks.reshape(nb, n).sum(axis=1)
         results = []
@@ -195,6 +187,36 @@ class Engine:
     @property
     def parameter_units(self) -> list:
         return [shown_unit(u) for u in self.scenario.id_model.errors.units]
+
+
+def compensation_figures(D: np.ndarray, um: float, scalars: dict) -> tuple:
+    """The compensated field D (N, M, 3) mm (rigid motions removed) as reported: (components (N, M, 3) um, per-point
+    errors (N, M) um, the whole machine's figures (``outputs.MACHINE_SCALARS``) {name: (N,)}), with SCALARS'
+    ``compensation_rms``, ``_mean`` and ``_max`` written into ``scalars``; one compiled pass
+    (:func:`mtbudget.kernels_stats.compensation_figures`), the numbers of :func:`compensation_figures_reference`."""
+    from .kernels_stats import compensation_figures as kernel
+
+    D = np.require(D, np.float64, ["C"])
+    N, M = D.shape[0], D.shape[1]
+    if not M:
+        return compensation_figures_reference(D, um, scalars)
+    comp, e = np.empty((N, M, 3)), np.empty((N, M))
+    rms, mean, emax, amax = np.empty(N), np.empty(N), np.empty(N), np.empty((4, N)).T
+    kernel(D, float(um), comp, e, rms, mean, emax, amax)
+    scalars.update(compensation_rms=rms, compensation_mean=mean, compensation_max=emax)
+    return comp, e, dict(zip(MACHINE_SCALARS, amax.T))
+
+
+def compensation_figures_reference(D: np.ndarray, um: float, scalars: dict) -> tuple:
+    """:func:`compensation_figures` in numpy: the formulation the engine used before the kernel (and BlockResult's
+    own whole-machine figures), kept as its reference."""
+    comp = D * um
+    e = norm3(D) * um
+    scalars.update(compensation_rms=np.sqrt((e**2).mean(axis=1)), compensation_mean=e.mean(axis=1),
+                   compensation_max=e.max(axis=1))
+    a = np.abs(comp).max(axis=1)
+    return comp, e, {"largest_abs_component_x": a[:, 0].copy(), "largest_abs_component_y": a[:, 1].copy(),
+                     "largest_abs_component_z": a[:, 2].copy(), "largest_abs_component": a.max(axis=1)}
 
 
 class _StationsResult:

@@ -85,6 +85,21 @@ class Moments:
 
     @classmethod
     def of(cls, x: np.ndarray) -> "Moments":
+        """The moments of the rows of x (n, ...) per column.  A (n, K) block with n >= 1 in one compiled pass
+        (:func:`mtbudget.kernels_stats.moments`: the same bits as :meth:`of_reference`, the numpy formulation)."""
+        x = np.asarray(x, float)
+        if x.ndim != 2 or not x.shape[0] or x.shape[1] < 2 or not x.flags.c_contiguous:
+            # numpy sums a single column, or the columns of a column-major array, pairwise: the reference's bits
+            return cls.of_reference(x)
+        from .kernels_stats import moments
+
+        K = x.shape[1]
+        mean, m2, lo, hi = np.empty(K), np.empty(K), np.empty(K), np.empty(K)
+        moments(x, mean, m2, lo, hi)
+        return cls(x.shape[0], mean, m2, lo, hi)
+
+    @classmethod
+    def of_reference(cls, x: np.ndarray) -> "Moments":
         x = np.asarray(x, float)
         n = x.shape[0]
         mean = x.mean(axis=0)
@@ -205,7 +220,20 @@ class CoMoments:
 
     @classmethod
     def of(cls, x: np.ndarray) -> "CoMoments":
-        """From samples x: (n, K, d)."""
+        """From samples x: (n, K, d), in one compiled pass when n >= 1 (:func:`mtbudget.kernels_stats.comoments`: the
+        same bits as :meth:`of_reference`, the numpy formulation)."""
+        x = np.asarray(x, float)
+        if x.ndim != 3 or not x.shape[0] or x.shape[1] * x.shape[2] < 2 or not x.flags.c_contiguous:
+            return cls.of_reference(x)  # numpy would sum a single series pairwise: the reference's bits
+        from .kernels_stats import comoments
+
+        K, d = x.shape[1], x.shape[2]
+        mean, C = np.empty((K, d)), np.empty((K, d, d))
+        comoments(x, mean, C)
+        return cls(x.shape[0], mean, C)
+
+    @classmethod
+    def of_reference(cls, x: np.ndarray) -> "CoMoments":
         x = np.asarray(x, float)
         mean = x.mean(axis=0)
         d = x - mean
@@ -219,7 +247,8 @@ class CoMoments:
         n = self.n + other.n
         delta = other.mean - self.mean
         mean = self.mean + delta * (other.n / n)
-        C = self.C + other.C + np.einsum("ki,kj->kij", delta, delta) * (self.n * other.n / n)
+        # the outer products by broadcasting: each entry one product, as einsum("ki,kj->kij") forms it (no sum)
+        C = self.C + other.C + (delta[:, :, None] * delta[:, None, :]) * (self.n * other.n / n)
         return CoMoments(n, mean, C)
 
     @property

@@ -30,7 +30,7 @@ LAYERS = [
     ["outputs", "identify", "multistation", "plugins", "config", "recording", "mcm", "diagnose_scan"],
     ["contracts", "model", "distributions"],
     ["machine", "tracker", "plan", "stats", "hookspecs", "progress"],
-    ["units", "errors", "kernels", "kernels_stations"],
+    ["units", "errors", "kernels", "kernels_stations", "kernels_stats"],
 ]
 #: the package facade (``__version__``, lazy ``ureg``/``Q_``/``hookimpl``) stands outside the layers
 FACADE = "__init__"

@@ -1,0 +1,194 @@
+"""Compiled kernels of a block's figures and statistics (numba; issue 31): one pass where numpy made a dozen.
+
+:func:`compensation_figures` turns the engine's compensated field (rigid motions removed) into the per-point errors
+and every trial's scalars; :func:`moments` and :func:`comoments` are ``stats.Moments.of`` and ``stats.CoMoments.of``
+of a block.  Each gives **the same bits** as the numpy formulation it replaces, which stays beside it as the
+reference (``tests/test_kernels_stats.py`` compares them bit for bit, and with sums computed independently by
+``math.fsum``):
+
+* a sum over the trials of a block (numpy's reduction along the first axis of a C-ordered array) is taken in trial
+  order, one accumulator per component, as numpy's strided reduction adds row after row;
+* a sum over the points of one trial (numpy's reduction along the contiguous last axis) is numpy's pairwise sum
+  (:func:`_pairwise`: eight partial sums below 128 values, halves above), as ``np.add.reduce`` does;
+* products, quotients and square roots are IEEE operations in the same order (no ``fastmath``: no reassociation,
+  no fused multiply-add); minima and maxima are exact, NaN propagates as in numpy.
+
+Every trial's figures depend on that trial's values only, a block's statistics on that block's only: results do
+not depend on how blocks are grouped.  Only plain float64 arrays cross this boundary.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+
+def _compiled(f):
+    """As :mod:`mtbudget.kernels`: numba's ``njit`` without Python objects or division checks, cached on disk where
+    it can be (else compiled in memory once per process); no ``fastmath``."""
+    try:
+        return njit(cache=True, nogil=True, error_model="numpy")(f)
+    except RuntimeError:  # "cannot cache function ...: no locator available"
+        return njit(cache=False, nogil=True, error_model="numpy")(f)
+
+
+@_compiled
+def _pairwise_leaf(a, lo, n):  # pragma: no cover - compiled
+    """numpy's pairwise sum of a[lo:lo + n] for n <= 128: in order below 8 values, else 8 partial sums."""
+    if n < 8:
+        res = 0.0
+        for i in range(n):
+            res += a[lo + i]
+        return res
+    r0, r1, r2, r3 = a[lo], a[lo + 1], a[lo + 2], a[lo + 3]
+    r4, r5, r6, r7 = a[lo + 4], a[lo + 5], a[lo + 6], a[lo + 7]
+    m = n - n % 8
+    i = 8
+    while i < m:
+        j = lo + i
+        r0 += a[j]
+        r1 += a[j + 1]
+        r2 += a[j + 2]
+        r3 += a[j + 3]
+        r4 += a[j + 4]
+        r5 += a[j + 5]
+        r6 += a[j + 6]
+        r7 += a[j + 7]
+        i += 8
+    res = ((r0 + r1) + (r2 + r3)) + ((r4 + r5) + (r6 + r7))
+    while i < n:
+        res += a[lo + i]
+        i += 1
+    return res
+
+
+@_compiled
+def _pairwise(a, lo, n):  # pragma: no cover - compiled
+    """sum(a[lo:lo + n]) as numpy's pairwise summation adds a contiguous run of float64 (``pairwise_sum`` of numpy's
+    umath loops: up to 128 values :func:`_pairwise_leaf`, above that the sum of the two halves, cut at a multiple of
+    8).  The halving is walked with an explicit stack (numba's cache cannot hold a recursive function)."""
+    if n <= 128:
+        return _pairwise_leaf(a, lo, n)
+    seg = np.empty((192, 3), np.int64)  # (lo, n, halves summed already?): depth <= 64 for any int64 n
+    val = np.empty(96)
+    top, nv = 0, 0
+    seg[0, 0], seg[0, 1], seg[0, 2] = lo, n, 0
+    while top >= 0:
+        s_lo, s_n, done = seg[top, 0], seg[top, 1], seg[top, 2]
+        top -= 1
+        if s_n <= 128:
+            val[nv] = _pairwise_leaf(a, s_lo, s_n)
+            nv += 1
+        elif done:
+            val[nv - 2] = val[nv - 2] + val[nv - 1]  # the first half's sum + the second half's
+            nv -= 1
+        else:
+            n2 = s_n // 2
+            n2 -= n2 % 8
+            seg[top + 1, 0], seg[top + 1, 1], seg[top + 1, 2] = s_lo, s_n, 1
+            seg[top + 2, 0], seg[top + 2, 1], seg[top + 2, 2] = s_lo + n2, s_n - n2, 0
+            seg[top + 3, 0], seg[top + 3, 1], seg[top + 3, 2] = s_lo, n2, 0
+            top += 3
+    return val[0]
+
+
+@_compiled
+def _larger(v, cur):  # pragma: no cover - compiled
+    """max as numpy's maximum reduction takes it: NaN wins."""
+    return v > cur or v != v
+
+
+@_compiled
+def compensation_figures(D, um, comp, e, rms, mean, emax, amax):  # pragma: no cover - compiled
+    """The compensated field D (N, M, 3) in mm, rigid motions removed, as the engine reports it, per trial t:
+    comp[t] = D[t] um (um), e[t] = |D[t]| um over the last axis (``tracker.norm3``, then scaled), rms[t] =
+    sqrt(mean(e[t]^2)), mean[t] = mean(e[t]), emax[t] = max(e[t]), amax[t] = (max |comp[t, :, a]| for a = x, y, z, and
+    their max): the numbers of ``norm3``, ``mean(axis=1)``, ``max(axis=1)`` and ``np.abs(comp).max(axis=1)``."""
+    N, M = D.shape[0], D.shape[1]
+    sq = np.empty(M)
+    for t in range(N):
+        et = e[t]
+        ct = comp[t]
+        for m in range(M):
+            x = D[t, m, 0]
+            y = D[t, m, 1]
+            z = D[t, m, 2]
+            ct[m, 0] = x * um
+            ct[m, 1] = y * um
+            ct[m, 2] = z * um
+            v = math.sqrt(x * x + y * y + z * z) * um
+            et[m] = v
+            sq[m] = v * v
+        rms[t] = math.sqrt(_pairwise(sq, 0, M) / M)
+        mean[t] = _pairwise(et, 0, M) / M
+        big = et[0]
+        for m in range(1, M):
+            if _larger(et[m], big):
+                big = et[m]
+        emax[t] = big
+        top = -1.0
+        for a in range(3):
+            c = abs(ct[0, a])
+            for m in range(1, M):
+                v = abs(ct[m, a])
+                if _larger(v, c):
+                    c = v
+            amax[t, a] = c
+            if a == 0 or _larger(c, top):
+                top = c
+        amax[t, 3] = top
+
+
+@_compiled
+def moments(x, mean, m2, lo, hi):  # pragma: no cover - compiled
+    """``stats.Moments.of`` of x (n, K), n >= 1: per column the mean (summed in row order, then / n), the sum of
+    squared deviations (in row order), the minimum and maximum, into mean, m2, lo, hi (K,)."""
+    n, K = x.shape[0], x.shape[1]
+    for k in range(K):
+        mean[k] = 0.0
+        m2[k] = 0.0
+        lo[k] = x[0, k]
+        hi[k] = x[0, k]
+    for i in range(n):
+        for k in range(K):
+            mean[k] += x[i, k]
+    for k in range(K):
+        mean[k] = mean[k] / n
+    for i in range(n):
+        for k in range(K):
+            v = x[i, k]
+            d = v - mean[k]
+            m2[k] += d * d
+            if v < lo[k] or v != v:
+                lo[k] = v
+            if v > hi[k] or v != v:
+                hi[k] = v
+
+
+@_compiled
+def comoments(x, mean, C):  # pragma: no cover - compiled
+    """``stats.CoMoments.of`` of x (n, K, d), n >= 1: mean (K, d) summed in row order then / n; C (K, d, d) the sums
+    over the rows, in row order, of the outer products of the deviations (``einsum("nki,nkj->kij")``'s numbers)."""
+    n, K, d = x.shape[0], x.shape[1], x.shape[2]
+    for k in range(K):
+        for a in range(d):
+            mean[k, a] = 0.0
+            for b in range(d):
+                C[k, a, b] = 0.0
+    for i in range(n):
+        for k in range(K):
+            for a in range(d):
+                mean[k, a] += x[i, k, a]
+    for k in range(K):
+        for a in range(d):
+            mean[k, a] = mean[k, a] / n
+    dev = mean[0].copy()
+    for i in range(n):
+        for k in range(K):
+            for a in range(d):
+                dev[a] = x[i, k, a] - mean[k, a]
+            for a in range(d):
+                for b in range(d):
+                    C[k, a, b] += dev[a] * dev[b]

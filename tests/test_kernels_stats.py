@@ -1,0 +1,125 @@
+"""The compiled block statistics (mtbudget.kernels_stats) against numpy, bit for bit, and against independent sums.
+
+Each kernel replaces a numpy formulation that stays as its reference (``Moments.of_reference``,
+``CoMoments.of_reference``, ``engine.compensation_figures_reference``): their numbers must be the same bits, since
+the run's logged and merged statistics were computed with numpy before.  Beside that, every figure is checked
+against a computation that shares nothing with either (``math.fsum`` of the values, two passes, ``np.cov``,
+``math.hypot``), so that a kernel and its reference cannot agree on a wrong number.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from mtbudget.engine import compensation_figures, compensation_figures_reference
+from mtbudget.kernels_stats import _pairwise
+from mtbudget.stats import CoMoments, Moments
+
+RNG = np.random.default_rng(20261126)
+
+
+def same_bits(a, b) -> bool:
+    a, b = np.asarray(a, np.float64), np.asarray(b, np.float64)
+    return a.shape == b.shape and a.tobytes() == b.tobytes()
+
+
+@pytest.mark.parametrize("n", [0, 1, 2, 7, 8, 9, 15, 16, 17, 75, 127, 128, 129, 130, 255, 256, 257, 1000, 4851,
+                               14553, 100_003])
+def test_pairwise_sum_is_numpys_and_close_to_the_exact_sum(n):
+    for scale in (1.0, 1e-6, 1e6):
+        a = RNG.standard_normal(n + 3) * scale + scale  # summed from an offset: a run that starts inside an array
+        got = _pairwise(a, 3, n)
+        assert same_bits(got, np.add.reduce(a[3:]))
+        exact = math.fsum(a[3:])
+        assert abs(got - exact) <= 1e-13 * max(math.fsum(np.abs(a[3:])), 1e-300)
+
+
+@pytest.mark.parametrize("N,M", [(1, 1), (2, 7), (3, 8), (64, 75), (5, 129), (4, 300)])
+def test_compensation_figures_are_the_numpy_formulation_bit_for_bit(N, M):
+    D = RNG.standard_normal((N, M, 3)) * 1e-3  # mm
+    D[0, 0] = [-2e-3, 0.0, 1e-9]  # a negative largest component and an exact zero
+    um = 1000.0
+    s_kernel, s_ref = {}, {}
+    comp, e, whole = compensation_figures(D, um, s_kernel)
+    comp_r, e_r, whole_r = compensation_figures_reference(D, um, s_ref)
+    assert same_bits(comp, comp_r) and same_bits(e, e_r)
+    assert list(s_kernel) == list(s_ref) and all(same_bits(s_kernel[k], s_ref[k]) for k in s_ref)
+    assert list(whole) == list(whole_r) and all(same_bits(whole[k], whole_r[k]) for k in whole_r)
+    # independently: lengths by hypot, means by fsum, maxima by sorting
+    for t in range(N):
+        lengths = [math.hypot(*(D[t, m] * um)) for m in range(M)]
+        assert np.allclose(e[t], lengths, rtol=1e-15, atol=0)
+        assert s_kernel["compensation_rms"][t] == pytest.approx(math.sqrt(math.fsum(x * x for x in lengths) / M),
+                                                                rel=1e-14)
+        assert s_kernel["compensation_mean"][t] == pytest.approx(math.fsum(lengths) / M, rel=1e-14)
+        assert s_kernel["compensation_max"][t] == pytest.approx(sorted(lengths)[-1], rel=1e-15)
+        for a, k in enumerate(("largest_abs_component_x", "largest_abs_component_y", "largest_abs_component_z")):
+            assert whole[k][t] == sorted(abs(D[t, m, a]) * um for m in range(M))[-1]
+        assert whole["largest_abs_component"][t] == max(whole[k][t] for k in list(whole)[:3])
+
+
+def test_compensation_figures_propagate_nan_as_numpy():
+    D = RNG.standard_normal((3, 10, 3))
+    D[1, 4, 2] = np.nan
+    s_kernel, s_ref = {}, {}
+    comp, e, whole = compensation_figures(D, 1000.0, s_kernel)
+    comp_r, e_r, whole_r = compensation_figures_reference(D, 1000.0, s_ref)
+    assert same_bits(e, e_r) and all(same_bits(s_kernel[k], s_ref[k]) for k in s_ref)
+    assert all(same_bits(whole[k], whole_r[k]) for k in whole_r)
+    assert np.isnan(s_kernel["compensation_max"][1]) and np.isnan(whole["largest_abs_component"][1])
+    assert not np.isnan(whole["largest_abs_component"][[0, 2]]).any()
+
+
+@pytest.mark.parametrize("n,K", [(1, 1), (1, 75), (3, 10), (64, 54), (64, 75), (17, 225), (200, 7), (200, 1),
+                                 (64, 2), (1000, 2)])
+def test_moments_are_numpys_bit_for_bit_and_the_two_pass_sums(n, K):
+    x = RNG.standard_normal((n, K)) * 10 + 3
+    m, r = Moments.of(x), Moments.of_reference(x)
+    assert m.n == r.n == n
+    for a, b in ((m.mean, r.mean), (m.m2, r.m2), (m.minimum, r.minimum), (m.maximum, r.maximum)):
+        assert same_bits(a, b)
+    for k in range(K):
+        col = x[:, k].tolist()
+        mean = math.fsum(col) / n
+        assert m.mean[k] == pytest.approx(mean, rel=1e-13)
+        assert m.m2[k] == pytest.approx(math.fsum((v - mean) ** 2 for v in col), rel=1e-12, abs=1e-12)
+        assert (m.minimum[k], m.maximum[k]) == (min(col), max(col))
+
+
+@pytest.mark.parametrize("layout", ["C", "view", "F"])
+def test_moments_of_views_and_with_nan_are_numpys(layout):
+    x = RNG.standard_normal((300, 40))
+    x = {"C": x, "view": x[::2, 5:30], "F": np.asfortranarray(x)}[layout]
+    x[2, 3] = np.nan
+    m, r = Moments.of(x), Moments.of_reference(x)
+    for a, b in ((m.mean, r.mean), (m.m2, r.m2), (m.minimum, r.minimum), (m.maximum, r.maximum)):
+        assert same_bits(a, b)
+    assert np.isnan(m.minimum[3]) and np.isnan(m.maximum[3]) and not np.isnan(m.minimum[4])
+
+
+@pytest.mark.parametrize("n,K,d", [(1, 4, 3), (2, 75, 3), (64, 75, 3), (33, 10, 2), (64, 4851, 3), (200, 1, 1),
+                                   (200, 1, 2), (200, 2, 1), (64, 1, 3)])
+def test_comoments_are_numpys_bit_for_bit_and_np_cov(n, K, d):
+    x = RNG.standard_normal((n, K, d)) * 5 + 1
+    x[:, :, 0] += 0.5 * x[:, :, -1]  # correlated components
+    c, r = CoMoments.of(x), CoMoments.of_reference(x)
+    assert c.n == r.n == n and same_bits(c.mean, r.mean) and same_bits(c.C, r.C)
+    if n > 1:
+        for k in range(0, K, max(1, K // 7)):
+            assert np.allclose(c.cov[k], np.cov(x[:, k, :], rowvar=False), rtol=1e-12, atol=1e-12)
+
+
+def test_comoments_merge_is_the_einsum_formula_bit_for_bit():
+    xa, xb = RNG.standard_normal((64, 75, 3)), RNG.standard_normal((13, 75, 3)) + 0.1
+    a, b = CoMoments.of(xa), CoMoments.of(xb)
+    m = a.merge(b)
+    n = a.n + b.n
+    delta = b.mean - a.mean
+    C = a.C + b.C + np.einsum("ki,kj->kij", delta, delta) * (a.n * b.n / n)
+    assert same_bits(m.C, C) and same_bits(m.mean, a.mean + delta * (b.n / n))
+    pooled = np.concatenate([xa, xb])  # and it is the co-moments of the pooled samples, to round-off
+    assert np.allclose(m.C, np.einsum("nki,nkj->kij", pooled - pooled.mean(0), pooled - pooled.mean(0)), rtol=1e-12,
+                       atol=1e-12)
