@@ -184,6 +184,22 @@ def comoments(x, mean, C):  # pragma: no cover - compiled
     for k in range(K):
         for a in range(d):
             mean[k, a] = mean[k, a] / n
+    if d == 3:  # the per-point components: the same operations, unrolled
+        for i in range(n):
+            for k in range(K):
+                d0 = x[i, k, 0] - mean[k, 0]
+                d1 = x[i, k, 1] - mean[k, 1]
+                d2 = x[i, k, 2] - mean[k, 2]
+                C[k, 0, 0] += d0 * d0
+                C[k, 0, 1] += d0 * d1
+                C[k, 0, 2] += d0 * d2
+                C[k, 1, 0] += d1 * d0
+                C[k, 1, 1] += d1 * d1
+                C[k, 1, 2] += d1 * d2
+                C[k, 2, 0] += d2 * d0
+                C[k, 2, 1] += d2 * d1
+                C[k, 2, 2] += d2 * d2
+        return
     dev = mean[0].copy()
     for i in range(n):
         for k in range(K):
