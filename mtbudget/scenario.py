@@ -145,10 +145,13 @@ class Scenario:
         ``model.machine_points(theta)`` when already computed (an identification's ``points``), used at the
         verification's own tool."""
         if self.measurand_tool is None:
+            # np.take: the same copy as indexing with mesh_rows, 4x faster on (trials, points, 3) arrays (issue 31)
             if points is not None and not jacobian:
-                return points[:, self.mesh_rows]
+                return np.take(points, self.mesh_rows, axis=1)
             out = model.machine_points(theta, jacobian=jacobian)
-            return (out[0][:, self.mesh_rows], out[1][:, self.mesh_rows]) if jacobian else out[:, self.mesh_rows]
+            if jacobian:
+                return np.take(out[0], self.mesh_rows, axis=1), np.take(out[1], self.mesh_rows, axis=1)
+            return np.take(out, self.mesh_rows, axis=1)
         key = ("at tool", id(model))
         if key not in self._cache:  # the model is kept beside its copy so that its id is not reused
             self._cache[key] = (model, MeasurementModel(model.config, model.errors,
