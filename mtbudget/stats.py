@@ -157,6 +157,8 @@ class VectorHistogram:
     """Histograms of K components with ranges fixed from the first block (overflow counted).  bins: per component,
     by default 4000, fewer for many components (HIST_COUNTS: memory bounded whatever the mesh)."""
 
+    _width = None  # (low, high, high - low) of the last add (a histogram restored from a log has none yet)
+
     def __init__(self, first: np.ndarray, bins: int | None = None):
         if bins is None:
             bins = int(min(HIST_BINS, max(HIST_MIN_BINS, HIST_COUNTS // max(first.shape[1], 1))))
@@ -168,12 +170,16 @@ class VectorHistogram:
         self.over = np.zeros(first.shape[1], np.int64)
 
     def add(self, x: np.ndarray):
-        """Count the rows of x (n, K) (compiled: :func:`mtbudget.kernels.histogram_add`; :meth:`add_reference` the
-        numpy formulation it is tested against)."""
-        from .kernels import histogram_add
+        """Count the rows of x (n, K) (compiled: :func:`mtbudget.kernels_stats.histogram_add`, row by row;
+        :meth:`add_reference` the numpy formulation it is tested against)."""
+        from .kernels_stats import histogram_add
 
-        histogram_add(np.require(x, np.float64, ["C", "W"]), np.require(self.low, np.float64, ["C", "W"]),
-                      np.require(self.high, np.float64, ["C", "W"]), int(self.bins), self.counts, self.under, self.over)
+        if self._width is None or self._width[0] is not self.low or self._width[1] is not self.high:
+            # high - low per component, formed once per range (the kernel divides by it, as the reference does)
+            self._width = (self.low, self.high, np.ascontiguousarray(np.asarray(self.high, np.float64)
+                                                                     - np.asarray(self.low, np.float64)))
+        histogram_add(np.require(x, np.float64, ["C"]), np.require(self.low, np.float64, ["C"]), self._width[2],
+                      int(self.bins), self.counts, self.under, self.over)
 
     def add_reference(self, x: np.ndarray):
         f = (x - self.low) / (self.high - self.low)
