@@ -6,7 +6,8 @@ What it times (CPU of the process, ``time.process_time``), in a fresh interprete
 ``--before REV``, that revision's ``mtbudget`` and built-in plugins unpacked into a temporary directory) alternated
 in each of ``--rounds`` rounds: ``runner.execute`` of the built-in paper configuration, ``--trials`` trials,
 ``attribution_trials=0``, inline, logged to an MCAP file in a temporary directory, as ``mtbudget run`` does (after a
-1024-trial warm-up run, so that numba's kernels are loaded or compiled before the clock).  The functions are timed
+1024-trial warm-up run keeping every value and one histogramming them, so that numba's kernels are loaded or
+compiled before the clock).  The functions are timed
 by wrappers installed in both trees alike:
 
 * ``post``: ``Engine.run_blocks`` minus its ``simulate`` and ``identify`` calls: the compensated field at the mesh,
@@ -58,7 +59,9 @@ timed(runner, "accumulate_block", "merge")
 for name in ("blocks", "checkpoint", "points", "finish"):
     timed(runlog.RunLogWriter, name, "log")
 with tempfile.TemporaryDirectory() as tmp:
-    runner.execute(None, trials=1024, attribution_trials=0, log_path=Path(tmp) / "warm.mcap", progress=False)
+    for keep in (True, False):  # both paths (every value kept, histograms): every kernel loaded before the clock
+        runner.execute(None, trials=1024, attribution_trials=0, log_path=Path(tmp) / f"warm{keep}.mcap", progress=False,
+                       keep_samples=keep)
     for k in spent:
         spent[k] = 0.0
     t = time.process_time()
