@@ -11,7 +11,7 @@ reference (``tests/test_kernels_stats.py`` compares them bit for bit, and with s
 * a sum over the points of one trial (numpy's reduction along the contiguous last axis) is numpy's pairwise sum
   (:func:`_pairwise`: eight partial sums below 128 values, halves above), as ``np.add.reduce`` does;
 * products, quotients and square roots are IEEE operations in the same order (no ``fastmath``: no reassociation,
-  no fused multiply-add); minima and maxima are exact, NaN propagates as in numpy.
+  no fused multiply-add); minima and maxima are exact, NaN propagates and ties (0.0 and -0.0) resolve as in numpy.
 
 Every trial's figures depend on that trial's values only, a block's statistics on that block's only: results do
 not depend on how blocks are grouped.  Only plain float64 arrays cross this boundary.
@@ -95,9 +95,15 @@ def _pairwise(a, lo, n):  # pragma: no cover - compiled
 
 
 @_compiled
-def _larger(v, cur):  # pragma: no cover - compiled
-    """max as numpy's maximum reduction takes it: NaN wins."""
-    return v > cur or v != v
+def _keeps_min(cur, v):  # pragma: no cover - compiled
+    """Whether numpy's minimum of (cur, v) is cur: cur < v, or cur is NaN (on a tie, and for a NaN v, it is v)."""
+    return cur < v or cur != cur
+
+
+@_compiled
+def _keeps_max(cur, v):  # pragma: no cover - compiled
+    """Whether numpy's maximum of (cur, v) is cur: cur > v, or cur is NaN (on a tie, and for a NaN v, it is v)."""
+    return cur > v or cur != cur
 
 
 @_compiled
@@ -125,7 +131,7 @@ def compensation_figures(D, um, comp, e, rms, mean, emax, amax):  # pragma: no c
         mean[t] = _pairwise(et, 0, M) / M
         big = et[0]
         for m in range(1, M):
-            if _larger(et[m], big):
+            if not _keeps_max(big, et[m]):
                 big = et[m]
         emax[t] = big
         top = -1.0
@@ -133,10 +139,10 @@ def compensation_figures(D, um, comp, e, rms, mean, emax, amax):  # pragma: no c
             c = abs(ct[0, a])
             for m in range(1, M):
                 v = abs(ct[m, a])
-                if _larger(v, c):
+                if not _keeps_max(c, v):
                     c = v
             amax[t, a] = c
-            if a == 0 or _larger(c, top):
+            if a == 0 or not _keeps_max(top, c):
                 top = c
         amax[t, 3] = top
 
@@ -161,10 +167,11 @@ def moments(x, mean, m2, lo, hi):  # pragma: no cover - compiled
             v = x[i, k]
             d = v - mean[k]
             m2[k] += d * d
-            if v < lo[k] or v != v:
-                lo[k] = v
-            if v > hi[k] or v != v:
-                hi[k] = v
+            if i:
+                if not _keeps_min(lo[k], v):
+                    lo[k] = v
+                if not _keeps_max(hi[k], v):
+                    hi[k] = v
 
 
 @_compiled
@@ -239,3 +246,56 @@ def histogram_add(x, low, width, bins, counts, under, over):  # pragma: no cover
                 under[k] += 1
             elif j == -3:
                 over[k] += 1
+
+
+@_compiled
+def moments_rows(rows, mean, m2, lo, hi):  # pragma: no cover - compiled
+    """``stats.Moments.of_rows`` of rows (K, n), each row contiguous, n >= 1: per row its mean (numpy's pairwise sum,
+    then / n), the pairwise sum of its squared deviations, its minimum and maximum, into mean, m2, lo, hi (K,)."""
+    K, n = rows.shape[0], rows.shape[1]
+    sq = np.empty(n)
+    for k in range(K):
+        r = rows[k]
+        mu = _pairwise(r, 0, n) / n
+        a = r[0]
+        b = r[0]
+        for i in range(n):
+            d = r[i] - mu
+            sq[i] = d * d
+            v = r[i]
+            if i:
+                if not _keeps_min(a, v):
+                    a = v
+                if not _keeps_max(b, v):
+                    b = v
+        mean[k] = mu
+        m2[k] = _pairwise(sq, 0, n)
+        lo[k] = a
+        hi[k] = b
+
+
+@_compiled
+def merge_moments(am, am2, alo, ahi, bm, bm2, blo, bhi, wb, wab, mean, m2, lo, hi):  # pragma: no cover - compiled
+    """``stats.Moments.merge`` of two (K,) moments, elementwise, with wb = nb / n and wab = na nb / n (Python floats):
+    d = bm - am, mean = am + d wb, m2 = am2 + bm2 + d d wab, lo = minimum, hi = maximum (NaN propagates)."""
+    for k in range(am.shape[0]):
+        d = bm[k] - am[k]
+        mean[k] = am[k] + d * wb
+        m2[k] = am2[k] + bm2[k] + d * d * wab
+        lo[k] = alo[k] if _keeps_min(alo[k], blo[k]) else blo[k]
+        hi[k] = ahi[k] if _keeps_max(ahi[k], bhi[k]) else bhi[k]
+
+
+@_compiled
+def merge_comoments(am, aC, bm, bC, wb, wab, mean, C):  # pragma: no cover - compiled
+    """``stats.CoMoments.merge`` of (K, d) means and (K, d, d) co-moments, elementwise: delta = bm - am, mean = am +
+    delta wb, C = aC + bC + (delta_i delta_j) wab."""
+    K, d = am.shape[0], am.shape[1]
+    delta = np.empty(d)
+    for k in range(K):
+        for i in range(d):
+            delta[i] = bm[k, i] - am[k, i]
+            mean[k, i] = am[k, i] + delta[i] * wb
+        for i in range(d):
+            for j in range(d):
+                C[k, i, j] = aC[k, i, j] + bC[k, i, j] + (delta[i] * delta[j]) * wab

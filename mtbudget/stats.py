@@ -111,6 +111,19 @@ class Moments:
         are bit-identical to ``Moments.of(rows[k][:, None])`` (each row is summed as one contiguous series, as a
         column of one series is; ``tests/test_stats_fast.py`` checks it), with one numpy call instead of K."""
         rows = np.asarray(rows, float)
+        if rows.ndim != 2 or not rows.shape[1] or rows.strides[1] != rows.itemsize:
+            return cls.of_rows_reference(rows)
+        from .kernels_stats import moments_rows  # one compiled pass, the same bits (pairwise sums as numpy's)
+
+        K = rows.shape[0]
+        mean, m2, lo, hi = np.empty(K), np.empty(K), np.empty(K), np.empty(K)
+        moments_rows(rows, mean, m2, lo, hi)
+        return cls(rows.shape[1], mean, m2, lo, hi)
+
+    @classmethod
+    def of_rows_reference(cls, rows: np.ndarray) -> "Moments":
+        """:meth:`of_rows` in numpy (its reference)."""
+        rows = np.asarray(rows, float)
         mean = rows.mean(axis=1)
         return cls(rows.shape[1], mean, ((rows - mean[:, None]) ** 2).sum(axis=1), rows.min(axis=1), rows.max(axis=1))
 
@@ -119,6 +132,24 @@ class Moments:
         return Moments(self.n, self.mean[k:k + 1], self.m2[k:k + 1], self.minimum[k:k + 1], self.maximum[k:k + 1])
 
     def merge(self, other: "Moments") -> "Moments":
+        """Chan et al.'s update; for (K,) float64 moments in one compiled pass (the same bits as :meth:`merge_reference`,
+        the numpy formulation)."""
+        if self.n == 0:
+            return other
+        if other.n == 0:
+            return self
+        parts = (self.mean, self.m2, self.minimum, self.maximum, other.mean, other.m2, other.minimum, other.maximum)
+        K = np.shape(self.mean)
+        if not all(type(a) is np.ndarray and a.dtype == np.float64 and a.ndim == 1 and a.shape == K for a in parts):
+            return self.merge_reference(other)
+        from .kernels_stats import merge_moments
+
+        n = self.n + other.n
+        mean, m2, lo, hi = np.empty(K), np.empty(K), np.empty(K), np.empty(K)
+        merge_moments(*parts, other.n / n, self.n * other.n / n, mean, m2, lo, hi)
+        return Moments(n, mean, m2, lo, hi)
+
+    def merge_reference(self, other: "Moments") -> "Moments":
         if self.n == 0:
             return other
         if other.n == 0:
@@ -246,6 +277,24 @@ class CoMoments:
         return cls(x.shape[0], mean, np.einsum("nki,nkj->kij", d, d))
 
     def merge(self, other: "CoMoments") -> "CoMoments":
+        """Chan et al.'s update per vector; in one compiled pass (the same bits as :meth:`merge_reference`)."""
+        if self.n == 0:
+            return other
+        if other.n == 0:
+            return self
+        parts = (self.mean, self.C, other.mean, other.C)
+        if not (all(type(a) is np.ndarray and a.dtype == np.float64 for a in parts) and self.mean.ndim == 2
+                and self.mean.shape == other.mean.shape and self.C.shape == other.C.shape == self.mean.shape
+                + self.mean.shape[1:]):
+            return self.merge_reference(other)
+        from .kernels_stats import merge_comoments
+
+        n = self.n + other.n
+        mean, C = np.empty(self.mean.shape), np.empty(self.C.shape)
+        merge_comoments(*parts, other.n / n, self.n * other.n / n, mean, C)
+        return CoMoments(n, mean, C)
+
+    def merge_reference(self, other: "CoMoments") -> "CoMoments":
         if self.n == 0:
             return other
         if other.n == 0:

@@ -151,3 +151,47 @@ def test_histogram_counts_are_the_references(n, K, bins):
         assert np.array_equal(fast.over, h.over)
     total = fast.counts.sum(axis=1) + fast.under + fast.over  # every finite value counted once
     assert np.array_equal(total, np.isfinite(np.concatenate([first, x, x[: max(1, n // 2)]])).sum(axis=0))
+
+
+def _moments_equal(m, r):
+    return m.n == r.n and all(same_bits(getattr(m, f), getattr(r, f)) for f in ("mean", "m2", "minimum", "maximum"))
+
+
+@pytest.mark.parametrize("K,n", [(1, 1), (11, 64), (11, 17), (3, 129), (2, 1000), (7, 8)])
+def test_moments_of_rows_and_merges_are_numpys_bit_for_bit(K, n):
+    rows = RNG.standard_normal((K, n)) * 10.0 ** RNG.uniform(-3, 3, (K, 1)) + 5
+    rows[0, n // 2] = np.nan if K > 2 else rows[0, n // 2]
+    m, r = Moments.of_rows(rows), Moments.of_rows_reference(rows)
+    assert _moments_equal(m, r)
+    view = rows[:, : max(1, n // 2)]  # a block cut to a run's last trials: rows of a view
+    assert _moments_equal(Moments.of_rows(view), Moments.of_rows_reference(view))
+    other = Moments.of_rows(RNG.standard_normal((K, 5)))
+    assert _moments_equal(m.merge(other), r.merge_reference(other))
+    assert _moments_equal(other.merge(m), other.merge_reference(r))
+    if K > 1:  # each merged series is the pooled series' moments (independently: fsum, two passes)
+        a, b = rows[1].tolist(), RNG.standard_normal(7).tolist()
+        mm = Moments.of_rows(np.array([a])).merge(Moments.of_rows(np.array([b])))
+        mu = math.fsum(a + b) / len(a + b)
+        assert mm.mean[0] == pytest.approx(mu, rel=1e-13, abs=1e-13)
+        assert mm.m2[0] == pytest.approx(math.fsum((v - mu) ** 2 for v in a + b), rel=1e-12)
+
+
+def test_minima_maxima_and_merges_resolve_ties_and_nan_as_numpy():
+    # 0.0 and -0.0 compare equal: numpy keeps the later value of a reduction and the second operand of minimum/maximum
+    x = np.array([[0.0, -0.0, 1.0, np.nan], [-0.0, 0.0, np.nan, 1.0], [0.0, -0.0, 2.0, 3.0]])
+    for m, r in ((Moments.of(x), Moments.of_reference(x)),):
+        assert _moments_equal(m, r)
+    a, b = Moments.of(x[:2]), Moments.of(x[1:])
+    assert _moments_equal(a.merge(b), a.merge_reference(b)) and _moments_equal(b.merge(a), b.merge_reference(a))
+    s_kernel, s_ref = {}, {}
+    D = np.array([[[0.0, -0.0, 0.0], [-0.0, 0.0, -0.0]]])
+    _, _, whole = compensation_figures(D, 1000.0, s_kernel)
+    _, _, whole_r = compensation_figures_reference(D, 1000.0, s_ref)
+    assert all(same_bits(whole[k], whole_r[k]) for k in whole_r) and all(same_bits(s_kernel[k], s_ref[k]) for k in s_ref)
+
+
+def test_comoments_merge_kernel_is_the_reference_bit_for_bit():
+    a, b = CoMoments.of(RNG.standard_normal((64, 75, 3))), CoMoments.of(RNG.standard_normal((3, 75, 3)) * 4)
+    for x, y in ((a, b), (b, a)):
+        m, r = x.merge(y), x.merge_reference(y)
+        assert m.n == r.n and same_bits(m.mean, r.mean) and same_bits(m.C, r.C)
