@@ -147,9 +147,8 @@ class Engine:
                     if o is not None:
                         F_true[i * n:(i + 1) * n] = F_true[i * n:(i + 1) * n] + o[:, rows]
         diff = (F_true - F_id).reshape(nb * n, -1)  # the compensated field before the rigid motions are removed
-        D = diff @ sc.rigid_free.T if nb == 1 else np.concatenate(
-            [diff[i * n:(i + 1) * n] @ sc.rigid_free.T for i in range(nb)])
-        comp, e, whole = compensation_figures(D.reshape(nb * n, -1, 3), um, out_scalars)
+        D = [(diff[i * n:(i + 1) * n] @ sc.rigid_free.T).reshape(n, -1, 3) for i in range(nb)]
+        comp, e, whole = compensation_figures(D, um, out_scalars)
         nc_counts = not_converged.reshape(nb, n).sum(axis=1)
         fb_counts = fallbacks.reshape(nb, n).sum(axis=1)
         results = []
@@ -189,20 +188,26 @@ class Engine:
         return [shown_unit(u) for u in self.scenario.id_model.errors.units]
 
 
-def compensation_figures(D: np.ndarray, um: float, scalars: dict) -> tuple:
-    """The compensated field D (N, M, 3) mm (rigid motions removed) as reported: (components (N, M, 3) um, per-point
-    errors (N, M) um, the whole machine's figures (``outputs.MACHINE_SCALARS``) {name: (N,)}), with SCALARS'
-    ``compensation_rms``, ``_mean`` and ``_max`` written into ``scalars``; one compiled pass
-    (:func:`mtbudget.kernels_stats.compensation_figures`), the numbers of :func:`compensation_figures_reference`."""
+def compensation_figures(D, um: float, scalars: dict) -> tuple:
+    """The compensated field D (N, M, 3) mm (rigid motions removed), or its blocks (a list of (n_i, M, 3), one after
+    the other along the trials), as reported: (components (N, M, 3) um, per-point errors (N, M) um, the whole machine's
+    figures (``outputs.MACHINE_SCALARS``) {name: (N,)}), with SCALARS' ``compensation_rms``, ``_mean`` and ``_max``
+    written into ``scalars``; one compiled pass per block (:func:`mtbudget.kernels_stats.compensation_figures`), the
+    numbers of :func:`compensation_figures_reference` of the concatenation (each trial's figures are its own)."""
     from .kernels_stats import compensation_figures as kernel
 
-    D = np.require(D, np.float64, ["C"])
-    N, M = D.shape[0], D.shape[1]
+    parts = [D] if isinstance(D, np.ndarray) else list(D)
+    M = parts[0].shape[1]
     if not M:
-        return compensation_figures_reference(D, um, scalars)
+        return compensation_figures_reference(np.concatenate(parts), um, scalars)
+    N = sum(p.shape[0] for p in parts)
     comp, e = np.empty((N, M, 3)), np.empty((N, M))
     rms, mean, emax, amax = np.empty(N), np.empty(N), np.empty(N), np.empty((4, N)).T
-    kernel(D, float(um), comp, e, rms, mean, emax, amax)
+    at = 0
+    for p in parts:
+        sl = slice(at, at + p.shape[0])
+        kernel(np.require(p, np.float64, ["C"]), float(um), comp[sl], e[sl], rms[sl], mean[sl], emax[sl], amax[sl])
+        at = sl.stop
     scalars.update(compensation_rms=rms, compensation_mean=mean, compensation_max=emax)
     return comp, e, dict(zip(MACHINE_SCALARS, amax.T))
 

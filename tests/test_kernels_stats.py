@@ -48,6 +48,11 @@ def test_compensation_figures_are_the_numpy_formulation_bit_for_bit(N, M):
     assert same_bits(comp, comp_r) and same_bits(e, e_r)
     assert list(s_kernel) == list(s_ref) and all(same_bits(s_kernel[k], s_ref[k]) for k in s_ref)
     assert list(whole) == list(whole_r) and all(same_bits(whole[k], whole_r[k]) for k in whole_r)
+    s_parts = {}  # the blocks of a chunk one after the other: each trial's figures are its own
+    cuts = [0, N // 3, N // 2, N] if N > 2 else [0, N]
+    comp_p, e_p, whole_p = compensation_figures([D[a:b] for a, b in zip(cuts, cuts[1:])], um, s_parts)
+    assert same_bits(comp_p, comp) and same_bits(e_p, e) and all(same_bits(s_parts[k], s_ref[k]) for k in s_ref)
+    assert all(same_bits(whole_p[k], whole_r[k]) for k in whole_r)
     # independently: lengths by hypot, means by fsum, maxima by sorting
     for t in range(N):
         lengths = [math.hypot(*(D[t, m] * um)) for m in range(M)]
