@@ -64,8 +64,9 @@ def _first_run_note(args: list):
     if not args or args[0] not in _COMPUTING or {"-h", "--help", "--quiet"} & set(args):
         return
     from .kernels import compiled_here
+    from .kernels_stats import compiled_here as stats_compiled_here
 
-    if compiled_here() is False:
+    if compiled_here() is False or stats_compiled_here() is False:
         click.echo("compiling the engine's kernels (numba), once for this machine: 10-40 s ...", err=True)
 
 

@@ -299,3 +299,18 @@ def merge_comoments(am, aC, bm, bC, wb, wab, mean, C):  # pragma: no cover - com
         for i in range(d):
             for j in range(d):
                 C[k, i, j] = aC[k, i, j] + bC[k, i, j] + (delta[i] * delta[j]) * wab
+
+
+#: the kernels a run compiles (what :func:`compiled_here` looks for)
+KERNELS = (compensation_figures, moments, comoments, moments_rows, merge_moments, merge_comoments, histogram_add)
+
+
+def compiled_here() -> bool | None:
+    """Whether numba's cache already holds these kernels on this machine (False: a run's first call compiles them,
+    about 2.6 s of CPU); None when that cannot be told (as :func:`mtbudget.kernels.compiled_here`)."""
+    import os
+
+    try:
+        return all(os.path.exists(k._cache._cache_file._index_path) for k in KERNELS)
+    except AttributeError:  # pragma: no cover - another numba, or compiled in memory (no cache)
+        return None

@@ -200,3 +200,18 @@ def test_comoments_merge_kernel_is_the_reference_bit_for_bit():
     for x, y in ((a, b), (b, a)):
         m, r = x.merge(y), x.merge_reference(y)
         assert m.n == r.n and same_bits(m.mean, r.mean) and same_bits(m.C, r.C)
+
+
+def test_the_cache_holds_the_kernels_once_called():
+    """What the first-run note (cli._first_run_note) asks: after a call of each, numba's cache holds them."""
+    from mtbudget import kernels_stats
+
+    x = RNG.standard_normal((4, 3, 3))
+    compensation_figures(x, 1.0, {})
+    a, b = Moments.of(x[:, :, 0].copy()), CoMoments.of(x)
+    Moments.of_rows(x[:, :, 0].T.copy())
+    a.merge(a), b.merge(b)
+    from mtbudget.stats import VectorHistogram
+
+    VectorHistogram(x[:, :, 0].copy()).add(x[:, :, 0].copy())
+    assert kernels_stats.compiled_here() in (True, None)
