@@ -209,8 +209,8 @@ class VectorHistogram:
             # high - low per component, formed once per range (the kernel divides by it, as the reference does)
             self._width = (self.low, self.high, np.ascontiguousarray(np.asarray(self.high, np.float64)
                                                                      - np.asarray(self.low, np.float64)))
-        histogram_add(np.require(x, np.float64, ["C"]), np.require(self.low, np.float64, ["C"]), self._width[2],
-                      int(self.bins), self.counts, self.under, self.over)
+        histogram_add(np.require(x, np.float64, ["C", "W"]), np.require(self.low, np.float64, ["C", "W"]),
+                      self._width[2], int(self.bins), self.counts, self.under, self.over)
 
     def add_reference(self, x: np.ndarray):
         f = (x - self.low) / (self.high - self.low)
