@@ -194,11 +194,11 @@ def compensation_figures(D, um: float, scalars: dict) -> tuple:
     figures (``outputs.MACHINE_SCALARS``) {name: (N,)}), with SCALARS' ``compensation_rms``, ``_mean`` and ``_max``
     written into ``scalars``; one compiled pass per block (:func:`mtbudget.kernels_stats.compensation_figures`), the
     numbers of :func:`compensation_figures_reference` of the concatenation (each trial's figures are its own)."""
-    from .kernels_stats import compensation_figures as kernel
+    from .kernels_stats import BUFFER, LIKE_NUMPY, compensation_figures as kernel
 
     parts = [D] if isinstance(D, np.ndarray) else list(D)
     M = parts[0].shape[1]
-    if not M:
+    if not M or (not LIKE_NUMPY and M > BUFFER):  # numpy < 2.3 sums more than BUFFER points by buffers: its bits
         return compensation_figures_reference(np.concatenate(parts), um, scalars)
     N = sum(p.shape[0] for p in parts)
     comp, e = np.empty((N, M, 3)), np.empty((N, M))

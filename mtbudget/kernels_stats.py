@@ -11,7 +11,13 @@ reference (``tests/test_kernels_stats.py`` compares them bit for bit, and with s
 * a sum over the points of one trial (numpy's reduction along the contiguous last axis) is numpy's pairwise sum
   (:func:`_pairwise`: eight partial sums below 128 values, halves above), as ``np.add.reduce`` does;
 * products, quotients and square roots are IEEE operations in the same order (no ``fastmath``: no reassociation,
-  no fused multiply-add); minima and maxima are exact, NaN propagates and ties (0.0 and -0.0) resolve as in numpy.
+  no fused multiply-add); minima and maxima are exact and NaN propagates.  Where a series mixes 0.0 and -0.0, the
+  sign of a zero minimum, maximum or mean of :func:`moments_rows` may differ from numpy's, and a merge may give a NaN
+  of the other sign: no output of a run is affected (they are non-negative, and a NaN is a NaN).
+
+numpy summed a contiguous run in buffers of 8192 values, each pairwise, up to its 2.2 and one pairwise tree from 2.3
+on (measured on 1.26.4, 2.2.6, 2.3.5 and 2.4.6); the kernels sum as 2.3 does, so on an older numpy the callers use
+the numpy formulations for series longer than :data:`BUFFER` (``LIKE_NUMPY``), and the bits stay numpy's there too.
 
 Every trial's figures depend on that trial's values only, a block's statistics on that block's only: results do
 not depend on how blocks are grouped.  Only plain float64 arrays cross this boundary.
@@ -23,6 +29,12 @@ import math
 
 import numpy as np
 from numba import njit
+
+#: numpy's reduction buffer (``np.getbufsize()``'s default): up to numpy 2.2 a contiguous sum longer than this was
+#: the sum of its buffers' pairwise sums, from 2.3 on one pairwise sum, which :func:`_pairwise` reproduces
+BUFFER = 8192
+#: whether this numpy sums a contiguous run as :func:`_pairwise` does at any length
+LIKE_NUMPY = np.lib.NumpyVersion(np.__version__) >= "2.3.0"
 
 
 def _compiled(f):

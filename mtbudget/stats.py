@@ -111,9 +111,11 @@ class Moments:
         are bit-identical to ``Moments.of(rows[k][:, None])`` (each row is summed as one contiguous series, as a
         column of one series is; ``tests/test_stats_fast.py`` checks it), with one numpy call instead of K."""
         rows = np.asarray(rows, float)
-        if rows.ndim != 2 or not rows.shape[1] or rows.strides[1] != rows.itemsize:
+        from .kernels_stats import BUFFER, LIKE_NUMPY, moments_rows  # one compiled pass, numpy's pairwise sums
+
+        if (rows.ndim != 2 or not rows.shape[1] or rows.strides[1] != rows.itemsize
+                or (not LIKE_NUMPY and rows.shape[1] > BUFFER)):  # numpy < 2.3 buffered long sums: its own bits
             return cls.of_rows_reference(rows)
-        from .kernels_stats import moments_rows  # one compiled pass, the same bits (pairwise sums as numpy's)
 
         K = rows.shape[0]
         mean, m2, lo, hi = np.empty(K), np.empty(K), np.empty(K), np.empty(K)

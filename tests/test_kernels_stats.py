@@ -37,7 +37,7 @@ def test_pairwise_sum_is_numpys_and_close_to_the_exact_sum(n):
         assert abs(got - exact) <= 1e-13 * max(math.fsum(np.abs(a[3:])), 1e-300)
 
 
-@pytest.mark.parametrize("N,M", [(1, 1), (2, 7), (3, 8), (64, 75), (5, 129), (4, 300)])
+@pytest.mark.parametrize("N,M", [(1, 1), (2, 7), (3, 8), (64, 75), (5, 129), (4, 300), (2, 9001)])
 def test_compensation_figures_are_the_numpy_formulation_bit_for_bit(N, M):
     D = RNG.standard_normal((N, M, 3)) * 1e-3  # mm
     D[0, 0] = [-2e-3, 0.0, 1e-9]  # a negative largest component and an exact zero
@@ -162,7 +162,7 @@ def _moments_equal(m, r):
     return m.n == r.n and all(same_bits(getattr(m, f), getattr(r, f)) for f in ("mean", "m2", "minimum", "maximum"))
 
 
-@pytest.mark.parametrize("K,n", [(1, 1), (11, 64), (11, 17), (3, 129), (2, 1000), (7, 8)])
+@pytest.mark.parametrize("K,n", [(1, 1), (11, 64), (11, 17), (3, 129), (2, 1000), (7, 8), (3, 20011)])
 def test_moments_of_rows_and_merges_are_numpys_bit_for_bit(K, n):
     rows = RNG.standard_normal((K, n)) * 10.0 ** RNG.uniform(-3, 3, (K, 1)) + 5
     rows[0, n // 2] = np.nan if K > 2 else rows[0, n // 2]
@@ -215,3 +215,27 @@ def test_the_cache_holds_the_kernels_once_called():
 
     VectorHistogram(x[:, :, 0].copy()).add(x[:, :, 0].copy())
     assert kernels_stats.compiled_here() in (True, None)
+
+
+def test_an_older_numpy_keeps_its_own_sums_of_long_series(monkeypatch):
+    """numpy up to 2.2 summed a contiguous run of more than 8192 values by buffers (the reviewer measured 1.26.4 and
+    2.2.6): there the callers must take the numpy formulations for such series, not the kernels' one pairwise tree.
+    The dispatch is checked with a kernel that cannot be called."""
+    import mtbudget.kernels_stats as ks
+    from mtbudget import engine
+
+    def refuse(*a):
+        raise AssertionError("the kernel was called for a long series under an older numpy")
+
+    monkeypatch.setattr(ks, "LIKE_NUMPY", False)
+    monkeypatch.setattr(ks, "moments_rows", refuse)
+    monkeypatch.setattr(ks, "compensation_figures", refuse)
+    rows = RNG.standard_normal((2, ks.BUFFER + 1))
+    assert _moments_equal(Moments.of_rows(rows), Moments.of_rows_reference(rows))
+    D = RNG.standard_normal((2, ks.BUFFER + 1, 3))
+    s, s_ref = {}, {}
+    comp, e, _ = engine.compensation_figures(D, 1000.0, s)
+    comp_r, e_r, _ = engine.compensation_figures_reference(D, 1000.0, s_ref)
+    assert same_bits(comp, comp_r) and same_bits(e, e_r)
+    with pytest.raises(AssertionError, match="long series"):  # a short series still takes the kernel
+        Moments.of_rows(rows[:, :100])
