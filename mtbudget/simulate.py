@@ -33,13 +33,157 @@ from .units import display
 def stream(seed: int, block: int, source: Source) -> np.random.Generator:
     """The random stream of ``source`` in ``block`` of a run seeded ``seed``:
     ``default_rng(SeedSequence(seed, spawn_key=(block, crc32(source.name))))``."""
+    return streams(seed, block, (source,))[0]
+
+
+def streams(seed: int, block: int, sources) -> list:
+    """:func:`stream` of each of ``sources`` in ``block``: the same generators, state for state, at a tenth of the
+    cost of a ``SeedSequence`` each.
+
+    numpy's ``SeedSequence(seed, spawn_key=(block, crc))`` hashes its entropy words (the seed's, padded to the pool
+    of four, then the block's, then the crc's) into a pool of four words, and ``PCG64`` seeds itself with the eight
+    words ``generate_state(4, uint64)`` makes of it (numpy/random/bit_generator.pyx, after O'Neill's seed_seq).
+    Everything before the crc's word is the same for every source of a block (computed once per seed and block,
+    in Python integers); the crc's word and ``generate_state`` are then a few uint32 operations on all the
+    block's sources at once.  ``PCG64`` takes the words from a :class:`_Seeded` seed sequence, which is the numpy
+    one in every other use (``spawn``, ``entropy``, other ``generate_state`` requests).  The words are checked
+    against numpy's own in tests/test_simulate_streams.py; numpy guarantees both algorithms' stream compatibility."""
+    seed, block = int(seed), int(block)
+    if seed < 0 or block < 0:  # numpy's own error
+        return [np.random.default_rng(np.random.SeedSequence(seed, spawn_key=(block, _crc(s)))) for s in sources]
+    crcs = [_crc(s) for s in sources]
+    pool, h = _prefix(seed, block)
+    # the crc's word mixed into each pool word (hashmix, then mix), then generate_state(4, uint64)
+    y = np.array(crcs, np.uint32)[:, None] ^ h[:4]
+    y *= h[1:]
+    y ^= y >> _XSHIFT
+    y *= _MIX_R
+    p = pool - y  # MIX_L * pool (pool holds it) - MIX_R * y, modulo 2^32
+    p ^= p >> _XSHIFT
+    w = p[:, _CYCLE]
+    w ^= _STATE_HASH[:8]
+    w *= _STATE_HASH[1:]
+    w ^= w >> _XSHIFT
+    words = w.astype("<u4", order="C").view("<u8").astype(np.uint64)  # generate_state's: little-endian pairs, native order
+    Generator, PCG64 = np.random.Generator, np.random.PCG64
+    return [Generator(PCG64(_Seeded(words[i], seed, block, c))) for i, c in enumerate(crcs)]
+
+
+def _crc(source) -> int:
     crc = _CRC.get(source.name)
     if crc is None:
         crc = _CRC[source.name] = zlib.crc32(source.name.encode())
-    return np.random.default_rng(np.random.SeedSequence(int(seed), spawn_key=(int(block), crc)))
+    return crc
 
 
 _CRC: dict = {}  # source name -> crc32 of its name
+
+# numpy's SeedSequence (numpy/random/bit_generator.pyx): the hash constants, the pool of four uint32 words
+_INIT_A, _MULT_A, _INIT_B, _MULT_B = 0x43B0D7E5, 0x931E8875, 0x8B51F9DD, 0x58F38DED
+_MIX_L, _MIX_R, _XSHIFT, _M32 = 0xCA01F9DD, 0x4973F715, 16, 0xFFFFFFFF
+_CYCLE = np.array([0, 1, 2, 3, 0, 1, 2, 3])  # generate_state cycles through the pool
+
+
+def _hash_constants(h: int, mult: int, k: int) -> np.ndarray:
+    """h, h * mult, h * mult^2 ... (k + 1 values, uint32): the successive hash constants from ``h``."""
+    out = [h]
+    for _ in range(k):
+        out.append(out[-1] * mult & _M32)
+    return np.array(out, np.uint32)
+
+
+_STATE_HASH = _hash_constants(_INIT_B, _MULT_B, 8)  # generate_state's, the same for every seed sequence
+
+
+def _words(n: int) -> list:
+    """An integer as uint32 words, lowest first (numpy's ``_int_to_uint32_array``: 0 is one word)."""
+    out = [n & _M32]
+    n >>= 32
+    while n:
+        out.append(n & _M32)
+        n >>= 32
+    return out
+
+
+def _prefix(seed: int, block: int):
+    """The pool after every entropy word but the crc's, as ``MIX_L * pool`` (uint32 (4,)), and the hash constants
+    the crc's four ``hashmix`` use (uint32 (5,)); remembered per seed and block (a few kept)."""
+    hit = _PREFIX.get((seed, block))
+    if hit is not None:
+        return hit
+    run = _words(seed)
+    entropy = run + [0] * (4 - len(run)) + _words(block)  # a spawn key pads the seed's words to the pool
+    h = _INIT_A
+
+    def hashmix(v):
+        nonlocal h
+        v ^= h
+        h = h * _MULT_A & _M32
+        v = v * h & _M32
+        return v ^ (v >> _XSHIFT)
+
+    def mix(x, y):
+        r = (_MIX_L * x - _MIX_R * y) & _M32
+        return r ^ (r >> _XSHIFT)
+
+    pool = [hashmix(v) for v in entropy[:4]]
+    for i in range(4):
+        for j in range(4):
+            if i != j:
+                pool[j] = mix(pool[j], hashmix(pool[i]))
+    for v in entropy[4:]:
+        for j in range(4):
+            pool[j] = mix(pool[j], hashmix(v))
+    hit = (np.array([_MIX_L * v & _M32 for v in pool], np.uint32), _hash_constants(h, _MULT_A, 4))
+    if len(_PREFIX) > 64:
+        _PREFIX.clear()
+    _PREFIX[(seed, block)] = hit
+    return hit
+
+
+_PREFIX: dict = {}
+
+
+class _Seeded(np.random.bit_generator.ISpawnableSeedSequence):
+    """``SeedSequence(seed, spawn_key=(block, crc))`` whose ``generate_state(4, uint64)``, which ``PCG64`` asks once
+    when it seeds itself, is already known (:func:`streams`); anything else is asked of the numpy seed sequence,
+    made on first need, so ``spawn``, ``entropy``, ``spawn_key`` and the rest are numpy's."""
+
+    __slots__ = ("_words", "_key", "_real")
+
+    def __init__(self, words, seed, block, crc):
+        self._words, self._key, self._real = words, (seed, block, crc), None
+
+    def real(self) -> np.random.SeedSequence:
+        if self._real is None:
+            seed, block, crc = self._key
+            self._real = np.random.SeedSequence(seed, spawn_key=(block, crc))
+        return self._real
+
+    def generate_state(self, n_words, dtype=np.uint32):
+        words = self._words
+        if words is not None and dtype is np.uint64 and n_words == 4:  # PCG64 seeding itself: once
+            self._words = None
+            return words
+        return self.real().generate_state(n_words, dtype)
+
+    def spawn(self, n_children):
+        return self.real().spawn(n_children)
+
+    def __getattr__(self, name):  # entropy, spawn_key, pool_size, n_children_spawned, state
+        if name.startswith("__") or name in _Seeded.__slots__:
+            raise AttributeError(name)
+        return getattr(self.real(), name)
+
+    def __reduce__(self):
+        return _identity, (self.real(),)
+
+    def __repr__(self):
+        return repr(self.real())
+
+
+def _identity(x):
+    return x
 
 
 def sample_source(scenario: Scenario, src: Source, n: int, rng: np.random.Generator, shapes: dict | None = None,
@@ -99,8 +243,8 @@ def simulate_block(scenario: Scenario, block: int, n: int, seed: int, active: li
     targets: dict = {}
     summed = set()  # targets whose array is a sum made here (added to in place; a source's own array never is)
     choices = []
-    for src in active:
-        arr = sample_source(scenario, src, n, stream(seed, block, src), shapes, options)
+    for src, rng in zip(active, streams(seed, block, active)):
+        arr = sample_source(scenario, src, n, rng, shapes, options)
         for k, v in arr.items():
             if k == "strategy":
                 choices.append((src, v.astype(int)))
