@@ -24,7 +24,7 @@ from .errors import PluginError
 from .machine import COMPONENT_ERRORS
 from .model import iso_parameter, parameter_from_iso
 from .model import from_targets
-from .plugins import call
+from .plugins import call, caller
 from .recording import Recording
 from .scenario import Scenario, target_shapes
 from .units import display
@@ -43,11 +43,12 @@ def streams(seed: int, block: int, sources) -> list:
     numpy's ``SeedSequence(seed, spawn_key=(block, crc))`` hashes its entropy words (the seed's, padded to the pool
     of four, then the block's, then the crc's) into a pool of four words, and ``PCG64`` seeds itself with the eight
     words ``generate_state(4, uint64)`` makes of it (numpy/random/bit_generator.pyx, after O'Neill's seed_seq).
-    Everything before the crc's word is the same for every source of a block (computed once per seed and block,
-    in Python integers); the crc's word and ``generate_state`` are then a few uint32 operations on all the
-    block's sources at once.  ``PCG64`` takes the words from a :class:`_Seeded` seed sequence, which is the numpy
-    one in every other use (``spawn``, ``entropy``, other ``generate_state`` requests).  The words are checked
-    against numpy's own in tests/test_simulate_streams.py; numpy guarantees both algorithms' stream compatibility."""
+    Everything before the crc's word is the same for every source of a block (the seed's part remembered per seed,
+    the block's word mixed in per block, in Python integers); the crc's word and ``generate_state`` are then a few
+    uint32 operations on all the block's sources at once.  ``PCG64`` takes the words from a :class:`_Seeded` seed
+    sequence, which is the numpy one in every other use (``spawn``, ``entropy``, other ``generate_state``
+    requests).  The states are checked against numpy's own in tests/test_sampling_speed_streams.py; numpy
+    guarantees both algorithms' stream compatibility."""
     seed, block = int(seed), int(block)
     if seed < 0 or block < 0:  # numpy's own error
         return [np.random.default_rng(np.random.SeedSequence(seed, spawn_key=(block, _crc(s)))) for s in sources]
@@ -105,40 +106,51 @@ def _words(n: int) -> list:
     return out
 
 
+def _hashmix(v: int, h: int) -> tuple:
+    """numpy's ``hashmix`` of ``v`` with the hash constant ``h``: (the hashed value, the next constant)."""
+    v ^= h
+    h = h * _MULT_A & _M32
+    v = v * h & _M32
+    return v ^ (v >> _XSHIFT), h
+
+
+def _mix(x: int, y: int) -> int:
+    r = (_MIX_L * x - _MIX_R * y) & _M32
+    return r ^ (r >> _XSHIFT)
+
+
 def _prefix(seed: int, block: int):
     """The pool after every entropy word but the crc's, as ``MIX_L * pool`` (uint32 (4,)), and the hash constants
-    the crc's four ``hashmix`` use (uint32 (5,)); remembered per seed and block (a few kept)."""
-    hit = _PREFIX.get((seed, block))
-    if hit is not None:
-        return hit
-    run = _words(seed)
-    entropy = run + [0] * (4 - len(run)) + _words(block)  # a spawn key pads the seed's words to the pool
-    h = _INIT_A
-
-    def hashmix(v):
-        nonlocal h
-        v ^= h
-        h = h * _MULT_A & _M32
-        v = v * h & _M32
-        return v ^ (v >> _XSHIFT)
-
-    def mix(x, y):
-        r = (_MIX_L * x - _MIX_R * y) & _M32
-        return r ^ (r >> _XSHIFT)
-
-    pool = [hashmix(v) for v in entropy[:4]]
-    for i in range(4):
+    the crc's four ``hashmix`` use (uint32 (5,)).  The seed's part (its words padded to the pool, mixed together) is
+    remembered per seed; the block's words are mixed into it here."""
+    hit = _PREFIX.get(seed)
+    if hit is None:
+        run = _words(seed)
+        entropy = run + [0] * (4 - len(run))  # a spawn key pads the seed's words to the pool
+        h = _INIT_A
+        pool = []
+        for v in entropy[:4]:
+            v, h = _hashmix(v, h)
+            pool.append(v)
+        for i in range(4):
+            for j in range(4):
+                if i != j:
+                    v, h = _hashmix(pool[i], h)
+                    pool[j] = _mix(pool[j], v)
+        for w in entropy[4:]:  # a seed of more than four words
+            for j in range(4):
+                v, h = _hashmix(w, h)
+                pool[j] = _mix(pool[j], v)
+        hit = (pool, h)
+        if len(_PREFIX) > 64:
+            _PREFIX.clear()
+        _PREFIX[seed] = hit
+    pool, h = list(hit[0]), hit[1]
+    for w in _words(block):
         for j in range(4):
-            if i != j:
-                pool[j] = mix(pool[j], hashmix(pool[i]))
-    for v in entropy[4:]:
-        for j in range(4):
-            pool[j] = mix(pool[j], hashmix(v))
-    hit = (np.array([_MIX_L * v & _M32 for v in pool], np.uint32), _hash_constants(h, _MULT_A, 4))
-    if len(_PREFIX) > 64:
-        _PREFIX.clear()
-    _PREFIX[(seed, block)] = hit
-    return hit
+            v, h = _hashmix(w, h)
+            pool[j] = _mix(pool[j], v)
+    return np.array([_MIX_L * v & _M32 for v in pool], np.uint32), _hash_constants(h, _MULT_A, 4)
 
 
 _PREFIX: dict = {}
@@ -187,16 +199,17 @@ def _identity(x):
 
 
 def sample_source(scenario: Scenario, src: Source, n: int, rng: np.random.Generator, shapes: dict | None = None,
-                  options: dict | None = None) -> dict:
+                  options: dict | None = None, invoke=call) -> dict:
     """``n`` trials of one source as internal float arrays, checked (keys, shapes, units, NaN, strategy indices).
 
     A source with ``sample_internal`` (the built-ins) gives float arrays in the internal units: no pint per block.
-    options: a cache of each strategy source's options (source name -> list), filled on first use."""
+    options: a cache of each strategy source's options (source name -> list), filled on first use.
+    invoke: :func:`mtbudget.plugins.call` or what :func:`mtbudget.plugins.caller` gave for a run of calls."""
     shapes = shapes or target_shapes(scenario)
     if has_internal_sample(src):
-        arrays = check_internal(src, call(src, "sample_internal", n, rng, scenario.context), n, shapes)
+        arrays = check_internal(src, invoke(src, "sample_internal", n, rng, scenario.context), n, shapes)
     else:
-        raw = call(src, "sample", n, rng, scenario.context)
+        raw = invoke(src, "sample", n, rng, scenario.context)
         arrays = _as_internal(src, raw, n, shapes)
         if arrays is None:
             arrays = check_sample(src, raw, n, shapes)
@@ -243,8 +256,9 @@ def simulate_block(scenario: Scenario, block: int, n: int, seed: int, active: li
     targets: dict = {}
     summed = set()  # targets whose array is a sum made here (added to in place; a source's own array never is)
     choices = []
+    invoke = caller()
     for src, rng in zip(active, streams(seed, block, active)):
-        arr = sample_source(scenario, src, n, rng, shapes, options)
+        arr = sample_source(scenario, src, n, rng, shapes, options, invoke)
         for k, v in arr.items():
             if k == "strategy":
                 choices.append((src, v.astype(int)))
