@@ -642,12 +642,23 @@ def kernel_chain(config, model, inputs, B, N: int) -> dict:
         p = np.asarray(inputs.effective(a), float)
         if p.shape[0] not in (1, N) or p.shape[1] != M:
             p = np.broadcast_to(p, (N, M))
-        pos.append(np.require(p, np.float64, ["C", "W"]))
+        pos.append(kernel_array(p))
     tool = np.require(np.broadcast_to(np.asarray(inputs.tool, float), (M, 3)), np.float64, ["C", "W"])
     rdir, pivot, rcos, rsin = _rotary_inputs(config, inputs, N, M)
     return {"tool_axes": tool_axes, "wp_axes": wp_axes, "side": side, "px": pos[0], "py": pos[1], "pz": pos[2],
             "tool": tool, "L": L, "src": src, "dst": dst, "sqi": sqi, "rdir": rdir,
             "pivot": pivot, "rcos": rcos, "rsin": rsin}
+
+
+def kernel_array(x) -> np.ndarray:
+    """``np.require(x, np.float64, ["C", "W"])``: what a compiled kernel takes (one signature whatever the caller's
+    arrays), without the call when ``x`` is such an array already."""
+    if type(x) is np.ndarray and x.dtype == _F64 and x.flags.c_contiguous and x.flags.writeable:
+        return x
+    return np.require(x, np.float64, ["C", "W"])
+
+
+_F64 = np.dtype(np.float64)
 
 
 def _rotary_inputs(config, inputs, N, M):

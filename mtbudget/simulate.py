@@ -273,7 +273,8 @@ def simulate_block(scenario: Scenario, block: int, n: int, seed: int, active: li
     pert = scenario.truth_inputs(from_targets(targets))  # [scales]: the nominal expansion, about each fixed point
     truth = scenario.truth
     theta_true = scenario.theta[None, :] + pert.pop("geometry", 0.0)
-    theta_true = np.broadcast_to(theta_true, (n, truth.n_params))
+    if theta_true.shape != (n, truth.n_params):
+        theta_true = np.broadcast_to(theta_true, (n, truth.n_params))
     if scenario.stations:
         meas, ranges = measure_stations(scenario, truth.machine_points(theta_true, pert), pert)
     else:

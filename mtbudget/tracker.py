@@ -23,6 +23,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from .machine import kernel_array
+
 POSE_NAMES = ("D", "L", "H", "a", "b", "d")
 POSE_UNITS = ("mm", "mm", "mm", "rad", "rad", "rad")
 
@@ -202,13 +204,19 @@ def read(P_W: np.ndarray, pose: np.ndarray, noise: np.ndarray | None = None) -> 
     # shapes that do not broadcast raise ValueError, as there)
     n = np.broadcast_shapes(P_W.shape[:1], pose.shape[:1], () if noise is None else np.shape(noise)[:1])
     shape = n + P_W.shape[1:]
-    P_W = np.broadcast_to(P_W, shape)
+    P_W = _broadcast(P_W, shape)
     if noise is not None:
-        noise = np.broadcast_to(noise, shape)
-    pose = np.broadcast_to(pose, n + (6,))
-    req = lambda x: np.require(x, np.float64, ["C", "W"])  # noqa: E731
-    return tracker_points(req(P_W), req(rotation(pose[:, 3], pose[:, 4], pose[:, 5])), req(pose[:, :3]),
-                          req(noise) if noise is not None else np.zeros((0,) + P_W.shape[1:]), np.empty(P_W.shape))
+        noise = _broadcast(noise, shape)
+    pose = _broadcast(pose, n + (6,))
+    return tracker_points(kernel_array(P_W), kernel_array(rotation(pose[:, 3], pose[:, 4], pose[:, 5])),
+                          kernel_array(pose[:, :3]),
+                          kernel_array(noise) if noise is not None else np.zeros((0,) + P_W.shape[1:]), np.empty(P_W.shape))
+
+
+def _broadcast(x, shape: tuple):
+    """``np.broadcast_to(x, shape)``, or ``x`` itself when it has that shape already (a read-only view of it would be
+    copied for the kernel)."""
+    return x if np.shape(x) == shape else np.broadcast_to(x, shape)
 
 
 def add_spherical_noise(P_LT: np.ndarray, noise: np.ndarray) -> np.ndarray:
