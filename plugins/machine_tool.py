@@ -113,16 +113,19 @@ class CTEUncertainty(Source):
     def _prepare(self, ctx):
         cte = _axis_ctes(self, ctx)
         T = _axis_temperatures(ctx)
-        w = np.array([self.width(cte[a]) for a in AXES], float)[:, None, None]
+        w = np.array([self.width(cte[a]) for a in AXES], float)
         dT = np.stack([T[a] - ctx.reference_temperature for a in AXES])[:, None, :]
-        return -w / 2, w / 2, dT
+        return [(float(lo), float(hi)) for lo, hi in zip(-w / 2, w / 2)], dT
 
     def sample_internal(self, n, rng, ctx):
         # the true CTE is the nominal one plus dalpha: against the correction made with the nominal CTE the scale is
         # off by dalpha (T_axis - T_ref), about the fixed point of a stated scale
-        low, high, dT = self.remembered(_key(self, ctx), lambda: self._prepare(ctx))
+        bounds, dT = self.remembered(_key(self, ctx), lambda: self._prepare(ctx))
+        dalpha = np.empty((3, n, 1))
+        for i, (low, high) in enumerate(bounds):  # three (n, 1) draws in turn, each with NumPy's scalar bounds
+            dalpha[i] = rng.uniform(low, high, (n, 1))
         out = np.empty((3, n, ctx.n_points))
-        np.multiply(rng.uniform(low, high, (3, n, 1)), dT, out=out)  # the numbers of three (n, 1) draws in turn
+        np.multiply(dalpha, dT, out=out)
         return {"axis_scale.x": out[0], "axis_scale.y": out[1], "axis_scale.z": out[2]}
 
 
