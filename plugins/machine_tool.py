@@ -207,13 +207,18 @@ class Backlash(Source):
         return (self.parameters["B_max"] / math.sqrt(12)).to("um")
 
     def _prepare(self, ctx):
-        return self.value("B_max", "mm"), -np.ascontiguousarray(ctx.plan.direction.T)[:, None, :]
+        minus_direction = -np.ascontiguousarray(ctx.plan.direction.T)[:, None, :]
+        # (-d * B) / 2 is (-d / 2) * B, bit for bit, when d is +-1 or +-0 (-d * B is exact, and / 2 and * 0.5 round
+        # the same value): one pass fewer; any other direction keeps the division
+        halved = bool(np.isin(np.abs(minus_direction), (0.0, 1.0)).all())
+        return self.value("B_max", "mm"), (minus_direction / 2 if halved else minus_direction), halved
 
     def sample_internal(self, n, rng, ctx):
-        bmax, minus_direction = self.remembered(_key(self, ctx), lambda: self._prepare(ctx))
+        bmax, minus_direction, halved = self.remembered(_key(self, ctx), lambda: self._prepare(ctx))
         out = np.empty((3, n, ctx.n_points))
         np.multiply(minus_direction, rng.uniform(0, bmax, (3, n, 1)), out=out)  # three (n, 1) draws in turn
-        out /= 2
+        if not halved:
+            out /= 2
         return {"axis_offset.x": out[0], "axis_offset.y": out[1], "axis_offset.z": out[2]}
 
 

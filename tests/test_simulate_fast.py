@@ -159,3 +159,30 @@ def test_caller_reads_the_trace_setting_when_asked(monkeypatch, capsys):
     traced = plugins.caller()
     assert traced(Thing(), "hello", 2) == 3
     assert "thing.hello" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("direction, bmax", [((1.0, -1.0, 0.0, -0.0), "3 um"), ((1.0, -1.0, 0.0, -0.0), "1e-305 um"),
+                                             ((0.1, -0.3, 1.0, 0.7), "1e-305 um")])
+def test_backlash_halves_the_direction_only_when_that_gives_the_same_bits(paper, direction, bmax):
+    """backlash draws B in [0, B_max] per axis and stops -d B / 2 short; with every d in {+-1, +-0} it multiplies by -d/2
+    (the same bits), otherwise it divides as the formula says (-0.1 B / 2 and -0.05 B round differently where B is
+    subnormal).  Compared with the formula, signed zeros included."""
+    import copy
+    from dataclasses import replace
+
+    from mtbudget_plugins.machine_tool import Backlash
+
+    plan = paper.plan
+    d = np.resize(np.array(direction), plan.direction.shape)
+    ctx = copy.copy(paper.context)
+    ctx.plan = replace(plan, direction=d)
+    src = Backlash(B_max=bmax)
+    got = src.sample_internal(6, np.random.default_rng(8), ctx)
+    rng = np.random.default_rng(8)
+    B = rng.uniform(0, src.value("B_max", "mm"), (3, 6, 1))
+    for i, a in enumerate("xyz"):
+        want = (-d.T[i][None, :] * B[i]) / 2
+        assert same_bits(got[f"axis_offset.{a}"], want), a
+    if 0.0 in direction:  # both zeros are there to be told apart
+        allv = np.concatenate([v.ravel() for v in got.values()])
+        assert ((allv == 0) & np.signbit(allv)).any() and ((allv == 0) & ~np.signbit(allv)).any()
