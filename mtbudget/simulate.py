@@ -52,14 +52,9 @@ def streams(seed: int, block: int, sources) -> list:
     seed, block = int(seed), int(block)
     if seed < 0 or block < 0:  # numpy's own error
         return [np.random.default_rng(np.random.SeedSequence(seed, spawn_key=(block, _crc(s)))) for s in sources]
-    crcs = [_crc(s) for s in sources]
     pool, h = _prefix(seed, block)
-    # the crc's word mixed into each pool word (hashmix, then mix), then generate_state(4, uint64)
-    y = np.array(crcs, np.uint32)[:, None] ^ h[:4]
-    y *= h[1:]
-    y ^= y >> _XSHIFT
-    y *= _MIX_R
-    p = pool - y  # MIX_L * pool (pool holds it) - MIX_R * y, modulo 2^32
+    crcs, y = _crc_words(sources, h)
+    p = pool - y  # mix: MIX_L * pool (pool holds it) - MIX_R * hashmix(crc), modulo 2^32
     p ^= p >> _XSHIFT
     w = p[:, _CYCLE]
     w ^= _STATE_HASH[:8]
@@ -68,6 +63,27 @@ def streams(seed: int, block: int, sources) -> list:
     words = w.astype("<u4", order="C").view("<u8").astype(np.uint64)  # generate_state's: little-endian pairs, native order
     Generator, PCG64 = np.random.Generator, np.random.PCG64
     return [Generator(PCG64(_Seeded(words[i], seed, block, c))) for i, c in enumerate(crcs)]
+
+
+def _crc_words(sources, h: int) -> tuple:
+    """(the sources' crc32s, ``MIX_R * hashmix(crc)`` for each crc and pool word (uint32 (S, 4))), the hash constants
+    running on from ``h``: the same for every block whose number is one word (remembered per sources and ``h``)."""
+    key = (tuple(s.name for s in sources), h)
+    hit = _CRC_WORDS.get(key)
+    if hit is None:
+        crcs = [_crc(s) for s in sources]
+        hc = _hash_constants(h, _MULT_A, 4)
+        y = np.array(crcs, np.uint32)[:, None] ^ hc[:4]
+        y *= hc[1:]
+        y ^= y >> _XSHIFT
+        y *= _MIX_R
+        if len(_CRC_WORDS) > 64:
+            _CRC_WORDS.clear()
+        hit = _CRC_WORDS[key] = (crcs, y)
+    return hit
+
+
+_CRC_WORDS: dict = {}
 
 
 def _crc(source) -> int:
@@ -120,8 +136,8 @@ def _mix(x: int, y: int) -> int:
 
 
 def _prefix(seed: int, block: int):
-    """The pool after every entropy word but the crc's, as ``MIX_L * pool`` (uint32 (4,)), and the hash constants
-    the crc's four ``hashmix`` use (uint32 (5,)).  The seed's part (its words padded to the pool, mixed together) is
+    """The pool after every entropy word but the crc's, as ``MIX_L * pool`` (uint32 (4,)), and the hash constant the
+    crc's ``hashmix`` start from.  The seed's part (its words padded to the pool, mixed together) is
     remembered per seed; the block's words are mixed into it here."""
     hit = _PREFIX.get(seed)
     if hit is None:
@@ -150,7 +166,7 @@ def _prefix(seed: int, block: int):
         for j in range(4):
             v, h = _hashmix(w, h)
             pool[j] = _mix(pool[j], v)
-    return np.array([_MIX_L * v & _M32 for v in pool], np.uint32), _hash_constants(h, _MULT_A, 4)
+    return np.array([_MIX_L * v & _M32 for v in pool], np.uint32), h
 
 
 _PREFIX: dict = {}
