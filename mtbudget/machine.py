@@ -480,7 +480,7 @@ class ChainInputs:
         sc = self.scale.get(axis)
         if sc is not None:
             f = 1.0 + np.asarray(sc)
-            if f.dtype == p.dtype and f.shape == np.broadcast_shapes(p.shape, f.shape):
+            if f.dtype == p.dtype and broadcast_shape(p.shape, f.shape) == f.shape:
                 p = np.multiply(p, f, out=f)  # p * (1 + s) into the array of 1 + s: one (N, M) array fewer
             else:
                 p = p * f
@@ -643,11 +643,22 @@ def kernel_chain(config, model, inputs, B, N: int) -> dict:
         if p.shape[0] not in (1, N) or p.shape[1] != M:
             p = np.broadcast_to(p, (N, M))
         pos.append(kernel_array(p))
-    tool = np.require(np.broadcast_to(np.asarray(inputs.tool, float), (M, 3)), np.float64, ["C", "W"])
+    tool = np.asarray(inputs.tool, float)
+    tool = kernel_array(tool if tool.shape == (M, 3) else np.broadcast_to(tool, (M, 3)))  # read, never written
     rdir, pivot, rcos, rsin = _rotary_inputs(config, inputs, N, M)
     return {"tool_axes": tool_axes, "wp_axes": wp_axes, "side": side, "px": pos[0], "py": pos[1], "pz": pos[2],
             "tool": tool, "L": L, "src": src, "dst": dst, "sqi": sqi, "rdir": rdir,
             "pivot": pivot, "rcos": rcos, "rsin": rsin}
+
+
+def broadcast_shape(*shapes) -> tuple:
+    """``np.broadcast_shapes(*shapes)``, without its cost when the shapes are all the same (the common case of a
+    block's arrays)."""
+    first = shapes[0]
+    for s in shapes[1:]:
+        if s != first:
+            return np.broadcast_shapes(*shapes)
+    return tuple(first)
 
 
 def kernel_array(x) -> np.ndarray:

@@ -15,8 +15,8 @@ import numpy as np
 
 from . import tracker as lt
 from .errors import ConfigError
-from .machine import (AXES, AXIS_INDEX, ROTARY, ROTARY_INDEX, ChainInputs, Configuration, ErrorModel, chain,
-                      is_rotary, parse_error_name)
+from .machine import (AXES, AXIS_INDEX, ROTARY, ROTARY_INDEX, ChainInputs, Configuration, ErrorModel, broadcast_shape,
+                      chain, is_rotary, parse_error_name)
 from .plan import Plan, Scale
 
 # ----------------------------------------------------------------------------- ISO 230-1 names (the one map)
@@ -195,7 +195,7 @@ def _plus(a: np.ndarray, b) -> np.ndarray:
     """``a + b`` for an array ``a`` the caller made and no one else holds: added in place when the sum has its shape
     and type (the same numbers, no new array), else a new one."""
     b = np.asarray(b)
-    if a.dtype == np.float64 and b.dtype == np.float64 and a.flags.writeable and a.shape == np.broadcast_shapes(a.shape, b.shape):
+    if a.dtype == np.float64 and b.dtype == np.float64 and a.flags.writeable and broadcast_shape(a.shape, b.shape) == a.shape:
         a += b
         return a
     return a + b

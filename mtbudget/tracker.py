@@ -23,7 +23,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .machine import kernel_array
+from .machine import broadcast_shape, kernel_array
 
 POSE_NAMES = ("D", "L", "H", "a", "b", "d")
 POSE_UNITS = ("mm", "mm", "mm", "rad", "rad", "rad")
@@ -31,7 +31,9 @@ POSE_UNITS = ("mm", "mm", "mm", "rad", "rad", "rad")
 
 def rotation(a, b, d) -> np.ndarray:
     """Eq. 22 rotation matrix, vectorised over the shapes of a, b, d: (..., 3, 3)."""
-    a, b, d = np.broadcast_arrays(np.asarray(a), np.asarray(b), np.asarray(d))
+    a, b, d = np.asarray(a), np.asarray(b), np.asarray(d)
+    if not a.shape == b.shape == d.shape:
+        a, b, d = np.broadcast_arrays(a, b, d)
     ca, sa, cb, sb, cd, sd = np.cos(a), np.sin(a), np.cos(b), np.sin(b), np.cos(d), np.sin(d)
     R = np.empty(a.shape + (3, 3), dtype=np.result_type(a, float))
     R[..., 0, 0] = cb * cd
@@ -202,7 +204,7 @@ def read(P_W: np.ndarray, pose: np.ndarray, noise: np.ndarray | None = None) -> 
     P_W = np.asarray(P_W, float)
     # the trials of the points, the pose and the noise broadcast together (to_tracker and add_spherical_noise's rule;
     # shapes that do not broadcast raise ValueError, as there)
-    n = np.broadcast_shapes(P_W.shape[:1], pose.shape[:1], () if noise is None else np.shape(noise)[:1])
+    n = broadcast_shape(P_W.shape[:1], pose.shape[:1], P_W.shape[:1] if noise is None else np.shape(noise)[:1])
     shape = n + P_W.shape[1:]
     P_W = _broadcast(P_W, shape)
     if noise is not None:
