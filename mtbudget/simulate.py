@@ -236,7 +236,7 @@ def sample_source(scenario: Scenario, src: Source, n: int, rng: np.random.Genera
                 options[src.name] = opts
         k = len(options[src.name] if options is not None else opts)
         s = arrays["strategy"]
-        if s.size and not (s.min() >= 0 and s.max() < k and (s == np.floor(s)).all()):
+        if s.size and not (np.minimum.reduce(s) >= 0 and np.maximum.reduce(s) < k and (s == np.floor(s)).all()):
             raise PluginError(f"'strategy' must hold option indices 0..{k - 1}", src.plugin, src.name,
                               "mtbudget_register_sources", "sample")
     return arrays

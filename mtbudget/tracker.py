@@ -36,15 +36,17 @@ def rotation(a, b, d) -> np.ndarray:
         a, b, d = np.broadcast_arrays(a, b, d)
     ca, sa, cb, sb, cd, sd = np.cos(a), np.sin(a), np.cos(b), np.sin(b), np.cos(d), np.sin(d)
     R = np.empty(a.shape + (3, 3), dtype=np.result_type(a, float))
-    R[..., 0, 0] = cb * cd
-    R[..., 0, 1] = -cb * sd
+    # each element's expression written into its place (no temporary and copy): cb cd, -cb sd, sb, ...
+    sasb, casb = sa * sb, ca * sb
+    np.multiply(cb, cd, out=R[..., 0, 0])
+    np.multiply(-cb, sd, out=R[..., 0, 1])
     R[..., 0, 2] = sb
-    R[..., 1, 0] = ca * sd + sa * sb * cd
-    R[..., 1, 1] = ca * cd - sa * sb * sd
-    R[..., 1, 2] = -sa * cb
-    R[..., 2, 0] = sa * sd - ca * sb * cd
-    R[..., 2, 1] = sa * cd + ca * sb * sd
-    R[..., 2, 2] = ca * cb
+    np.add(ca * sd, sasb * cd, out=R[..., 1, 0])
+    np.subtract(ca * cd, sasb * sd, out=R[..., 1, 1])
+    np.multiply(-sa, cb, out=R[..., 1, 2])
+    np.subtract(sa * sd, casb * cd, out=R[..., 2, 0])
+    np.add(sa * cd, casb * sd, out=R[..., 2, 1])
+    np.multiply(ca, cb, out=R[..., 2, 2])
     return R
 
 

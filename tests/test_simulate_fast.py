@@ -186,3 +186,20 @@ def test_backlash_halves_the_direction_only_when_that_gives_the_same_bits(paper,
     if 0.0 in direction:  # both zeros are there to be told apart
         allv = np.concatenate([v.ravel() for v in got.values()])
         assert ((allv == 0) & np.signbit(allv)).any() and ((allv == 0) & ~np.signbit(allv)).any()
+
+
+def test_rotation_is_eq22_element_by_element():
+    """tracker.rotation writes each element's expression into its place: the same bits as the expressions of Eq. 22,
+    for arrays (strided columns of a pose, as tracker.read passes them), scalars and the complex step of
+    pose_jacobian."""
+    rng = np.random.default_rng(9)
+    pose = rng.normal(0, 0.3, (7, 6))
+    cases = [(pose[:, 3], pose[:, 4], pose[:, 5]), (0.1, -0.2, 0.3), (pose[0, 3] + 1e-30j, pose[0, 4], pose[0, 5])]
+    for a, b, d in cases:
+        a, b, d = np.broadcast_arrays(np.asarray(a), np.asarray(b), np.asarray(d))
+        ca, sa, cb, sb, cd, sd = np.cos(a), np.sin(a), np.cos(b), np.sin(b), np.cos(d), np.sin(d)
+        want = np.empty(a.shape + (3, 3), dtype=np.result_type(a, float))
+        want[..., 0, :] = np.stack(np.broadcast_arrays(cb * cd, -cb * sd, sb), axis=-1)
+        want[..., 1, :] = np.stack([ca * sd + sa * sb * cd, ca * cd - sa * sb * sd, -sa * cb], axis=-1)
+        want[..., 2, :] = np.stack([sa * sd - ca * sb * cd, sa * cd + ca * sb * sd, ca * cb], axis=-1)
+        assert same_bits(lt.rotation(a, b, d), want)
