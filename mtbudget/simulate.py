@@ -298,8 +298,17 @@ def simulate_block(scenario: Scenario, block: int, n: int, seed: int, active: li
     out = SimulatedBlock((meas, theta_true, choices))
     out.measurand_offset = None if offset is None else np.broadcast_to(offset, (n, len(scenario.plan), 3))
     out.ranges = ranges
-    out.pose_offset = np.broadcast_to(pert["pose"], (n, 6)) if "pose" in pert else None
+    out.pose_offset = _read_only(pert["pose"], (n, 6)) if "pose" in pert else None
     return out
+
+
+def _read_only(x: np.ndarray, shape: tuple) -> np.ndarray:
+    """``np.broadcast_to(x, shape)`` (a read-only view), without its nditer when ``x`` has that shape already."""
+    if x.shape != shape:
+        return np.broadcast_to(x, shape)
+    view = x.view()
+    view.flags.writeable = False
+    return view
 
 
 def measure_stations(scenario: Scenario, P_W: np.ndarray, pert: dict):
