@@ -664,8 +664,11 @@ def broadcast_shape(*shapes) -> tuple:
 def kernel_array(x) -> np.ndarray:
     """``np.require(x, np.float64, ["C", "W"])``: what a compiled kernel takes (one signature whatever the caller's
     arrays), without the call when ``x`` is such an array already."""
-    if type(x) is np.ndarray and x.dtype == _F64 and x.flags.c_contiguous and x.flags.writeable:
-        return x
+    if type(x) is np.ndarray and x.dtype == _F64:
+        if not x.flags.c_contiguous:
+            return np.ascontiguousarray(x)  # a new array (np.require's copy, without its Python)
+        if x.flags.writeable:
+            return x
     return np.require(x, np.float64, ["C", "W"])
 
 

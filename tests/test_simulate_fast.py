@@ -203,3 +203,17 @@ def test_rotation_is_eq22_element_by_element():
         want[..., 1, :] = np.stack([ca * sd + sa * sb * cd, ca * cd - sa * sb * sd, -sa * cb], axis=-1)
         want[..., 2, :] = np.stack([sa * sd - ca * sb * cd, sa * cd + ca * sb * sd, ca * cb], axis=-1)
         assert same_bits(lt.rotation(a, b, d), want)
+
+
+def test_kernel_array_is_np_require_c_w():
+    """machine.kernel_array: what np.require(x, float64, ["C", "W"]) gives (the same values, C-contiguous, writable,
+    float64; x itself exactly when np.require returns x itself)."""
+    p = np.random.default_rng(10).random((8, 6))
+    ro = p.copy()
+    ro.flags.writeable = False
+    for x in (p, p[:, :3], p.T, p[::2], np.broadcast_to(p[:1], (8, 6)), ro, p.astype(np.float32), [[1.0, 2.0]], 3.0):
+        got, want = machine.kernel_array(x), np.require(x, np.float64, ["C", "W"])
+        assert same_bits(got, want) and got.flags.c_contiguous and got.flags.writeable
+        assert (got is x) == (want is x)
+        if got is not x and isinstance(x, np.ndarray):
+            assert not np.shares_memory(got, x)
