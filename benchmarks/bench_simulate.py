@@ -1,7 +1,7 @@
 """The engine's simulation of a block (issue 31): CPU per trial, and how it scales on threads, against a revision.
 
 Run:  OPENBLAS_NUM_THREADS=1 python benchmarks/bench_simulate.py [--before REV] [--rounds 5] [--blocks 150]
-          [--what simulate,fixed,threads,parts] [--workers 2]
+          [--what simulate,fixed,in-run,threads,parts] [--workers 2] [--run-trials 8192]
 
 * ``simulate``: ``Engine.simulate`` of ``--blocks`` blocks of 64 trials of the built-in configuration (the paper's,
   all sources), CPU time per trial (``time.process_time``; the best of 3 passes in each round: the least disturbed
@@ -10,6 +10,9 @@ Run:  OPENBLAS_NUM_THREADS=1 python benchmarks/bench_simulate.py [--before REV] 
 * ``fixed``: the same with blocks of one trial, CPU per block: what a block costs whatever its size, nearly all of
   it Python holding the GIL (the sources' calls, the checks, the streams' seeding, the truth model's glue, the
   numpy calls on tiny arrays): the part of a block that two threads cannot run at once.
+* ``in-run``: ``Engine.simulate`` timed (CPU) inside ``runner.run(None, trials=--run-trials,
+  attribution_trials=0)`` (inline, the engine's chunks: the identification between the blocks takes the caches),
+  per trial, and the whole run's CPU per trial beside it (start-up excluded: a run of 1024 trials first).
 * ``threads``: the same blocks simulated on one thread, then on ``--workers`` threads (each its own engine, as the
   thread executor has), wall clock: the speed-up says how much of the simulation holds the GIL.  Only meaningful on
   an idle machine (the load average is printed with each round).
@@ -41,8 +44,28 @@ def load() -> str:
     return "load " + " ".join(f"{x:.2f}" for x in os.getloadavg())
 
 
-def worker(what: str, blocks: int, workers: int) -> dict:
+def worker(what: str, blocks: int, workers: int, run_trials: int = 8192) -> dict:
     """The measurement of one arm, in this interpreter (whichever mtbudget it imports)."""
+    if what == "in-run":
+        from mtbudget import engine, runner
+
+        spent = [0.0, 0]
+        simulate = engine.Engine.simulate
+
+        def timed(self, *a, **k):
+            c = time.process_time()
+            out = simulate(self, *a, **k)
+            spent[0] += time.process_time() - c
+            spent[1] += self.block
+            return out
+
+        engine.Engine.simulate = timed
+        runner.run(None, trials=1024, attribution_trials=0)
+        spent[:] = [0.0, 0]
+        c = time.process_time()
+        runner.run(None, trials=run_trials, attribution_trials=0)
+        total = time.process_time() - c
+        return {"simulate_us_per_trial": spent[0] / spent[1] * 1e6, "run_us_per_trial": total / run_trials * 1e6}
     from mtbudget.config import load_config
     from mtbudget.engine import Engine
     from mtbudget.executors import one_blas_thread
@@ -128,7 +151,8 @@ def arm(what: str, args, path: str | None) -> dict:
     if path:
         env["PYTHONPATH"] = path
     p = subprocess.run([sys.executable, __file__, "--worker", what, "--blocks", str(args.blocks), "--workers",
-                        str(args.workers)], capture_output=True, text=True, env=env, cwd=ROOT)
+                        str(args.workers), "--run-trials", str(args.run_trials)], capture_output=True, text=True,
+                       env=env, cwd=ROOT)
     if p.returncode != 0:
         raise SystemExit(f"arm {what} failed:\n{p.stderr[-2000:]}")
     return json.loads(p.stdout.strip().splitlines()[-1])
@@ -136,7 +160,8 @@ def arm(what: str, args, path: str | None) -> dict:
 
 def main():
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--what", default="simulate,fixed,threads,parts")
+    ap.add_argument("--what", default="simulate,fixed,in-run,threads,parts")
+    ap.add_argument("--run-trials", type=int, default=8192, help="trials of the in-run arm's run")
     ap.add_argument("--before", metavar="REV", help="also git revision REV, alternating with this tree")
     ap.add_argument("--rounds", type=int, default=5)
     ap.add_argument("--blocks", type=int, default=150, help="blocks of 64 trials per measurement")
@@ -144,7 +169,7 @@ def main():
     ap.add_argument("--worker", help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.worker:
-        print(json.dumps(worker(args.worker, args.blocks, args.workers)))
+        print(json.dumps(worker(args.worker, args.blocks, args.workers, args.run_trials)))
         return
     what = [w.strip() for w in args.what.split(",") if w.strip()]
     print(f"python {sys.version.split()[0]}, {os.cpu_count()} cores, {load()}; {args.blocks} blocks of 64 trials, "
@@ -186,6 +211,23 @@ def main():
             print(f"fixed: median this tree {statistics.median(ours):.1f} us per block"
                   + (f", {args.before} {statistics.median(theirs):.1f} us, median ratio "
                      f"{statistics.median(ratios):.2f}x" if before else ""), flush=True)
+        if "in-run" in what:
+            ratios, ours, theirs = [], [], []
+            for r in range(args.rounds):
+                a = arm("in-run", args, None)
+                ours.append(a["simulate_us_per_trial"])
+                line = (f"in-run round {r + 1} ({load()}): this tree simulate {a['simulate_us_per_trial']:.2f} us/trial "
+                        f"CPU (the run {a['run_us_per_trial']:.1f})")
+                if before:
+                    b = arm("in-run", args, before)
+                    theirs.append(b["simulate_us_per_trial"])
+                    ratios.append(b["simulate_us_per_trial"] / a["simulate_us_per_trial"])
+                    line += (f", {args.before} {b['simulate_us_per_trial']:.2f} (the run {b['run_us_per_trial']:.1f}): "
+                             f"{ratios[-1]:.2f}x faster")
+                print(line, flush=True)
+            print(f"in-run: median this tree {statistics.median(ours):.2f} us/trial"
+                  + (f", {args.before} {statistics.median(theirs):.2f}, median ratio {statistics.median(ratios):.2f}x"
+                     if before else ""), flush=True)
         if "threads" in what:
             ours, theirs = [], []
             for r in range(args.rounds):
