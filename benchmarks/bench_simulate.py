@@ -1,7 +1,7 @@
 """The engine's simulation of a block (issue 31): CPU per trial, and how it scales on threads, against a revision.
 
 Run:  OPENBLAS_NUM_THREADS=1 python benchmarks/bench_simulate.py [--before REV] [--rounds 5] [--blocks 150]
-          [--what simulate,fixed,in-run,threads,parts] [--workers 2] [--run-trials 8192]
+          [--what simulate,fixed,in-run,threads,parts,gil] [--workers 2] [--run-trials 8192]
 
 * ``simulate``: ``Engine.simulate`` of ``--blocks`` blocks of 64 trials of the built-in configuration (the paper's,
   all sources), CPU time per trial (``time.process_time``; the best of 3 passes in each round: the least disturbed
@@ -16,6 +16,10 @@ Run:  OPENBLAS_NUM_THREADS=1 python benchmarks/bench_simulate.py [--before REV] 
 * ``threads``: the same blocks simulated on one thread, then on ``--workers`` threads (each its own engine, as the
   thread executor has), wall clock: the speed-up says how much of the simulation holds the GIL.  Only meaningful on
   an idle machine (the load average is printed with each round).
+* ``gil`` (needs ``py-spy`` on the PATH): the blocks simulated under ``py-spy record`` twice, with and without
+  ``--gil`` (200 samples a second); the samples inside ``simulate_block`` that hold the GIL against all of them:
+  the share of the simulation two threads cannot run at once, measured on a busy machine as well as on an idle one
+  (it does not depend on the cores the other processes leave).
 * ``parts`` (this tree only): where a block's time goes: the streams, the sources (their draws and checks), the
   truth model (``from_targets``, ``truth_inputs``, ``predict``), per trial.
 
@@ -95,6 +99,10 @@ def worker(what: str, blocks: int, workers: int, run_trials: int = 8192) -> dict
                     engs[0].simulate(b)
                 best = min(best, time.process_time() - c)
             return {"cpu_us_per_trial": best / trials * 1e6}
+        if what == "plain":  # the gil arm's workload, sampled by py-spy from outside
+            for b in ids:
+                engs[0].simulate(b)
+            return {}
         if what == "threads":
             from concurrent.futures import ThreadPoolExecutor
 
@@ -158,9 +166,39 @@ def arm(what: str, args, path: str | None) -> dict:
     return json.loads(p.stdout.strip().splitlines()[-1])
 
 
+def gil_share(args, path: str | None) -> tuple[int, int]:
+    """(samples inside simulate_block holding the GIL, all samples inside it) of the ``plain`` workload under
+    py-spy."""
+    import shutil
+    import tempfile
+
+    spy = shutil.which("py-spy")
+    if spy is None:
+        raise SystemExit("the gil arm needs py-spy on the PATH (pip install py-spy)")
+    env = dict(os.environ, OPENBLAS_NUM_THREADS="1")
+    if path:
+        env["PYTHONPATH"] = path
+    counts = []
+    for flag in (["--gil"], []):
+        with tempfile.TemporaryDirectory() as tmp:
+            out = Path(tmp) / "raw.txt"
+            p = subprocess.run([spy, "record", *flag, "--rate", "200", "--format", "raw", "-o", str(out), "--",
+                                sys.executable, __file__, "--worker", "plain", "--blocks", str(args.blocks)],
+                               capture_output=True, text=True, env=env, cwd=ROOT)
+            if p.returncode != 0 or not out.exists():
+                raise SystemExit(f"py-spy failed:\n{p.stderr[-2000:]}")
+            n = 0
+            for line in out.read_text().splitlines():
+                stack, _, count = line.rpartition(" ")
+                if "simulate_block (" in stack:
+                    n += int(count)
+            counts.append(n)
+    return counts[0], counts[1]
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--what", default="simulate,fixed,in-run,threads,parts")
+    ap.add_argument("--what", default="simulate,fixed,in-run,threads,parts")  # gil: asked for by name
     ap.add_argument("--run-trials", type=int, default=8192, help="trials of the in-run arm's run")
     ap.add_argument("--before", metavar="REV", help="also git revision REV, alternating with this tree")
     ap.add_argument("--rounds", type=int, default=5)
@@ -243,6 +281,16 @@ def main():
                 print(line, flush=True)
             print(f"threads: median speed-up on {args.workers} threads, this tree {statistics.median(ours):.2f}x"
                   + (f", {args.before} {statistics.median(theirs):.2f}x" if before else ""), flush=True)
+        if "gil" in what:
+            for r in range(args.rounds):
+                g, a = gil_share(args, None)
+                line = (f"gil round {r + 1} ({load()}): this tree {g} of {a} samples in simulate_block hold the GIL "
+                        f"({100 * g / max(a, 1):.0f} %)")
+                if before:
+                    gb, ab = gil_share(args, before)
+                    line += (f"; {args.before} {gb} of {ab} ({100 * gb / max(ab, 1):.0f} %): for the same blocks "
+                             f"{gb / max(g, 1):.2f}x the samples holding the GIL")
+                print(line, flush=True)
         if "parts" in what:
             rows = [arm("parts", args, None) for _ in range(3)]
             parts = {k: min(r[k] for r in rows) for k in rows[0]}
