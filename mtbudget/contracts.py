@@ -337,6 +337,7 @@ def has_internal_sample(source: Source) -> bool:
 
 
 _FLOAT = np.dtype(float)
+_all = np.logical_and.reduce  # ndarray.all without its Python wrapper (numpy's _methods._all)
 
 
 def check_internal(source: Source, out: dict, n: int, shapes: dict) -> dict:
@@ -348,7 +349,7 @@ def check_internal(source: Source, out: dict, n: int, shapes: dict) -> dict:
         targets = source.targets
         for key, arr in out.items():
             if (key not in targets or type(arr) is not np.ndarray or arr.dtype != _FLOAT
-                    or arr.shape != (n,) + shapes[key] or not np.isfinite(arr).all()):
+                    or arr.shape != (n,) + shapes[key] or not _all(np.isfinite(arr), axis=None)):
                 break
         else:
             return out

@@ -479,7 +479,11 @@ class ChainInputs:
             p = p + np.asarray(off)
         sc = self.scale.get(axis)
         if sc is not None:
-            p = p * (1.0 + np.asarray(sc))
+            f = 1.0 + np.asarray(sc)
+            if f.dtype == p.dtype and broadcast_shape(p.shape, f.shape) == f.shape:
+                p = np.multiply(p, f, out=f)  # p * (1 + s) into the array of 1 + s: one (N, M) array fewer
+            else:
+                p = p * f
         return np.atleast_2d(p)
 
 
@@ -632,29 +636,56 @@ def kernel_chain(config, model, inputs, B, N: int) -> dict:
     M = inputs.nominal.shape[0]
     tool_axes, wp_axes, side = _kernel_axes(config)
     L, src, dst, _ = _kernel_layout(config, model, B)
-    where = _squareness_index(model)
-    sqi = np.array([where.get(s, -1) for s in SQUARENESS], np.int64)
+    sqi = _squareness_columns(model)
     pos = []
     for a in AXES:
         p = np.asarray(inputs.effective(a), float)
         if p.shape[0] not in (1, N) or p.shape[1] != M:
             p = np.broadcast_to(p, (N, M))
-        pos.append(np.require(p, np.float64, ["C", "W"]))
-    tool = np.require(np.broadcast_to(np.asarray(inputs.tool, float), (M, 3)), np.float64, ["C", "W"])
+        pos.append(kernel_array(p))
+    tool = np.asarray(inputs.tool, float)
+    tool = kernel_array(tool if tool.shape == (M, 3) else np.broadcast_to(tool, (M, 3)))  # read, never written
     rdir, pivot, rcos, rsin = _rotary_inputs(config, inputs, N, M)
     return {"tool_axes": tool_axes, "wp_axes": wp_axes, "side": side, "px": pos[0], "py": pos[1], "pz": pos[2],
-            "tool": tool, "L": L, "src": src.astype(np.int64), "dst": dst.astype(np.int64), "sqi": sqi, "rdir": rdir,
+            "tool": tool, "L": L, "src": src, "dst": dst, "sqi": sqi, "rdir": rdir,
             "pivot": pivot, "rcos": rcos, "rsin": rsin}
+
+
+def broadcast_shape(*shapes) -> tuple:
+    """``np.broadcast_shapes(*shapes)``, without its cost when the shapes are all the same (the common case of a
+    block's arrays)."""
+    first = shapes[0]
+    for s in shapes[1:]:
+        if s != first:
+            return np.broadcast_shapes(*shapes)
+    return tuple(first)
+
+
+def kernel_array(x) -> np.ndarray:
+    """``np.require(x, np.float64, ["C", "W"])``: what a compiled kernel takes (one signature whatever the caller's
+    arrays), without the call when ``x`` is such an array already."""
+    if type(x) is np.ndarray and x.dtype == _F64:
+        if not x.flags.c_contiguous:
+            return np.ascontiguousarray(x)  # a new array (np.require's copy, without its Python)
+        if x.flags.writeable:
+            return x
+    return np.require(x, np.float64, ["C", "W"])
+
+
+_F64 = np.dtype(np.float64)
 
 
 def _rotary_inputs(config, inputs, N, M):
     """Each rotary axis' direction component (R,), pivot (R, 3), and the cosine and sine (R, 1 or N, M) of the angle
     it turns by: its effective angle times the sense of its direction."""
     R = len(config.rotary)
+    if not R:  # nothing that changes: remembered per number of points
+        hit = _NO_ROTARY.get(M)
+        if hit is None:
+            hit = _NO_ROTARY[M] = (np.empty(0, np.int64), np.empty((0, 3)), np.empty((0, 1, M)), np.empty((0, 1, M)))
+        return hit
     rdir = np.array([r.index for r in config.rotary], np.int64)
     pivot = np.array([r.pivot for r in config.rotary], float).reshape(R, 3)
-    if not R:
-        return rdir, pivot, np.empty((0, 1, M)), np.empty((0, 1, M))
     th = [np.asarray(inputs.effective(r.letter), float) for r in config.rotary]
     n = max(t.shape[0] for t in th)
     th = np.stack([np.broadcast_to(t, (n, M)) for t in th])
@@ -662,12 +693,31 @@ def _rotary_inputs(config, inputs, N, M):
     return rdir, pivot, np.ascontiguousarray(np.cos(th)), np.ascontiguousarray(sign * np.sin(th))
 
 
+_NO_ROTARY: dict = {}  # number of points -> _rotary_inputs of a machine without rotary axes (empty arrays)
+
+
 def _kernel_axes(config: Configuration):
-    """(tool-side axes innermost first, workpiece-side axes in order, side of each axis) as arrays."""
-    slot = _slots(config)
-    return (np.array([slot[a] for a in reversed(config.tool)], np.int64),
-            np.array([slot[a] for a in config.workpiece], np.int64),
-            np.array([float(config.side(a)) for a in AXES + config.rotary_letters]))
+    """(tool-side axes innermost first, workpiece-side axes in order, side of each axis) as arrays; remembered on the
+    (frozen) configuration."""
+    hit = config.__dict__.get("_kernel_axes")
+    if hit is None:
+        slot = _slots(config)
+        hit = (np.array([slot[a] for a in reversed(config.tool)], np.int64),
+               np.array([slot[a] for a in config.workpiece], np.int64),
+               np.array([float(config.side(a)) for a in AXES + config.rotary_letters]))
+        object.__setattr__(config, "_kernel_axes", hit)
+    return hit
+
+
+def _squareness_columns(model: ErrorModel) -> np.ndarray:
+    """The squareness parameters' indices (sxy, sxz, syz; -1 where not modelled) as int64, cached with the parameter
+    list."""
+    cached = model.__dict__.get("_sq_columns")
+    if cached is None or cached[0] is not model.params:
+        where = _squareness_index(model)
+        cached = (model.params, np.array([where.get(s, -1) for s in SQUARENESS], np.int64))
+        model.__dict__["_sq_columns"] = cached
+    return cached[1]
 
 
 def _kernel_layout(config: Configuration, model: ErrorModel, B: np.ndarray):
@@ -697,7 +747,7 @@ def _build_kernel_layout(model: ErrorModel, B: np.ndarray, letters: tuple = ()):
             kind, comp = kc[slot_ // Ka]
             src.append(int(j))
             dst.append((a * 6 + 3 * kind + comp) * K + slot_ % Ka)
-    return L, np.array(src, np.intp), np.array(dst, np.intp), K
+    return L, np.array(src, np.int64), np.array(dst, np.int64), K
 
 
 def _per_basis(model: ErrorModel, name: str, B: np.ndarray, build, extra=None):
@@ -705,11 +755,15 @@ def _per_basis(model: ErrorModel, name: str, B: np.ndarray, build, extra=None):
     bases kept: the identification's plan, the mesh, a tool)."""
     cache = model.__dict__.setdefault(name, {})
     key = (id(model.params), B.shape, B.tobytes(), extra)
+    last = cache.get(None)  # the last basis asked: its bytes compared, not hashed (30 KB of the paper's plan: 6 us)
+    if last is not None and last[0] == key:
+        return last[1]
     hit = cache.get(key)
     if hit is None:
         if len(cache) > 8:
             cache.clear()
         hit = cache[key] = build()
+    cache[None] = (key, hit)
     return hit
 
 

@@ -15,8 +15,8 @@ import numpy as np
 
 from . import tracker as lt
 from .errors import ConfigError
-from .machine import (AXES, AXIS_INDEX, ROTARY, ROTARY_INDEX, ChainInputs, Configuration, ErrorModel, chain,
-                      is_rotary, parse_error_name)
+from .machine import (AXES, AXIS_INDEX, ROTARY, ROTARY_INDEX, ChainInputs, Configuration, ErrorModel, broadcast_shape,
+                      chain, is_rotary, parse_error_name)
 from .plan import Plan, Scale
 
 # ----------------------------------------------------------------------------- ISO 230-1 names (the one map)
@@ -160,7 +160,7 @@ class MeasurementModel:
             if jacobian:
                 out = (out[0] + pert["point_offset"], out[1])
             else:
-                out = out + pert["point_offset"]
+                out = _plus(out, pert["point_offset"])
         return out
 
     def chain_inputs(self, perturbations: dict | None = None) -> ChainInputs:
@@ -182,13 +182,23 @@ class MeasurementModel:
             pose = pose + pert["pose"]
         P = lt.read(self.machine_points(theta, pert, exact=exact), pose, pert.get("spherical_noise"))
         if "tracker_offset" in pert:
-            P = P + pert["tracker_offset"]
+            P = _plus(P, pert["tracker_offset"])
         return P
 
     def covariance(self, P_LT, angular, distance, distance_per_length, repeatability) -> np.ndarray:
         """Per-point covariance (…, M, 3, 3) in the tracker frame: tracker noise + machine repeatability."""
         C = lt.covariance(P_LT, angular, distance, distance_per_length)
         return C + (np.asarray(repeatability) ** 2)[..., None, None] * np.eye(3)
+
+
+def _plus(a: np.ndarray, b) -> np.ndarray:
+    """``a + b`` for an array ``a`` the caller made and no one else holds: added in place when the sum has its shape
+    and type (the same numbers, no new array), else a new one."""
+    b = np.asarray(b)
+    if a.dtype == np.float64 and b.dtype == np.float64 and a.flags.writeable and broadcast_shape(a.shape, b.shape) == a.shape:
+        a += b
+        return a
+    return a + b
 
 
 def thermal_scale(plan: Plan, cte: dict, reference: float, fixed_point: dict | None = None) -> dict:
@@ -226,9 +236,13 @@ def from_targets(arrays: dict) -> dict:
     """Model perturbations from source targets (internal float arrays keyed as in ``sources.TARGETS``).
 
     Sums what several sources contribute to one input; joins the split keys
-    (geometry, pose, spherical noise) into the model's own.
+    (geometry, pose, spherical noise) into the model's own: each part in its
+    columns and zeros elsewhere, the two parts' sum where both are given
+    (``x + 0.0`` in each column, written in place of two padded arrays and
+    their sum: the same numbers).
     """
     out: dict = {}
+    joined: dict = {}  # pose, spherical_noise -> [(columns, array)], filled in below at the place of its first part
 
     def add(k, v):
         out[k] = out[k] + v if k in out else v
@@ -236,19 +250,34 @@ def from_targets(arrays: dict) -> dict:
     for key, v in arrays.items():
         if key in ("geometry.translational", "geometry.angular"):
             add("geometry", v)
-        elif key == "pose.position":
-            add("pose", np.concatenate([v, np.zeros_like(v)], axis=-1))
-        elif key == "pose.orientation":
-            add("pose", np.concatenate([np.zeros_like(v), v], axis=-1))
-        elif key == "spherical_noise.range":
-            add("spherical_noise", np.concatenate([v[..., None], np.zeros(v.shape + (2,))], axis=-1))
-        elif key == "spherical_noise.angles":
-            add("spherical_noise", np.concatenate([np.zeros(v.shape[:-1] + (1,)), v], axis=-1))
+        elif key in _JOINED:
+            k, cols = _JOINED[key]
+            if k not in joined:
+                out[k] = None  # its place among the inputs
+                joined[k] = []
+            joined[k].append((cols, v))
         elif key == "strategy":
             continue
         else:
             add(key, v)
+    for k, parts in joined.items():
+        cols, v = parts[0]
+        shape = (v.shape if isinstance(cols, int) else v.shape[:-1]) + (_JOINED_WIDTH[k],)
+        if len(parts) == 1:  # the part in its columns, zeros in the others
+            arr = np.zeros(shape)
+            arr[..., cols] = v
+        else:  # both parts: each plus the other's zeros
+            arr = np.empty(shape)
+            for cols, v in parts:
+                np.add(v, 0.0, out=arr[..., cols])
+        out[k] = arr
     return out
+
+
+#: a split target -> (the model input it joins, its columns there: an index for a part without a last axis)
+_JOINED = {"pose.position": ("pose", slice(0, 3)), "pose.orientation": ("pose", slice(3, 6)),
+           "spherical_noise.range": ("spherical_noise", 0), "spherical_noise.angles": ("spherical_noise", slice(1, 3))}
+_JOINED_WIDTH = {"pose": 6, "spherical_noise": 3}
 
 
 def merge(*perts: dict) -> dict:

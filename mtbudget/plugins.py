@@ -564,6 +564,16 @@ def call(obj, method: str, *args, **kwargs):
                f"hook {_hook_of(obj) or '?'}: {result}, {ms:.3f} ms")
 
 
+def caller():
+    """:func:`call` with ``MTBUDGET_TRACE_PLUGINS`` read once, for a run of calls (a block's sources): the environment
+    is read when this is asked, not at each call."""
+    return call if tracing() else _untraced
+
+
+def _untraced(obj, method: str, *args, **kwargs):
+    return _call(obj, method, args, kwargs)
+
+
 def _call(obj, method: str, args, kwargs):
     try:
         out = getattr(obj, method)(*args, **kwargs)

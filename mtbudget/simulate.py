@@ -24,7 +24,7 @@ from .errors import PluginError
 from .machine import COMPONENT_ERRORS
 from .model import iso_parameter, parameter_from_iso
 from .model import from_targets
-from .plugins import call
+from .plugins import call, caller
 from .recording import Recording
 from .scenario import Scenario, target_shapes
 from .units import display
@@ -33,26 +33,199 @@ from .units import display
 def stream(seed: int, block: int, source: Source) -> np.random.Generator:
     """The random stream of ``source`` in ``block`` of a run seeded ``seed``:
     ``default_rng(SeedSequence(seed, spawn_key=(block, crc32(source.name))))``."""
+    return streams(seed, block, (source,))[0]
+
+
+def streams(seed: int, block: int, sources) -> list:
+    """:func:`stream` of each of ``sources`` in ``block``: the same generators, state for state, at a tenth of the
+    cost of a ``SeedSequence`` each.
+
+    numpy's ``SeedSequence(seed, spawn_key=(block, crc))`` hashes its entropy words (the seed's, padded to the pool
+    of four, then the block's, then the crc's) into a pool of four words, and ``PCG64`` seeds itself with the eight
+    words ``generate_state(4, uint64)`` makes of it (numpy/random/bit_generator.pyx, after O'Neill's seed_seq).
+    Everything before the crc's word is the same for every source of a block (the seed's part remembered per seed,
+    the block's word mixed in per block, in Python integers); the crc's word and ``generate_state`` are then a few
+    uint32 operations on all the block's sources at once.  ``PCG64`` takes the words from a :class:`_Seeded` seed
+    sequence, which is the numpy one in every other use (``spawn``, ``entropy``, other ``generate_state``
+    requests).  The states are checked against numpy's own in tests/test_sampling_speed_streams.py; numpy
+    guarantees both algorithms' stream compatibility."""
+    seed, block = int(seed), int(block)
+    if seed < 0 or block < 0:  # numpy's own error
+        return [np.random.default_rng(np.random.SeedSequence(seed, spawn_key=(block, _crc(s)))) for s in sources]
+    pool, h = _prefix(seed, block)
+    crcs, y = _crc_words(sources, h)
+    p = pool - y  # mix: MIX_L * pool (pool holds it) - MIX_R * hashmix(crc), modulo 2^32
+    p ^= p >> _XSHIFT
+    w = p[:, _CYCLE]
+    w ^= _STATE_HASH[:8]
+    w *= _STATE_HASH[1:]
+    w ^= w >> _XSHIFT
+    words = w.astype("<u4", order="C").view("<u8").astype(np.uint64)  # generate_state's: little-endian pairs, native order
+    Generator, PCG64 = np.random.Generator, np.random.PCG64
+    return [Generator(PCG64(_Seeded(words[i], seed, block, c))) for i, c in enumerate(crcs)]
+
+
+def _crc_words(sources, h: int) -> tuple:
+    """(the sources' crc32s, ``MIX_R * hashmix(crc)`` for each crc and pool word (uint32 (S, 4))), the hash constants
+    running on from ``h``: the same for every block whose number is one word (remembered per sources and ``h``)."""
+    key = (tuple(s.name for s in sources), h)
+    hit = _CRC_WORDS.get(key)
+    if hit is None:
+        crcs = [_crc(s) for s in sources]
+        hc = _hash_constants(h, _MULT_A, 4)
+        y = np.array(crcs, np.uint32)[:, None] ^ hc[:4]
+        y *= hc[1:]
+        y ^= y >> _XSHIFT
+        y *= _MIX_R
+        if len(_CRC_WORDS) > 64:
+            _CRC_WORDS.clear()
+        hit = _CRC_WORDS[key] = (crcs, y)
+    return hit
+
+
+_CRC_WORDS: dict = {}
+
+
+def _crc(source) -> int:
     crc = _CRC.get(source.name)
     if crc is None:
         crc = _CRC[source.name] = zlib.crc32(source.name.encode())
-    return np.random.default_rng(np.random.SeedSequence(int(seed), spawn_key=(int(block), crc)))
+    return crc
 
 
 _CRC: dict = {}  # source name -> crc32 of its name
 
+# numpy's SeedSequence (numpy/random/bit_generator.pyx): the hash constants, the pool of four uint32 words
+_INIT_A, _MULT_A, _INIT_B, _MULT_B = 0x43B0D7E5, 0x931E8875, 0x8B51F9DD, 0x58F38DED
+_MIX_L, _MIX_R, _XSHIFT, _M32 = 0xCA01F9DD, 0x4973F715, 16, 0xFFFFFFFF
+_CYCLE = np.array([0, 1, 2, 3, 0, 1, 2, 3])  # generate_state cycles through the pool
+
+
+def _hash_constants(h: int, mult: int, k: int) -> np.ndarray:
+    """h, h * mult, h * mult^2 ... (k + 1 values, uint32): the successive hash constants from ``h``."""
+    out = [h]
+    for _ in range(k):
+        out.append(out[-1] * mult & _M32)
+    return np.array(out, np.uint32)
+
+
+_STATE_HASH = _hash_constants(_INIT_B, _MULT_B, 8)  # generate_state's, the same for every seed sequence
+
+
+def _words(n: int) -> list:
+    """An integer as uint32 words, lowest first (numpy's ``_int_to_uint32_array``: 0 is one word)."""
+    out = [n & _M32]
+    n >>= 32
+    while n:
+        out.append(n & _M32)
+        n >>= 32
+    return out
+
+
+def _hashmix(v: int, h: int) -> tuple:
+    """numpy's ``hashmix`` of ``v`` with the hash constant ``h``: (the hashed value, the next constant)."""
+    v ^= h
+    h = h * _MULT_A & _M32
+    v = v * h & _M32
+    return v ^ (v >> _XSHIFT), h
+
+
+def _mix(x: int, y: int) -> int:
+    r = (_MIX_L * x - _MIX_R * y) & _M32
+    return r ^ (r >> _XSHIFT)
+
+
+def _prefix(seed: int, block: int):
+    """The pool after every entropy word but the crc's, as ``MIX_L * pool`` (uint32 (4,)), and the hash constant the
+    crc's ``hashmix`` start from.  The seed's part (its words padded to the pool, mixed together) is
+    remembered per seed; the block's words are mixed into it here."""
+    hit = _PREFIX.get(seed)
+    if hit is None:
+        run = _words(seed)
+        entropy = run + [0] * (4 - len(run))  # a spawn key pads the seed's words to the pool
+        h = _INIT_A
+        pool = []
+        for v in entropy[:4]:
+            v, h = _hashmix(v, h)
+            pool.append(v)
+        for i in range(4):
+            for j in range(4):
+                if i != j:
+                    v, h = _hashmix(pool[i], h)
+                    pool[j] = _mix(pool[j], v)
+        for w in entropy[4:]:  # a seed of more than four words
+            for j in range(4):
+                v, h = _hashmix(w, h)
+                pool[j] = _mix(pool[j], v)
+        hit = (pool, h)
+        if len(_PREFIX) > 64:
+            _PREFIX.clear()
+        _PREFIX[seed] = hit
+    pool, h = list(hit[0]), hit[1]
+    for w in _words(block):
+        for j in range(4):
+            v, h = _hashmix(w, h)
+            pool[j] = _mix(pool[j], v)
+    return np.array([_MIX_L * v & _M32 for v in pool], np.uint32), h
+
+
+_PREFIX: dict = {}
+
+
+class _Seeded(np.random.bit_generator.ISpawnableSeedSequence):
+    """``SeedSequence(seed, spawn_key=(block, crc))`` whose ``generate_state(4, uint64)``, which ``PCG64`` asks once
+    when it seeds itself, is already known (:func:`streams`); anything else is asked of the numpy seed sequence,
+    made on first need, so ``spawn``, ``entropy``, ``spawn_key`` and the rest are numpy's."""
+
+    __slots__ = ("_words", "_key", "_real")
+
+    def __init__(self, words, seed, block, crc):
+        self._words, self._key, self._real = words, (seed, block, crc), None
+
+    def real(self) -> np.random.SeedSequence:
+        if self._real is None:
+            seed, block, crc = self._key
+            self._real = np.random.SeedSequence(seed, spawn_key=(block, crc))
+        return self._real
+
+    def generate_state(self, n_words, dtype=np.uint32):
+        words = self._words
+        if words is not None and dtype is np.uint64 and n_words == 4:  # PCG64 seeding itself: once
+            self._words = None
+            return words
+        return self.real().generate_state(n_words, dtype)
+
+    def spawn(self, n_children):
+        return self.real().spawn(n_children)
+
+    def __getattr__(self, name):  # entropy, spawn_key, pool_size, n_children_spawned, state
+        if name.startswith("__") or name in _Seeded.__slots__:
+            raise AttributeError(name)
+        return getattr(self.real(), name)
+
+    def __reduce__(self):
+        return _identity, (self.real(),)
+
+    def __repr__(self):
+        return repr(self.real())
+
+
+def _identity(x):
+    return x
+
 
 def sample_source(scenario: Scenario, src: Source, n: int, rng: np.random.Generator, shapes: dict | None = None,
-                  options: dict | None = None) -> dict:
+                  options: dict | None = None, invoke=call) -> dict:
     """``n`` trials of one source as internal float arrays, checked (keys, shapes, units, NaN, strategy indices).
 
     A source with ``sample_internal`` (the built-ins) gives float arrays in the internal units: no pint per block.
-    options: a cache of each strategy source's options (source name -> list), filled on first use."""
+    options: a cache of each strategy source's options (source name -> list), filled on first use.
+    invoke: :func:`mtbudget.plugins.call` or what :func:`mtbudget.plugins.caller` gave for a run of calls."""
     shapes = shapes or target_shapes(scenario)
     if has_internal_sample(src):
-        arrays = check_internal(src, call(src, "sample_internal", n, rng, scenario.context), n, shapes)
+        arrays = check_internal(src, invoke(src, "sample_internal", n, rng, scenario.context), n, shapes)
     else:
-        raw = call(src, "sample", n, rng, scenario.context)
+        raw = invoke(src, "sample", n, rng, scenario.context)
         arrays = _as_internal(src, raw, n, shapes)
         if arrays is None:
             arrays = check_sample(src, raw, n, shapes)
@@ -63,7 +236,7 @@ def sample_source(scenario: Scenario, src: Source, n: int, rng: np.random.Genera
                 options[src.name] = opts
         k = len(options[src.name] if options is not None else opts)
         s = arrays["strategy"]
-        if s.size and not (s.min() >= 0 and s.max() < k and (s == np.floor(s)).all()):
+        if s.size and not (np.minimum.reduce(s) >= 0 and np.maximum.reduce(s) < k and (s == np.floor(s)).all()):
             raise PluginError(f"'strategy' must hold option indices 0..{k - 1}", src.plugin, src.name,
                               "mtbudget_register_sources", "sample")
     return arrays
@@ -99,8 +272,9 @@ def simulate_block(scenario: Scenario, block: int, n: int, seed: int, active: li
     targets: dict = {}
     summed = set()  # targets whose array is a sum made here (added to in place; a source's own array never is)
     choices = []
-    for src in active:
-        arr = sample_source(scenario, src, n, stream(seed, block, src), shapes, options)
+    invoke = caller()
+    for src, rng in zip(active, streams(seed, block, active)):
+        arr = sample_source(scenario, src, n, rng, shapes, options, invoke)
         for k, v in arr.items():
             if k == "strategy":
                 choices.append((src, v.astype(int)))
@@ -115,7 +289,8 @@ def simulate_block(scenario: Scenario, block: int, n: int, seed: int, active: li
     pert = scenario.truth_inputs(from_targets(targets))  # [scales]: the nominal expansion, about each fixed point
     truth = scenario.truth
     theta_true = scenario.theta[None, :] + pert.pop("geometry", 0.0)
-    theta_true = np.broadcast_to(theta_true, (n, truth.n_params))
+    if theta_true.shape != (n, truth.n_params):
+        theta_true = np.broadcast_to(theta_true, (n, truth.n_params))
     if scenario.stations:
         meas, ranges = measure_stations(scenario, truth.machine_points(theta_true, pert), pert)
     else:
@@ -123,8 +298,17 @@ def simulate_block(scenario: Scenario, block: int, n: int, seed: int, active: li
     out = SimulatedBlock((meas, theta_true, choices))
     out.measurand_offset = None if offset is None else np.broadcast_to(offset, (n, len(scenario.plan), 3))
     out.ranges = ranges
-    out.pose_offset = np.broadcast_to(pert["pose"], (n, 6)) if "pose" in pert else None
+    out.pose_offset = _read_only(pert["pose"], (n, 6)) if "pose" in pert else None
     return out
+
+
+def _read_only(x: np.ndarray, shape: tuple) -> np.ndarray:
+    """``np.broadcast_to(x, shape)`` (a read-only view), without its nditer when ``x`` has that shape already."""
+    if x.shape != shape:
+        return np.broadcast_to(x, shape)
+    view = x.view()
+    view.flags.writeable = False
+    return view
 
 
 def measure_stations(scenario: Scenario, P_W: np.ndarray, pert: dict):

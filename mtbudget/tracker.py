@@ -23,24 +23,30 @@ from __future__ import annotations
 
 import numpy as np
 
+from .machine import broadcast_shape, kernel_array
+
 POSE_NAMES = ("D", "L", "H", "a", "b", "d")
 POSE_UNITS = ("mm", "mm", "mm", "rad", "rad", "rad")
 
 
 def rotation(a, b, d) -> np.ndarray:
     """Eq. 22 rotation matrix, vectorised over the shapes of a, b, d: (..., 3, 3)."""
-    a, b, d = np.broadcast_arrays(np.asarray(a), np.asarray(b), np.asarray(d))
+    a, b, d = np.asarray(a), np.asarray(b), np.asarray(d)
+    if not a.shape == b.shape == d.shape:
+        a, b, d = np.broadcast_arrays(a, b, d)
     ca, sa, cb, sb, cd, sd = np.cos(a), np.sin(a), np.cos(b), np.sin(b), np.cos(d), np.sin(d)
     R = np.empty(a.shape + (3, 3), dtype=np.result_type(a, float))
-    R[..., 0, 0] = cb * cd
-    R[..., 0, 1] = -cb * sd
+    # each element's expression written into its place (no temporary and copy): cb cd, -cb sd, sb, ...
+    sasb, casb = sa * sb, ca * sb
+    np.multiply(cb, cd, out=R[..., 0, 0])
+    np.multiply(-cb, sd, out=R[..., 0, 1])
     R[..., 0, 2] = sb
-    R[..., 1, 0] = ca * sd + sa * sb * cd
-    R[..., 1, 1] = ca * cd - sa * sb * sd
-    R[..., 1, 2] = -sa * cb
-    R[..., 2, 0] = sa * sd - ca * sb * cd
-    R[..., 2, 1] = sa * cd + ca * sb * sd
-    R[..., 2, 2] = ca * cb
+    np.add(ca * sd, sasb * cd, out=R[..., 1, 0])
+    np.subtract(ca * cd, sasb * sd, out=R[..., 1, 1])
+    np.multiply(-sa, cb, out=R[..., 1, 2])
+    np.subtract(sa * sd, casb * cd, out=R[..., 2, 0])
+    np.add(sa * cd, casb * sd, out=R[..., 2, 1])
+    np.multiply(ca, cb, out=R[..., 2, 2])
     return R
 
 
@@ -200,15 +206,21 @@ def read(P_W: np.ndarray, pose: np.ndarray, noise: np.ndarray | None = None) -> 
     P_W = np.asarray(P_W, float)
     # the trials of the points, the pose and the noise broadcast together (to_tracker and add_spherical_noise's rule;
     # shapes that do not broadcast raise ValueError, as there)
-    n = np.broadcast_shapes(P_W.shape[:1], pose.shape[:1], () if noise is None else np.shape(noise)[:1])
+    n = broadcast_shape(P_W.shape[:1], pose.shape[:1], P_W.shape[:1] if noise is None else np.shape(noise)[:1])
     shape = n + P_W.shape[1:]
-    P_W = np.broadcast_to(P_W, shape)
+    P_W = _broadcast(P_W, shape)
     if noise is not None:
-        noise = np.broadcast_to(noise, shape)
-    pose = np.broadcast_to(pose, n + (6,))
-    req = lambda x: np.require(x, np.float64, ["C", "W"])  # noqa: E731
-    return tracker_points(req(P_W), req(rotation(pose[:, 3], pose[:, 4], pose[:, 5])), req(pose[:, :3]),
-                          req(noise) if noise is not None else np.zeros((0,) + P_W.shape[1:]), np.empty(P_W.shape))
+        noise = _broadcast(noise, shape)
+    pose = _broadcast(pose, n + (6,))
+    return tracker_points(kernel_array(P_W), kernel_array(rotation(pose[:, 3], pose[:, 4], pose[:, 5])),
+                          kernel_array(pose[:, :3]),
+                          kernel_array(noise) if noise is not None else np.zeros((0,) + P_W.shape[1:]), np.empty(P_W.shape))
+
+
+def _broadcast(x, shape: tuple):
+    """``np.broadcast_to(x, shape)``, or ``x`` itself when it has that shape already (a read-only view of it would be
+    copied for the kernel)."""
+    return x if np.shape(x) == shape else np.broadcast_to(x, shape)
 
 
 def add_spherical_noise(P_LT: np.ndarray, noise: np.ndarray) -> np.ndarray:

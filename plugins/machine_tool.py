@@ -113,16 +113,19 @@ class CTEUncertainty(Source):
     def _prepare(self, ctx):
         cte = _axis_ctes(self, ctx)
         T = _axis_temperatures(ctx)
-        w = np.array([self.width(cte[a]) for a in AXES], float)[:, None, None]
+        w = np.array([self.width(cte[a]) for a in AXES], float)
         dT = np.stack([T[a] - ctx.reference_temperature for a in AXES])[:, None, :]
-        return -w / 2, w / 2, dT
+        return [(float(lo), float(hi)) for lo, hi in zip(-w / 2, w / 2)], dT
 
     def sample_internal(self, n, rng, ctx):
         # the true CTE is the nominal one plus dalpha: against the correction made with the nominal CTE the scale is
         # off by dalpha (T_axis - T_ref), about the fixed point of a stated scale
-        low, high, dT = self.remembered(_key(self, ctx), lambda: self._prepare(ctx))
+        bounds, dT = self.remembered(_key(self, ctx), lambda: self._prepare(ctx))
+        dalpha = np.empty((3, n, 1))
+        for i, (low, high) in enumerate(bounds):  # three (n, 1) draws in turn, each with NumPy's scalar bounds
+            dalpha[i] = rng.uniform(low, high, (n, 1))
         out = np.empty((3, n, ctx.n_points))
-        np.multiply(rng.uniform(low, high, (3, n, 1)), dT, out=out)  # the numbers of three (n, 1) draws in turn
+        np.multiply(dalpha, dT, out=out)
         return {"axis_scale.x": out[0], "axis_scale.y": out[1], "axis_scale.z": out[2]}
 
 
@@ -204,13 +207,18 @@ class Backlash(Source):
         return (self.parameters["B_max"] / math.sqrt(12)).to("um")
 
     def _prepare(self, ctx):
-        return self.value("B_max", "mm"), -np.ascontiguousarray(ctx.plan.direction.T)[:, None, :]
+        minus_direction = -np.ascontiguousarray(ctx.plan.direction.T)[:, None, :]
+        # (-d * B) / 2 is (-d / 2) * B, bit for bit, when d is +-1 or +-0 (-d * B is exact, and / 2 and * 0.5 round
+        # the same value): one pass fewer; any other direction keeps the division
+        halved = bool(np.isin(np.abs(minus_direction), (0.0, 1.0)).all())
+        return self.value("B_max", "mm"), (minus_direction / 2 if halved else minus_direction), halved
 
     def sample_internal(self, n, rng, ctx):
-        bmax, minus_direction = self.remembered(_key(self, ctx), lambda: self._prepare(ctx))
+        bmax, minus_direction, halved = self.remembered(_key(self, ctx), lambda: self._prepare(ctx))
         out = np.empty((3, n, ctx.n_points))
         np.multiply(minus_direction, rng.uniform(0, bmax, (3, n, 1)), out=out)  # three (n, 1) draws in turn
-        out /= 2
+        if not halved:
+            out /= 2
         return {"axis_offset.x": out[0], "axis_offset.y": out[1], "axis_offset.z": out[2]}
 
 

@@ -79,14 +79,13 @@ class SMRCentring(Source):
 
     def sample_internal(self, n, rng, ctx):
         u = self.value("u_SMR", "mm")
-        if u > 0.0:  # rng.normal(0.0, u, (n, M, 2)) bit for bit (see normal0), each column scaled as it is taken out
-            z = rng.standard_normal((n, ctx.n_points, 2))
-            a, b = np.multiply(z[..., 0], u), np.multiply(z[..., 1], u)
-            a += 0.0
-            b += 0.0
+        if u > 0.0:  # rng.normal(0.0, u, (n, M, 2)) bit for bit (see normal0)
+            lateral = rng.standard_normal((n, ctx.n_points, 2))
+            lateral *= u
+            lateral += 0.0
         else:
             lateral = rng.normal(0.0, u, (n, ctx.n_points, 2))
-            a, b = np.ascontiguousarray(lateral[..., 0]), np.ascontiguousarray(lateral[..., 1])
+        a, b = lateral[..., 0], lateral[..., 1]
         # the beam's azimuth and elevation directions at the nominal points (the same in every trial): once
         pts = ctx.nominal_tracker_points
         hit = self.__dict__.get("_directions")

@@ -45,6 +45,40 @@ def test_stream_is_numpy_seedsequence_state():
         assert got.bit_generator.state == ref.bit_generator.state, (seed, block, name)
 
 
+def test_streams_of_a_block_are_numpy_seedsequences():
+    """simulate.streams hashes the block's sources together (its own code for numpy's SeedSequence): every generator
+    must have numpy's state and draw numpy's numbers, for seeds and blocks of one word, several words, word limits."""
+    rs = np.random.default_rng(12)
+    cases = [(0, 0), (1, 0), (0, 1), (2**32 - 1, 2**32 - 1), (2**32, 2**32), (2**64 + 5, 17), (2**128 - 1, 3),
+             (2**128, 3), (2**200 + 3, 2**40 + 1)] + [(int(rs.integers(0, 2**63)), int(rs.integers(0, 10**6)))
+                                                       for _ in range(40)]
+    sources = [_Named(n) for n in ("", "repeatability", "tracker_noise", "a" * 300, "unidentified_at_tool")]
+    for seed, block in cases:
+        for src, got in zip(sources, simulate.streams(seed, block, sources)):
+            ref = _reference_rng(seed, block, src.name)
+            assert got.bit_generator.state == ref.bit_generator.state, (seed, block, src.name)
+    got, ref = simulate.stream(3, 5, sources[1]), _reference_rng(3, 5, "repeatability")
+    assert np.array_equal(got.standard_normal(1000), ref.standard_normal(1000))
+    with pytest.raises(ValueError):  # numpy's refusal of a negative seed, as before
+        simulate.stream(-1, 0, sources[0])
+
+
+def test_a_stream_seed_sequence_is_numpys_in_every_other_use():
+    """What a plugin may ask of its generator beyond drawing: spawn, the seed sequence's entropy, spawn key and other
+    states, a copy (pickle): the same as numpy's SeedSequence-seeded generator."""
+    import pickle
+
+    got, ref = simulate.stream(11, 2, _Named("smr_centring")), _reference_rng(11, 2, "smr_centring")
+    ss, rs = got.bit_generator.seed_seq, ref.bit_generator.seed_seq
+    assert (ss.entropy, ss.spawn_key, ss.pool_size) == (rs.entropy, rs.spawn_key, rs.pool_size)
+    assert np.array_equal(ss.generate_state(4, np.uint64), rs.generate_state(4, np.uint64))
+    assert np.array_equal(ss.generate_state(7), rs.generate_state(7))
+    assert [c.random() for c in got.spawn(3)] == [c.random() for c in ref.spawn(3)]
+    assert ss.n_children_spawned == rs.n_children_spawned == 3
+    copy = pickle.loads(pickle.dumps(got))
+    assert copy.random() == got.random() == ref.random()
+
+
 # ----------------------------------------------------------------------------- the sources as they were
 def _axis_ctes(src, ctx):
     scales = getattr(ctx.plan, "scales", None) or {}
