@@ -665,7 +665,9 @@ def identify(
                 _rows(fixed, sl, N), phases)
         parts.append(_identify_chunk_chord(*args, cache, iteration_pose=iteration_pose) if chord
                      else _identify_chunk(*args))
-    cat = lambda key: np.concatenate([q[key] for q in parts], axis=0)  # noqa: E731
+    # one part (the engine's call: its labels are one chunk): its arrays as they are, no copy
+    cat = (lambda key: parts[0][key]) if len(parts) == 1 else (  # noqa: E731
+        lambda key: np.concatenate([q[key] for q in parts], axis=0))
     res = Identification(
         model=model, theta=cat("theta"), pose=cat("pose"), residual=cat("residual"),
         residual_machine=cat("residual_machine"), chi2=cat("chi2"), dof=parts[0]["dof"],

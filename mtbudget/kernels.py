@@ -543,13 +543,22 @@ def point_weights(P, angular, distance, distance_per_length, repeatability, Wh, 
     (``MeasurementModel.covariance``), its inverse Cholesky factor ``Wh[n, m]`` (``identify.whitener``'s closed
     form) and ``WLc[:, :, n, m]`` = Wh^T Wh = C^-1 (``identify._gram33``, component-major).  P (N, M, 3), scalar
     noise.  Returns False where a covariance is not positive definite (nothing is then to be trusted: the caller
-    takes numpy's path, which says so)."""
+    takes numpy's path, which says so).
+
+    A trial's points are computed on contiguous (M,) rows (the compiler vectorises the square roots and divisions),
+    then scattered into the (M, 3, 3) whiteners: the same operations in the same order as point by point."""
     N, M = P.shape[0], P.shape[1]
     rep2 = repeatability * repeatability
     good = True
+    xs, ys, zs = np.empty(M), np.empty(M), np.empty(M)
+    Wt = np.empty((6, M))  # the whitener's lower triangle, row by row
     for n in range(N):
         for m in range(M):
-            x, y, z = P[n, m, 0], P[n, m, 1], P[n, m, 2]
+            xs[m], ys[m], zs[m] = P[n, m, 0], P[n, m, 1], P[n, m, 2]
+        w00, w10, w11, w20, w21, w22 = Wt[0], Wt[1], Wt[2], Wt[3], Wt[4], Wt[5]
+        q00, q01, q02, q11, q12, q22 = WLc[0, 0, n], WLc[0, 1, n], WLc[0, 2, n], WLc[1, 1, n], WLc[1, 2, n], WLc[2, 2, n]
+        for m in range(M):
+            x, y, z = xs[m], ys[m], zs[m]
             rho = np.sqrt(x * x + y * y)  # hypot's overflow guard is not needed at a tracker's ranges (mm)
             r = np.sqrt(rho * rho + z * z)
             ca = x / rho if rho > 0 else 1.0
@@ -558,8 +567,9 @@ def point_weights(P, angular, distance, distance_per_length, repeatability, Wh, 
             se = z / r if r > 0 else 0.0
             ur = distance + distance_per_length * r
             A = ur * ur
-            Bv = (angular * rho) ** 2
-            Cv = (angular * r) ** 2
+            arho, ar = angular * rho, angular * r
+            Bv = arho * arho
+            Cv = ar * ar
             rx, ry = ce * ca, ce * sa
             ex, ey = se * ca, se * sa
             c00 = A * rx * rx + Bv * sa * sa + Cv * ex * ex + rep2
@@ -574,21 +584,29 @@ def point_weights(P, angular, distance, distance_per_length, repeatability, Wh, 
             l21 = (c21 - l20 * l10) / l11
             l22 = np.sqrt(c22 - l20 * l20 - l21 * l21)
             i00, i11, i22 = 1.0 / l00, 1.0 / l11, 1.0 / l22
-            w10 = -l10 * i00 * i11
-            w21 = -l21 * i11 * i22
-            w20 = (l10 * l21 - l20 * l11) * i00 * i11 * i22
-            if not (np.isfinite(i00) and np.isfinite(i11) and np.isfinite(i22) and np.isfinite(w10)
-                    and np.isfinite(w21) and np.isfinite(w20)):
+            a10 = -l10 * i00 * i11
+            a21 = -l21 * i11 * i22
+            a20 = (l10 * l21 - l20 * l11) * i00 * i11 * i22
+            w00[m], w10[m], w11[m], w20[m], w21[m], w22[m] = i00, a10, i11, a20, a21, i22
+            # Wh^T Wh, (i, j) = sum_k Wh[k, i] Wh[k, j] over k = 0, 1, 2 (the zeros of the triangle included)
+            q00[m] = i00 * i00 + a10 * a10 + a20 * a20
+            q01[m] = i00 * 0.0 + a10 * i11 + a20 * a21
+            q02[m] = i00 * 0.0 + a10 * 0.0 + a20 * i22
+            q11[m] = 0.0 * 0.0 + i11 * i11 + a21 * a21
+            q12[m] = 0.0 * 0.0 + i11 * 0.0 + a21 * i22
+            q22[m] = 0.0 * 0.0 + 0.0 * 0.0 + i22 * i22
+        for m in range(M):
+            a, b, c, d, e, f = w00[m], w10[m], w11[m], w20[m], w21[m], w22[m]
+            if not (np.isfinite(a) and np.isfinite(c) and np.isfinite(f) and np.isfinite(b) and np.isfinite(e)
+                    and np.isfinite(d)):
                 good = False
             W = Wh[n, m]
-            W[0, 0], W[0, 1], W[0, 2] = i00, 0.0, 0.0
-            W[1, 0], W[1, 1], W[1, 2] = w10, i11, 0.0
-            W[2, 0], W[2, 1], W[2, 2] = w20, w21, i22
-            for i in range(3):
-                for j in range(i, 3):
-                    v = W[0, i] * W[0, j] + W[1, i] * W[1, j] + W[2, i] * W[2, j]
-                    WLc[i, j, n, m] = v
-                    WLc[j, i, n, m] = v
+            W[0, 0], W[0, 1], W[0, 2] = a, 0.0, 0.0
+            W[1, 0], W[1, 1], W[1, 2] = b, c, 0.0
+            W[2, 0], W[2, 1], W[2, 2] = d, e, f
+            WLc[1, 0, n, m] = q01[m]
+            WLc[2, 0, n, m] = q02[m]
+            WLc[2, 1, n, m] = q12[m]
     return good
 
 
