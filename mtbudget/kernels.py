@@ -64,15 +64,23 @@ def _forward(n, tool_axes, wp_axes, side, px, py, pz, toolT, coef, L, sq, rdir, 
     A = coef.shape[1]
     pos = (px[n if px.shape[0] > 1 else 0], py[n if py.shape[0] > 1 else 0], pz[n if pz.shape[0] > 1 else 0])
     for a in range(A):
+        La = L[a]
         for c in range(6):
             row = comp[a, c]
-            c0 = coef[n, a, c, 0]
-            for m in range(M):
-                row[m] = c0 * L[a, 0, m]
-            for k in range(1, K):
-                ck = coef[n, a, c, k]
+            cf = coef[n, a, c]
+            if K == 3:  # the usual orders (constant, linear, quadratic): one pass, the same sum in the same order
+                k0, k1, k2 = cf[0], cf[1], cf[2]
+                l0, l1, l2 = La[0], La[1], La[2]
                 for m in range(M):
-                    row[m] += ck * L[a, k, m]
+                    row[m] = k0 * l0[m] + k1 * l1[m] + k2 * l2[m]
+                continue
+            k0, l0 = cf[0], La[0]
+            for m in range(M):
+                row[m] = k0 * l0[m]
+            for k in range(1, K):
+                ck, lk = cf[k], La[k]
+                for m in range(M):
+                    row[m] += ck * lk[m]
     # commanded displacement with squareness (Eq. 7-9, 16-17), then the carriage's own errors
     sxy, sxz, syz = sq[n, 0], sq[n, 1], sq[n, 2]
     for m in range(M):
@@ -296,12 +304,31 @@ def _vjp_row(n, tool_order, wp_axes, side, px, py, pz, rdir, rcos, rsin, eps, vi
             for m in range(M):
                 pm = -pa[m]
                 h[a, 2, 0, m], h[a, 2, 1, m], h[a, 2, 2, m] = ga[0, m] * pm, ga[1, m] * pm, ga[2, m] * pm
-    for j in range(params.shape[0]):
+    # each parameter's sum over the points, in the points' order; four parameters at once (four independent sums
+    # in flight instead of one chain of additions)
+    n_p = params.shape[0]
+    j = 0
+    while j + 4 <= n_p:
+        h0 = h[params[j, 0], params[j, 1], params[j, 2]]
+        h1 = h[params[j + 1, 0], params[j + 1, 1], params[j + 1, 2]]
+        h2 = h[params[j + 2, 0], params[j + 2, 1], params[j + 2, 2]]
+        h3 = h[params[j + 3, 0], params[j + 3, 1], params[j + 3, 2]]
+        b0, b1, b2, b3 = basis[j], basis[j + 1], basis[j + 2], basis[j + 3]
+        a0 = a1 = a2 = a3 = 0.0
+        for m in range(M):
+            a0 += h0[m] * b0[m]
+            a1 += h1[m] * b1[m]
+            a2 += h2[m] * b2[m]
+            a3 += h3[m] * b3[m]
+        out[j], out[j + 1], out[j + 2], out[j + 3] = a0, a1, a2, a3
+        j += 4
+    while j < n_p:
         hr, br = h[params[j, 0], params[j, 1], params[j, 2]], basis[j]
         acc = 0.0
         for m in range(M):
             acc += hr[m] * br[m]
         out[j] = acc
+        j += 1
 
 
 @_compiled
@@ -389,12 +416,20 @@ def rodrigues(o0, o1, o2, Rot):  # pragma: no cover - compiled
 @_compiled
 def _minus_vecmat(x, A, out):  # pragma: no cover - compiled
     """out = -(x A) for a vector x (n,) and a matrix A (n, k), as a sum of A's rows (contiguous: vectorised)."""
+    n, k = x.shape[0], out.shape[0]
     out[:] = 0.0
-    for i in range(x.shape[0]):
-        xi = x[i]
-        row = A[i]
-        for j in range(out.shape[0]):
+    i = 0
+    while i + 4 <= n:  # four rows per pass over out (fewer loads and stores of it; each column's sum in row order)
+        x0, x1, x2, x3 = x[i], x[i + 1], x[i + 2], x[i + 3]
+        r0, r1, r2, r3 = A[i], A[i + 1], A[i + 2], A[i + 3]
+        for j in range(k):
+            out[j] = (((out[j] - x0 * r0[j]) - x1 * r1[j]) - x2 * r2[j]) - x3 * r3[j]
+        i += 4
+    while i < n:
+        xi, row = x[i], A[i]
+        for j in range(k):
             out[j] -= xi * row[j]
+        i += 1
 
 
 @_compiled
