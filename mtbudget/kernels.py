@@ -333,36 +333,44 @@ def _vjp_row(n, tool_order, wp_axes, side, px, py, pz, rdir, rcos, rsin, eps, vi
 
 @_compiled
 def _residual_row(P, x, WLc, i, Rn, t0, t1, t2, c0, vout, G, r, u):  # pragma: no cover - compiled
-    """One trial of :func:`chord_residual`: machine points P (M, 3), measured x (M, 3), information matrices
-    ``WLc[:, :, i]``, pose Rn (3, 3), (t0, t1, t2); the machine-frame weighted residual into vout (M, 3), the rigid
-    gradient (unscaled) into G[:6]; returns the cost.  r, u: (3, M) scratch."""
-    M = P.shape[0]
+    """One trial of :func:`chord_residual`: machine points P (3, M) and measured x (3, M) (component-major: each
+    pass below runs on contiguous rows), information matrices ``WLc[:, :, i]``, pose Rn (3, 3), (t0, t1, t2); the
+    machine-frame weighted residual into vout (M, 3), the rigid gradient (unscaled) into G[:6]; returns the cost.
+    r, u: (3, M) scratch."""
+    M = P.shape[1]
+    P0, P1, P2, x0, x1, x2 = P[0], P[1], P[2], x[0], x[1], x[2]
+    r0, r1, r2 = r[0], r[1], r[2]
+    a00, a01, a02 = Rn[0, 0], Rn[0, 1], Rn[0, 2]
+    a10, a11, a12 = Rn[1, 0], Rn[1, 1], Rn[1, 2]
+    a20, a21, a22 = Rn[2, 0], Rn[2, 1], Rn[2, 2]
     for m in range(M):  # r = x - (P - T) R
-        d0, d1, d2 = P[m, 0] - t0, P[m, 1] - t1, P[m, 2] - t2
-        r[0, m] = x[m, 0] - (d0 * Rn[0, 0] + d1 * Rn[1, 0] + d2 * Rn[2, 0])
-        r[1, m] = x[m, 1] - (d0 * Rn[0, 1] + d1 * Rn[1, 1] + d2 * Rn[2, 1])
-        r[2, m] = x[m, 2] - (d0 * Rn[0, 2] + d1 * Rn[1, 2] + d2 * Rn[2, 2])
+        d0, d1, d2 = P0[m] - t0, P1[m] - t1, P2[m] - t2
+        r0[m] = x0[m] - (d0 * a00 + d1 * a10 + d2 * a20)
+        r1[m] = x1[m] - (d0 * a01 + d1 * a11 + d2 * a21)
+        r2[m] = x2[m] - (d0 * a02 + d1 * a12 + d2 * a22)
     for a in range(3):  # u = C^-1 r, each point's information matrix (symmetric)
         w0, w1, w2 = WLc[a, 0, i], WLc[a, 1, i], WLc[a, 2, i]
         ua = u[a]
         for m in range(M):
-            ua[m] = w0[m] * r[0, m] + w1[m] * r[1, m] + w2[m] * r[2, m]
+            ua[m] = w0[m] * r0[m] + w1[m] * r1[m] + w2[m] * r2[m]
+    u0s, u1s, u2s = u[0], u[1], u[2]
+    e0, e1, e2 = c0[0], c0[1], c0[2]
     c = 0.0
     g0 = g1 = g2 = 0.0
     s01 = s10 = s02 = s20 = s12 = s21 = 0.0
     for m in range(M):
-        u0, u1, u2 = u[0, m], u[1, m], u[2, m]
-        c += r[0, m] * u0 + r[1, m] * u1 + r[2, m] * u2
-        v0 = Rn[0, 0] * u0 + Rn[0, 1] * u1 + Rn[0, 2] * u2
-        v1 = Rn[1, 0] * u0 + Rn[1, 1] * u1 + Rn[1, 2] * u2
-        v2 = Rn[2, 0] * u0 + Rn[2, 1] * u1 + Rn[2, 2] * u2
+        u0, u1, u2 = u0s[m], u1s[m], u2s[m]
+        c += r0[m] * u0 + r1[m] * u1 + r2[m] * u2
+        v0 = a00 * u0 + a01 * u1 + a02 * u2
+        v1 = a10 * u0 + a11 * u1 + a12 * u2
+        v2 = a20 * u0 + a21 * u1 + a22 * u2
         vout[m, 0] = v0
         vout[m, 1] = v1
         vout[m, 2] = v2
         g0 += v0
         g1 += v1
         g2 += v2
-        q0, q1, q2 = P[m, 0] - c0[0], P[m, 1] - c0[1], P[m, 2] - c0[2]
+        q0, q1, q2 = P0[m] - e0, P1[m] - e1, P2[m] - e2
         s12 += q1 * v2
         s21 += q2 * v1
         s20 += q2 * v0
@@ -379,6 +387,13 @@ def _residual_row(P, x, WLc, i, Rn, t0, t1, t2, c0, vout, G, r, u):  # pragma: n
 
 
 @_compiled
+def _transpose_into(a, out):  # pragma: no cover - compiled
+    """out (3, M) = a (M, 3) transposed (an exact copy)."""
+    for m in range(a.shape[0]):
+        out[0, m], out[1, m], out[2, m] = a[m, 0], a[m, 1], a[m, 2]
+
+
+@_compiled
 def chord_residual(P, meas, WL, idx, R, T, c0, v, G, cost):  # pragma: no cover - compiled
     """A chord iteration's weighted residual and rigid gradient, trial by trial (``identify._chord``).
 
@@ -391,9 +406,12 @@ def chord_residual(P, meas, WL, idx, R, T, c0, v, G, cost):  # pragma: no cover 
     n_rows, M = P.shape[0], P.shape[1]
     r = np.empty((3, M))
     u = np.empty((3, M))
+    P3, x3 = np.empty((3, M)), np.empty((3, M))
     for n in range(n_rows):
         i = idx[n]
-        cost[n] = _residual_row(P[n], meas[i], WL, i, R[n], T[n, 0], T[n, 1], T[n, 2], c0, v[n], G[n], r, u)
+        _transpose_into(P[n], P3)
+        _transpose_into(meas[i], x3)
+        cost[n] = _residual_row(P3, x3, WL, i, R[n], T[n, 0], T[n, 1], T[n, 2], c0, v[n], G[n], r, u)
 
 
 @_compiled
@@ -463,7 +481,11 @@ def chord_stage(mode, rows, label, theta, Rs, Ts, meas, WLc, c0, inv_ps, Hinv, Q
     eps1, vin1, wout1 = np.empty((1, A, 3, M)), np.empty((1, A, 3, M)), np.empty((1, A, 3, M))  # mode 3: kept
     g, gd, h = np.zeros((A, 3, M)), np.zeros((A, 3, M)), np.zeros((A, 3, 3, M))
     r, u, u2 = np.empty((3, M)), np.empty((3, M)), np.empty((3, M))
-    P = np.empty((M, 3))
+    P3, x3, po3 = np.empty((3, M)), np.empty((3, M)), np.empty((3, M))  # component-major (_residual_row)
+    if mode == 0 and Pfix.shape[0] == 1:  # the fixed points of every trial, once
+        _transpose_into(Pfix[0], P3)
+    if poff.shape[0] == 1:
+        _transpose_into(poff[0], po3)
     vout = np.empty((M, 3))
     G = np.empty(b)
     z = np.empty(b)
@@ -477,6 +499,9 @@ def chord_stage(mode, rows, label, theta, Rs, Ts, meas, WLc, c0, inv_ps, Hinv, Q
     for q in range(rows.shape[0]):
         n = rows[q]
         Hk = Hinv[label[n]]
+        _transpose_into(meas[n], x3)
+        if poff.shape[0] > 1:
+            _transpose_into(poff[n], po3)
         for i in range(3):
             for j in range(3):
                 Rn[i, j] = Rs[n, i, j]
@@ -486,12 +511,10 @@ def chord_stage(mode, rows, label, theta, Rs, Ts, meas, WLc, c0, inv_ps, Hinv, Q
         for it in range(1, chord_iter + 1):
             its = it
             if mode == 0:
-                Pn = Pfix[n if Pfix.shape[0] > 1 else 0]
-                for m in range(M):
-                    P[m, 0], P[m, 1], P[m, 2] = Pn[m, 0], Pn[m, 1], Pn[m, 2]
+                if Pfix.shape[0] > 1 and it == 1:
+                    _transpose_into(Pfix[n], P3)
             elif it == 1 and first.shape[0] > 0:
-                for m in range(M):
-                    P[m, 0], P[m, 1], P[m, 2] = first[q, m, 0], first[q, m, 1], first[q, m, 2]
+                _transpose_into(first[q], P3)
             else:  # the chain at theta[n] (+ the fixed inputs)
                 gf = gfix[n if gfix.shape[0] > 1 else 0]
                 for k in range(p):
@@ -509,10 +532,11 @@ def chord_stage(mode, rows, label, theta, Rs, Ts, meas, WLc, c0, inv_ps, Hinv, Q
                         for c in range(3):
                             for m in range(M):
                                 eps1[0, a, c, m] = comp[a, 3 + c, m]
-                po = poff[n if poff.shape[0] > 1 else 0]
-                for m in range(M):
-                    P[m, 0], P[m, 1], P[m, 2] = v[0, m] + po[m, 0], v[1, m] + po[m, 1], v[2, m] + po[m, 2]
-            cost = _residual_row(P, meas[n], WLc, n, Rn, t0, t1, t2, c0, vout, G, r, u)
+                for i in range(3):
+                    vi, pi, Pi = v[i], po3[i], P3[i]
+                    for m in range(M):
+                        Pi[m] = vi[m] + pi[m]
+            cost = _residual_row(P3, x3, WLc, n, Rn, t0, t1, t2, c0, vout, G, r, u)
             for j in range(6):
                 G[j] *= inv_ps[j]
             if mode == 1 or mode == 2:  # the geometric gradient -(v J) along the directions
