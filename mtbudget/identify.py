@@ -1046,10 +1046,13 @@ def _identify_chunk_chord(model, meas, noise, strategy, theta, pose0, fixed, pha
     angles = lt.euler_from_rotation(R)
     angles = angles0 + (angles - angles0 + np.pi) % (2 * np.pi) - np.pi  # the branch nearest the start
     pose = np.concatenate([T, angles], axis=1)
-    P_W = evaluate(theta, slice(None))
     Rm = lt.rotation(pose[:, 3], pose[:, 4], pose[:, 5])
-    if kc is not None:  # residuals, whitened residuals, chi2 and Eq. 27's "before" in one compiled pass
-        from .kernels import chord_final
+    if kc is not None:  # the points (the chain as the stages evaluate it), then the residuals, whitened residuals,
+        from .kernels import chord_final, chord_points  # chi2 and Eq. 27's "before" in one compiled pass
+
+        P_W = chord_points(np.require(theta, np.float64, _CW), kc["tool_axes"], kc["wp_axes"], kc["side"], kc["px"],
+                           kc["py"], kc["pz"], kc["toolT"], kc["L"], kc["src"], kc["dst"], kc["sqi"], kc["rdir"],
+                           kc["pivot"], kc["rcos"], kc["rsin"], kc["poff"], kc["gfix"], np.empty((N, M, 3)))
 
         res, res_m, w, initial_error = (np.empty((N, M, 3)) for _ in range(4))
         chi2 = np.empty(N)
@@ -1057,6 +1060,7 @@ def _identify_chunk_chord(model, meas, noise, strategy, theta, pose0, fixed, pha
                     np.require(pose[:, :3], np.float64, _CW), np.require(P_fix, np.float64, _CW), nom["R"], nom["T"],
                     res, res_m, w, chi2, initial_error)
     else:
+        P_W = evaluate(theta, slice(None))
         res = meas - _apply_transposed(Rm, P_W - pose[:, None, :3])  # R^T (P_W - T): lt.to_tracker
         w = _apply(Wh, res)
         res_m, chi2 = _apply(Rm, res), (w**2).sum(axis=(1, 2))

@@ -596,6 +596,38 @@ def chord_stage(mode, rows, label, theta, Rs, Ts, meas, WLc, c0, inv_ps, Hinv, Q
 
 
 @_compiled
+def chord_points(theta, tool_axes, wp_axes, side, px, py, pz, toolT, L, src, dst, sqi, rdir, pivot, rcos, rsin, poff,
+                 gfix, out):  # pragma: no cover - compiled
+    """The chain at each trial's parameters ``theta`` (N, p) into ``out`` (N, M, 3), as :func:`chord_stage` evaluates
+    it (the same inputs, the same operations: ``model.machine_points(theta, fixed)``'s numbers, its Python set-up
+    left out): the chord solver's points at its solution."""
+    N, p = theta.shape[0], theta.shape[1]
+    A, K, M = L.shape[0], L.shape[1], L.shape[2]
+    coef = np.zeros((N, A, 6, K))
+    sq = np.zeros((N, 3))
+    comp, t, v = np.empty((A, 6, M)), np.empty((A, 3, M)), np.empty((3, M))
+    vin_s, wout_s = np.empty((A, 3, M)), np.empty((A, 3, M))
+    th = np.empty(p)
+    for n in range(N):
+        cf = coef[n].reshape(A * 6 * K)
+        gf = gfix[n if gfix.shape[0] > 1 else 0]
+        for k in range(p):
+            th[k] = theta[n, k] + gf[k]
+        for k in range(src.shape[0]):
+            cf[dst[k]] = th[src[k]]
+        for c in range(3):
+            sq[n, c] = th[sqi[c]] if sqi[c] >= 0 else 0.0
+        _forward(n, tool_axes, wp_axes, side, px, py, pz, toolT, coef, L, sq, rdir, pivot, rcos, rsin, comp, t, v,
+                 vin_s, wout_s)
+        po = poff[n if poff.shape[0] > 1 else 0]
+        for m in range(M):
+            out[n, m, 0] = v[0, m] + po[m, 0]
+            out[n, m, 1] = v[1, m] + po[m, 1]
+            out[n, m, 2] = v[2, m] + po[m, 2]
+    return out
+
+
+@_compiled
 def point_weights(P, angular, distance, distance_per_length, repeatability, Wh, WLc):  # pragma: no cover - compiled
     """Each tracker point's whitener and information matrix from the stated noise, in one pass: the covariance of
     ``tracker.covariance`` (Eq. 23, from the coordinates) plus the repeatability on the diagonal
@@ -757,7 +789,7 @@ def histogram_add(x, low, high, bins, counts, under, over):  # pragma: no cover 
 
 
 #: the kernels a run of the engine compiles (what :func:`compiled_here` looks for)
-KERNELS = (chain_points, chord_stage, point_weights, chord_final, tracker_points)
+KERNELS = (chain_points, chord_stage, chord_points, point_weights, chord_final, tracker_points)
 
 
 def compiled_here() -> bool | None:
