@@ -953,7 +953,11 @@ def _identify_chunk_chord(model, meas, noise, strategy, theta, pose0, fixed, pha
 
     # the weighted pose-only fit of the nominal points (Eq. 27 "before"); its gradient is exact, so is its minimum
     nom = {"R": Rk.copy(), "T": pose_k[:, :3].copy(), "theta": np.zeros((N, p))}
-    kc = _chord_chain(model, fixed, N) if CHORD_KERNEL else None
+    kc = None
+    if CHORD_KERNEL:  # nothing fixed (the engine's default): the same inputs for every chunk, built once per model
+        kc = _chord_chain(model, fixed, N) if fixed else cache.get("chord_chain")
+        if kc is None:
+            kc = cache["chord_chain"] = _chord_chain(model, fixed, N)
 
     def chord(st, rows, evaluate, Hinv, J, Qs, tol_, first=None, predict=False, fixed_points=None):
         """A chord stage: compiled (:func:`_chord_compiled`) or the numpy reference (:func:`_chord`)."""
@@ -1244,7 +1248,8 @@ CHORD_KERNEL = True
 def _chord_chain(model, fixed: dict, N: int) -> dict:
     """The compiled chain's inputs for a chunk of N trials with its fixed perturbations (``kernels.chord_stage``):
     :func:`mtbudget.machine.kernel_chain` plus ``toolT`` (3, M), ``gfix`` (1 or N, p) the fixed geometry and
-    ``poff`` (1 or N, M, 3) the fixed point offsets (zero when none)."""
+    ``poff`` (1 or N, M, 3) the fixed point offsets (zero when none).  Without fixed perturbations every array has
+    one row for all trials (N does not enter): the plan cache keeps them (the kernels only read them)."""
     M, p = model.n_points, model.n_params
     k = kernel_chain(model.config, model.errors, model.chain_inputs(fixed), model.B, N)
     k["toolT"] = np.ascontiguousarray(k["tool"].T)

@@ -451,6 +451,35 @@ def _minus_vecmat(x, A, out):  # pragma: no cover - compiled
 
 
 @_compiled
+def _all_zero(x):  # pragma: no cover - compiled
+    """Whether every entry of x is zero (either sign)."""
+    for k in range(x.shape[0]):
+        if x[k] != 0.0:
+            return False
+    return True
+
+
+@_compiled
+def _vecmat(x, A, out):  # pragma: no cover - compiled
+    """out = x A for a vector x (n,) and a matrix A (n, k): :func:`_minus_vecmat`'s sums with the other sign (each
+    column's sum from 0 in the order of the rows, four rows per pass over out)."""
+    n, k = x.shape[0], out.shape[0]
+    out[:] = 0.0
+    i = 0
+    while i + 4 <= n:
+        x0, x1, x2, x3 = x[i], x[i + 1], x[i + 2], x[i + 3]
+        r0, r1, r2, r3 = A[i], A[i + 1], A[i + 2], A[i + 3]
+        for j in range(k):
+            out[j] = (((out[j] + x0 * r0[j]) + x1 * r1[j]) + x2 * r2[j]) + x3 * r3[j]
+        i += 4
+    while i < n:
+        xi, row = x[i], A[i]
+        for j in range(k):
+            out[j] += xi * row[j]
+        i += 1
+
+
+@_compiled
 def chord_stage(mode, rows, label, theta, Rs, Ts, meas, WLc, c0, inv_ps, Hinv, Qs, J, first, Pfix,
                 tool_axes, wp_axes, side, px, py, pz, toolT, L, src, dst, sqi, rdir, pivot, rcos, rsin, poff, gfix,
                 tool_order, params, basis, tol, ftol, chord_iter, predict, max_rate, ok):  # pragma: no cover - compiled
@@ -486,6 +515,12 @@ def chord_stage(mode, rows, label, theta, Rs, Ts, meas, WLc, c0, inv_ps, Hinv, Q
         _transpose_into(Pfix[0], P3)
     if poff.shape[0] == 1:
         _transpose_into(poff[0], po3)
+    # the pose alone from theta = 0 (a multi-phase identification's first phase) with inputs shared by every trial:
+    # the chain's points are the same for each such trial, evaluated once
+    zero_shared = (mode == 1 and nr == 0 and gfix.shape[0] == 1 and poff.shape[0] == 1 and px.shape[0] == 1
+                   and py.shape[0] == 1 and pz.shape[0] == 1 and rcos.shape[1] <= 1 and rsin.shape[1] <= 1)
+    P3_zero = np.empty((3, M))
+    have_zero = False
     vout = np.empty((M, 3))
     G = np.empty(b)
     z = np.empty(b)
@@ -515,6 +550,11 @@ def chord_stage(mode, rows, label, theta, Rs, Ts, meas, WLc, c0, inv_ps, Hinv, Q
                     _transpose_into(Pfix[n], P3)
             elif it == 1 and first.shape[0] > 0:
                 _transpose_into(first[q], P3)
+            elif mode == 1 and nr == 0 and it > 1:
+                pass  # the pose alone (a multi-phase identification's first phase): theta, so the points, unchanged
+            elif zero_shared and it == 1 and have_zero and _all_zero(theta[n]):
+                for i in range(3):  # the chain at theta = 0 with shared inputs: the same points for every trial
+                    P3[i, :] = P3_zero[i]
             else:  # the chain at theta[n] (+ the fixed inputs)
                 gf = gfix[n if gfix.shape[0] > 1 else 0]
                 for k in range(p):
@@ -536,6 +576,9 @@ def chord_stage(mode, rows, label, theta, Rs, Ts, meas, WLc, c0, inv_ps, Hinv, Q
                     vi, pi, Pi = v[i], po3[i], P3[i]
                     for m in range(M):
                         Pi[m] = vi[m] + pi[m]
+                if zero_shared and it == 1 and not have_zero and _all_zero(theta[n]):
+                    P3_zero[:, :] = P3
+                    have_zero = True
             cost = _residual_row(P3, x3, WLc, n, Rn, t0, t1, t2, c0, vout, G, r, u)
             for j in range(6):
                 G[j] *= inv_ps[j]
@@ -572,12 +615,7 @@ def chord_stage(mode, rows, label, theta, Rs, Ts, meas, WLc, c0, inv_ps, Hinv, Q
                 for j in range(3):
                     Rn[i, j] = Rs[n, i, j]
             if mode > 0:
-                dth[:] = 0.0
-                for j in range(nr):
-                    x = z[6 + j]
-                    row = QsT[j]
-                    for k in range(p):
-                        dth[k] += x * row[k]
+                _vecmat(z[6:], QsT, dth)
                 for k in range(p):
                     theta[n, k] += dth[k]
             rate = energy / prev if np.isfinite(prev) else np.inf
