@@ -285,25 +285,34 @@ def _vjp_row(n, tool_order, wp_axes, side, px, py, pz, rdir, rcos, rsin, eps, vi
                 h[a, 1, 1, m] = x1 + 0.5 * (fg * w1 + fw * c1 - 2.0 * wg * f1)
                 h[a, 1, 2, m] = x2 + 0.5 * (fg * w2 + fw * c2 - 2.0 * wg * f2)
             continue
-        for m in range(M):
-            g0, g1, g2 = ga[0, m], ga[1, m], ga[2, m]
-            # translation: dP/dt_a = +G (tool side) or -G (workpiece side)
-            h[a, 0, 0, m], h[a, 0, 1, m], h[a, 0, 2, m] = s * g0, s * g1, s * g2
-            w0, w1, w2 = w[0, m], w[1, m], w[2, m]
-            if s > 0:  # rotation, tool side: d/deps of (v + eps x v) is -G [v_in]x; transposed: v_in x g
-                h[a, 1, 0, m] = w1 * g2 - w2 * g1
-                h[a, 1, 1, m] = w2 * g0 - w0 * g2
-                h[a, 1, 2, m] = w0 * g1 - w1 * g0
-            else:  # workpiece side: + G [w_out]x; transposed: g x w_out
-                h[a, 1, 0, m] = g1 * w2 - g2 * w1
-                h[a, 1, 1, m] = g2 * w0 - g0 * w2
-                h[a, 1, 2, m] = g0 * w1 - g1 * w0
+        g0s, g1s, g2s, w0s, w1s, w2s = ga[0], ga[1], ga[2], w[0], w[1], w[2]
+        # one row of h per loop (each loop reads two to four rows and writes one: the compiler vectorises it)
+        for c in range(3):
+            hc, gc = h[a, 0, c], ga[c]
+            for m in range(M):  # translation: dP/dt_a = +G (tool side) or -G (workpiece side)
+                hc[m] = s * gc[m]
+        h10, h11, h12 = h[a, 1, 0], h[a, 1, 1], h[a, 1, 2]
+        if s > 0:  # rotation, tool side: d/deps of (v + eps x v) is -G [v_in]x; transposed: v_in x g
+            for m in range(M):
+                h10[m] = w1s[m] * g2s[m] - w2s[m] * g1s[m]
+            for m in range(M):
+                h11[m] = w2s[m] * g0s[m] - w0s[m] * g2s[m]
+            for m in range(M):
+                h12[m] = w0s[m] * g1s[m] - w1s[m] * g0s[m]
+        else:  # workpiece side: + G [w_out]x; transposed: g x w_out
+            for m in range(M):
+                h10[m] = g1s[m] * w2s[m] - g2s[m] * w1s[m]
+            for m in range(M):
+                h11[m] = g2s[m] * w0s[m] - g0s[m] * w2s[m]
+            for m in range(M):
+                h12[m] = g0s[m] * w1s[m] - g1s[m] * w0s[m]
         if a < 3:
             # squareness: -position times the translation's column G
             pa = pos[a][n if pos[a].shape[0] > 1 else 0]
-            for m in range(M):
-                pm = -pa[m]
-                h[a, 2, 0, m], h[a, 2, 1, m], h[a, 2, 2, m] = ga[0, m] * pm, ga[1, m] * pm, ga[2, m] * pm
+            for c in range(3):
+                hc, gc = h[a, 2, c], ga[c]
+                for m in range(M):
+                    hc[m] = gc[m] * -pa[m]
     # each parameter's sum over the points, in the points' order; four parameters at once (four independent sums
     # in flight instead of one chain of additions)
     n_p = params.shape[0]
