@@ -1051,12 +1051,10 @@ def _identify_chunk_chord(model, meas, noise, strategy, theta, pose0, fixed, pha
     angles = angles0 + (angles - angles0 + np.pi) % (2 * np.pi) - np.pi  # the branch nearest the start
     pose = np.concatenate([T, angles], axis=1)
     Rm = lt.rotation(pose[:, 3], pose[:, 4], pose[:, 5])
-    if kc is not None:  # the points (the chain as the stages evaluate it), then the residuals, whitened residuals,
-        from .kernels import chord_final, chord_points  # chi2 and Eq. 27's "before" in one compiled pass
+    if kc is not None:  # the points, then the residuals, whitened residuals, chi2 and Eq. 27's "before" in one
+        from .kernels import chord_final  # compiled pass
 
-        P_W = chord_points(np.require(theta, np.float64, _CW), kc["tool_axes"], kc["wp_axes"], kc["side"], kc["px"],
-                           kc["py"], kc["pz"], kc["toolT"], kc["L"], kc["src"], kc["dst"], kc["sqi"], kc["rdir"],
-                           kc["pivot"], kc["rcos"], kc["rsin"], kc["poff"], kc["gfix"], np.empty((N, M, 3)))
+        P_W = _chain_at(kc, theta, fixed)
 
         res, res_m, w, initial_error = (np.empty((N, M, 3)) for _ in range(4))
         chi2 = np.empty(N)
@@ -1258,6 +1256,28 @@ def _chord_chain(model, fixed: dict, N: int) -> dict:
     po = np.asarray(fixed.get("point_offset", np.zeros((1, M, 3))), float)
     k["poff"] = np.require(po.reshape(-1, M, 3), np.float64, _CW)
     return k
+
+
+def _chain_at(kc: dict, theta: np.ndarray, fixed: dict) -> np.ndarray:
+    """``model.machine_points(theta, fixed)`` (N, M, 3), the same numbers, from the chain's inputs ``kc``
+    (:func:`_chord_chain`) instead of building them again: the fixed geometry added to theta, the coefficient table
+    filled as :func:`mtbudget.machine.chain_points` fills it, the compiled chain, the fixed point offsets added."""
+    from .kernels import chain_points
+
+    th = theta + fixed["geometry"] if "geometry" in fixed else theta
+    N, M = th.shape[0], kc["tool"].shape[0]
+    A, K = kc["L"].shape[:2]
+    coef = np.zeros((N, A * 6 * K))
+    coef[:, kc["dst"]] = th[:, kc["src"]]
+    sq = np.zeros((N, 3))
+    for c, j in enumerate(kc["sqi"]):  # columns sxy, sxz, syz
+        if j >= 0:
+            sq[:, c] = th[:, j]
+    scratch = np.empty((1, A, 3, M))  # nothing kept for the adjoint
+    out = chain_points(kc["tool_axes"], kc["wp_axes"], kc["side"], kc["px"], kc["py"], kc["pz"], kc["tool"],
+                       coef.reshape(N, A, 6, K), kc["L"], sq, kc["rdir"], kc["pivot"], kc["rcos"], kc["rsin"],
+                       np.empty((N, M, 3)), scratch, scratch, scratch)
+    return out + fixed["point_offset"] if "point_offset" in fixed else out
 
 
 #: stage 2 of the compiled chord: each trial's J^T v from its own forward pass at the stage's start

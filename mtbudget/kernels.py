@@ -285,34 +285,25 @@ def _vjp_row(n, tool_order, wp_axes, side, px, py, pz, rdir, rcos, rsin, eps, vi
                 h[a, 1, 1, m] = x1 + 0.5 * (fg * w1 + fw * c1 - 2.0 * wg * f1)
                 h[a, 1, 2, m] = x2 + 0.5 * (fg * w2 + fw * c2 - 2.0 * wg * f2)
             continue
-        g0s, g1s, g2s, w0s, w1s, w2s = ga[0], ga[1], ga[2], w[0], w[1], w[2]
-        # one row of h per loop (each loop reads two to four rows and writes one: the compiler vectorises it)
-        for c in range(3):
-            hc, gc = h[a, 0, c], ga[c]
-            for m in range(M):  # translation: dP/dt_a = +G (tool side) or -G (workpiece side)
-                hc[m] = s * gc[m]
-        h10, h11, h12 = h[a, 1, 0], h[a, 1, 1], h[a, 1, 2]
-        if s > 0:  # rotation, tool side: d/deps of (v + eps x v) is -G [v_in]x; transposed: v_in x g
-            for m in range(M):
-                h10[m] = w1s[m] * g2s[m] - w2s[m] * g1s[m]
-            for m in range(M):
-                h11[m] = w2s[m] * g0s[m] - w0s[m] * g2s[m]
-            for m in range(M):
-                h12[m] = w0s[m] * g1s[m] - w1s[m] * g0s[m]
-        else:  # workpiece side: + G [w_out]x; transposed: g x w_out
-            for m in range(M):
-                h10[m] = g1s[m] * w2s[m] - g2s[m] * w1s[m]
-            for m in range(M):
-                h11[m] = g2s[m] * w0s[m] - g0s[m] * w2s[m]
-            for m in range(M):
-                h12[m] = g0s[m] * w1s[m] - g1s[m] * w0s[m]
+        for m in range(M):
+            g0, g1, g2 = ga[0, m], ga[1, m], ga[2, m]
+            # translation: dP/dt_a = +G (tool side) or -G (workpiece side)
+            h[a, 0, 0, m], h[a, 0, 1, m], h[a, 0, 2, m] = s * g0, s * g1, s * g2
+            w0, w1, w2 = w[0, m], w[1, m], w[2, m]
+            if s > 0:  # rotation, tool side: d/deps of (v + eps x v) is -G [v_in]x; transposed: v_in x g
+                h[a, 1, 0, m] = w1 * g2 - w2 * g1
+                h[a, 1, 1, m] = w2 * g0 - w0 * g2
+                h[a, 1, 2, m] = w0 * g1 - w1 * g0
+            else:  # workpiece side: + G [w_out]x; transposed: g x w_out
+                h[a, 1, 0, m] = g1 * w2 - g2 * w1
+                h[a, 1, 1, m] = g2 * w0 - g0 * w2
+                h[a, 1, 2, m] = g0 * w1 - g1 * w0
         if a < 3:
             # squareness: -position times the translation's column G
             pa = pos[a][n if pos[a].shape[0] > 1 else 0]
-            for c in range(3):
-                hc, gc = h[a, 2, c], ga[c]
-                for m in range(M):
-                    hc[m] = gc[m] * -pa[m]
+            for m in range(M):
+                pm = -pa[m]
+                h[a, 2, 0, m], h[a, 2, 1, m], h[a, 2, 2, m] = ga[0, m] * pm, ga[1, m] * pm, ga[2, m] * pm
     # each parameter's sum over the points, in the points' order; four parameters at once (four independent sums
     # in flight instead of one chain of additions)
     n_p = params.shape[0]
@@ -643,38 +634,6 @@ def chord_stage(mode, rows, label, theta, Rs, Ts, meas, WLc, c0, inv_ps, Hinv, Q
 
 
 @_compiled
-def chord_points(theta, tool_axes, wp_axes, side, px, py, pz, toolT, L, src, dst, sqi, rdir, pivot, rcos, rsin, poff,
-                 gfix, out):  # pragma: no cover - compiled
-    """The chain at each trial's parameters ``theta`` (N, p) into ``out`` (N, M, 3), as :func:`chord_stage` evaluates
-    it (the same inputs, the same operations: ``model.machine_points(theta, fixed)``'s numbers, its Python set-up
-    left out): the chord solver's points at its solution."""
-    N, p = theta.shape[0], theta.shape[1]
-    A, K, M = L.shape[0], L.shape[1], L.shape[2]
-    coef = np.zeros((N, A, 6, K))
-    sq = np.zeros((N, 3))
-    comp, t, v = np.empty((A, 6, M)), np.empty((A, 3, M)), np.empty((3, M))
-    vin_s, wout_s = np.empty((A, 3, M)), np.empty((A, 3, M))
-    th = np.empty(p)
-    for n in range(N):
-        cf = coef[n].reshape(A * 6 * K)
-        gf = gfix[n if gfix.shape[0] > 1 else 0]
-        for k in range(p):
-            th[k] = theta[n, k] + gf[k]
-        for k in range(src.shape[0]):
-            cf[dst[k]] = th[src[k]]
-        for c in range(3):
-            sq[n, c] = th[sqi[c]] if sqi[c] >= 0 else 0.0
-        _forward(n, tool_axes, wp_axes, side, px, py, pz, toolT, coef, L, sq, rdir, pivot, rcos, rsin, comp, t, v,
-                 vin_s, wout_s)
-        po = poff[n if poff.shape[0] > 1 else 0]
-        for m in range(M):
-            out[n, m, 0] = v[0, m] + po[m, 0]
-            out[n, m, 1] = v[1, m] + po[m, 1]
-            out[n, m, 2] = v[2, m] + po[m, 2]
-    return out
-
-
-@_compiled
 def point_weights(P, angular, distance, distance_per_length, repeatability, Wh, WLc):  # pragma: no cover - compiled
     """Each tracker point's whitener and information matrix from the stated noise, in one pass: the covariance of
     ``tracker.covariance`` (Eq. 23, from the coordinates) plus the repeatability on the diagonal
@@ -836,7 +795,7 @@ def histogram_add(x, low, high, bins, counts, under, over):  # pragma: no cover 
 
 
 #: the kernels a run of the engine compiles (what :func:`compiled_here` looks for)
-KERNELS = (chain_points, chord_stage, chord_points, point_weights, chord_final, tracker_points)
+KERNELS = (chain_points, chord_stage, point_weights, chord_final, tracker_points)
 
 
 def compiled_here() -> bool | None:

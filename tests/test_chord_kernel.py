@@ -139,20 +139,15 @@ def test_the_points_at_the_solution_are_the_chain_at_theta(rng):
     assert identify(model, meas[:2], NOISE, Strategy(), fixed=fixed).points is None
 
 
-def test_the_compiled_points_at_the_solution_are_machine_points_bit_for_bit(rng):
-    """kernels.chord_points (the chord's points at its solution, from the stages' own chain inputs) gives
+def test_the_points_at_the_solution_are_machine_points_bit_for_bit(rng):
+    """identify._chain_at (the chord's points at its solution, from the stages' chain inputs) gives
     model.machine_points(theta, fixed) exactly: without fixed inputs, and with a scale, a geometry offset and point
     offsets given per trial or shared."""
-    from mtbudget.kernels import chord_points
-
     model, _ = simulate(paper_plan(), 1, rng)
     M, p, N = model.n_points, model.n_params, 6
     theta = rng.normal(0, 1e-3, (N, p)) * np.where(np.array(model.errors.units) == "mm", 1.0, 1e-3)
     for fixed in ({}, {"axis_scale.x": np.full((1, M), 12e-6), "point_offset": rng.normal(0, 2e-3, (N, M, 3)),
                        "geometry": rng.normal(0, 1e-4, (N, p)) * (np.array(model.errors.units) == "mm")},
                   {"axis_offset.y": rng.normal(0, 1e-3, (N, M)), "point_offset": np.full((1, M, 3), 1e-3)}):
-        k = identify_module._chord_chain(model, fixed, N)
-        got = chord_points(theta, k["tool_axes"], k["wp_axes"], k["side"], k["px"], k["py"], k["pz"], k["toolT"],
-                           k["L"], k["src"], k["dst"], k["sqi"], k["rdir"], k["pivot"], k["rcos"], k["rsin"],
-                           k["poff"], k["gfix"], np.empty((N, M, 3)))
+        got = identify_module._chain_at(identify_module._chord_chain(model, fixed, N), theta, fixed)
         np.testing.assert_array_equal(got, model.machine_points(theta, fixed))
