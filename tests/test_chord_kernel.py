@@ -151,3 +151,19 @@ def test_the_points_at_the_solution_are_machine_points_bit_for_bit(rng):
                   {"axis_offset.y": rng.normal(0, 1e-3, (N, M)), "point_offset": np.full((1, M, 3), 1e-3)}):
         got = identify_module._chain_at(identify_module._chord_chain(model, fixed, N), theta, fixed)
         np.testing.assert_array_equal(got, model.machine_points(theta, fixed))
+
+
+def test_the_kept_chain_inputs_are_not_changed_by_identifying(rng):
+    """The chain inputs of an unperturbed chunk are kept per model (the plan cache) and shared by every later call,
+    whatever its number of trials: identifying must leave them as a fresh build makes them, and a chunk identified
+    after others gets the numbers it gets first."""
+    model, meas = simulate(paper_plan(), 6, rng)
+    first = identify(model, meas[:2], NOISE, Strategy.multi_phase(), iteration_pose=POSE)
+    identify(model, meas, NOISE, Strategy(), iteration_pose=POSE)
+    kept = identify_module._plan_cache(model)["chord_chain"]
+    fresh = identify_module._chord_chain(model, {}, 6)
+    for key, value in fresh.items():
+        np.testing.assert_array_equal(kept[key], value, err_msg=key)
+    again = identify(model, meas[:2], NOISE, Strategy.multi_phase(), iteration_pose=POSE)
+    for key in ("theta", "pose", "residual", "chi2"):
+        np.testing.assert_array_equal(getattr(again, key), getattr(first, key), err_msg=key)
