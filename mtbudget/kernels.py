@@ -52,11 +52,11 @@ def _rot2(f0, f1, f2, u0, u1, u2, sgn):  # pragma: no cover - compiled
 
 @_compiled
 def _forward(n, tool_axes, wp_axes, side, px, py, pz, toolT, coef, L, sq, rdir, pivot, rcos, rsin, comp, t, v, vin,
-             wout):  # pragma: no cover
+             wout, keep):  # pragma: no cover
     """Trial n of the small-angle chain: its points into ``v`` (3, M), each axis' component errors into
     ``comp`` (A, 6, M) and translations into ``t`` (A, 3, M); what enters each tool-side axis' error motion into
     ``vin`` (A, 3, M) and what leaves each workpiece-side axis' error motion into ``wout`` (A, 3, M) (for the
-    adjoint).  Axes 0, 1, 2 are X, Y, Z; axes 3 .. A-1 the rotary axes (row a - 3 of rdir, pivot, rcos, rsin).
+    adjoint; a linear axis writes them only when ``keep``).  Axes 0, 1, 2 are X, Y, Z; axes 3 .. A-1 the rotary axes (row a - 3 of rdir, pivot, rcos, rsin).
 
     Every step is a loop over the points on contiguous (M,) rows (which the compiler vectorises)."""
     K = coef.shape[3]
@@ -117,9 +117,16 @@ def _forward(n, tool_axes, wp_axes, side, px, py, pz, toolT, coef, L, sq, rdir, 
                 w0, w1, w2 = _rot2(e0[m], e1[m], e2[m], v0, v1, v2, 1.0)
                 v[0, m], v[1, m], v[2, m] = w0 + ta[0, m], w1 + ta[1, m], w2 + ta[2, m]
             continue
-        for m in range(M):
+        if keep:
+            for m in range(M):
+                v0, v1, v2 = v[0, m], v[1, m], v[2, m]
+                va[0, m], va[1, m], va[2, m] = v0, v1, v2
+                v[0, m] = v0 + (e1[m] * v2 - e2[m] * v1) + ta[0, m]
+                v[1, m] = v1 + (e2[m] * v0 - e0[m] * v2) + ta[1, m]
+                v[2, m] = v2 + (e0[m] * v1 - e1[m] * v0) + ta[2, m]
+            continue
+        for m in range(M):  # the same without what the adjoint keeps
             v0, v1, v2 = v[0, m], v[1, m], v[2, m]
-            va[0, m], va[1, m], va[2, m] = v0, v1, v2
             v[0, m] = v0 + (e1[m] * v2 - e2[m] * v1) + ta[0, m]
             v[1, m] = v1 + (e2[m] * v0 - e0[m] * v2) + ta[1, m]
             v[2, m] = v2 + (e0[m] * v1 - e1[m] * v0) + ta[2, m]
@@ -147,7 +154,9 @@ def _forward(n, tool_axes, wp_axes, side, px, py, pz, toolT, coef, L, sq, rdir, 
             v[0, m] = (u0 - (f1 * u2 - f2 * u1) + f0 * dot) / den
             v[1, m] = (u1 - (f2 * u0 - f0 * u2) + f1 * dot) / den
             v[2, m] = (u2 - (f0 * u1 - f1 * u0) + f2 * dot) / den
-            wa[0, m], wa[1, m], wa[2, m] = v[0, m], v[1, m], v[2, m]
+        if keep:
+            for m in range(M):
+                wa[0, m], wa[1, m], wa[2, m] = v[0, m], v[1, m], v[2, m]
 
 
 @_compiled
@@ -177,7 +186,7 @@ def chain_points(tool_axes, wp_axes, side, px, py, pz, tool, coef, L, sq, rdir, 
     for n in range(N):
         k = n if keep else 0
         _forward(n, tool_axes, wp_axes, side, px, py, pz, toolT, coef, L, sq, rdir, pivot, rcos, rsin, comp, t, v,
-                 vin[k], wout[k])
+                 vin[k], wout[k], keep)
         eps[k] = comp[:, 3:]
         for m in range(M):
             out[n, m, 0] = v[0, m]
@@ -566,7 +575,7 @@ def chord_stage(mode, rows, label, theta, Rs, Ts, meas, WLc, c0, inv_ps, Hinv, Q
                     sq[n, c] = th[sqi[c]] if sqi[c] >= 0 else 0.0
                 keep = mode == 3 and it == 1
                 _forward(n, tool_axes, wp_axes, side, px, py, pz, toolT, coef, L, sq, rdir, pivot, rcos, rsin, comp,
-                         t, v, vin1[0] if keep else vin_s, wout1[0] if keep else wout_s)
+                         t, v, vin1[0] if keep else vin_s, wout1[0] if keep else wout_s, keep)
                 if keep:
                     for a in range(A):
                         for c in range(3):
