@@ -1,9 +1,11 @@
 """The one-tracker identification as the engine calls it, per trial: this tree against git revision REV, in one run.
 
 Run:  python benchmarks/bench_identify_engine.py [--before REV] [--blocks 16] [--rounds 5] [--repeat 3]
+          [--config NAME]
 
 What is timed: the calls of ``identify()`` the engine makes while it runs blocks 0 .. B-1 of the built-in default
-configuration (the paper's: 75 points, 48 geometric + 6 pose parameters, every source) in one chunk (as the runner
+configuration (the paper's: 75 points, 48 geometric + 6 pose parameters, every source; ``--config``: a bundled
+example instead, e.g. ``five_axis_cafxyz``) in one chunk (as the runner
 does for long runs: 16 blocks of 64 trials): the same measured points, noise, strategies (one-phase and multi-phase,
 as the optimisation-strategy sources drew them), labels and nominal tracker pose.  Each arm records its own calls
 (the simulation is the same code in both arms, checked below: the same measured points) and replays them: CPU seconds
@@ -31,12 +33,13 @@ _CHILD = r"""
 import hashlib, json, sys, time
 import numpy as np
 from mtbudget import engine as E
-from mtbudget.config import load_config
+from mtbudget.config import bundled_config, load_config
 from mtbudget.engine import Engine
 from mtbudget.executors import one_blas_thread
 from mtbudget.scenario import build_scenario
 
 blocks, repeat = int(sys.argv[1]), int(sys.argv[2])
+config = None if sys.argv[3] == "-" else bundled_config(sys.argv[3])
 calls = []
 real = E.identify
 
@@ -45,7 +48,7 @@ def record(*a, **k):
     return real(*a, **k)
 
 with one_blas_thread():
-    eng = Engine(build_scenario(load_config(None)), block=64)
+    eng = Engine(build_scenario(load_config(config)), block=64)
     eng.run_blocks(list(range(2)))  # the plan's caches and the compiled kernels, before anything is timed
     E.identify = record
     eng.run_blocks(list(range(blocks)))
@@ -68,11 +71,11 @@ print(json.dumps({"per_trial": best / n, "trials": n, "calls": len(calls), "in":
 """
 
 
-def arm(pythonpath: str | None, blocks: int, repeat: int) -> dict:
+def arm(pythonpath: str | None, blocks: int, repeat: int, config: str | None = None) -> dict:
     env = dict(os.environ, OPENBLAS_NUM_THREADS="1")
     if pythonpath:
         env["PYTHONPATH"] = pythonpath
-    out = subprocess.run([sys.executable, "-c", _CHILD, str(blocks), str(repeat)], check=True, env=env,
+    out = subprocess.run([sys.executable, "-c", _CHILD, str(blocks), str(repeat), config or "-"], check=True, env=env,
                          capture_output=True, text=True, cwd=pythonpath or ROOT).stdout
     return json.loads(out.strip().splitlines()[-1])
 
@@ -83,6 +86,7 @@ def main():
     ap.add_argument("--blocks", type=int, default=16, help="blocks of 64 trials in the engine's chunk (default 16)")
     ap.add_argument("--rounds", type=int, default=5)
     ap.add_argument("--repeat", type=int, default=3, help="replays per round, the best counts")
+    ap.add_argument("--config", help="a bundled example instead of the built-in configuration")
     args = ap.parse_args()
     sys.path.insert(0, str(ROOT / "benchmarks"))
     from bench_engine_floor import unpacked  # noqa: E402
@@ -93,16 +97,16 @@ def main():
 
     with (unpacked(args.before) if args.before else contextlib.nullcontext()) as tmp:
         for r in range(args.rounds):
-            now.append(arm(None, args.blocks, args.repeat))
+            now.append(arm(None, args.blocks, args.repeat, args.config))
             if args.before:
-                before.append(arm(tmp, args.blocks, args.repeat))
+                before.append(arm(tmp, args.blocks, args.repeat, args.config))
             print(f"round {r + 1}: this tree {now[-1]['per_trial'] * 1e6:.1f} us/trial"
                   + (f", {args.before} {before[-1]['per_trial'] * 1e6:.1f} us/trial" if args.before else ""),
                   flush=True)
     med = lambda xs: sorted(x["per_trial"] for x in xs)[len(xs) // 2]  # noqa: E731
     x = now[0]
     print(f"\nidentify() as the engine calls it: {x['calls']} calls, {x['trials']} trials "
-          f"({args.blocks} blocks of 64), CPU per trial, median of {args.rounds} rounds (best of {args.repeat} each):")
+          f"({args.blocks} blocks of 64{', ' + args.config if args.config else ''}), CPU per trial, median of {args.rounds} rounds (best of {args.repeat} each):")
     print(f"  this tree: {med(now) * 1e6:.1f} us/trial   (digest of the results {x['out']})")
     if args.before:
         b = before[0]
