@@ -526,8 +526,8 @@ def _nominal(model, cache, Q):
 def _check_inputs(model: MeasurementModel, meas: np.ndarray, cache: dict | None = None):
     if meas.shape[-2:] != (model.n_points, 3):
         raise IdentificationError(f"measured points have shape {meas.shape[-2:]}, the plan has {model.n_points} points x 3")
-    bad = ~np.isfinite(meas).all(axis=-1)
-    if bad.any():
+    if not np.isfinite(meas).all():  # (a reduction over the whole array first: the point-wise one is 25x slower)
+        bad = ~np.isfinite(meas).all(axis=-1)
         rows = np.unique(np.nonzero(bad)[-1])[:10]
         raise IdentificationError(
             f"measured coordinates are NaN or infinite at plan rows {rows.tolist()} "
@@ -665,7 +665,9 @@ def identify(
                 _rows(fixed, sl, N), phases)
         parts.append(_identify_chunk_chord(*args, cache, iteration_pose=iteration_pose) if chord
                      else _identify_chunk(*args))
-    cat = lambda key: np.concatenate([q[key] for q in parts], axis=0)  # noqa: E731
+    # one part (the engine's call: its labels are one chunk): its arrays as they are, no copy
+    cat = (lambda key: parts[0][key]) if len(parts) == 1 else (  # noqa: E731
+        lambda key: np.concatenate([q[key] for q in parts], axis=0))
     res = Identification(
         model=model, theta=cat("theta"), pose=cat("pose"), residual=cat("residual"),
         residual_machine=cat("residual_machine"), chi2=cat("chi2"), dof=parts[0]["dof"],
@@ -951,7 +953,11 @@ def _identify_chunk_chord(model, meas, noise, strategy, theta, pose0, fixed, pha
 
     # the weighted pose-only fit of the nominal points (Eq. 27 "before"); its gradient is exact, so is its minimum
     nom = {"R": Rk.copy(), "T": pose_k[:, :3].copy(), "theta": np.zeros((N, p))}
-    kc = _chord_chain(model, fixed, N) if CHORD_KERNEL else None
+    kc = None
+    if CHORD_KERNEL:  # nothing fixed (the engine's default): the same inputs for every chunk, built once per model
+        kc = _chord_chain(model, fixed, N) if fixed else cache.get("chord_chain")
+        if kc is None:
+            kc = cache["chord_chain"] = _chord_chain(model, fixed, N)
 
     def chord(st, rows, evaluate, Hinv, J, Qs, tol_, first=None, predict=False, fixed_points=None):
         """A chord stage: compiled (:func:`_chord_compiled`) or the numpy reference (:func:`_chord`)."""
@@ -1044,10 +1050,11 @@ def _identify_chunk_chord(model, meas, noise, strategy, theta, pose0, fixed, pha
     angles = lt.euler_from_rotation(R)
     angles = angles0 + (angles - angles0 + np.pi) % (2 * np.pi) - np.pi  # the branch nearest the start
     pose = np.concatenate([T, angles], axis=1)
-    P_W = evaluate(theta, slice(None))
     Rm = lt.rotation(pose[:, 3], pose[:, 4], pose[:, 5])
-    if kc is not None:  # residuals, whitened residuals, chi2 and Eq. 27's "before" in one compiled pass
-        from .kernels import chord_final
+    if kc is not None:  # the points, then the residuals, whitened residuals, chi2 and Eq. 27's "before" in one
+        from .kernels import chord_final  # compiled pass
+
+        P_W = _chain_at(kc, theta, fixed)
 
         res, res_m, w, initial_error = (np.empty((N, M, 3)) for _ in range(4))
         chi2 = np.empty(N)
@@ -1055,6 +1062,7 @@ def _identify_chunk_chord(model, meas, noise, strategy, theta, pose0, fixed, pha
                     np.require(pose[:, :3], np.float64, _CW), np.require(P_fix, np.float64, _CW), nom["R"], nom["T"],
                     res, res_m, w, chi2, initial_error)
     else:
+        P_W = evaluate(theta, slice(None))
         res = meas - _apply_transposed(Rm, P_W - pose[:, None, :3])  # R^T (P_W - T): lt.to_tracker
         w = _apply(Wh, res)
         res_m, chi2 = _apply(Rm, res), (w**2).sum(axis=(1, 2))
@@ -1238,7 +1246,8 @@ CHORD_KERNEL = True
 def _chord_chain(model, fixed: dict, N: int) -> dict:
     """The compiled chain's inputs for a chunk of N trials with its fixed perturbations (``kernels.chord_stage``):
     :func:`mtbudget.machine.kernel_chain` plus ``toolT`` (3, M), ``gfix`` (1 or N, p) the fixed geometry and
-    ``poff`` (1 or N, M, 3) the fixed point offsets (zero when none)."""
+    ``poff`` (1 or N, M, 3) the fixed point offsets (zero when none).  Without fixed perturbations every array has
+    one row for all trials (N does not enter): the plan cache keeps them (the kernels only read them)."""
     M, p = model.n_points, model.n_params
     k = kernel_chain(model.config, model.errors, model.chain_inputs(fixed), model.B, N)
     k["toolT"] = np.ascontiguousarray(k["tool"].T)
@@ -1247,6 +1256,28 @@ def _chord_chain(model, fixed: dict, N: int) -> dict:
     po = np.asarray(fixed.get("point_offset", np.zeros((1, M, 3))), float)
     k["poff"] = np.require(po.reshape(-1, M, 3), np.float64, _CW)
     return k
+
+
+def _chain_at(kc: dict, theta: np.ndarray, fixed: dict) -> np.ndarray:
+    """``model.machine_points(theta, fixed)`` (N, M, 3), the same numbers, from the chain's inputs ``kc``
+    (:func:`_chord_chain`) instead of building them again: the fixed geometry added to theta, the coefficient table
+    filled as :func:`mtbudget.machine.chain_points` fills it, the compiled chain, the fixed point offsets added."""
+    from .kernels import chain_points
+
+    th = theta + fixed["geometry"] if "geometry" in fixed else theta
+    N, M = th.shape[0], kc["tool"].shape[0]
+    A, K = kc["L"].shape[:2]
+    coef = np.zeros((N, A * 6 * K))
+    coef[:, kc["dst"]] = th[:, kc["src"]]
+    sq = np.zeros((N, 3))
+    for c, j in enumerate(kc["sqi"]):  # columns sxy, sxz, syz
+        if j >= 0:
+            sq[:, c] = th[:, j]
+    scratch = np.empty((1, A, 3, M))  # nothing kept for the adjoint
+    out = chain_points(kc["tool_axes"], kc["wp_axes"], kc["side"], kc["px"], kc["py"], kc["pz"], kc["tool"],
+                       coef.reshape(N, A, 6, K), kc["L"], sq, kc["rdir"], kc["pivot"], kc["rcos"], kc["rsin"],
+                       np.empty((N, M, 3)), scratch, scratch, scratch)
+    return out + fixed["point_offset"] if "point_offset" in fixed else out
 
 
 #: stage 2 of the compiled chord: each trial's J^T v from its own forward pass at the stage's start

@@ -52,11 +52,11 @@ def _rot2(f0, f1, f2, u0, u1, u2, sgn):  # pragma: no cover - compiled
 
 @_compiled
 def _forward(n, tool_axes, wp_axes, side, px, py, pz, toolT, coef, L, sq, rdir, pivot, rcos, rsin, comp, t, v, vin,
-             wout):  # pragma: no cover
+             wout, keep):  # pragma: no cover
     """Trial n of the small-angle chain: its points into ``v`` (3, M), each axis' component errors into
     ``comp`` (A, 6, M) and translations into ``t`` (A, 3, M); what enters each tool-side axis' error motion into
     ``vin`` (A, 3, M) and what leaves each workpiece-side axis' error motion into ``wout`` (A, 3, M) (for the
-    adjoint).  Axes 0, 1, 2 are X, Y, Z; axes 3 .. A-1 the rotary axes (row a - 3 of rdir, pivot, rcos, rsin).
+    adjoint; a linear axis writes them only when ``keep``).  Axes 0, 1, 2 are X, Y, Z; axes 3 .. A-1 the rotary axes (row a - 3 of rdir, pivot, rcos, rsin).
 
     Every step is a loop over the points on contiguous (M,) rows (which the compiler vectorises)."""
     K = coef.shape[3]
@@ -64,15 +64,23 @@ def _forward(n, tool_axes, wp_axes, side, px, py, pz, toolT, coef, L, sq, rdir, 
     A = coef.shape[1]
     pos = (px[n if px.shape[0] > 1 else 0], py[n if py.shape[0] > 1 else 0], pz[n if pz.shape[0] > 1 else 0])
     for a in range(A):
+        La = L[a]
         for c in range(6):
             row = comp[a, c]
-            c0 = coef[n, a, c, 0]
-            for m in range(M):
-                row[m] = c0 * L[a, 0, m]
-            for k in range(1, K):
-                ck = coef[n, a, c, k]
+            cf = coef[n, a, c]
+            if K == 3:  # the usual orders (constant, linear, quadratic): one pass, the same sum in the same order
+                k0, k1, k2 = cf[0], cf[1], cf[2]
+                l0, l1, l2 = La[0], La[1], La[2]
                 for m in range(M):
-                    row[m] += ck * L[a, k, m]
+                    row[m] = k0 * l0[m] + k1 * l1[m] + k2 * l2[m]
+                continue
+            k0, l0 = cf[0], La[0]
+            for m in range(M):
+                row[m] = k0 * l0[m]
+            for k in range(1, K):
+                ck, lk = cf[k], La[k]
+                for m in range(M):
+                    row[m] += ck * lk[m]
     # commanded displacement with squareness (Eq. 7-9, 16-17), then the carriage's own errors
     sxy, sxz, syz = sq[n, 0], sq[n, 1], sq[n, 2]
     for m in range(M):
@@ -109,9 +117,16 @@ def _forward(n, tool_axes, wp_axes, side, px, py, pz, toolT, coef, L, sq, rdir, 
                 w0, w1, w2 = _rot2(e0[m], e1[m], e2[m], v0, v1, v2, 1.0)
                 v[0, m], v[1, m], v[2, m] = w0 + ta[0, m], w1 + ta[1, m], w2 + ta[2, m]
             continue
-        for m in range(M):
+        if keep:
+            for m in range(M):
+                v0, v1, v2 = v[0, m], v[1, m], v[2, m]
+                va[0, m], va[1, m], va[2, m] = v0, v1, v2
+                v[0, m] = v0 + (e1[m] * v2 - e2[m] * v1) + ta[0, m]
+                v[1, m] = v1 + (e2[m] * v0 - e0[m] * v2) + ta[1, m]
+                v[2, m] = v2 + (e0[m] * v1 - e1[m] * v0) + ta[2, m]
+            continue
+        for m in range(M):  # the same without what the adjoint keeps
             v0, v1, v2 = v[0, m], v[1, m], v[2, m]
-            va[0, m], va[1, m], va[2, m] = v0, v1, v2
             v[0, m] = v0 + (e1[m] * v2 - e2[m] * v1) + ta[0, m]
             v[1, m] = v1 + (e2[m] * v0 - e0[m] * v2) + ta[1, m]
             v[2, m] = v2 + (e0[m] * v1 - e1[m] * v0) + ta[2, m]
@@ -139,7 +154,9 @@ def _forward(n, tool_axes, wp_axes, side, px, py, pz, toolT, coef, L, sq, rdir, 
             v[0, m] = (u0 - (f1 * u2 - f2 * u1) + f0 * dot) / den
             v[1, m] = (u1 - (f2 * u0 - f0 * u2) + f1 * dot) / den
             v[2, m] = (u2 - (f0 * u1 - f1 * u0) + f2 * dot) / den
-            wa[0, m], wa[1, m], wa[2, m] = v[0, m], v[1, m], v[2, m]
+        if keep:
+            for m in range(M):
+                wa[0, m], wa[1, m], wa[2, m] = v[0, m], v[1, m], v[2, m]
 
 
 @_compiled
@@ -169,7 +186,7 @@ def chain_points(tool_axes, wp_axes, side, px, py, pz, tool, coef, L, sq, rdir, 
     for n in range(N):
         k = n if keep else 0
         _forward(n, tool_axes, wp_axes, side, px, py, pz, toolT, coef, L, sq, rdir, pivot, rcos, rsin, comp, t, v,
-                 vin[k], wout[k])
+                 vin[k], wout[k], keep)
         eps[k] = comp[:, 3:]
         for m in range(M):
             out[n, m, 0] = v[0, m]
@@ -296,46 +313,73 @@ def _vjp_row(n, tool_order, wp_axes, side, px, py, pz, rdir, rcos, rsin, eps, vi
             for m in range(M):
                 pm = -pa[m]
                 h[a, 2, 0, m], h[a, 2, 1, m], h[a, 2, 2, m] = ga[0, m] * pm, ga[1, m] * pm, ga[2, m] * pm
-    for j in range(params.shape[0]):
+    # each parameter's sum over the points, in the points' order; four parameters at once (four independent sums
+    # in flight instead of one chain of additions)
+    n_p = params.shape[0]
+    j = 0
+    while j + 4 <= n_p:
+        h0 = h[params[j, 0], params[j, 1], params[j, 2]]
+        h1 = h[params[j + 1, 0], params[j + 1, 1], params[j + 1, 2]]
+        h2 = h[params[j + 2, 0], params[j + 2, 1], params[j + 2, 2]]
+        h3 = h[params[j + 3, 0], params[j + 3, 1], params[j + 3, 2]]
+        b0, b1, b2, b3 = basis[j], basis[j + 1], basis[j + 2], basis[j + 3]
+        a0 = a1 = a2 = a3 = 0.0
+        for m in range(M):
+            a0 += h0[m] * b0[m]
+            a1 += h1[m] * b1[m]
+            a2 += h2[m] * b2[m]
+            a3 += h3[m] * b3[m]
+        out[j], out[j + 1], out[j + 2], out[j + 3] = a0, a1, a2, a3
+        j += 4
+    while j < n_p:
         hr, br = h[params[j, 0], params[j, 1], params[j, 2]], basis[j]
         acc = 0.0
         for m in range(M):
             acc += hr[m] * br[m]
         out[j] = acc
+        j += 1
 
 
 @_compiled
 def _residual_row(P, x, WLc, i, Rn, t0, t1, t2, c0, vout, G, r, u):  # pragma: no cover - compiled
-    """One trial of :func:`chord_residual`: machine points P (M, 3), measured x (M, 3), information matrices
-    ``WLc[:, :, i]``, pose Rn (3, 3), (t0, t1, t2); the machine-frame weighted residual into vout (M, 3), the rigid
-    gradient (unscaled) into G[:6]; returns the cost.  r, u: (3, M) scratch."""
-    M = P.shape[0]
+    """One trial of :func:`chord_residual`: machine points P (3, M) and measured x (3, M) (component-major: each
+    pass below runs on contiguous rows), information matrices ``WLc[:, :, i]``, pose Rn (3, 3), (t0, t1, t2); the
+    machine-frame weighted residual into vout (M, 3), the rigid gradient (unscaled) into G[:6]; returns the cost.
+    r, u: (3, M) scratch."""
+    M = P.shape[1]
+    P0, P1, P2, x0, x1, x2 = P[0], P[1], P[2], x[0], x[1], x[2]
+    r0, r1, r2 = r[0], r[1], r[2]
+    a00, a01, a02 = Rn[0, 0], Rn[0, 1], Rn[0, 2]
+    a10, a11, a12 = Rn[1, 0], Rn[1, 1], Rn[1, 2]
+    a20, a21, a22 = Rn[2, 0], Rn[2, 1], Rn[2, 2]
     for m in range(M):  # r = x - (P - T) R
-        d0, d1, d2 = P[m, 0] - t0, P[m, 1] - t1, P[m, 2] - t2
-        r[0, m] = x[m, 0] - (d0 * Rn[0, 0] + d1 * Rn[1, 0] + d2 * Rn[2, 0])
-        r[1, m] = x[m, 1] - (d0 * Rn[0, 1] + d1 * Rn[1, 1] + d2 * Rn[2, 1])
-        r[2, m] = x[m, 2] - (d0 * Rn[0, 2] + d1 * Rn[1, 2] + d2 * Rn[2, 2])
+        d0, d1, d2 = P0[m] - t0, P1[m] - t1, P2[m] - t2
+        r0[m] = x0[m] - (d0 * a00 + d1 * a10 + d2 * a20)
+        r1[m] = x1[m] - (d0 * a01 + d1 * a11 + d2 * a21)
+        r2[m] = x2[m] - (d0 * a02 + d1 * a12 + d2 * a22)
     for a in range(3):  # u = C^-1 r, each point's information matrix (symmetric)
         w0, w1, w2 = WLc[a, 0, i], WLc[a, 1, i], WLc[a, 2, i]
         ua = u[a]
         for m in range(M):
-            ua[m] = w0[m] * r[0, m] + w1[m] * r[1, m] + w2[m] * r[2, m]
+            ua[m] = w0[m] * r0[m] + w1[m] * r1[m] + w2[m] * r2[m]
+    u0s, u1s, u2s = u[0], u[1], u[2]
+    e0, e1, e2 = c0[0], c0[1], c0[2]
     c = 0.0
     g0 = g1 = g2 = 0.0
     s01 = s10 = s02 = s20 = s12 = s21 = 0.0
     for m in range(M):
-        u0, u1, u2 = u[0, m], u[1, m], u[2, m]
-        c += r[0, m] * u0 + r[1, m] * u1 + r[2, m] * u2
-        v0 = Rn[0, 0] * u0 + Rn[0, 1] * u1 + Rn[0, 2] * u2
-        v1 = Rn[1, 0] * u0 + Rn[1, 1] * u1 + Rn[1, 2] * u2
-        v2 = Rn[2, 0] * u0 + Rn[2, 1] * u1 + Rn[2, 2] * u2
+        u0, u1, u2 = u0s[m], u1s[m], u2s[m]
+        c += r0[m] * u0 + r1[m] * u1 + r2[m] * u2
+        v0 = a00 * u0 + a01 * u1 + a02 * u2
+        v1 = a10 * u0 + a11 * u1 + a12 * u2
+        v2 = a20 * u0 + a21 * u1 + a22 * u2
         vout[m, 0] = v0
         vout[m, 1] = v1
         vout[m, 2] = v2
         g0 += v0
         g1 += v1
         g2 += v2
-        q0, q1, q2 = P[m, 0] - c0[0], P[m, 1] - c0[1], P[m, 2] - c0[2]
+        q0, q1, q2 = P0[m] - e0, P1[m] - e1, P2[m] - e2
         s12 += q1 * v2
         s21 += q2 * v1
         s20 += q2 * v0
@@ -352,6 +396,13 @@ def _residual_row(P, x, WLc, i, Rn, t0, t1, t2, c0, vout, G, r, u):  # pragma: n
 
 
 @_compiled
+def _transpose_into(a, out):  # pragma: no cover - compiled
+    """out (3, M) = a (M, 3) transposed (an exact copy)."""
+    for m in range(a.shape[0]):
+        out[0, m], out[1, m], out[2, m] = a[m, 0], a[m, 1], a[m, 2]
+
+
+@_compiled
 def chord_residual(P, meas, WL, idx, R, T, c0, v, G, cost):  # pragma: no cover - compiled
     """A chord iteration's weighted residual and rigid gradient, trial by trial (``identify._chord``).
 
@@ -364,9 +415,12 @@ def chord_residual(P, meas, WL, idx, R, T, c0, v, G, cost):  # pragma: no cover 
     n_rows, M = P.shape[0], P.shape[1]
     r = np.empty((3, M))
     u = np.empty((3, M))
+    P3, x3 = np.empty((3, M)), np.empty((3, M))
     for n in range(n_rows):
         i = idx[n]
-        cost[n] = _residual_row(P[n], meas[i], WL, i, R[n], T[n, 0], T[n, 1], T[n, 2], c0, v[n], G[n], r, u)
+        _transpose_into(P[n], P3)
+        _transpose_into(meas[i], x3)
+        cost[n] = _residual_row(P3, x3, WL, i, R[n], T[n, 0], T[n, 1], T[n, 2], c0, v[n], G[n], r, u)
 
 
 @_compiled
@@ -389,12 +443,49 @@ def rodrigues(o0, o1, o2, Rot):  # pragma: no cover - compiled
 @_compiled
 def _minus_vecmat(x, A, out):  # pragma: no cover - compiled
     """out = -(x A) for a vector x (n,) and a matrix A (n, k), as a sum of A's rows (contiguous: vectorised)."""
+    n, k = x.shape[0], out.shape[0]
     out[:] = 0.0
-    for i in range(x.shape[0]):
-        xi = x[i]
-        row = A[i]
-        for j in range(out.shape[0]):
+    i = 0
+    while i + 4 <= n:  # four rows per pass over out (fewer loads and stores of it; each column's sum in row order)
+        x0, x1, x2, x3 = x[i], x[i + 1], x[i + 2], x[i + 3]
+        r0, r1, r2, r3 = A[i], A[i + 1], A[i + 2], A[i + 3]
+        for j in range(k):
+            out[j] = (((out[j] - x0 * r0[j]) - x1 * r1[j]) - x2 * r2[j]) - x3 * r3[j]
+        i += 4
+    while i < n:
+        xi, row = x[i], A[i]
+        for j in range(k):
             out[j] -= xi * row[j]
+        i += 1
+
+
+@_compiled
+def _all_zero(x):  # pragma: no cover - compiled
+    """Whether every entry of x is zero (either sign)."""
+    for k in range(x.shape[0]):
+        if x[k] != 0.0:
+            return False
+    return True
+
+
+@_compiled
+def _vecmat(x, A, out):  # pragma: no cover - compiled
+    """out = x A for a vector x (n,) and a matrix A (n, k): :func:`_minus_vecmat`'s sums with the other sign (each
+    column's sum from 0 in the order of the rows, four rows per pass over out)."""
+    n, k = x.shape[0], out.shape[0]
+    out[:] = 0.0
+    i = 0
+    while i + 4 <= n:
+        x0, x1, x2, x3 = x[i], x[i + 1], x[i + 2], x[i + 3]
+        r0, r1, r2, r3 = A[i], A[i + 1], A[i + 2], A[i + 3]
+        for j in range(k):
+            out[j] = (((out[j] + x0 * r0[j]) + x1 * r1[j]) + x2 * r2[j]) + x3 * r3[j]
+        i += 4
+    while i < n:
+        xi, row = x[i], A[i]
+        for j in range(k):
+            out[j] += xi * row[j]
+        i += 1
 
 
 @_compiled
@@ -428,7 +519,17 @@ def chord_stage(mode, rows, label, theta, Rs, Ts, meas, WLc, c0, inv_ps, Hinv, Q
     eps1, vin1, wout1 = np.empty((1, A, 3, M)), np.empty((1, A, 3, M)), np.empty((1, A, 3, M))  # mode 3: kept
     g, gd, h = np.zeros((A, 3, M)), np.zeros((A, 3, M)), np.zeros((A, 3, 3, M))
     r, u, u2 = np.empty((3, M)), np.empty((3, M)), np.empty((3, M))
-    P = np.empty((M, 3))
+    P3, x3, po3 = np.empty((3, M)), np.empty((3, M)), np.empty((3, M))  # component-major (_residual_row)
+    if mode == 0 and Pfix.shape[0] == 1:  # the fixed points of every trial, once
+        _transpose_into(Pfix[0], P3)
+    if poff.shape[0] == 1:
+        _transpose_into(poff[0], po3)
+    # the pose alone from theta = 0 (a multi-phase identification's first phase) with inputs shared by every trial:
+    # the chain's points are the same for each such trial, evaluated once
+    zero_shared = (mode == 1 and nr == 0 and gfix.shape[0] == 1 and poff.shape[0] == 1 and px.shape[0] == 1
+                   and py.shape[0] == 1 and pz.shape[0] == 1 and rcos.shape[1] <= 1 and rsin.shape[1] <= 1)
+    P3_zero = np.empty((3, M))
+    have_zero = False
     vout = np.empty((M, 3))
     G = np.empty(b)
     z = np.empty(b)
@@ -442,6 +543,9 @@ def chord_stage(mode, rows, label, theta, Rs, Ts, meas, WLc, c0, inv_ps, Hinv, Q
     for q in range(rows.shape[0]):
         n = rows[q]
         Hk = Hinv[label[n]]
+        _transpose_into(meas[n], x3)
+        if poff.shape[0] > 1:
+            _transpose_into(poff[n], po3)
         for i in range(3):
             for j in range(3):
                 Rn[i, j] = Rs[n, i, j]
@@ -451,12 +555,15 @@ def chord_stage(mode, rows, label, theta, Rs, Ts, meas, WLc, c0, inv_ps, Hinv, Q
         for it in range(1, chord_iter + 1):
             its = it
             if mode == 0:
-                Pn = Pfix[n if Pfix.shape[0] > 1 else 0]
-                for m in range(M):
-                    P[m, 0], P[m, 1], P[m, 2] = Pn[m, 0], Pn[m, 1], Pn[m, 2]
+                if Pfix.shape[0] > 1 and it == 1:
+                    _transpose_into(Pfix[n], P3)
             elif it == 1 and first.shape[0] > 0:
-                for m in range(M):
-                    P[m, 0], P[m, 1], P[m, 2] = first[q, m, 0], first[q, m, 1], first[q, m, 2]
+                _transpose_into(first[q], P3)
+            elif mode == 1 and nr == 0 and it > 1:
+                pass  # the pose alone (a multi-phase identification's first phase): theta, so the points, unchanged
+            elif zero_shared and it == 1 and have_zero and _all_zero(theta[n]):
+                for i in range(3):  # the chain at theta = 0 with shared inputs: the same points for every trial
+                    P3[i, :] = P3_zero[i]
             else:  # the chain at theta[n] (+ the fixed inputs)
                 gf = gfix[n if gfix.shape[0] > 1 else 0]
                 for k in range(p):
@@ -468,16 +575,20 @@ def chord_stage(mode, rows, label, theta, Rs, Ts, meas, WLc, c0, inv_ps, Hinv, Q
                     sq[n, c] = th[sqi[c]] if sqi[c] >= 0 else 0.0
                 keep = mode == 3 and it == 1
                 _forward(n, tool_axes, wp_axes, side, px, py, pz, toolT, coef, L, sq, rdir, pivot, rcos, rsin, comp,
-                         t, v, vin1[0] if keep else vin_s, wout1[0] if keep else wout_s)
+                         t, v, vin1[0] if keep else vin_s, wout1[0] if keep else wout_s, keep)
                 if keep:
                     for a in range(A):
                         for c in range(3):
                             for m in range(M):
                                 eps1[0, a, c, m] = comp[a, 3 + c, m]
-                po = poff[n if poff.shape[0] > 1 else 0]
-                for m in range(M):
-                    P[m, 0], P[m, 1], P[m, 2] = v[0, m] + po[m, 0], v[1, m] + po[m, 1], v[2, m] + po[m, 2]
-            cost = _residual_row(P, meas[n], WLc, n, Rn, t0, t1, t2, c0, vout, G, r, u)
+                for i in range(3):
+                    vi, pi, Pi = v[i], po3[i], P3[i]
+                    for m in range(M):
+                        Pi[m] = vi[m] + pi[m]
+                if zero_shared and it == 1 and not have_zero and _all_zero(theta[n]):
+                    P3_zero[:, :] = P3
+                    have_zero = True
+            cost = _residual_row(P3, x3, WLc, n, Rn, t0, t1, t2, c0, vout, G, r, u)
             for j in range(6):
                 G[j] *= inv_ps[j]
             if mode == 1 or mode == 2:  # the geometric gradient -(v J) along the directions
@@ -513,12 +624,7 @@ def chord_stage(mode, rows, label, theta, Rs, Ts, meas, WLc, c0, inv_ps, Hinv, Q
                 for j in range(3):
                     Rn[i, j] = Rs[n, i, j]
             if mode > 0:
-                dth[:] = 0.0
-                for j in range(nr):
-                    x = z[6 + j]
-                    row = QsT[j]
-                    for k in range(p):
-                        dth[k] += x * row[k]
+                _vecmat(z[6:], QsT, dth)
                 for k in range(p):
                     theta[n, k] += dth[k]
             rate = energy / prev if np.isfinite(prev) else np.inf
@@ -543,13 +649,22 @@ def point_weights(P, angular, distance, distance_per_length, repeatability, Wh, 
     (``MeasurementModel.covariance``), its inverse Cholesky factor ``Wh[n, m]`` (``identify.whitener``'s closed
     form) and ``WLc[:, :, n, m]`` = Wh^T Wh = C^-1 (``identify._gram33``, component-major).  P (N, M, 3), scalar
     noise.  Returns False where a covariance is not positive definite (nothing is then to be trusted: the caller
-    takes numpy's path, which says so)."""
+    takes numpy's path, which says so).
+
+    A trial's points are computed on contiguous (M,) rows (the compiler vectorises the square roots and divisions),
+    then scattered into the (M, 3, 3) whiteners: the same operations in the same order as point by point."""
     N, M = P.shape[0], P.shape[1]
     rep2 = repeatability * repeatability
     good = True
+    xs, ys, zs = np.empty(M), np.empty(M), np.empty(M)
+    Wt = np.empty((6, M))  # the whitener's lower triangle, row by row
     for n in range(N):
         for m in range(M):
-            x, y, z = P[n, m, 0], P[n, m, 1], P[n, m, 2]
+            xs[m], ys[m], zs[m] = P[n, m, 0], P[n, m, 1], P[n, m, 2]
+        w00, w10, w11, w20, w21, w22 = Wt[0], Wt[1], Wt[2], Wt[3], Wt[4], Wt[5]
+        q00, q01, q02, q11, q12, q22 = WLc[0, 0, n], WLc[0, 1, n], WLc[0, 2, n], WLc[1, 1, n], WLc[1, 2, n], WLc[2, 2, n]
+        for m in range(M):
+            x, y, z = xs[m], ys[m], zs[m]
             rho = np.sqrt(x * x + y * y)  # hypot's overflow guard is not needed at a tracker's ranges (mm)
             r = np.sqrt(rho * rho + z * z)
             ca = x / rho if rho > 0 else 1.0
@@ -558,8 +673,9 @@ def point_weights(P, angular, distance, distance_per_length, repeatability, Wh, 
             se = z / r if r > 0 else 0.0
             ur = distance + distance_per_length * r
             A = ur * ur
-            Bv = (angular * rho) ** 2
-            Cv = (angular * r) ** 2
+            arho, ar = angular * rho, angular * r
+            Bv = arho * arho
+            Cv = ar * ar
             rx, ry = ce * ca, ce * sa
             ex, ey = se * ca, se * sa
             c00 = A * rx * rx + Bv * sa * sa + Cv * ex * ex + rep2
@@ -574,21 +690,29 @@ def point_weights(P, angular, distance, distance_per_length, repeatability, Wh, 
             l21 = (c21 - l20 * l10) / l11
             l22 = np.sqrt(c22 - l20 * l20 - l21 * l21)
             i00, i11, i22 = 1.0 / l00, 1.0 / l11, 1.0 / l22
-            w10 = -l10 * i00 * i11
-            w21 = -l21 * i11 * i22
-            w20 = (l10 * l21 - l20 * l11) * i00 * i11 * i22
-            if not (np.isfinite(i00) and np.isfinite(i11) and np.isfinite(i22) and np.isfinite(w10)
-                    and np.isfinite(w21) and np.isfinite(w20)):
+            a10 = -l10 * i00 * i11
+            a21 = -l21 * i11 * i22
+            a20 = (l10 * l21 - l20 * l11) * i00 * i11 * i22
+            w00[m], w10[m], w11[m], w20[m], w21[m], w22[m] = i00, a10, i11, a20, a21, i22
+            # Wh^T Wh, (i, j) = sum_k Wh[k, i] Wh[k, j] over k = 0, 1, 2 (the zeros of the triangle included)
+            q00[m] = i00 * i00 + a10 * a10 + a20 * a20
+            q01[m] = i00 * 0.0 + a10 * i11 + a20 * a21
+            q02[m] = i00 * 0.0 + a10 * 0.0 + a20 * i22
+            q11[m] = 0.0 * 0.0 + i11 * i11 + a21 * a21
+            q12[m] = 0.0 * 0.0 + i11 * 0.0 + a21 * i22
+            q22[m] = 0.0 * 0.0 + 0.0 * 0.0 + i22 * i22
+        for m in range(M):
+            a, b, c, d, e, f = w00[m], w10[m], w11[m], w20[m], w21[m], w22[m]
+            if not (np.isfinite(a) and np.isfinite(c) and np.isfinite(f) and np.isfinite(b) and np.isfinite(e)
+                    and np.isfinite(d)):
                 good = False
             W = Wh[n, m]
-            W[0, 0], W[0, 1], W[0, 2] = i00, 0.0, 0.0
-            W[1, 0], W[1, 1], W[1, 2] = w10, i11, 0.0
-            W[2, 0], W[2, 1], W[2, 2] = w20, w21, i22
-            for i in range(3):
-                for j in range(i, 3):
-                    v = W[0, i] * W[0, j] + W[1, i] * W[1, j] + W[2, i] * W[2, j]
-                    WLc[i, j, n, m] = v
-                    WLc[j, i, n, m] = v
+            W[0, 0], W[0, 1], W[0, 2] = a, 0.0, 0.0
+            W[1, 0], W[1, 1], W[1, 2] = b, c, 0.0
+            W[2, 0], W[2, 1], W[2, 2] = d, e, f
+            WLc[1, 0, n, m] = q01[m]
+            WLc[2, 0, n, m] = q02[m]
+            WLc[2, 1, n, m] = q12[m]
     return good
 
 

@@ -137,3 +137,33 @@ def test_the_points_at_the_solution_are_the_chain_at_theta(rng):
     assert identify(model, meas[:2], NOISE, Strategy(solver="gauss-newton")).points is None
     fixed = {"point_offset": np.full((1, model.n_points, 3), 1e-3)}
     assert identify(model, meas[:2], NOISE, Strategy(), fixed=fixed).points is None
+
+
+def test_the_points_at_the_solution_are_machine_points_bit_for_bit(rng):
+    """identify._chain_at (the chord's points at its solution, from the stages' chain inputs) gives
+    model.machine_points(theta, fixed) exactly: without fixed inputs, and with a scale, a geometry offset and point
+    offsets given per trial or shared."""
+    model, _ = simulate(paper_plan(), 1, rng)
+    M, p, N = model.n_points, model.n_params, 6
+    theta = rng.normal(0, 1e-3, (N, p)) * np.where(np.array(model.errors.units) == "mm", 1.0, 1e-3)
+    for fixed in ({}, {"axis_scale.x": np.full((1, M), 12e-6), "point_offset": rng.normal(0, 2e-3, (N, M, 3)),
+                       "geometry": rng.normal(0, 1e-4, (N, p)) * (np.array(model.errors.units) == "mm")},
+                  {"axis_offset.y": rng.normal(0, 1e-3, (N, M)), "point_offset": np.full((1, M, 3), 1e-3)}):
+        got = identify_module._chain_at(identify_module._chord_chain(model, fixed, N), theta, fixed)
+        np.testing.assert_array_equal(got, model.machine_points(theta, fixed))
+
+
+def test_the_kept_chain_inputs_are_not_changed_by_identifying(rng):
+    """The chain inputs of an unperturbed chunk are kept per model (the plan cache) and shared by every later call,
+    whatever its number of trials: identifying must leave them as a fresh build makes them, and a chunk identified
+    after others gets the numbers it gets first."""
+    model, meas = simulate(paper_plan(), 6, rng)
+    first = identify(model, meas[:2], NOISE, Strategy.multi_phase(), iteration_pose=POSE)
+    identify(model, meas, NOISE, Strategy(), iteration_pose=POSE)
+    kept = identify_module._plan_cache(model)["chord_chain"]
+    fresh = identify_module._chord_chain(model, {}, 6)
+    for key, value in fresh.items():
+        np.testing.assert_array_equal(kept[key], value, err_msg=key)
+    again = identify(model, meas[:2], NOISE, Strategy.multi_phase(), iteration_pose=POSE)
+    for key in ("theta", "pose", "residual", "chi2"):
+        np.testing.assert_array_equal(getattr(again, key), getattr(first, key), err_msg=key)
