@@ -237,7 +237,10 @@ def main():
                     "'--executor inline' (the default executor, auto, runs the longer run on threads: more CPU, less "
                     "wall time)")
     ap.add_argument("--before", metavar="REV", help="command: also the git revision REV (its mtbudget and plugins "
-                    "unpacked into a temporary directory), alternating with this tree in every round")
+                    "unpacked into a temporary directory), alternating with this tree in every round, with "
+                    "--before-args")
+    ap.add_argument("--before-args", default=None, help="command: the options of REV's `mtbudget run` (default: "
+                    "--command-args; a revision before --executor existed needs '')")
     ap.add_argument("--executors", default="inline,process,thread", help="the executors arm's executors")
     ap.add_argument("--workers", type=int, default=2, help="workers of the process and thread executors")
     ap.add_argument("--exec-long", type=int, default=20000, help="the executors arm's longer run (trials)")
@@ -272,7 +275,8 @@ def measure(args, what, paper):
                 ratios.append(c / f)
                 extra = ""
                 if args.before:
-                    cb = slope(paper, args.short, args.long, before=True)  # its default: inline
+                    bargs = args.command_args if args.before_args is None else args.before_args
+                    cb = slope(paper, args.short, args.long, *bargs.split(), before=True)  # the same settings
                     before.append(cb / f)
                     extra = f"; {args.before}: {cb * 1e3:.4f} ms, {cb / f:.1f}x (this tree {cb / c:.2f}x faster)"
                 print(f"command round {r + 1} ({load()}): mtbudget run {c * 1e3:.4f} ms CPU/trial "
