@@ -30,8 +30,9 @@ EXECUTORS = ("auto", "inline", "thread", "process", "dask")
 #: uses them with, and at most how many workers (default: the cores, up to this); below, on one core, or with a
 #: source registered in code, it runs inline.  Chosen by measurement (docs/performance.md, "Executors on two
 #: cores"): with the compiled chord, two threads run the engine 1.45-1.5x as fast as one on two idle cores (two
-#: processes 1.7x), and 10^6 trials with the budget in 73 s within 300 MB, where two processes took 83 s and
-#: 547 MB (368 MB PSS); threads leave no worker behind when a run is killed.  Each thread adds its engine's
+#: processes 1.7x), and 10^6 trials with the budget in 55 s within 300 MB (2026-11-26; 73 s before the identification,
+#: the simulation and the merge were made cheaper), where two processes took 58 s and 557 MB (378 MB PSS);
+#: threads leave no worker behind when a run is killed.  Each thread adds its engine's
 #: working set (about 35 MB) and the GIL limits how many help: not measured beyond two cores, hence the cap.
 AUTO_MIN_TRIALS = 20_000
 AUTO_PARALLEL = "thread"
