@@ -196,6 +196,25 @@ def gil_share(args, path: str | None) -> tuple[int, int]:
     return counts[0], counts[1]
 
 
+
+def _alternate(args, before, name: str, value, unit: str, text) -> None:
+    """``--rounds`` rounds of the arm ``name``: this tree, then (``--before``) the revision before, alternated; each
+    round's line is ``text(this tree's result, the revision's or None)``, then the medians of ``value`` and of the
+    ratios (the revision's over this tree's)."""
+    ours, theirs, ratios = [], [], []
+    for r in range(args.rounds):
+        a = arm(name, args, None)
+        ours.append(value(a))
+        b = None
+        if before:
+            b = arm(name, args, before)
+            theirs.append(value(b))
+            ratios.append(value(b) / value(a))
+        print(f"{name} round {r + 1} ({load()}): " + text(a, b), flush=True)
+    print(f"{name}: median this tree {statistics.median(ours):.2f} {unit}"
+          + (f", {args.before} {statistics.median(theirs):.2f} {unit}, median ratio {statistics.median(ratios):.2f}x"
+             if before else ""), flush=True)
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--what", default="simulate,fixed,in-run,threads,parts")  # gil: asked for by name
@@ -219,53 +238,23 @@ def main():
             from bench_engine_floor import unpacked  # noqa: PLC0415
 
             before = stack.enter_context(unpacked(args.before))
+        B = args.before
         if "simulate" in what:
-            ratios, ours, theirs = [], [], []
-            for r in range(args.rounds):
-                a = arm("simulate", args, None)["cpu_us_per_trial"]
-                ours.append(a)
-                line = f"simulate round {r + 1} ({load()}): this tree {a:.2f} us/trial CPU"
-                if before:
-                    b = arm("simulate", args, before)["cpu_us_per_trial"]
-                    theirs.append(b)
-                    ratios.append(b / a)
-                    line += f", {args.before} {b:.2f} us/trial: {b / a:.2f}x faster"
-                print(line, flush=True)
-            print(f"simulate: median this tree {statistics.median(ours):.2f} us/trial"
-                  + (f", {args.before} {statistics.median(theirs):.2f} us/trial, median ratio "
-                     f"{statistics.median(ratios):.2f}x" if before else ""), flush=True)
+            _alternate(args, before, "simulate", lambda a: a["cpu_us_per_trial"], "us/trial",
+                       lambda a, b: f"this tree {a['cpu_us_per_trial']:.2f} us/trial CPU" + (
+                           f", {B} {b['cpu_us_per_trial']:.2f} us/trial: "
+                           f"{b['cpu_us_per_trial'] / a['cpu_us_per_trial']:.2f}x faster" if b else ""))
         if "fixed" in what:
-            ratios, ours, theirs = [], [], []
-            for r in range(args.rounds):
-                a = arm("fixed", args, None)["cpu_us_per_block"]
-                ours.append(a)
-                line = f"fixed round {r + 1} ({load()}): this tree {a:.1f} us per block of one trial CPU"
-                if before:
-                    b = arm("fixed", args, before)["cpu_us_per_block"]
-                    theirs.append(b)
-                    ratios.append(b / a)
-                    line += f", {args.before} {b:.1f} us: {b / a:.2f}x less"
-                print(line, flush=True)
-            print(f"fixed: median this tree {statistics.median(ours):.1f} us per block"
-                  + (f", {args.before} {statistics.median(theirs):.1f} us, median ratio "
-                     f"{statistics.median(ratios):.2f}x" if before else ""), flush=True)
+            _alternate(args, before, "fixed", lambda a: a["cpu_us_per_block"], "us per block",
+                       lambda a, b: f"this tree {a['cpu_us_per_block']:.1f} us per block of one trial CPU" + (
+                           f", {B} {b['cpu_us_per_block']:.1f} us: "
+                           f"{b['cpu_us_per_block'] / a['cpu_us_per_block']:.2f}x less" if b else ""))
         if "in-run" in what:
-            ratios, ours, theirs = [], [], []
-            for r in range(args.rounds):
-                a = arm("in-run", args, None)
-                ours.append(a["simulate_us_per_trial"])
-                line = (f"in-run round {r + 1} ({load()}): this tree simulate {a['simulate_us_per_trial']:.2f} us/trial "
-                        f"CPU (the run {a['run_us_per_trial']:.1f})")
-                if before:
-                    b = arm("in-run", args, before)
-                    theirs.append(b["simulate_us_per_trial"])
-                    ratios.append(b["simulate_us_per_trial"] / a["simulate_us_per_trial"])
-                    line += (f", {args.before} {b['simulate_us_per_trial']:.2f} (the run {b['run_us_per_trial']:.1f}): "
-                             f"{ratios[-1]:.2f}x faster")
-                print(line, flush=True)
-            print(f"in-run: median this tree {statistics.median(ours):.2f} us/trial"
-                  + (f", {args.before} {statistics.median(theirs):.2f}, median ratio {statistics.median(ratios):.2f}x"
-                     if before else ""), flush=True)
+            _alternate(args, before, "in-run", lambda a: a["simulate_us_per_trial"], "us/trial",
+                       lambda a, b: f"this tree simulate {a['simulate_us_per_trial']:.2f} us/trial CPU (the run "
+                                    f"{a['run_us_per_trial']:.1f})" + (
+                           f", {B} {b['simulate_us_per_trial']:.2f} (the run {b['run_us_per_trial']:.1f}): "
+                           f"{b['simulate_us_per_trial'] / a['simulate_us_per_trial']:.2f}x faster" if b else ""))
         if "threads" in what:
             ours, theirs = [], []
             for r in range(args.rounds):

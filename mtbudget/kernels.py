@@ -19,7 +19,7 @@ import numpy as np
 from numba import njit
 
 
-def _compiled(f):
+def compiled(f):
     """numba's ``njit`` (no Python objects, no division checks: IEEE results, as numpy's), cached on disk; where
     numba finds no writable cache location (a read-only installation and home), compiled in memory instead (once
     per process).  No ``fastmath``: sums keep their order, so the numbers are the same on every CPU."""
@@ -29,7 +29,7 @@ def _compiled(f):
         return njit(cache=False, nogil=True, error_model="numpy")(f)
 
 
-@_compiled
+@compiled
 def _rotate(k, c, s, v0, v1, v2):  # pragma: no cover - compiled
     """(v0, v1, v2) turned right-handed about the axis e_k by the angle whose cosine is c and sine s."""
     if k == 0:
@@ -39,7 +39,7 @@ def _rotate(k, c, s, v0, v1, v2):  # pragma: no cover - compiled
     return c * v0 - s * v1, s * v0 + c * v1, v2
 
 
-@_compiled
+@compiled
 def _rot2(f0, f1, f2, u0, u1, u2, sgn):  # pragma: no cover - compiled
     """A rotary axis' error rotation to second order, ``u + sgn f x u + (f (f . u) - |f|^2 u) / 2`` (sgn +1: the
     rotation by f; -1: by -f, its inverse to second order; the transposes are the same with -sgn)."""
@@ -50,7 +50,7 @@ def _rot2(f0, f1, f2, u0, u1, u2, sgn):  # pragma: no cover - compiled
             u2 + sgn * (f0 * u1 - f1 * u0) + 0.5 * (f2 * d - q * u2))
 
 
-@_compiled
+@compiled
 def _forward(n, tool_axes, wp_axes, side, px, py, pz, toolT, coef, L, sq, rdir, pivot, rcos, rsin, comp, t, v, vin,
              wout, keep):  # pragma: no cover
     """Trial n of the small-angle chain: its points into ``v`` (3, M), each axis' component errors into
@@ -159,7 +159,7 @@ def _forward(n, tool_axes, wp_axes, side, px, py, pz, toolT, coef, L, sq, rdir, 
                 wa[0, m], wa[1, m], wa[2, m] = v[0, m], v[1, m], v[2, m]
 
 
-@_compiled
+@compiled
 def chain_points(tool_axes, wp_axes, side, px, py, pz, tool, coef, L, sq, rdir, pivot, rcos, rsin, out, eps, vin,
                  wout):  # pragma: no cover
     """The small-angle chain (machine.py's module docstring) for N trials and M points, into ``out`` (N, M, 3).
@@ -195,7 +195,7 @@ def chain_points(tool_axes, wp_axes, side, px, py, pz, tool, coef, L, sq, rdir, 
     return out
 
 
-@_compiled
+@compiled
 def chain_vjp(tool_order, wp_axes, side, px, py, pz, rdir, rcos, rsin, eps, vin, wout, rows, vec, params, basis,
               out):  # pragma: no cover - compiled
     """J^T v of the small-angle chain (``machine._Adjoint``), trial by trial, into ``out`` (n, p).
@@ -218,7 +218,7 @@ def chain_vjp(tool_order, wp_axes, side, px, py, pz, rdir, rcos, rsin, eps, vin,
     return out
 
 
-@_compiled
+@compiled
 def _vjp_row(n, tool_order, wp_axes, side, px, py, pz, rdir, rcos, rsin, eps, vin, wout, vec, params, basis, g, gd, h,
              u, out):  # pragma: no cover - compiled
     """One trial of :func:`chain_vjp`: trial n's (row of eps, vin, wout) J^T v for vec (M, 3) into out (p,); g, gd,
@@ -340,7 +340,7 @@ def _vjp_row(n, tool_order, wp_axes, side, px, py, pz, rdir, rcos, rsin, eps, vi
         j += 1
 
 
-@_compiled
+@compiled
 def _residual_row(P, x, WLc, i, Rn, t0, t1, t2, c0, vout, G, r, u):  # pragma: no cover - compiled
     """One trial of :func:`chord_residual`: machine points P (3, M) and measured x (3, M) (component-major: each
     pass below runs on contiguous rows), information matrices ``WLc[:, :, i]``, pose Rn (3, 3), (t0, t1, t2); the
@@ -395,14 +395,14 @@ def _residual_row(P, x, WLc, i, Rn, t0, t1, t2, c0, vout, G, r, u):  # pragma: n
     return c
 
 
-@_compiled
+@compiled
 def _transpose_into(a, out):  # pragma: no cover - compiled
     """out (3, M) = a (M, 3) transposed (an exact copy)."""
     for m in range(a.shape[0]):
         out[0, m], out[1, m], out[2, m] = a[m, 0], a[m, 1], a[m, 2]
 
 
-@_compiled
+@compiled
 def chord_residual(P, meas, WL, idx, R, T, c0, v, G, cost):  # pragma: no cover - compiled
     """A chord iteration's weighted residual and rigid gradient, trial by trial (``identify._chord``).
 
@@ -423,7 +423,7 @@ def chord_residual(P, meas, WL, idx, R, T, c0, v, G, cost):  # pragma: no cover 
         cost[n] = _residual_row(P3, x3, WL, i, R[n], T[n, 0], T[n, 1], T[n, 2], c0, v[n], G[n], r, u)
 
 
-@_compiled
+@compiled
 def rodrigues(o0, o1, o2, Rot):  # pragma: no cover - compiled
     """The exact rotation expm([o]x) into Rot (3, 3): ``identify._rotation`` for one rotation vector."""
     t2 = o0 * o0 + o1 * o1 + o2 * o2
@@ -440,7 +440,7 @@ def rodrigues(o0, o1, o2, Rot):  # pragma: no cover - compiled
     Rot[2, 0], Rot[2, 1], Rot[2, 2] = -o1 * a + o2 * o0 * b, o0 * a + o2 * o1 * b, o2 * o2 * b + d
 
 
-@_compiled
+@compiled
 def _minus_vecmat(x, A, out):  # pragma: no cover - compiled
     """out = -(x A) for a vector x (n,) and a matrix A (n, k), as a sum of A's rows (contiguous: vectorised)."""
     n, k = x.shape[0], out.shape[0]
@@ -459,7 +459,7 @@ def _minus_vecmat(x, A, out):  # pragma: no cover - compiled
         i += 1
 
 
-@_compiled
+@compiled
 def _all_zero(x):  # pragma: no cover - compiled
     """Whether every entry of x is zero (either sign)."""
     for k in range(x.shape[0]):
@@ -468,7 +468,7 @@ def _all_zero(x):  # pragma: no cover - compiled
     return True
 
 
-@_compiled
+@compiled
 def _vecmat(x, A, out):  # pragma: no cover - compiled
     """out = x A for a vector x (n,) and a matrix A (n, k): :func:`_minus_vecmat`'s sums with the other sign (each
     column's sum from 0 in the order of the rows, four rows per pass over out)."""
@@ -488,7 +488,7 @@ def _vecmat(x, A, out):  # pragma: no cover - compiled
         i += 1
 
 
-@_compiled
+@compiled
 def chord_stage(mode, rows, label, theta, Rs, Ts, meas, WLc, c0, inv_ps, Hinv, Qs, J, first, Pfix,
                 tool_axes, wp_axes, side, px, py, pz, toolT, L, src, dst, sqi, rdir, pivot, rcos, rsin, poff, gfix,
                 tool_order, params, basis, tol, ftol, chord_iter, predict, max_rate, ok):  # pragma: no cover - compiled
@@ -642,7 +642,7 @@ def chord_stage(mode, rows, label, theta, Rs, Ts, meas, WLc, c0, inv_ps, Hinv, Q
     return iters
 
 
-@_compiled
+@compiled
 def point_weights(P, angular, distance, distance_per_length, repeatability, Wh, WLc):  # pragma: no cover - compiled
     """Each tracker point's whitener and information matrix from the stated noise, in one pass: the covariance of
     ``tracker.covariance`` (Eq. 23, from the coordinates) plus the repeatability on the diagonal
@@ -716,7 +716,7 @@ def point_weights(P, angular, distance, distance_per_length, repeatability, Wh, 
     return good
 
 
-@_compiled
+@compiled
 def chord_final(P, meas, Wh, R, T, Pnom, Rnom, Tnom, res, res_machine, w, chi2, initial):  # pragma: no cover
     """The chord solver's results, trial by trial: the tracker-frame residual ``res`` = x - R^T (P - T), its
     machine-frame ``res_machine`` = R res, the whitened ``w`` = Wh res and ``chi2`` = |w|^2; and Eq. 27's
@@ -741,7 +741,7 @@ def chord_final(P, meas, Wh, R, T, Pnom, Rnom, Tnom, res, res_machine, w, chi2, 
         chi2[n] = c
 
 
-@_compiled
+@compiled
 def tracker_points(P_W, R, T, noise, out):  # pragma: no cover - compiled
     """What the tracker reads of the machine points P_W (N, M, 3), in one pass: ``tracker.to_tracker`` with the
     pose R (1 or N, 3, 3), T (1 or N, 3) (R^T (P - T)), then ``tracker.add_spherical_noise`` with the offsets
@@ -774,7 +774,7 @@ def tracker_points(P_W, R, T, noise, out):  # pragma: no cover - compiled
     return out
 
 
-@_compiled
+@compiled
 def _cos_sin(d):  # pragma: no cover - compiled
     """(cos d, sin d): by their series below 1e-3 rad (the terms left out are below 1e-22 relative: exact in double
     precision), by the functions above."""
@@ -784,7 +784,7 @@ def _cos_sin(d):  # pragma: no cover - compiled
     return np.cos(d), np.sin(d)
 
 
-@_compiled
+@compiled
 def histogram_add(x, low, high, bins, counts, under, over):  # pragma: no cover - compiled
     """Count the rows of x (n, K) into K histograms of ``bins`` bins on [low, high) (``stats.VectorHistogram.add``'s
     numbers: f = (x - low) / (high - low), below 0 under, from 1 over, else bin min(floor(f bins), bins - 1); NaN

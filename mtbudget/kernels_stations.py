@@ -20,21 +20,11 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import njit
 
-from .kernels import rodrigues
-
-
-def _compiled(f):
-    """As :mod:`mtbudget.kernels`: numba's ``njit`` without Python objects or division checks, cached on disk where
-    it can be (else compiled in memory once per process); no ``fastmath``."""
-    try:
-        return njit(cache=True, nogil=True, error_model="numpy")(f)
-    except RuntimeError:  # "cannot cache function ...: no locator available"
-        return njit(cache=False, nogil=True, error_model="numpy")(f)
+from .kernels import compiled, rodrigues  # one njit rule for every kernel module
 
 
-@_compiled
+@compiled
 def xyz_residual(P, idx, x, c0, R, meas, W, t, off, w, e):  # pragma: no cover
     """A laser tracker's rows for trials ``t``: e = meas - R^T (P - T) (k, m, 3) into ``e`` and W e into the
     whitened residuals ``w`` (k, n_res) from column ``off``.  P (k, M, 3) the trials' machine points; idx (m,) the
@@ -56,7 +46,7 @@ def xyz_residual(P, idx, x, c0, R, meas, W, t, off, w, e):  # pragma: no cover
                 w[j, off + 3 * r + c] = W[i, r, c, 0] * e0 + W[i, r, c, 1] * e1 + W[i, r, c, 2] * e2
 
 
-@_compiled
+@compiled
 def range_residual(P, idx, x, c0, meas, W, t, off, w, e):  # pragma: no cover
     """An interferometer's rows for trials ``t``: e = meas - (|P - S| + o) (k, m) into ``e`` and W e into ``w``
     from column ``off``; S at columns c0..c0+2 of x, o at c0+3; meas and W (N, m), row t[j] for trial j."""
@@ -72,7 +62,7 @@ def range_residual(P, idx, x, c0, meas, W, t, off, w, e):  # pragma: no cover
             w[j, off + r] = W[i, r] * er
 
 
-@_compiled
+@compiled
 def xyz_gradient(wa, off, W, t, R, P, idx, cen, c0, v, g):  # pragma: no cover
     """A laser tracker's part of A^T w for trials ``t``, its pose as a small rigid motion of the station (translation
     t, then rotation w about ``cen``: the chord's coordinates): b = W^T w per row, R b added to the machine-frame
@@ -104,7 +94,7 @@ def xyz_gradient(wa, off, W, t, R, P, idx, cen, c0, v, g):  # pragma: no cover
             g[j, c0 + 5] += q0 * d1 - q1 * d0
 
 
-@_compiled
+@compiled
 def rigid_step(R, x, z, c0, cen):  # pragma: no cover
     """A laser tracker's pose moved by the chord's step, trial by trial: z (k, 6) the translation t (mm) then the
     rotation vector w (rad) about ``cen``; R (k, 3, 3) <- Rot(w) R and T = x[:, c0:c0+3] <- Rot(w) (T - cen) + cen + t,
@@ -125,7 +115,7 @@ def rigid_step(R, x, z, c0, cen):  # pragma: no cover
             x[j, c0 + r] = Rot[r, 0] * e0 + Rot[r, 1] * e1 + Rot[r, 2] * e2 + cen[r] + z[j, r]
 
 
-@_compiled
+@compiled
 def range_gradient(wa, off, W, t, U, pos, idx, c0, v, g):  # pragma: no cover
     """An interferometer's part of A^T w for trials ``t``: c = W w per row; u c added to ``v`` at its rows, -u c
     summed into S's columns c0..c0+2 of ``g`` and c into o's (c0+3).  U (K, m, 3): the unit beam vectors where the
@@ -143,7 +133,7 @@ def range_gradient(wa, off, W, t, U, pos, idx, c0, v, g):  # pragma: no cover
             g[j, c0 + 3] += c
 
 
-@_compiled
+@compiled
 def registered_distances(P0, meas, out):  # pragma: no cover
     """For each trial j, the distances |meas_j - R_j^T (P0 - T_j)| (m,) after the unweighted closed-form rigid fit
     (Kabsch) of its station-frame points meas (k, m, 3) onto the machine points P0 (m, 3): what

@@ -28,7 +28,8 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import njit
+
+from .kernels import compiled  # one njit rule for every kernel module (cached, nogil, no fastmath)
 
 #: numpy's reduction buffer (``np.getbufsize()``'s default): up to numpy 2.2 a contiguous sum longer than this was
 #: the sum of its buffers' pairwise sums, from 2.3 on one pairwise sum, which :func:`_pairwise` reproduces
@@ -37,16 +38,7 @@ BUFFER = 8192
 LIKE_NUMPY = np.lib.NumpyVersion(np.__version__) >= "2.3.0"
 
 
-def _compiled(f):
-    """As :mod:`mtbudget.kernels`: numba's ``njit`` without Python objects or division checks, cached on disk where
-    it can be (else compiled in memory once per process); no ``fastmath``."""
-    try:
-        return njit(cache=True, nogil=True, error_model="numpy")(f)
-    except RuntimeError:  # "cannot cache function ...: no locator available"
-        return njit(cache=False, nogil=True, error_model="numpy")(f)
-
-
-@_compiled
+@compiled
 def _pairwise_leaf(a, lo, n):  # pragma: no cover - compiled
     """numpy's pairwise sum of a[lo:lo + n] for n <= 128: in order below 8 values, else 8 partial sums."""
     if n < 8:
@@ -76,7 +68,7 @@ def _pairwise_leaf(a, lo, n):  # pragma: no cover - compiled
     return res
 
 
-@_compiled
+@compiled
 def _pairwise(a, lo, n):  # pragma: no cover - compiled
     """sum(a[lo:lo + n]) as numpy's pairwise summation adds a contiguous run of float64 (``pairwise_sum`` of numpy's
     umath loops: up to 128 values :func:`_pairwise_leaf`, above that the sum of the two halves, cut at a multiple of
@@ -106,19 +98,19 @@ def _pairwise(a, lo, n):  # pragma: no cover - compiled
     return val[0]
 
 
-@_compiled
+@compiled
 def _keeps_min(cur, v):  # pragma: no cover - compiled
     """Whether numpy's minimum of (cur, v) is cur: cur < v, or cur is NaN (on a tie, and for a NaN v, it is v)."""
     return cur < v or cur != cur
 
 
-@_compiled
+@compiled
 def _keeps_max(cur, v):  # pragma: no cover - compiled
     """Whether numpy's maximum of (cur, v) is cur: cur > v, or cur is NaN (on a tie, and for a NaN v, it is v)."""
     return cur > v or cur != cur
 
 
-@_compiled
+@compiled
 def compensation_figures(D, um, comp, e, rms, mean, emax, amax):  # pragma: no cover - compiled
     """The compensated field D (N, M, 3) in mm, rigid motions removed, as the engine reports it, per trial t:
     comp[t] = D[t] um (um), e[t] = |D[t]| um over the last axis (``tracker.norm3``, then scaled), rms[t] =
@@ -159,7 +151,7 @@ def compensation_figures(D, um, comp, e, rms, mean, emax, amax):  # pragma: no c
         amax[t, 3] = top
 
 
-@_compiled
+@compiled
 def moments(x, mean, m2, lo, hi):  # pragma: no cover - compiled
     """``stats.Moments.of`` of x (n, K), n >= 1: per column the mean (summed in row order, then / n), the sum of
     squared deviations (in row order), the minimum and maximum, into mean, m2, lo, hi (K,)."""
@@ -186,7 +178,7 @@ def moments(x, mean, m2, lo, hi):  # pragma: no cover - compiled
                     hi[k] = v
 
 
-@_compiled
+@compiled
 def comoments(x, mean, C):  # pragma: no cover - compiled
     """``stats.CoMoments.of`` of x (n, K, d), n >= 1: mean (K, d) summed in row order then / n; C (K, d, d) the sums
     over the rows, in row order, of the outer products of the deviations (``einsum("nki,nkj->kij")``'s numbers)."""
@@ -229,7 +221,7 @@ def comoments(x, mean, C):  # pragma: no cover - compiled
                     C[k, a, b] += dev[a] * dev[b]
 
 
-@_compiled
+@compiled
 def histogram_add(x, low, width, bins, counts, under, over):  # pragma: no cover - compiled
     """Count the rows of x (n, K) into K histograms of ``bins`` bins on [low, low + width) (``width`` = high - low):
     ``stats.VectorHistogram.add_reference``'s numbers (f = (x - low) / width, below 0 under, from 1 over, else bin
@@ -260,7 +252,7 @@ def histogram_add(x, low, width, bins, counts, under, over):  # pragma: no cover
                 over[k] += 1
 
 
-@_compiled
+@compiled
 def moments_rows(rows, mean, m2, lo, hi):  # pragma: no cover - compiled
     """``stats.Moments.of_rows`` of rows (K, n), each row contiguous, n >= 1: per row its mean (numpy's pairwise sum,
     then / n), the pairwise sum of its squared deviations, its minimum and maximum, into mean, m2, lo, hi (K,)."""
@@ -286,7 +278,7 @@ def moments_rows(rows, mean, m2, lo, hi):  # pragma: no cover - compiled
         hi[k] = b
 
 
-@_compiled
+@compiled
 def merge_moments(am, am2, alo, ahi, bm, bm2, blo, bhi, wb, wab, mean, m2, lo, hi):  # pragma: no cover - compiled
     """``stats.Moments.merge`` of two (K,) moments, elementwise, with wb = nb / n and wab = na nb / n (Python floats):
     d = bm - am, mean = am + d wb, m2 = am2 + bm2 + d d wab, lo = minimum, hi = maximum (NaN propagates)."""
@@ -298,7 +290,7 @@ def merge_moments(am, am2, alo, ahi, bm, bm2, blo, bhi, wb, wab, mean, m2, lo, h
         hi[k] = ahi[k] if _keeps_max(ahi[k], bhi[k]) else bhi[k]
 
 
-@_compiled
+@compiled
 def merge_comoments(am, aC, bm, bC, wb, wab, mean, C):  # pragma: no cover - compiled
     """``stats.CoMoments.merge`` of (K, d) means and (K, d, d) co-moments, elementwise: delta = bm - am, mean = am +
     delta wb, C = aC + bC + (delta_i delta_j) wab."""
