@@ -904,7 +904,9 @@ def _identify_chunk_chord(model, meas, noise, strategy, theta, pose0, fixed, pha
     Q_last = phases[-1][2]
     P0, _ = _nominal(model, cache, Q_last)
     c0 = P0.mean(axis=0)
-    P_fix = model.machine_points(np.zeros((1, p)), fixed) if fixed else P0[None]  # (1 or N, M, 3)
+    # the nominal machine with the fixed inputs: one row, or one per trial where a fixed input is given per trial
+    n_fix = max([np.shape(v)[0] for v in fixed.values() if np.ndim(v) >= 2 and np.shape(v)[0] > 1], default=1)
+    P_fix = model.machine_points(np.zeros((n_fix, p)), fixed) if fixed else P0[None]  # (1 or N, M, 3)
     P_nom = np.broadcast_to(P_fix, (N, M, 3))
     all_rows = np.arange(N)
     shared = iteration_pose is not None and all(np.ndim(v) == 0 or np.shape(v)[0] == 1 for v in fixed.values())

@@ -47,6 +47,23 @@ def test_compiled_chord_equals_the_numpy_chord(monkeypatch, rng, phases):
     assert_agree(model, a, b)
 
 
+
+def test_a_fixed_axis_input_per_trial_is_each_trial_s_own(monkeypatch, rng):
+    """A known axis offset and scale given per trial ((N, M) arrays, as ``identify`` documents "broadcastable over
+    trials"): identified together, each trial gets what it gets identified alone with its own (1, M) inputs (a
+    reviewer found the nominal points built for one row only: a bare numpy error), compiled and numpy alike."""
+    model, meas = simulate(paper_plan(), 4, rng)
+    M = model.n_points
+    fixed = {"axis_offset.x": rng.normal(0, 5e-3, (4, M)), "axis_scale.y": rng.normal(0, 2e-5, (4, M))}
+    a, b = both(monkeypatch, model, meas, NOISE, Strategy(), fixed=fixed)
+    assert a.n_fallback == 0 and a.converged.all()
+    assert np.abs(a.theta - b.theta).max() < TOL
+    for i in range(4):
+        alone = identify(model, meas[i:i + 1], NOISE, Strategy(), fixed={k: v[i:i + 1] for k, v in fixed.items()})
+        assert np.abs(alone.theta[0] - a.theta[i]).max() < TOL
+        assert np.abs(alone.residual[0] - a.residual[i]).max() < TOL
+        assert np.abs(alone.initial_error[0] - a.initial_error[i]).max() < TOL
+
 def test_labels_with_their_own_iteration_matrices(monkeypatch, rng):
     """Without a shared iteration pose each label (block) iterates with its own mean information."""
     model, meas = simulate(paper_plan(), 24, rng)
