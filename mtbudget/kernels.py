@@ -784,25 +784,6 @@ def _cos_sin(d):  # pragma: no cover - compiled
     return np.cos(d), np.sin(d)
 
 
-@compiled
-def histogram_add(x, low, high, bins, counts, under, over):  # pragma: no cover - compiled
-    """Count the rows of x (n, K) into K histograms of ``bins`` bins on [low, high) (``stats.VectorHistogram.add``'s
-    numbers: f = (x - low) / (high - low), below 0 under, from 1 over, else bin min(floor(f bins), bins - 1); NaN
-    nowhere).  counts (K, bins), under and over (K,), int64, added to in place."""
-    n, K = x.shape[0], x.shape[1]
-    for k in range(K):
-        lo, width = low[k], high[k] - low[k]
-        row = counts[k]
-        for i in range(n):
-            f = (x[i, k] - lo) / width
-            if f < 0:
-                under[k] += 1
-            elif f >= 1:
-                over[k] += 1
-            elif f >= 0:
-                row[min(int(f * bins), bins - 1)] += 1
-
-
 #: the kernels a run of the engine compiles (what :func:`compiled_here` looks for)
 KERNELS = (chain_points, chord_stage, point_weights, chord_final, tracker_points)
 
