@@ -45,6 +45,11 @@ class _Group(click.Group):
             stop_starting()
             click.echo(f"error: {exc}", err=True)
             ctx.exit(2)
+        except click.UsageError as exc:  # a bad option or argument: one line naming it (click would print three)
+            stop_starting()
+            where = exc.ctx.command_path if exc.ctx is not None else "mtbudget"
+            click.echo(f"error: {exc.format_message()} (see '{where} --help')", err=True)
+            ctx.exit(2)
         except KeyboardInterrupt:
             stop_starting()
             click.echo("\ninterrupted (Ctrl-C)", err=True)

@@ -111,6 +111,7 @@ def test_every_numeric_option_refuses_bad_values_in_one_line(path, option, bad, 
     if res.exit_code != 0:
         assert "Traceback" not in res.output
         assert option in res.output or "Invalid value" in res.output or "error:" in res.output, (args, res.output)
+        assert len(res.output.strip().splitlines()) == 1, (args, res.output)  # one line, not click's usage block
 
 
 def test_run_resume_of_nothing_and_of_a_complete_log_are_one_line(tmp_path):
