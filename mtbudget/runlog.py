@@ -309,6 +309,12 @@ class RunLogLock:
 
 
 # ------------------------------------------------------------------ writing
+#: seconds: the shortest interval between two histogram checkpoints of a run (``RunLogWriter.blocks``); the
+#: interval then grows to half the run's age, up to the writer's ``histogram_every`` (a checkpoint of the paper mesh
+#: is about 1 MB and 15 ms)
+FIRST_CHECKPOINT = 5.0
+
+
 class RunLogWriter:
     """Writes a run log as the run goes: header first, then blocks (flushed and fsynced per chunk), then the end.
 
@@ -331,6 +337,7 @@ class RunLogWriter:
         self.written: set = set()
         self.histogram_every = histogram_every
         self._last_hist = None
+        self._opened = time.monotonic()  # the checkpoints' interval grows with the run's age (blocks())
         # a run that logs every trial's per-point errors logs each block's moments too (format 1.1); one that
         # histograms them (format 2) logs the moments of the run so far with each histogram checkpoint instead
         self.block_moments = log_components
@@ -429,7 +436,10 @@ class RunLogWriter:
         self.write("/mtbudget/convergence", convergence)
         if acc is not None and acc.vector_hist.get("components") is not None:
             now = time.monotonic()
-            if self._last_hist is None or now - self._last_hist >= self.histogram_every:
+            # early checkpoints close together, then at most every histogram_every seconds: an interrupted run
+            # loses at most about a third of its age, and at most histogram_every seconds of work once it is old
+            every = min(self.histogram_every, max(FIRST_CHECKPOINT, 0.5 * (now - self._opened)))
+            if self._last_hist is None or now - self._last_hist >= every:
                 self.checkpoint(acc, flush=False)
         self.flush()
 

@@ -328,3 +328,37 @@ def test_a_histogram_run_resumes_bit_for_bit_from_either_layout(tmp_path, monkey
     assert again.complete and read_runlog(path).header["format"] == "mtbudget-runlog/2"
     _moments_equal(again, full)
     assert json.dumps(result_json(again)["points"]) == json.dumps(result_json(res)["points"])
+
+
+def test_checkpoints_come_early_then_once_a_minute(tmp_path, monkeypatch):
+    """An interrupted histogram run resumes from its last checkpoint: the first comes with the first chunk, the next
+    ones at least FIRST_CHECKPOINT (5 s) apart and then at half the run's age, never more than ``histogram_every``
+    apart (a new user's Ctrl-C at 30 s had kept only the first chunk, the next checkpoint being due at 60 s).  The
+    clock is a fake one that advances 4 s per chunk merged; the expected ages are worked out here by hand."""
+    from mtbudget import runlog
+
+    class Clock:  # runlog's time module: monotonic() advances by 4 s at each call of blocks()
+        t = 0.0
+
+        @staticmethod
+        def monotonic():
+            return Clock.t
+
+        time_ns = staticmethod(time.time_ns)
+        strftime = staticmethod(time.strftime)
+
+    orig = runlog.RunLogWriter.blocks
+
+    def blocks(self, *a, **k):
+        Clock.t += 4.0
+        return orig(self, *a, **k)
+
+    monkeypatch.setattr(runlog, "time", Clock)
+    monkeypatch.setattr(runlog.RunLogWriter, "blocks", blocks)
+    path = tmp_path / "h.mcap"
+    execute(SMALL, log_path=path, histogram_every=12.0, **{**HIST, "trials": 8 * 2 * 12})  # 12 chunks: ages 4..48 s
+    # chunk k merged at age 4k s with 2k blocks; a checkpoint when the time since the last >= min(12, max(5, age / 2)):
+    # 4 s (the first); 8 s: 4 < 5; 12 s: 8 >= 6; 16 s: 4 < 8; 20 s: 8 < 10; 24 s: 12 >= 12; then every 12 s (the
+    # cap): 36 s, 48 s; and the end's own, covering every block
+    got = [h["blocks"] for h in read_runlog(path).histograms]
+    assert got == [2, 6, 12, 18, 24, 24], got
