@@ -69,7 +69,7 @@ import numpy as np
 
 from . import tracker as lt
 from .errors import IdentificationError
-from .machine import AXES, AXIS_INDEX, chain_adjoint, kernel_chain, skew, skew_basis, vjp_layout
+from .machine import AXES, AXIS_INDEX, chain_adjoint, kernel_array, kernel_chain, skew, skew_basis, vjp_layout
 from .model import MeasurementModel
 from .units import factor, shown_unit
 
@@ -712,7 +712,7 @@ def _weights_information(model, meas, noise, strategy):
         from .kernels import point_weights
 
         Wh, WLc = np.empty((N, M, 3, 3)), np.empty((3, 3, N, M))
-        if point_weights(np.require(meas, np.float64, _CW), *(float(v) for v in stated), Wh, WLc):
+        if point_weights(kernel_array(meas), *(float(v) for v in stated), Wh, WLc):
             return Wh, WLc
     Wh = _weights(model, meas, noise, strategy)
     return Wh, np.ascontiguousarray(_gram33(Wh).transpose(2, 3, 0, 1))
@@ -938,7 +938,10 @@ def _identify_chunk_chord(model, meas, noise, strategy, theta, pose0, fixed, pha
         X = (WL.reshape(N, 3 * M, 3) @ np.swapaxes(Rk, 1, 2)).reshape(N, M, 3, 3)  # C^-1 R^T
         X = (Rk @ X.transpose(0, 2, 1, 3).reshape(N, 3, 3 * M)).reshape(N, 3, M, 3)  # R C^-1 R^T, axes (n, i, m, l)
         W_bars = {k: (X[pos] if lab.n > 1 else X).mean(axis=0).transpose(1, 0, 2) for k, pos in lab.split(all_rows)}
-    G0 = _rigid_columns(P0, c0)
+    hit = cache.get(("rigid_columns", id(P0)))  # P0 is the plan cache's (read-only, kept beside its columns)
+    if hit is None or hit[0] is not P0:
+        hit = cache[("rigid_columns", id(P0))] = (P0, _read_only(_rigid_columns(P0, c0))[0])
+    G0 = hit[1]
 
     def matrix(J, Q=None):
         if shared:  # cached per model (the plan cache), phase, pose, noise and fixed inputs
@@ -1059,8 +1062,8 @@ def _identify_chunk_chord(model, meas, noise, strategy, theta, pose0, fixed, pha
 
         res, res_m, w, initial_error = (np.empty((N, M, 3)) for _ in range(4))
         chi2 = np.empty(N)
-        chord_final(np.require(P_W, np.float64, _CW), np.require(meas, np.float64, _CW), Wh, Rm,
-                    np.require(pose[:, :3], np.float64, _CW), np.require(P_fix, np.float64, _CW), nom["R"], nom["T"],
+        chord_final(kernel_array(P_W), kernel_array(meas), Wh, Rm,
+                    kernel_array(pose[:, :3]), kernel_array(P_fix), nom["R"], nom["T"],
                     res, res_m, w, chi2, initial_error)
     else:
         P_W = evaluate(theta, slice(None))
@@ -1322,9 +1325,9 @@ def _chord_compiled(state, rows, meas, WLc, Hinv, J, Qs, c0, tol, strategy, lab,
     else:
         tool_order, params, basis = np.zeros(0, np.int64), np.zeros((0, 3), np.int64), np.zeros((0, M))
     for key in ("theta", "R", "T"):
-        state[key] = np.require(state[key], np.float64, _CW)
+        state[key] = kernel_array(state[key])
     c = chain
-    req = lambda x: np.require(x, np.float64, _CW)  # noqa: E731
+    req = kernel_array  # np.require(x, np.float64, _CW) without its Python when x is such an array already
     it = chord_stage(
         mode, np.asarray(rows, np.int64), label, state["theta"], state["R"], state["T"], req(meas), req(WLc), req(c0),
         1.0 / POSE_SCALE, req(H3), req(Qs_), req(J3),
