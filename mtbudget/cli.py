@@ -613,6 +613,10 @@ def replay(runlog, verify, as_json):
             click.echo(f"note: {n}")
         if v["identical"]:
             click.echo(f"verified: {v['trials']} trials in {v['blocks']} blocks recomputed, bit for bit identical")
+        elif not v["complete"] and len(v["mismatches"]) == 1:  # nothing differs: the log is not a whole run
+            click.echo(f"NOT verified as a whole run: its {v['trials']} trials in {v['blocks']} blocks recomputed, bit "
+                       f"for bit identical, but {v['mismatches'][0]}")
+            raise SystemExit(1)
         else:
             click.echo(f"NOT identical: {len(v['mismatches'])} differences")
             for m in v["mismatches"][:20]:
@@ -624,7 +628,10 @@ def replay(runlog, verify, as_json):
         click.echo(json.dumps(result_json(res), indent=1))
         return
     if not res.complete:
-        click.echo(f"INCOMPLETE run log ({res.log.problem}); results from the {res.trials} trials it holds:")
+        logged = sum(int(b.get("n", 0)) for b in getattr(res.log, "blocks", []) or [])
+        upto = (f" up to its last histogram checkpoint ({logged} trials logged; a resume restores the checkpoint and "
+                "recomputes the blocks after it)" if logged > res.trials else " it holds")
+        click.echo(f"INCOMPLETE run log ({res.log.problem}); results from the {res.trials} trials{upto}:")
     click.echo(budget_text(res))
 
 

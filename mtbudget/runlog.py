@@ -809,7 +809,8 @@ def read_runlog(path) -> RunLog:
                 damage(cut.offset, f"{cut} although the file was finished")
             else:
                 log.truncated = True
-                log.problem = f"the file is cut at byte {cut.offset} of {size}"
+                log.problem = (f"the file ends at byte {size} without the run's end record: the run was stopped or is "
+                               "still running" if cut.offset >= size else f"the file is cut at byte {cut.offset} of {size}")
     if log.header is None:
         if log.metadata.get("format", "").startswith("mtbudget-placement/") or placement:
             raise RunLogError(f"{path}: a placement study log, not a run log; `mtbudget replay {path}` prints its summary")
