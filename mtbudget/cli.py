@@ -537,20 +537,35 @@ def run_cmd(config, trials, seed, coverage, executor, workers, address, attribut
         from .config import load_config
 
         config = load_config(config, sets)
+    import signal
+    import threading
+
+    terminated = []  # SIGTERM (timeout, a batch scheduler, kill): stopped as Ctrl-C stops it, and said so
+
+    def on_term(signum, frame):
+        terminated.append(signum)
+        raise KeyboardInterrupt
+
+    before = (signal.signal(signal.SIGTERM, on_term) if threading.current_thread() is threading.main_thread()
+              else None)
     try:
         res = execute(config, settings, log_path=log_path, resume_path=resume_path, force=force)
     except KeyboardInterrupt:
         from .runner import DEFAULT_LOG
         from .runlog import final_path, partial_path
 
+        how = "terminated (SIGTERM)" if terminated else "interrupted"
         target = final_path(log_path or resume_path or DEFAULT_LOG)
         if partial_path(target).exists():
-            click.echo(f"\ninterrupted: the blocks of trials finished so far are saved in {partial_path(target)}; "
+            click.echo(f"\n{how}: the blocks of trials finished so far are saved in {partial_path(target)}; "
                        f"finish the run with `mtbudget run --resume {target}` (the same numbers as an uninterrupted "
                        "run)", err=True)
         else:
-            click.echo("\ninterrupted before the first block of trials was saved; nothing to resume", err=True)
-        raise SystemExit(130) from None
+            click.echo(f"\n{how} before the first block of trials was saved; nothing to resume", err=True)
+        raise SystemExit(143 if terminated else 130) from None
+    finally:
+        if before is not None:
+            signal.signal(signal.SIGTERM, before)
     if as_json:
         click.echo(json.dumps(result_json(res), indent=1))
     else:

@@ -80,6 +80,24 @@ def test_ctrl_c_says_where_the_partial_log_is_and_how_to_resume(tmp_path):
     assert f"saved in {log}.partial" in said and f"mtbudget run --resume {log}" in said, said
 
 
+def test_sigterm_stops_a_run_as_ctrl_c_does_and_says_so(tmp_path):
+    """What `timeout` and batch schedulers send: the run stops as on Ctrl-C, says where its blocks are and how to
+    resume (a new user's run had ended silently, exit 143, its progress line left on screen)."""
+    log = tmp_path / "t.mcap"
+    p = subprocess.Popen([sys.executable, "-m", "mtbudget", "run", str(SMALL), "--trials", "100000", "--block", "8",
+                          "--log", str(log), "--attribution-trials", "0"], stdout=subprocess.PIPE,
+                         stderr=subprocess.PIPE, env=dict(os.environ, OPENBLAS_NUM_THREADS="1"), cwd=tmp_path)
+    deadline = time.time() + 120
+    while time.time() < deadline and not (tmp_path / "t.mcap.partial").exists():
+        time.sleep(0.1)
+    time.sleep(1.0)
+    p.terminate()
+    _, err = p.communicate(timeout=120)
+    said = err.decode().strip().splitlines()[-1]
+    assert p.returncode == 143, err.decode()[-2000:]
+    assert said.startswith("terminated (SIGTERM): the blocks") and f"mtbudget run --resume {log}" in said, said
+
+
 def longest_silence(args, cwd) -> tuple[float, int]:
     """(the longest time in s without a byte on stdout or stderr, both piped; the exit status) of mtbudget ARGS."""
     import selectors
