@@ -270,6 +270,9 @@ class RunLogLock:
             try:
                 fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o644)
             except OSError as exc:
+                if not self.path.parent.is_dir():  # what the user can act on: the folder, not our lock file
+                    raise RunLogError(f"{self.log}: the folder {self.path.parent} does not exist; create it or choose "
+                                      "another --log") from None
                 raise RunLogError(f"{self.path}: cannot create the run log's lock file ({exc.strerror})") from None
             try:
                 fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)

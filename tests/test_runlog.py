@@ -377,3 +377,10 @@ def test_an_interrupted_log_is_verified_for_what_it_holds_and_said_unfinished(tm
     assert "differences" not in res.output
     out = CliRunner().invoke(main, ["replay", str(path)]).output
     assert "results from the 48 trials up to its last histogram checkpoint (56 trials logged" in out, out[:400]
+
+
+def test_a_log_in_a_missing_folder_is_one_line_naming_the_folder(tmp_path):
+    res = CliRunner().invoke(main, ["run", str(SMALL), "--trials", "16", "--block", "8", "--attribution-trials", "0",
+                                    "--log", str(tmp_path / "nodir" / "x.mcap")])
+    assert res.exit_code == 2 and len(res.output.strip().splitlines()) == 1, res.output
+    assert f"the folder {tmp_path / 'nodir'} does not exist" in res.output and ".lock" not in res.output
