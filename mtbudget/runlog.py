@@ -440,7 +440,8 @@ class RunLogWriter:
         if acc is not None and acc.vector_hist.get("components") is not None:
             now = time.monotonic()
             # early checkpoints close together, then at most every histogram_every seconds: an interrupted run
-            # loses at most about a third of its age, and at most histogram_every seconds of work once it is old
+            # loses the work since its last checkpoint: at most about half its age (each interval is about the age
+            # at the last checkpoint), and at most histogram_every seconds once it is old
             every = min(self.histogram_every, max(FIRST_CHECKPOINT, 0.5 * (now - self._opened)))
             if self._last_hist is None or now - self._last_hist >= every:
                 self.checkpoint(acc, flush=False)
