@@ -10,6 +10,7 @@ against a computation that shares nothing with either (``math.fsum`` of the valu
 from __future__ import annotations
 
 import math
+import os
 
 import numpy as np
 import pytest
@@ -235,3 +236,20 @@ def test_an_older_numpy_keeps_its_own_sums_of_long_series(monkeypatch):
     assert same_bits(comp, comp_r) and same_bits(e, e_r)
     with pytest.raises(AssertionError, match="long series"):  # a short series still takes the kernel
         Moments.of_rows(rows[:, :100])
+
+
+@pytest.mark.slow
+def test_a_short_run_compiles_every_kernel_the_first_run_note_looks_for(tmp_path):
+    """On a fresh cache, a short run compiles every kernel of KERNELS (kernels and kernels_stats): the note is then
+    not shown again.  (histogram_add was looked for too, and only runs of ~11 000 trials compile it: a machine that
+    never ran one was told of a compilation at every command.)  Slow: it compiles every kernel (~20 s)."""
+    import subprocess
+    import sys
+
+    env = dict(os.environ, NUMBA_CACHE_DIR=str(tmp_path / "cache"), OPENBLAS_NUM_THREADS="1")
+    subprocess.run([sys.executable, "-m", "mtbudget", "run", "--trials", "200", "--quiet", "--log",
+                    str(tmp_path / "r.mcap")], check=True, env=env, cwd=tmp_path, capture_output=True)
+    out = subprocess.run([sys.executable, "-c", "from mtbudget import kernels, kernels_stats; "
+                          "print(kernels.compiled_here(), kernels_stats.compiled_here())"],
+                         check=True, env=env, capture_output=True, text=True).stdout.split()
+    assert out == ["True", "True"], out
