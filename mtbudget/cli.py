@@ -13,6 +13,10 @@ from .errors import MtbudgetError
 from .executors import AUTO_MAX_WORKERS, AUTO_MIN_TRIALS, AUTO_PARALLEL
 
 
+#: click (>= 8.2) shows a group's help, as a usage error, when it is called without a command: that help stays
+_NO_ARGS_IS_HELP = getattr(click.exceptions, "NoArgsIsHelpError", ())
+
+
 class _Group(click.Group):
     """Turn mtbudget's own errors into one-line messages and exit code 2."""
 
@@ -46,6 +50,8 @@ class _Group(click.Group):
             click.echo(f"error: {exc}", err=True)
             ctx.exit(2)
         except click.UsageError as exc:  # a bad option or argument: one line naming it (click would print three)
+            if isinstance(exc, _NO_ARGS_IS_HELP):  # a group called without its command: click shows its help
+                raise
             stop_starting()
             where = exc.ctx.command_path if exc.ctx is not None else "mtbudget"
             click.echo(f"error: {exc.format_message()} (see '{where} --help')", err=True)

@@ -140,3 +140,11 @@ def test_run_on_threads_prints_the_numbers_of_the_inline_run(tmp_path):
         out[ex] = json.loads(res.output)
     assert out["thread"]["outputs"] == out["inline"]["outputs"] and out["thread"]["budget"] == out["inline"]["budget"]
     assert out["auto"]["outputs"] == out["inline"]["outputs"]
+
+
+def test_a_group_without_its_command_shows_its_help_not_an_error():
+    """Usage errors are one line, but a group called without a command still shows its help (click raises that as a
+    usage error too)."""
+    res = CliRunner().invoke(main, ["study"])
+    assert res.output.startswith("Usage: main study") or res.output.startswith("Usage: mtbudget study"), res.output
+    assert "error:" not in res.output and len(res.output.splitlines()) > 4
