@@ -137,15 +137,9 @@ class Engine:
         F_true = sc.evaluate(sc.truth, np.concatenate(theta_true) if nb > 1 else theta_true[0])
         if sc.null_bias is not None:  # the truth's own unidentifiable part at this tool: its prior is drawn instead
             F_true = F_true - sc.null_bias
-        offsets = [s.measurand_offset for s in sims]
-        if any(o is not None for o in offsets):  # the machine in use, the unidentified part at the tool
-            if all(o is not None for o in offsets):
-                F_true = F_true + np.concatenate(offsets)[:, rows]
-            else:
-                F_true = F_true.copy()
-                for i, o in enumerate(offsets):
-                    if o is not None:
-                        F_true[i * n:(i + 1) * n] = F_true[i * n:(i + 1) * n] + o[:, rows]
+        for i, s in enumerate(sims):  # the machine in use, the unidentified part at the tool (F_true is this call's)
+            if s.measurand_offset is not None:
+                F_true[i * n:(i + 1) * n] += s.measurand_offset[:, rows]
         diff = (F_true - F_id).reshape(nb * n, -1)  # the compensated field before the rigid motions are removed
         D = [(diff[i * n:(i + 1) * n] @ sc.rigid_free.T).reshape(n, -1, 3) for i in range(nb)]
         comp, e, whole = compensation_figures(D, um, out_scalars)

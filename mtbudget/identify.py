@@ -69,7 +69,8 @@ import numpy as np
 
 from . import tracker as lt
 from .errors import IdentificationError
-from .machine import AXES, AXIS_INDEX, chain_adjoint, kernel_array, kernel_chain, skew, skew_basis, vjp_layout
+from .machine import (AXES, AXIS_INDEX, chain_adjoint, kernel_array, kernel_chain, kernel_parameters, skew,
+                      skew_basis, vjp_layout)
 from .model import MeasurementModel
 from .units import factor, shown_unit
 
@@ -1270,16 +1271,10 @@ def _chain_at(kc: dict, theta: np.ndarray, fixed: dict) -> np.ndarray:
 
     th = theta + fixed["geometry"] if "geometry" in fixed else theta
     N, M = th.shape[0], kc["tool"].shape[0]
-    A, K = kc["L"].shape[:2]
-    coef = np.zeros((N, A * 6 * K))
-    coef[:, kc["dst"]] = th[:, kc["src"]]
-    sq = np.zeros((N, 3))
-    for c, j in enumerate(kc["sqi"]):  # columns sxy, sxz, syz
-        if j >= 0:
-            sq[:, c] = th[:, j]
-    scratch = np.empty((1, A, 3, M))  # nothing kept for the adjoint
+    coef, sq = kernel_parameters(kc, th)
+    scratch = np.empty((1, coef.shape[1], 3, M))  # nothing kept for the adjoint
     out = chain_points(kc["tool_axes"], kc["wp_axes"], kc["side"], kc["px"], kc["py"], kc["pz"], kc["tool"],
-                       coef.reshape(N, A, 6, K), kc["L"], sq, kc["rdir"], kc["pivot"], kc["rcos"], kc["rsin"],
+                       coef, kc["L"], sq, kc["rdir"], kc["pivot"], kc["rcos"], kc["rsin"],
                        np.empty((N, M, 3)), scratch, scratch, scratch)
     return out + fixed["point_offset"] if "point_offset" in fixed else out
 

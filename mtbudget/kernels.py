@@ -788,12 +788,12 @@ def _cos_sin(d):  # pragma: no cover - compiled
 KERNELS = (chain_points, chord_stage, point_weights, chord_final, tracker_points)
 
 
-def compiled_here() -> bool | None:
-    """Whether numba's cache already holds the kernels on this machine (False: the first call compiles them,
-    several seconds); None when that cannot be told (numba's cache layout is not public API)."""
+def compiled_here(kernels: tuple = KERNELS) -> bool | None:
+    """Whether numba's cache already holds ``kernels`` (default: the engine's) on this machine (False: the first call
+    compiles them, several seconds); None when that cannot be told (numba's cache layout is not public API)."""
     import os
 
     try:
-        return all(os.path.exists(k._cache._cache_file._index_path) for k in KERNELS)
+        return all(os.path.exists(k._cache._cache_file._index_path) for k in kernels)
     except AttributeError:  # pragma: no cover - another numba, or compiled in memory (no cache)
         return None

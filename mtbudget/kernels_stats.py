@@ -314,10 +314,7 @@ KERNELS = (compensation_figures, moments, comoments, moments_rows, merge_moments
 
 def compiled_here() -> bool | None:
     """Whether numba's cache already holds these kernels on this machine (False: a run's first call compiles them,
-    about 2.6 s of CPU); None when that cannot be told (as :func:`mtbudget.kernels.compiled_here`)."""
-    import os
+    about 2.6 s of CPU); None when that cannot be told (:func:`mtbudget.kernels.compiled_here`)."""
+    from .kernels import compiled_here as cached
 
-    try:
-        return all(os.path.exists(k._cache._cache_file._index_path) for k in KERNELS)
-    except AttributeError:  # pragma: no cover - another numba, or compiled in memory (no cache)
-        return None
+    return cached(KERNELS)

@@ -613,17 +613,25 @@ def _slots_of(letters: tuple) -> dict:
 def _kernel_inputs(config, model, theta, inputs, B):
     """The compiled chain's inputs: (tool axes, workpiece axes, sides, px, py, pz, tool, coef, L, sq, rdir, pivot,
     rcos, rsin)."""
+    k = kernel_chain(config, model, inputs, B, theta.shape[0])
+    coef, sq = kernel_parameters(k, theta)
+    return (k["tool_axes"], k["wp_axes"], k["side"], k["px"], k["py"], k["pz"], k["tool"],
+            coef, k["L"], sq, k["rdir"], k["pivot"], k["rcos"], k["rsin"])
+
+
+def kernel_parameters(k: dict, theta: np.ndarray) -> tuple:
+    """The compiled chain's per-trial inputs of the parameters theta (N, p), through the layout ``k`` of
+    :func:`kernel_chain`: the coefficient table (N, A, 6, K) (``src`` -> ``dst``, zeros elsewhere) and the
+    squareness errors (N, 3) (``sqi``: sxy, sxz, syz; zero where not modelled)."""
     N = theta.shape[0]
-    k = kernel_chain(config, model, inputs, B, N)
-    L, K = k["L"], k["L"].shape[1]
-    coef = np.zeros((N, L.shape[0] * 6 * K))
+    A, K = k["L"].shape[:2]
+    coef = np.zeros((N, A * 6 * K))
     coef[:, k["dst"]] = theta[:, k["src"]]
     sq = np.zeros((N, 3))
     for c, j in enumerate(k["sqi"]):  # columns sxy, sxz, syz
         if j >= 0:
             sq[:, c] = theta[:, j]
-    return (k["tool_axes"], k["wp_axes"], k["side"], k["px"], k["py"], k["pz"], k["tool"],
-            coef.reshape(N, L.shape[0], 6, K), L, sq, k["rdir"], k["pivot"], k["rcos"], k["rsin"])
+    return coef.reshape(N, A, 6, K), sq
 
 
 def kernel_chain(config, model, inputs, B, N: int) -> dict:
