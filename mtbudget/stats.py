@@ -93,10 +93,14 @@ class Moments:
             return cls.of_reference(x)
         from .kernels_stats import moments
 
-        K = x.shape[1]
+        return cls._by_kernel(moments, x, x.shape[1], x.shape[0])
+
+    @classmethod
+    def _by_kernel(cls, kernel, x: np.ndarray, K: int, n: int) -> "Moments":
+        """The K series' moments over n values each, computed by a compiled ``kernel(x, mean, m2, min, max)``."""
         mean, m2, lo, hi = np.empty(K), np.empty(K), np.empty(K), np.empty(K)
-        moments(x, mean, m2, lo, hi)
-        return cls(x.shape[0], mean, m2, lo, hi)
+        kernel(x, mean, m2, lo, hi)
+        return cls(n, mean, m2, lo, hi)
 
     @classmethod
     def of_reference(cls, x: np.ndarray) -> "Moments":
@@ -116,11 +120,7 @@ class Moments:
         if (rows.ndim != 2 or not rows.shape[1] or rows.strides[1] != rows.itemsize
                 or (not LIKE_NUMPY and rows.shape[1] > BUFFER)):  # numpy < 2.3 buffered long sums: its own bits
             return cls.of_rows_reference(rows)
-
-        K = rows.shape[0]
-        mean, m2, lo, hi = np.empty(K), np.empty(K), np.empty(K), np.empty(K)
-        moments_rows(rows, mean, m2, lo, hi)
-        return cls(rows.shape[1], mean, m2, lo, hi)
+        return cls._by_kernel(moments_rows, rows, rows.shape[0], rows.shape[1])
 
     @classmethod
     def of_rows_reference(cls, rows: np.ndarray) -> "Moments":
