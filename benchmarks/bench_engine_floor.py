@@ -110,9 +110,14 @@ def identification_per_trial(scenario, blocks=4, group=16):
 
 # ----------------------------------------------------------------------------- 2. the floor
 class Floor:
-    """Plain numpy, linearised at the nominal: the least work a trial of this size can take."""
+    """Plain numpy, linearised at the nominal: the least work a trial of this size can take.
 
-    def __init__(self, scenario, seed=1):
+    draws: the standard normal numbers a trial draws in all (default: what the floor itself needs, p + 6 + 3M,
+    279 for the paper).  A larger number (:func:`engine_draws`, the engine's sources: 1115 for the paper) draws the
+    rest in the same block and otherwise does the same: the floor of the same size *and the same random numbers*,
+    a second reference beside the issue's."""
+
+    def __init__(self, scenario, seed=1, draws=None):
         model = scenario.id_model
         p = model.n_params
         P0, Jg = model.machine_points(np.zeros((1, p)), jacobian=True)
@@ -135,11 +140,15 @@ class Floor:
         self.sd = np.concatenate([np.where(np.array(model.errors.units) == "mm", 8e-3, 10e-6), [0.2] * 3, [2e-5] * 3])
         self.rng = np.random.default_rng(seed)
         self.p = p
+        own = p + 6 + self.J.shape[0]
+        self.extra = 0 if draws is None else max(int(draws) - own, 0)
 
     def block(self, N):
         rng = self.rng
         x = rng.standard_normal((N, self.p + 6)) * self.sd  # geometric errors and pose
         e = np.einsum("mij,nmj->nmi", self.L, rng.standard_normal((N, len(self.L), 3))).reshape(N, -1)
+        if self.extra:  # the engine's other random numbers (draws=): drawn, as its sources draw them
+            rng.standard_normal((N, self.extra))
         y = self.y0 + x @ self.J.T + e  # simulate
         xh = np.zeros_like(x)
         for _ in range(2):  # two chord iterations on the (here linear) residuals with the shared pseudo-inverse
@@ -157,6 +166,48 @@ class Floor:
                 self.block(block)
             best = min(best, ((time.perf_counter() - w) / N, (time.process_time() - c) / N))
         return best
+
+
+def engine_draws(scenario, block=64) -> dict:
+    """The random numbers one trial of ``scenario`` draws, counted on one simulated block of the engine: by the
+    Generator method the sources call (``standard_normal`` and ``normal``: normal numbers; ``uniform``, ``integers``,
+    ...), each source's generator wrapped in a counter."""
+    import mtbudget.simulate as simulate
+
+    counts: dict = {}
+
+    class Counting:
+        def __init__(self, rng):
+            self._rng = rng
+
+        def __getattr__(self, name):
+            f = getattr(self._rng, name)
+            if not callable(f):
+                return f
+
+            def counted(*a, **kw):
+                r = f(*a, **kw)
+                counts[name] = counts.get(name, 0) + (kw["out"].size if kw.get("out") is not None else np.size(r))
+                return r
+
+            return counted
+
+    real = simulate.sample_source
+
+    def sample_source(scenario, src, n, rng, *a, **kw):
+        return real(scenario, src, n, Counting(rng), *a, **kw)
+
+    simulate.sample_source = sample_source
+    try:
+        Engine(scenario, block=block).simulate(0)
+    finally:
+        simulate.sample_source = real
+    return {k: v / block for k, v in counts.items()}
+
+
+def normal_draws(counts: dict) -> int:
+    """The normal numbers of :func:`engine_draws`' count."""
+    return int(round(counts.get("standard_normal", 0) + counts.get("normal", 0)))
 
 
 # ----------------------------------------------------------------------------- 3. the engine

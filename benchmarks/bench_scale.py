@@ -12,7 +12,9 @@ Configurations are the built-in ``paper_xfyz.toml`` with one thing changed:
 * ``command``: as is (75 points), ``--short`` and ``--long`` trials (the issue: 2000 and 32000), default settings
   (all sources, the budget's 512 trials), against the floor of ``bench_engine_floor.Floor`` (plain numpy, one
   thread, 75 points, 48 + 6 parameters, linearised, one shared pseudo-inverse, 2 chord iterations) measured in
-  this process in the same run, alternating, ``--rounds`` rounds.
+  this process in the same run, alternating, ``--rounds`` rounds; beside it, the same floor drawing as many normal
+  numbers a trial as the engine's sources do (``bench_engine_floor.engine_draws``: 1115 for the paper, the floor's own
+  279), a second reference: the floor of the same size and the same random numbers.
 * ``mesh``: ``[mesh] step`` 100 mm (75 points), 40 mm (726 points), 20 mm (4851 points), with
   ``--attribution-trials 0``; the slope between ``--slope`` trial counts (256 and 1280).  The ratio printed is the per-trial cost
   against 75 points, divided by the ratio of points (<= 1.5 is the issue's target).
@@ -213,14 +215,17 @@ def first_station(text: str) -> str:
     return head + stations[0]
 
 
-def floor_cpu() -> float:
+def floor_cpu(same_draws: bool = False) -> float:
+    """CPU s per trial of ``bench_engine_floor.Floor`` on the built-in configuration; same_draws: the floor drawing
+    as many normal numbers a trial as the engine's sources do (the second reference)."""
     sys.path.insert(0, str(ROOT / "benchmarks"))
-    from bench_engine_floor import Floor  # noqa: PLC0415
+    from bench_engine_floor import Floor, engine_draws, normal_draws  # noqa: PLC0415
 
     from mtbudget.config import load_config
     from mtbudget.scenario import build_scenario
 
-    return Floor(build_scenario(load_config())).per_trial()[1]
+    scenario = build_scenario(load_config())
+    return Floor(scenario, draws=normal_draws(engine_draws(scenario)) if same_draws else None).per_trial()[1]
 
 
 def main():
@@ -268,11 +273,13 @@ def measure(args, what, paper):
     with tempfile.TemporaryDirectory() as t:
         tmp = Path(t)
         if "command" in what:
-            ratios, before = [], []
+            ratios, before, same = [], [], []
             for r in range(args.rounds):
                 f = floor_cpu()
+                f_same = floor_cpu(same_draws=True)
                 c = slope(paper, args.short, args.long, *args.command_args.split())
                 ratios.append(c / f)
+                same.append(c / f_same)
                 extra = ""
                 if args.before:
                     bargs = args.command_args if args.before_args is None else args.before_args
@@ -280,9 +287,11 @@ def measure(args, what, paper):
                     before.append(cb / f)
                     extra = f"; {args.before}: {cb * 1e3:.4f} ms, {cb / f:.1f}x (this tree {cb / c:.2f}x faster)"
                 print(f"command round {r + 1} ({load()}): mtbudget run {c * 1e3:.4f} ms CPU/trial "
-                      f"({args.short} -> {args.long} trials), floor {f * 1e3:.4f} ms: {c / f:.1f}x{extra}", flush=True)
+                      f"({args.short} -> {args.long} trials), floor {f * 1e3:.4f} ms: {c / f:.1f}x; the floor with "
+                      f"the engine's normal draws {f_same * 1e3:.4f} ms: {c / f_same:.1f}x{extra}", flush=True)
             print(f"command: median {statistics.median(ratios):.1f}x the floor"
-                  + (f", {args.before} {statistics.median(before):.1f}x" if args.before else ""), flush=True)
+                  + (f", {args.before} {statistics.median(before):.1f}x" if args.before else "")
+                  + f"; {statistics.median(same):.1f}x the floor drawing the engine's normal numbers", flush=True)
         if "mesh" in what:
             cfgs = {s: variant(tmp, f"step{s}", paper, with_step(s)) for s in args.steps}
             from mtbudget.config import load_config  # noqa: PLC0415
