@@ -402,9 +402,11 @@ def budget_text(res: RunResult) -> str:
         lines.append(f"Budget of {MAIN_OUTPUT} ({pretty(b['unit'])}), one source at a time on {b['trials']} trials, "
                      f"by {b['basis'].replace('_', ' ')} (an RMS contribution per source, not a standard uncertainty):")
         lines.append(f"  {'source':<32} {'group':<22} {'u(x_i)':>14} {'RMS_i':>8} {'share':>7}")
+        idle = STATIONS_IDLE if _several_stations(res.spec or {}) else {}
         for r in sorted(b["rows"], key=lambda r: -r["contribution"]):
             ux = "-" if r["u_x"] is None else f"{r['u_x']['value']:.3g} {pretty(r['u_x']['unit'])}"
-            lines.append(f"  {r['source']:<32} {r['group']:<22} {ux:>14} {_root_i(r):8.3f} {r['share']:7.1%}")
+            lines.append(f"  {r['source']:<32} {r['group']:<22} {ux:>14} {_root_i(r):8.3f} {r['share']:7.1%}"
+                         + (f"  ({idle[r['source']]})" if r["source"] in idle else ""))
         lines.append(f"  {'interaction (not additive)':<32} {'':<22} {'':>14} "
                      f"{math.copysign(math.sqrt(abs(b['interaction'])), b['interaction']):8.3f} "
                      f"{(b['interaction'] / b['total'] if b['total'] else 0):7.1%}")
@@ -935,9 +937,11 @@ def run_report(res: RunResult, folder, tolerance_um: float | None = None, charac
                f"Each source alone on the same {b['trials']} trials; contributions by {b['basis'].replace('_', ' ')}, which add "
                "up for independent sources; RMS_i is a root-mean-square contribution, not a standard uncertainty.", "",
                f"| source | group | u(x_i) | RMS_i [{pretty(b['unit'])}] | share |", "| --- | --- | --- | --- | --- |"]
+        idle = STATIONS_IDLE if _several_stations(res.spec or {}) else {}
         for r in sorted(b["rows"], key=lambda r: -r["contribution"]):
             ux = "-" if r["u_x"] is None else f"{r['u_x']['value']:.3g} {pretty(r['u_x']['unit'])}"
-            md.append(f"| {r['source']} | {r['group']} | {ux} | {_root_i(r):.3f} | {r['share']:.1%} |")
+            note = f" ({idle[r['source']]})" if r["source"] in idle else ""
+            md.append(f"| {r['source']}{note} | {r['group']} | {ux} | {_root_i(r):.3f} | {r['share']:.1%} |")
         md.append(f"| interaction | | | | {b['interaction'] / b['total'] if b['total'] else 0:.1%} |")
         md.append(f"| **total** | | | {_root_total(b):.3f} | 100 % |")
     figs.update({k: v[0] for k, v in (extra_figures or {}).items()})

@@ -585,3 +585,29 @@ def test_one_station_run_is_bit_for_bit_under_any_grouping_replays_and_says_stat
     d = four()
     d["stations"] = d["stations"][:2]
     assert set(_idle_sources({"config": {"stations": d["stations"]}})) == {"convergence_criteria", "phase_sequence"}
+
+
+def test_budget_of_compensation_rms_says_which_strategy_sources_do_not_act_with_several_stations(tmp_path):
+    """Both budgets (per point and compensation_rms) mark the optimisation-strategy sources that the several-station
+    identification does not take, in the text and in the report; with [tracker] neither says so.  (The
+    compensation_rms rows were printed bare, their ~0.004 um of round-off read as a contribution.)"""
+    from mtbudget.report import budget_text, run_report
+    from mtbudget.runner import run
+
+    def rows(text, head):
+        part = text[text.index(head):].split("\n\n")[0]  # the table, to its blank line
+        return {ln.split()[0]: ln for ln in part.splitlines()[2:]}
+
+    res = run(load_config(FOUR), trials=16, block=8, attribution_trials=8)
+    text = budget_text(res)
+    for head in ("Budget of the per-point measurand", "Budget of compensation_rms"):
+        got = rows(text, head)
+        for src in ("convergence_criteria", "phase_sequence"):
+            assert got[src].endswith("(does not act with several [[stations]])"), (head, got[src])
+        assert "does not act" not in got["tracker_noise"]
+    md = run_report(res, tmp_path / "r")["markdown"].read_text()
+    part = md[md.index("### Budget of compensation_rms"):]
+    assert "| convergence_criteria (does not act with several [[stations]]) |" in part
+    assert "| phase_sequence (does not act with several [[stations]]) |" in part
+    one = budget_text(run(load_config(), trials=16, block=8, attribution_trials=8))
+    assert "does not act" not in one
