@@ -650,9 +650,18 @@ def headline(res, tolerance_um: float | None = None, characteristic: str = "comp
         "machine": f.get("machine") or f"machine tool of kinematic chain {cfg.get('machine', 'XFYZ')} (no name stated)",
         "instrument": ", ".join(x for x in (ins.get("model"), ins.get("serial") and f"serial {ins['serial']}",
                                             ins.get("calibration") and f"calibration: {ins['calibration']}") if x) or None,
-        "date": f.get("date") or time.strftime("%Y-%m-%d"), "traceability": f.get("traceability"),
+        "date": f.get("date") or run_date(res), "traceability": f.get("traceability"),
         "certificate": f.get("certificate"), "country": f.get("country"), "location": f.get("location")}
+    out["fields"]["date_stated"] = bool(f.get("date"))
     return out
+
+
+def run_date(res) -> str:
+    """The date the evaluation was computed (YYYY-MM-DD): its run log's start, else today (a run reported as it
+    ends).  What the statement gives when ``[report] date`` is not stated, said as such: an a priori evaluation
+    measures nothing, so the only date it has is its own."""
+    start = str(((getattr(res.log, "metadata", None) or {}).get("start_time")) or "")
+    return start[:10] if len(start) >= 10 else time.strftime("%Y-%m-%d")
 
 
 def headline_lines(h: dict) -> list:
@@ -667,7 +676,8 @@ def headline_lines(h: dict) -> list:
     rows += [("decision", md_escape(h["decision"])), ("decision rule", md_escape(h["rule"])),
              ("laboratory", said("laboratory", "laboratory")), ("instrument", said("instrument", "instrument.model, serial, calibration")),
              ("machine", md_escape(h["fields"]["machine"])), ("customer", said("customer", "customer")),
-             ("operator", said("operator", "operator")), ("date", md_escape(h["fields"]["date"])),
+             ("operator", said("operator", "operator")), ("date", md_escape(h["fields"]["date"]) + ("" if h["fields"].get("date_stated", True) else
+                                                   " (the date this evaluation was run; [report] date not stated)")),
              ("traceability", said("traceability", "traceability")), ("certificate", said("certificate", "certificate"))]
     return ["## Statement in brief", "", "| | |", "| --- | --- |"] + [f"| {k} | {v} |" for k, v in rows] + [""]
 

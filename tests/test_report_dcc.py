@@ -194,3 +194,31 @@ def test_the_spread_of_a_short_run_is_shown_to_two_significant_digits(logged):
     row = next(r for r in md.splitlines() if r.startswith("| compensation_rms |"))
     std = row.split("|")[4].strip()
     assert len(std.replace(".", "").lstrip("0")) == 2, row
+
+
+def test_an_unstated_date_is_the_runs_own_said_as_such_in_the_statement_and_the_dcc(tmp_path, monkeypatch):
+    """Without [report] date the statement gives the date the evaluation was run, read from its log (the mcap
+    library's own reader here), and says the date was not stated; the DCC's performance dates are that date, not the
+    day the report is written (a replay on another day)."""
+    import time as time_module
+
+    from mcap.reader import make_reader
+
+    from mtbudget.report_dcc import dcc_tree
+
+    log = tmp_path / "r.mcap"
+    execute(load_config(SMALL), trials=32, block=16, attribution_trials=0, log_path=log, progress=False)
+    with open(log, "rb") as fh:
+        meta = {m.name: m.metadata for m in make_reader(fh).iter_metadata()}
+    ran = meta["mtbudget.run"]["start_time"][:10]
+    real = time_module.strftime
+    monkeypatch.setattr(time_module, "strftime", lambda f, *a: "1999-01-01" if f == "%Y-%m-%d" and not a else real(f, *a))
+    res = replay(log)
+    h = headline(res)
+    assert h["fields"]["date"] == ran and not h["fields"]["date_stated"]
+    md = run_report(res, tmp_path / "rep")["markdown"].read_text()
+    row = next(ln for ln in md.splitlines() if ln.startswith("| date |"))
+    assert ran in row and "not stated" in row and "1999" not in row
+    tree = dcc_tree(res)
+    dates = [e.text for e in tree.iter() if e.tag.endswith("PerformanceDate")]
+    assert dates == [ran, ran]
