@@ -724,7 +724,8 @@ def report(runlog, out, tolerance, characteristic):
 
     It opens with the statement in brief a laboratory issues: the kind of
     statement (a priori: a planned verification evaluated by simulation), the
-    measurand in words, the result, U with k = 2 and the coverage, the
+    measurand in words, the result, U with its k (2 at the default 95 %; the
+    normal quantile of the run's --coverage otherwise) and the coverage, the
     decision and its rule, and the laboratory, instrument (tracker model,
     serial, calibration), machine, customer, operator, date and traceability
     sentence of the configuration's optional [report] table ("not stated"

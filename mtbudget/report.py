@@ -621,19 +621,19 @@ def headline(res, tolerance_um: float | None = None, characteristic: str = "comp
         u = np.array([q["u"]["value"] for q in pts])
         mean = np.array([q["mean"]["value"] for q in pts])
         half = np.array([[(h - lo) / 2 for lo, h in zip(q["interval"]["low"], q["interval"]["high"])] for q in pts])
-        U = 2.0 * float(u.max())
+        k, k_text = coverage_factor(res.coverage)
+        U = k * float(u.max())
         nd = decimals_for(U)
         unit = pretty(pts[0]["u"]["unit"])
-        out.update(unit=unit, points=len(pts), U_max=round(U, nd), U_rms=round(2.0 * float(np.sqrt((u ** 2).mean())), nd),
+        out.update(unit=unit, points=len(pts), U_max=round(U, nd), U_rms=round(k * float(np.sqrt((u ** 2).mean())), nd),
                    half_width_max=round(float(half.max()), nd), bias_max=round(float(np.abs(mean).max()), nd),
-                   k=2.0, coverage=res.coverage, decimals=nd)
+                   k=k, k_text=k_text, coverage=res.coverage, decimals=nd)
         out["result_text"] = (f"the error of each component (x, y, z) at each of the {len(pts)} mesh points after "
                               f"compensation is estimated by the mean of the trials: at most {out['bias_max']:.{nd}f} "
                               f"{unit} from zero")
-        out["U_text"] = (f"U = {out['U_max']:.{nd}f} {unit} (k = 2, coverage probability about 95 % for a normal "
-                         f"distribution), the largest over the mesh points and axes (U = 2u); RMS over the mesh "
-                         f"{out['U_rms']:.{nd}f} {unit}; the largest half-width of the Monte Carlo {percent(res.coverage)} "
-                         f"coverage intervals is {out['half_width_max']:.{nd}f} {unit}")
+        out["U_text"] = (f"U = {out['U_max']:.{nd}f} {unit} ({k_text}), the largest over the mesh points and axes "
+                         f"(U = {k:g}u); RMS over the mesh {out['U_rms']:.{nd}f} {unit}; the largest half-width of the "
+                         f"Monte Carlo {percent(res.coverage)} coverage intervals is {out['half_width_max']:.{nd}f} {unit}")
     if tolerance_um is not None:
         from .budget import conformance
 
@@ -654,6 +654,18 @@ def headline(res, tolerance_um: float | None = None, characteristic: str = "comp
         "certificate": f.get("certificate"), "country": f.get("country"), "location": f.get("location")}
     out["fields"]["date_stated"] = bool(f.get("date"))
     return out
+
+
+def coverage_factor(p: float) -> tuple:
+    """(k, what it says) of an expanded uncertainty U = k u at the run's coverage probability p: k = 2 for the
+    customary 95 % (about 95.45 % for a normal distribution), else the normal quantile of (1 + p) / 2 to two decimals
+    (2.58 for 99 %), so that U and the run's Monte Carlo coverage intervals state one coverage probability."""
+    from statistics import NormalDist
+
+    if abs(float(p) - 0.95) < 1e-12:
+        return 2.0, "k = 2, coverage probability about 95 % for a normal distribution"
+    k = round(NormalDist().inv_cdf((1.0 + float(p)) / 2.0), 2)
+    return k, f"k = {k:g}, coverage probability about {percent(p)} for a normal distribution"
 
 
 def run_date(res) -> str:

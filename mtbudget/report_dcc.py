@@ -173,16 +173,16 @@ def dcc_tree(res, tolerance_um: float | None = None, characteristic: str = "comp
         unit = DSI_UNITS.get(h["unit"], h["unit"])
         nd, p = h["decimals"], float(res.coverage)
         first = _sub(results, _d("result"))
-        _text(first, "name", "expanded uncertainty of the error after compensation over the mesh, per axis (k = 2)")
+        k = h["k"]
+        _text(first, "name", f"expanded uncertainty of the error after compensation over the mesh, per axis (k = {k:g})")
         data = _sub(first, _d("data"))
         pts = res.points()
         u = np.array([q["u"]["value"] for q in pts])
         for j, a in enumerate("xyz"):
-            _quantity(data, f"largest expanded uncertainty U (k = 2, coverage probability about 95 % for a normal "
-                            f"distribution) of the {a} error over the mesh", label=f"U_max_{a}",
-                      value=round(2.0 * float(u[:, j].max()), nd), unit=unit, nd=nd)
-            _quantity(data, f"RMS over the mesh of the expanded uncertainty U (k = 2) of the {a} error",
-                      label=f"U_rms_{a}", value=round(2.0 * float(np.sqrt((u[:, j] ** 2).mean())), nd), unit=unit, nd=nd)
+            _quantity(data, f"largest expanded uncertainty U ({h['k_text']}) of the {a} error over the mesh",
+                      label=f"U_max_{a}", value=round(k * float(u[:, j].max()), nd), unit=unit, nd=nd)
+            _quantity(data, f"RMS over the mesh of the expanded uncertainty U (k = {k:g}) of the {a} error",
+                      label=f"U_rms_{a}", value=round(k * float(np.sqrt((u[:, j] ** 2).mean())), nd), unit=unit, nd=nd)
         per = _sub(results, _d("result"))
         _text(per, "name", "error of each axis at each mesh point after compensation: estimate, standard "
                            f"uncertainty and {100 * p:g} % coverage interval (JCGM 101)")

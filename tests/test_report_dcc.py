@@ -222,3 +222,34 @@ def test_an_unstated_date_is_the_runs_own_said_as_such_in_the_statement_and_the_
     tree = dcc_tree(res)
     dates = [e.text for e in tree.iter() if e.tag.endswith("PerformanceDate")]
     assert dates == [ran, ran]
+
+
+def test_U_states_the_runs_coverage_probability_not_95_percent_beside_99_percent_intervals(tmp_path):
+    """A run at --coverage 0.99: the statement's U is k u with k the normal 99.5 % quantile (2.58, statistics'
+    NormalDist here: scipy's below), in the text and in the DCC, and no '95 %' is left in the statement; a 0.95 run
+    keeps k = 2."""
+    from scipy.stats import norm
+
+    from mtbudget.report_dcc import dcc_tree
+
+    log = tmp_path / "r.mcap"
+    execute(load_config(SMALL), trials=64, block=16, attribution_trials=0, log_path=log, progress=False, coverage=0.99)
+    res = replay(log)
+    h = headline(res, 20.0)
+    k = round(float(norm.ppf(0.995)), 2)
+    u = np.array([q["u"]["value"] for q in res.points()])
+    assert h["k"] == k == 2.58
+    assert h["U_max"] == pytest.approx(k * u.max(), abs=0.5 * 10 ** -h["decimals"])
+    assert "k = 2.58" in h["U_text"] and "99 %" in h["U_text"] and "95" not in h["U_text"]
+    names = [e.text for e in dcc_tree(res, 20.0).iter() if e.tag.endswith("content") and e.text and "U_max" not in e.text]
+    U_names = [t for t in names if "expanded uncertainty U" in t]
+    assert U_names and all("k = 2.58" in t and "95 %" not in t for t in U_names), U_names
+    assert all("99 %" in t for t in U_names if t.startswith("largest")), U_names
+    res95 = replay(logged_path(tmp_path))
+    assert headline(res95)["k"] == 2.0
+
+
+def logged_path(tmp_path):
+    log = tmp_path / "r95.mcap"
+    execute(load_config(SMALL), trials=32, block=16, attribution_trials=0, log_path=log, progress=False)
+    return log
