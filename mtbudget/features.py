@@ -27,7 +27,7 @@ from .config import SCHEMA, Reader, to_unit
 from .errors import ConfigError
 from .model import MeasurementModel
 from .plan import Plan
-from .stats import percent
+from .stats import decimals_for, percent
 from .units import pretty
 
 #: kinds -> (fewest points, unit of the value, one-sided characteristic (value <= T) or two-sided (|deviation| <= T))
@@ -644,8 +644,9 @@ def features_text(feats: list | None) -> list:
             continue
         iv = f["interval"]
         dec = f.get("decision")
-        lines.append(f"  {f['name']:<22} {f['kind']:<12} {pretty(f['unit']):<5} {f['estimate']:9.3f} {f['u']:9.3f}   "
-                     f"[{iv['low']:8.3f}, {iv['high']:8.3f}]  " + (dec["verdict_at_nominal"] if dec else "-"))
+        nd = decimals_for(f["u"])  # u to two significant digits, the rest to the same decimal (JCGM 101 7.9.2)
+        lines.append(f"  {f['name']:<22} {f['kind']:<12} {pretty(f['unit']):<5} {f['estimate']:9.{nd}f} {f['u']:9.{nd}f}   "
+                     f"[{iv['low']:8.{nd}f}, {iv['high']:8.{nd}f}]  " + (dec["verdict_at_nominal"] if dec else "-"))
     p = feats[0].get("interval", {}).get("coverage")
     if p:
         lines.append(f"  interval: probabilistically symmetric, {percent(p)} coverage; measurands:")
@@ -676,9 +677,9 @@ def features_markdown(feats: list | None) -> list:
             md.append(f"| {f['name']} | {f['kind']} | {f['note']} | | | |")
             continue
         iv, dec = f["interval"], f.get("decision")
-        un = pretty(f["unit"])
-        md.append(f"| {f['name']} | {f['kind']} | {f['estimate']:.3f} {un} | {f['u']:.3f} {un} | "
-                  f"[{iv['low']:.3f}, {iv['high']:.3f}] {un} ({percent(iv['coverage'])}) | "
+        un, nd = pretty(f["unit"]), decimals_for(f["u"])  # two significant digits of u (JCGM 101 7.9.2)
+        md.append(f"| {f['name']} | {f['kind']} | {f['estimate']:.{nd}f} {un} | {f['u']:.{nd}f} {un} | "
+                  f"[{iv['low']:.{nd}f}, {iv['high']:.{nd}f}] {un} ({percent(iv['coverage'])}) | "
                   f"{dec['verdict_at_nominal'] if dec else '-'} |")
     md.append("")
     for f in feats:

@@ -259,3 +259,24 @@ def test_a_run_with_resumed_blocks_says_its_features_are_not_available():
               resume_blocks=[b0])
     f = result_json(res)["features"][0]
     assert "u" not in f and "not available" in f["note"]
+
+
+@pytest.mark.parametrize("u, low, high", [(8.731, -18.712, 15.536), (0.01234, -0.0251, 0.0237), (123.4, -250.2, 240.9)])
+def test_feature_rows_show_u_to_two_significant_digits_and_the_rest_to_its_decimal(u, low, high):
+    """The features table (text and report) rounds u to two significant digits and the estimate and interval to the
+    same decimal, as the run's summary promises (JCGM 101 7.9.2); it printed three decimals whatever u was."""
+    from mtbudget.features import features_markdown, features_text
+
+    f = {"name": "bore", "kind": "diameter", "unit": "um", "estimate": (low + high) / 2, "u": u,
+         "interval": {"low": low, "high": high, "coverage": 0.95}, "measurand": "the bore's diameter error"}
+    import re
+    from decimal import Decimal
+
+    nd = max(0, 1 - Decimal(repr(u)).adjusted())  # the decimal of u's second significant digit
+    row = next(ln for ln in features_text([f]) if ln.strip().startswith("bore"))
+    nums = re.findall(r"-?\d+(?:\.\d+)?", row.split("µm", 1)[1])
+    assert nums[:4] == [f"{v:.{nd}f}" for v in (f["estimate"], u, low, high)], row
+    two = f"{u:.{nd}f}"
+    assert len(two.replace(".", "").lstrip("0")) == 2 or nd == 0
+    md = next(ln for ln in features_markdown([f]) if ln.startswith("| bore"))
+    assert f"| {two} µm |" in md and f"[{low:.{nd}f}, {high:.{nd}f}]" in md
