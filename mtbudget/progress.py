@@ -100,6 +100,15 @@ class _Heartbeat:
         if self.bar is not None:
             self.bar.close()
             self.bar = None
+            if not _tty(sys.stderr):  # a pipe or a file keeps the bar's text: end its line, so that what follows
+                print(file=sys.stderr, flush=True)  # (an error, a note) starts a line of its own
+
+
+def _tty(stream) -> bool:
+    try:
+        return stream.isatty()
+    except (AttributeError, OSError, ValueError):
+        return False
 
 
 _starting: _Heartbeat | None = None
