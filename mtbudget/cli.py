@@ -64,6 +64,18 @@ class _Group(click.Group):
             stop_starting()
 
 
+def _quiet_option(f):
+    """``--quiet`` for a command without a progress option of its own: no bar, note or heartbeat on stderr (its
+    results on stdout and its errors still print)."""
+    def silence(ctx, param, value):
+        from .progress import set_quiet
+
+        set_quiet(value)
+
+    return click.option("--quiet", is_flag=True, expose_value=False, is_eager=True, callback=silence,
+                        help="No progress bars, notes or heartbeats on stderr (results and errors still print).")(f)
+
+
 #: commands that evaluate the kinematic chain (and so call the compiled kernels)
 _COMPUTING = {"study", "run", "replay", "simulate", "identify", "compensate", "diagnose"}
 
@@ -118,6 +130,7 @@ def main():
 @click.option("--no-identify", is_flag=True, help="Only write the recording; skip the identification summary.")
 @click.option("--set", "sets", multiple=True, metavar="KEY=VALUE",
               help="Change one key of the configuration, e.g. --set 'effects.thermal.x=11.5 um/(m*K)' (repeatable).")
+@_quiet_option
 def simulate(config, out, seed, trial, no_identify, sets):
     """Simulate a verification and write it as a recording.
 
@@ -258,6 +271,7 @@ def _print_identification(folder, as_json=False, max_degree=3, strategy="one-pha
 @click.option("--rotary-harmonics", type=click.IntRange(min=0, max=6), default=0, show_default=True,
               help="Five-axis recordings: Fourier terms of each rotary axis' commanded angle in its error motions "
                    "(ISO 230-1 EXC ... ECC); 0 identifies the location and zero errors only (ISO 230-7).")
+@_quiet_option
 def identify(recording, example, as_json, max_degree, strategy, rotary_harmonics):
     """Identify the tracker pose and geometric errors of a recording.
 
@@ -290,6 +304,7 @@ def identify(recording, example, as_json, max_degree, strategy, rotary_harmonics
 @click.option("--json", "as_json", is_flag=True, help="Print the statement as one JSON object.")
 @click.option("--out", "out", type=click.Path(file_okay=False, path_type=Path), default=None,
               help="Also write posterior.md, a self-contained posterior.html and posterior.json into this folder.")
+@_quiet_option
 def posterior_cmd(recording, example, trials, seed, coverage, noise, max_degree, as_json, out):
     """The a posteriori statement of a recorded verification.
 
@@ -346,6 +361,7 @@ def posterior_cmd(recording, example, trials, seed, coverage, noise, max_degree,
 @click.option("--report", "report_dir", type=click.Path(file_okay=False, path_type=Path), default=None,
               help="Also write compensation.md and a self-contained compensation.html into this folder: the tables, "
                    "ISO 230-2 figures, the fit residual against U (k = 2) with its figure, and the check.")
+@_quiet_option
 def compensate(recording, example, fmt, out, step, check, strict, reference, siemens_cec_sign, max_degree, as_json,
                report_dir):
     """Identify a recording and write its compensation tables for a controller.
@@ -595,6 +611,7 @@ def run_cmd(config, trials, seed, coverage, executor, workers, address, attribut
 @click.argument("runlog", type=click.Path(dir_okay=False, path_type=Path))
 @click.option("--verify", is_flag=True, help="Re-run from the logged config and seed and compare bit for bit.")
 @click.option("--json", "as_json", is_flag=True, help="Print the rebuilt results as one JSON object.")
+@_quiet_option
 def replay(runlog, verify, as_json):
     """Rebuild a logged run's budget and intervals from its MCAP file.
 
@@ -719,6 +736,7 @@ def diagnose_cmd(recording, example, as_json, report_dir, alpha, max_degree, qui
 @click.option("--characteristic", type=click.Choice(["component", "max"]), default="component", show_default=True,
               help="What the tolerance applies to: each error component at each point (component), or the largest "
                    "3-D error over the mesh (max).")
+@_quiet_option
 def report(runlog, out, tolerance, characteristic):
     """Write an uncertainty statement (Markdown, HTML and a DCC) from a run log.
 

@@ -23,9 +23,20 @@ class _Silent:
         pass
 
 
+_QUIET = False  # --quiet of a command that has no progress option of its own: silence every bar, note and heartbeat
+
+
+def set_quiet(quiet: bool = True):
+    """Silence (or not) every bar, note and heartbeat of this process: a command's ``--quiet``."""
+    global _QUIET
+    _QUIET = bool(quiet)
+    if _QUIET:
+        stop_starting()
+
+
 def progress_bar(total: int | None, desc: str, unit: str = "it", enabled: bool = True):
     """A tqdm bar on stderr, or an object with the same methods that prints nothing."""
-    if not enabled:
+    if not enabled or _QUIET:
         return _Silent()
     stop_starting()
     from tqdm import tqdm
@@ -57,7 +68,7 @@ class Steps:
 
 def note(message: str, enabled: bool = True):
     """One line of feedback on stderr (a step that starts), unless silenced."""
-    if enabled:
+    if enabled and not _QUIET:
         stop_starting()
         print(message, file=sys.stderr, flush=True)
 
@@ -119,7 +130,7 @@ def start_starting(desc: str = "starting (loading, reading the configuration, bu
     end (:func:`stop_starting`)."""
     global _starting
     stop_starting()
-    if _real_stream(sys.stderr):
+    if _real_stream(sys.stderr) and not _QUIET:
         _starting = _Heartbeat(desc, after)
 
 
@@ -134,7 +145,7 @@ def stop_starting():
 def working(desc: str, enabled: bool = True, after: float = 0.5):
     """A heartbeat on stderr while the block runs (writing a report and its figures, a log): after ``after`` s, the
     elapsed time, redrawn every second; nothing when disabled or when stderr is an in-memory stream."""
-    if not enabled or not _real_stream(sys.stderr):
+    if not enabled or _QUIET or not _real_stream(sys.stderr):
         yield
         return
     stop_starting()
