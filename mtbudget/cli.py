@@ -323,6 +323,8 @@ def posterior_cmd(recording, example, trials, seed, coverage, noise, max_degree,
         raise click.UsageError("give a RECORDING folder or --example NAME")
     folder = example_recording(example) if example else recording
     p = posterior(folder, trials=trials, seed=seed, coverage=coverage, noise=noise, max_degree=max_degree)
+    if p["identification"]["fit_test"]["warning"]:  # said on stderr too, where a script that reads --json sees it
+        click.echo(f"warning: {p['identification']['fit_test']['warning']}", err=True)
     click.echo(json.dumps(p, indent=1) if as_json else posterior_text(p))
     if out is not None:
         from .report import posterior_report

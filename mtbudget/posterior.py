@@ -29,6 +29,34 @@ from .scenario import rigid_projector
 from .stats import percent, symmetric_interval
 
 UM = 1000.0  # um per mm
+#: the level of the chi-square test of the fit against the recording's stated noise: below it, the statement warns
+FIT_ALPHA = 1e-3
+
+
+def fit_test(chi2_per_dof: float, dof: int, noise: str, recording: str) -> dict:
+    """The chi-square test of the identification's fit against the recording's stated noise (upper and lower tails of
+    chi2 with ``dof`` degrees of freedom) and, where either tail is below :data:`FIT_ALPHA`, the warning the statement
+    carries: an a posteriori u assumes the model holds every physics the recording shows."""
+    from scipy.special import gammainc, gammaincc
+
+    x = chi2_per_dof * dof
+    above, below = float(gammaincc(dof / 2, x / 2)), float(gammainc(dof / 2, x / 2))
+    out = {"p_above": above, "p_below": below, "alpha": FIT_ALPHA, "warning": None}
+    said = f"chi2/dof {chi2_per_dof:.3f} on {dof} degrees of freedom"
+    if above < FIT_ALPHA:
+        out["warning"] = (
+            f"the identified model does not fit {recording} within its stated noise ({said}; P(chi2 >= that) = "
+            f"{above:.2g} < {FIT_ALPHA:g}): the residuals hold more than the noise, most often a physics the model "
+            "leaves out (thermal, periodic, reversal ...), which this statement does not contain; find it with "
+            f"`mtbudget diagnose {recording}` before signing" +
+            ("" if noise == "estimated" else "; `--noise estimated` scales the noise by sqrt(chi2/dof), which treats "
+                                             "what is left out as noise"))
+    elif below < FIT_ALPHA:
+        out["warning"] = (
+            f"the residuals of {recording} are smaller than its stated noise allows ({said}; P(chi2 <= that) = "
+            f"{below:.2g} < {FIT_ALPHA:g}): the stated noise is larger than the recording shows, so this u is "
+            "conservative; check the stated tracker noise and repeatability")
+    return out
 
 
 def posterior(folder, trials: int = 2000, seed: int = 1, coverage: float = 0.95, noise: str = "stated",
@@ -104,7 +132,8 @@ def posterior(folder, trials: int = 2000, seed: int = 1, coverage: float = 0.95,
                       "it"),
         "not_identifiable": len(combos),
         "identification": {"chi2_per_dof": chi2, "dof": int(res.dof), "converged": bool(res.converged[0]),
-                           "noise": noise, "noise_scale": scale, "thermal_correction": rec.thermal_correction},
+                           "noise": noise, "noise_scale": scale, "thermal_correction": rec.thermal_correction,
+                           "fit_test": fit_test(chi2, int(res.dof), noise, rec.name)},
         "trials": trials, "seed": seed, "coverage": coverage, "not_converged": not_converged,
         "points": points,
         "summary": {"unit": "um", "u_rms_over_mesh": np.sqrt((u.reshape(-1, 3) ** 2).mean(axis=0)).tolist(),
@@ -120,10 +149,12 @@ def posterior_text(p: dict) -> str:
     """The a posteriori statement in a few lines."""
     k, s, i = p["statement_kind"], p["summary"], p["identification"]
     r = s["u_over_u_linear"]
-    return "\n".join([
+    warn = (i.get("fit_test") or {}).get("warning")
+    return "\n".join(([f"WARNING: {warn}."] if warn else []) + [
         f"Kind of statement: A POSTERIORI, the {k['name']} (recording {k['recording']}): {k['what']}.",
         f"Measurand: {p['measurand']} ({p['not_identifiable']} combination(s) not identifiable).",
-        f"Identification: chi2/dof {i['chi2_per_dof']:.3f} on {i['dof']} degrees of freedom; {i['thermal_correction']}.",
+        f"Identification: chi2/dof {i['chi2_per_dof']:.3f} on {i['dof']} degrees of freedom ({_fit_said(i)}); "
+        f"{i['thermal_correction']}.",
         f"Monte Carlo: {p['trials']} trials, seed {p['seed']}, {percent(p['coverage'])} intervals, "
         f"{p['not_converged']} not converged.",
         "  standard uncertainty u (k = 1), µm:      x        y        z",
@@ -132,3 +163,12 @@ def posterior_text(p: dict) -> str:
         f"  check: u(MCM) / u(identification covariance propagated linearly) median {r['median']:.3f} "
         f"({r['min']:.3f}-{r['max']:.3f}) over the point-axes",
     ])
+
+
+def _fit_said(i: dict) -> str:
+    """The chi-square test in a few words (the statement's identification line)."""
+    t = i.get("fit_test")
+    if not t:
+        return "no test of the fit"
+    return (f"chi-square test against the stated noise: P(above) {t['p_above']:.2g}, P(below) {t['p_below']:.2g}, "
+            + ("fails" if t["warning"] else "passes") + f" at {t['alpha']:g}")

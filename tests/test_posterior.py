@@ -65,3 +65,28 @@ def test_posterior_command(tmp_path):
     assert (tmp_path / "posterior.html").exists() and json.loads((tmp_path / "posterior.json").read_text())["points"]
     r = CliRunner().invoke(main, ["posterior", "--example", "null", "--trials", "256", "--noise", "estimated"])
     assert r.exit_code == 0 and "A POSTERIORI" in r.output and "sqrt(chi2/dof)" in r.output
+
+
+def test_a_posteriori_statement_tests_the_fit_and_warns_where_the_model_leaves_physics_out(tmp_path):
+    """thermal_x holds a thermal expansion the rigid-body model leaves out (chi2/dof 1.42 on 852 dof): the statement
+    warns, on stderr, in its text and in posterior.md, naming diagnose; the null recording (the model's own physics)
+    passes.  The tail probabilities against scipy.stats' chi2, computed here from the reported chi2/dof and dof."""
+    from scipy.stats import chi2 as chi2_dist
+
+    from mtbudget.posterior import FIT_ALPHA
+
+    for example, warns in (("thermal_x", True), ("null", False)):
+        p = posterior(example_recording(example), trials=8, seed=1)
+        i = p["identification"]
+        t, x = i["fit_test"], i["chi2_per_dof"] * i["dof"]
+        assert t["p_above"] == pytest.approx(chi2_dist.sf(x, i["dof"]), rel=1e-9, abs=1e-300)
+        assert t["p_below"] == pytest.approx(chi2_dist.cdf(x, i["dof"]), rel=1e-9, abs=1e-300)
+        assert (t["warning"] is not None) == warns == (min(t["p_above"], t["p_below"]) < FIT_ALPHA)
+    assert "diagnose thermal_x" in posterior(example_recording("thermal_x"), trials=8)["identification"]["fit_test"]["warning"]
+    r = CliRunner().invoke(main, ["posterior", "--example", "thermal_x", "--trials", "8", "--out", str(tmp_path)])
+    assert r.exit_code == 0, r.output
+    assert "warning: the identified model does not fit thermal_x" in r.stderr
+    assert "WARNING: the identified model does not fit" in r.stdout
+    assert "**Warning: the identified model does not fit" in (tmp_path / "posterior.md").read_text()
+    r = CliRunner().invoke(main, ["posterior", "--example", "null", "--trials", "8"])
+    assert "warning" not in r.output.lower() and "passes at 0.001" in r.output
