@@ -8,7 +8,7 @@ of the configuration, and the results as D-SI quantities: per axis the
 largest and the RMS expanded uncertainty over the mesh (``si:expandedUnc``,
 k = 2), and for every mesh point and axis the estimate with its Monte Carlo
 coverage interval (``si:coverageInterval``: standard uncertainty, interval
-ends, coverage probability).  Units are D-SI unit strings (``\\micro\\metre``,
+ends, coverage probability), and the ``[[features]]`` of the run with their decisions.  Units are D-SI unit strings (``\\micro\\metre``,
 ``\\milli\\metre``).  Fields the configuration does not state are written as
 "not stated", never invented.
 
@@ -35,7 +35,8 @@ SI_NS = "https://ptb.de/si"
 SCHEMA_VERSION = "3.3.0"
 SCHEMA_LOCATION = "https://ptb.de/dcc https://ptb.de/dcc/v3.3.0/dcc.xsd"
 #: mtbudget's display units -> D-SI unit strings
-DSI_UNITS = {"µm": r"\micro\metre", "um": r"\micro\metre", "mm": r"\milli\metre"}
+DSI_UNITS = {"µm": r"\micro\metre", "um": r"\micro\metre", "mm": r"\milli\metre", "urad": r"\micro\radian",
+             "µrad": r"\micro\radian"}
 NOT_STATED = "not stated"
 
 ET.register_namespace("dcc", DCC_NS)
@@ -200,8 +201,31 @@ def dcc_tree(res, tolerance_um: float | None = None, characteristic: str = "comp
         d = _sub(r, _d("data"))
         t = _sub(d, _d("text"))
         _sub(t, _d("content"), "the run log holds no per-point coverage intervals", lang="en")
+    _features(results, res)
     ET.indent(root, space=" ")
     return ET.ElementTree(root)
+
+
+def _features(results, res):
+    """The [[features]] of the run (report.md's features table): per feature its error (measured minus true, a part
+    at nominal) with its standard uncertainty and coverage interval, and its decision where a tolerance is stated."""
+    from .report import features_of
+    from .stats import decimals_for
+
+    feats = [f for f in features_of(res) or [] if "u" in f]
+    if not feats:
+        return
+    r = _sub(results, _d("result"))
+    _text(r, "name", "features probed on the compensated machine: error of each feature, measured minus true, for a "
+                     "part at nominal (docs/features.md)")
+    data = _sub(r, _d("data"))
+    for f in feats:
+        iv, dec = f["interval"], f.get("decision")
+        name = f"{f['name']} ({f['kind']}): {f['measurand']}"
+        if dec:
+            name += f"; decision (ISO 14253-1): {dec['statement']}; rule: {dec['rule']}"
+        _quantity(data, name, label=f"feature_{f['name']}", value=f["estimate"], unit=DSI_UNITS.get(f["unit"], f["unit"]),
+                  nd=decimals_for(f["u"]), u=f["u"], interval=(iv["low"], iv["high"]), p=iv["coverage"])
 
 
 def write_dcc(res, path, tolerance_um: float | None = None, characteristic: str = "component") -> Path:

@@ -150,6 +150,13 @@ REQUIRED = {"administrativeData": {"dccSoftware", "coreData", "items", "calibrat
 def test_the_dcc_follows_the_structure_of_the_published_schema(logged):
     _, path, _ = logged
     root = ET.parse(path).getroot()
+    follows_the_schema_structure(root)
+    assert root.find(".//dcc:countryCodeISO3166_1", NS).text == "DE"
+    assert root.find(".//dcc:performanceLocation", NS).text == "customer"
+
+
+def follows_the_schema_structure(root):
+    """Every element mtbudget writes in the order the DCC 3.3.0 schema fixes, with its required children."""
     assert root.tag == f"{{{DCC_NS}}}digitalCalibrationCertificate" and root.get("schemaVersion") == "3.3.0"
     assert [c.tag.split("}")[1] for c in root] == ["administrativeData", "measurementResults"]
     for el in root.iter():
@@ -162,8 +169,6 @@ def test_the_dcc_follows_the_structure_of_the_published_schema(logged):
         assert REQUIRED.get(name, set()) <= set(kids), (name, kids)
         if name == "content":
             assert el.get("lang") == "en" and el.text and el.text.strip() == el.text
-    assert root.find(".//dcc:countryCodeISO3166_1", NS).text == "DE"
-    assert root.find(".//dcc:performanceLocation", NS).text == "customer"
 
 
 @pytest.mark.skipif(not (SCHEMAS / "dcc.xsd").exists(), reason="the published DCC 3.3.0 schema files are not in "
@@ -253,3 +258,39 @@ def logged_path(tmp_path):
     log = tmp_path / "r95.mcap"
     execute(load_config(SMALL), trials=32, block=16, attribution_trials=0, log_path=log, progress=False)
     return log
+
+
+def test_the_dcc_carries_the_features_and_their_decisions(tmp_path):
+    """A run with [[features]]: the DCC holds every feature report.md's table holds, its error with u and interval to
+    the table's digits, its unit in D-SI and its decision; it had none of them."""
+    import re
+
+    from mtbudget.config import bundled_config
+    from mtbudget.report import features_of
+    from mtbudget.report_dcc import dcc_tree
+
+    log = tmp_path / "f.mcap"
+    execute(load_config(bundled_config("paper_features")), trials=64, block=32, attribution_trials=0, log_path=log,
+            progress=False)
+    res = replay(log)
+    feats = [f for f in features_of(res) if "u" in f]
+    assert feats
+    root = dcc_tree(res).getroot()
+    follows_the_schema_structure(root)
+    result = next(r for r in root.iter(f"{{{DCC_NS}}}result")
+                  if "features probed" in r.find("dcc:name/dcc:content", NS).text)
+    qs = result.findall(".//dcc:quantity", NS)
+    assert len(qs) == len(feats)
+    md = run_report(res, tmp_path / "rep")["markdown"].read_text()
+    for f, q in zip(feats, qs):
+        name = q.find("dcc:name/dcc:content", NS).text
+        assert name.startswith(f"{f['name']} ({f['kind']})") and ("decision" in f) == ("decision (ISO 14253-1)" in name)
+        real = q.find("si:real", NS)
+        assert real.find("si:unit", NS).text == {"um": r"\micro\metre", "urad": r"\micro\radian"}[f["unit"]]
+        row = next(ln for ln in md.splitlines() if ln.startswith(f"| {f['name']} |"))
+        shown = re.findall(r"-?\d+\.?\d*", row.split("|")[3] + row.split("|")[4] + row.split("|")[5])
+        ci = real.find("si:coverageInterval", NS)
+        got = [real.find("si:value", NS).text] + [ci.find(f"si:{k}", NS).text for k in
+                                                 ("standardUnc", "intervalMin", "intervalMax")]
+        assert got == shown[:4], (got, row)
+        assert float(ci.find("si:coverageProbability", NS).text) == res.coverage
