@@ -637,7 +637,7 @@ def features_text(feats: list | None) -> list:
     lines = ["", "Features probed on the compensated machine (docs/features.md): error of each feature, measured "
                  "minus true, for a part at nominal"]
     lines.append(f"  {'feature':<22} {'kind':<12} {'unit':<5} {'estimate':>9} {'u (k=1)':>9}   {'interval':>22}  "
-                 f"decision")
+                 f"decision for a part at nominal")
     for f in feats:
         if "u" not in f:
             lines.append(f"  {f['name']:<22} {f['kind']:<12} {f['note']}")
@@ -671,7 +671,7 @@ def features_markdown(feats: list | None) -> list:
           "Error of each feature (measured minus true, a part at nominal), from the same Monte Carlo trials: the "
           "verification's state of the machine at every probed point, plus the in-use sources the feature states "
           "(docs/features.md).", "",
-          "| feature | kind | estimate | u (k = 1) | interval | decision |", "| --- | --- | --- | --- | --- | --- |"]
+          "| feature | kind | estimate | u (k = 1) | interval | decision for a part at nominal |", "| --- | --- | --- | --- | --- | --- |"]
     for f in feats:
         if "u" not in f:
             md.append(f"| {f['name']} | {f['kind']} | {f['note']} | | | |")
