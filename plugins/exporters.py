@@ -120,7 +120,9 @@ class LinuxCnc(Exporter):
                      "columns: nominal, forward trim, reverse trim (COMP_FILE_TYPE = 1); trim = -(ISO 230-2 deviation)",
                      f"{_zero(table, a)}; the table covers {t.positions[0]:g}..{t.positions[-1]:g} mm "
                      "and its end values hold beyond",
-                     "activate in the INI file, section of this joint (trivial kinematics: joint = axis):",
+                     f"activate in the INI file, in the section of the joint that drives axis {a.upper()} (below: "
+                     f"joint {j}, the table's axis order, as trivkins numbers the joints; a five-axis kinematics module "
+                     "(xyzac-trt-kins ...) numbers them as its documentation says):",
                      f"  [JOINT_{j}] COMP_FILE = {p.name}   COMP_FILE_TYPE = 1   BACKLASH = 0 (the reversal is in the "
                      "forward/reverse trims; [TRAJ] LINEAR_UNITS = mm)",
                      "restart LinuxCNC and home the joint: the trims are applied once it is homed (src/emc/motion/control.c)",
