@@ -584,7 +584,7 @@ def provenance_lines(res: RunResult) -> list:
              f"({md_escape(cfg.get('name', '-'))}; sha256 {digest}) |",
              f"| machine | {cfg.get('machine', 'XFYZ')} |",
              f"| mesh | x {_span(mesh.get('x'))}, y {_span(mesh.get('y'))}, z {_span(mesh.get('z'))}, "
-             f"step {_span(mesh.get('step', '-'))} |",
+             f"step {_mesh_step(mesh)} |",
              f"| tool offset of the statement | {_statement_tool(res, cfg)} |",
              *_station_rows(cfg, tr),
              f"| sources drawn | {', '.join(res.spec.get('sources') or []) or 'none'} |",
@@ -595,6 +595,14 @@ def provenance_lines(res: RunResult) -> list:
             f"{k} {display(w['stated'], w['unit'], shown_unit(w['unit'])):.3g} vs {display(w['drawn'], w['unit'], shown_unit(w['unit'])):.3g} "
             f"{pretty(shown_unit(w['unit']))}" for k, w in res.weights.items()) + " |")
     return lines
+
+
+def _mesh_step(mesh: dict) -> str:
+    """The mesh's step as the configuration states it: one step, or one per axis (step_x, step_y, step_z)."""
+    if "step" in mesh:
+        return _span(mesh["step"])
+    per = [f"{a} {_span(mesh[f'step_{a}'])}" for a in "xyz" if f"step_{a}" in mesh]
+    return ", ".join(per) if per else "-"
 
 
 #: the kind of statement a report of a run log makes (a run simulates a planned verification)

@@ -294,3 +294,11 @@ def test_the_dcc_carries_the_features_and_their_decisions(tmp_path):
                                                  ("standardUnc", "intervalMin", "intervalMax")]
         assert got == shown[:4], (got, row)
         assert float(ci.find("si:coverageProbability", NS).text) == res.coverage
+
+
+def test_the_conditions_state_a_per_axis_mesh_step():
+    """A mesh stated with step_x, step_y, step_z (the five-axis example) shows them in the conditions, not 'step -'."""
+    from mtbudget.report import _mesh_step
+
+    assert _mesh_step({"step_x": "200 mm", "step_y": "200 mm", "step_z": "150 mm"}) == "x 200 mm, y 200 mm, z 150 mm"
+    assert _mesh_step({"step": "100 mm"}) == "100 mm"
