@@ -483,10 +483,11 @@ def plugins_cmd(config, as_json):
                    "(docs/performance.md, \"Executors on two cores\").")
 @click.option("--workers", type=click.IntRange(min=1), default=None,
               help=f"Worker threads (default: this machine's cores; with auto at most {AUTO_MAX_WORKERS}), worker "
-                   "processes (default 2) or local Dask workers (default 2).")
+                   "processes (default 2) or local Dask workers (default 2); refused with --executor inline and with "
+                   "--address. The output says which executor ran, with its workers.")
 @click.option("--address", default=None,
-              help="Address of an existing Dask scheduler with --executor dask, e.g. tcp://host:8786 (worked example: "
-                   "docs/performance.md); results are bit-identical to an inline run.")
+              help="Address of an existing Dask scheduler, e.g. tcp://host:8786 (worked example: docs/performance.md); "
+                   "needs --executor dask; results are bit-identical to an inline run.")
 @click.option("--attribution-trials", type=click.IntRange(min=0), default=512, show_default=True,
               help="Trials per source for the budget (one source at a time); 0 skips the budget.")
 @click.option("--log", "log_path", type=click.Path(dir_okay=False, path_type=Path), default=None,
@@ -636,6 +637,8 @@ def replay(runlog, verify, as_json):
     from .runner import replay as do_replay
     from .runner import verify as do_verify
 
+    if verify and as_json:  # the check prints its own lines: --json would be ignored
+        raise click.UsageError("--json prints the rebuilt results; --verify prints the bit-for-bit check (use one)")
     if log_kind(runlog) == "placement":
         if verify:
             raise click.UsageError("--verify recomputes Monte Carlo runs; a placement study log has none")

@@ -933,7 +933,8 @@ def run_report(res: RunResult, folder, tolerance_um: float | None = None, charac
     md += headline_lines(head)
     if data.get("adaptive"):
         for x in adaptive_lines(data["adaptive"]):
-            md += [f"* {md_escape(x.strip())}"] if x.startswith("  ") else ["", md_escape(x) + ".", ""]
+            md += [f"* {md_escape(x.strip())}"] if x.startswith("  ") else \
+                ["", md_escape(x) + ("" if x.endswith(":") else "."), ""]
     mt = measurand_text(res)
     md += ["## Measurand", "", md_escape(mt[0].upper() + mt[1:]) + ".", ""]
     md += provenance_lines(res)

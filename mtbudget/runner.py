@@ -42,8 +42,8 @@ class RunSettings:
     per-point measurand, its u and interval ends; the others scalar outputs)
     in batches of ``adaptive_batch`` trials (default max(100 / (1 - p), 10^4)),
     stopping at ``max_trials`` at most.  keep_samples: keep every trial's
-    scalar outputs for exact intervals (default: for runs of up to 200 000
-    trials and adaptive runs); otherwise memory stays bounded and intervals
+    scalar outputs for exact intervals (default: up to ``outputs.KEEP_SAMPLES_TRIALS``, 200 000 trials: a fixed run
+    of at most that many, an adaptive run until it passes them); otherwise memory stays bounded and intervals
     come from fine histograms.  chunk_blocks: blocks identified together, then merged and logged (None:
     :func:`auto_chunk_blocks`); the results do not depend on it, only the speed and the convergence rows.
     """

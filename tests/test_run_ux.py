@@ -123,6 +123,14 @@ def test_options_that_cannot_apply_together_are_refused_in_one_line(args, named,
     assert not list(tmp_path.iterdir())  # refused before anything ran or was logged
 
 
+def test_replay_refuses_verify_with_json_in_one_line(tmp_path):
+    log = tmp_path / "r.mcap"
+    execute(SMALL, trials=16, block=8, attribution_trials=0, log_path=log)
+    res = CliRunner().invoke(main, ["replay", str(log), "--verify", "--json"])
+    said = [ln for ln in res.output.strip().splitlines() if not ln.startswith("compiling the engine's kernels")]
+    assert res.exit_code == 2 and len(said) == 1 and "--verify" in said[0] and said[0].endswith("replay --help')"), said
+
+
 # ------------------------------------------------------------------ an adaptive run at its limit
 def _batch_spread(Y, p):
     """Per point-axis and quantity (mean, std, interval low, interval high): 2 s of the batch values (JCGM 101 7.9.4)
