@@ -365,7 +365,7 @@ def adaptive_lines(a: dict) -> list:
     for r in a["worst"]:
         un = pretty(r["unit"])
         lines.append(f"  {r['quantity']}: {r['statistic']}: 2 s = {r['two_s']:.2g} {un} against delta = "
-                     f"{r['tolerance']:.2g} {un} (u = {r['u']:.2g} {un}, k = 1); last change {r['last_change']:+.2g} {un}")
+                     f"{r['delta']:.2g} {un} (u = {r['u']:.2g} {un}, k = 1); last change {r['last_change']:+.2g} {un}")
     need = a.get("trials_needed")
     more = (f"`mtbudget run --trials 0 --max-trials {_round_up(max(need, a['trials'] + a['batch_trials']))}` (at the "
             f"rate seen, 2 s falling as 1/sqrt(trials), the worst needs about {need} trials; an estimate); "

@@ -368,7 +368,7 @@ def _not_stable(rules: list, trials: int, batch_trials: int) -> dict:
         for i in np.flatnonzero(~np.asarray(ok)):
             q = int(np.nanargmax(ratio[i])) if np.isfinite(ratio[i]).any() else 0
             rows.append({"quantity": names[i][0], "statistic": AdaptiveStop.QUANTITIES[q], "unit": names[i][1],
-                         "two_s": float(two_s[i, q]), "tolerance": float(delta[i]), "u": float(u[i]),
+                         "two_s": float(two_s[i, q]), "delta": float(delta[i]), "u": float(u[i]),
                          "last_change": float(change[i, q]),
                          "ratio": float(ratio[i, q]) if math.isfinite(ratio[i, q]) else None})  # None: u = 0
     rows.sort(key=lambda r: -r["ratio"] if r["ratio"] is not None else math.inf)

@@ -166,7 +166,7 @@ def test_an_adaptive_run_at_its_limit_names_what_did_not_stabilise_and_how_to_fi
         q = int(np.argmax(ratio[j]))
         assert r["quantity"].startswith(f"point #{j // 3} ") and r["quantity"].endswith(f"axis {'xyz'[j % 3]}")
         assert r["statistic"] == ("estimate", "standard uncertainty", "interval low end", "interval high end")[q]
-        assert r["two_s"] == pytest.approx(two_s[j, q], rel=1e-9) and r["tolerance"] == pytest.approx(delta[j])
+        assert r["two_s"] == pytest.approx(two_s[j, q], rel=1e-9) and r["delta"] == pytest.approx(delta[j])
         assert r["last_change"] == pytest.approx(change[j, q], rel=1e-9, abs=1e-12) and r["unit"] == "um"
     # 2 s falls as 1/sqrt(trials): the trials the worst needs, in whole batches
     assert a["trials_needed"] == 256 * math.ceil(768 * ratio.max() ** 2 / 256)
