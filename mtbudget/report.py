@@ -371,8 +371,8 @@ def adaptive_lines(a: dict) -> list:
             f"rate seen, 2 s falling as 1/sqrt(trials), the worst needs about {need} trials; an estimate); "
             if need else "`mtbudget run --trials 0 --max-trials N` with N above this run's trials; ")
     lines.append("To finish: raise the limit, " + more + f"or quote this run as a run of a fixed {a['trials']} trials "
-                 f"(`mtbudget run --trials {a['trials']}` with the same seed draws the same trials and gives the same "
-                 "intervals, by the methods stated below, with no tolerance checked)")
+                 f"(`mtbudget run --trials {a['trials']}` with the same seed draws the same trials; their intervals are "
+                 "then quoted with no tolerance checked)")
     return lines
 
 
