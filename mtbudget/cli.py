@@ -488,7 +488,8 @@ def plugins_cmd(config, as_json):
 @click.option("--trials", type=click.IntRange(min=0), default=1000, show_default=True,
               help="Monte Carlo trials (at least 2); 0 runs the adaptive procedure of JCGM 101 7.9 on every point-axis of the "
                    "measurand (u and interval ends) and the main output "
-                   "(two significant digits: expect hundreds of thousands of trials; at most 10^6).")
+                   "(two significant digits: expect hundreds of thousands of trials; at most --max-trials, 10^6 by "
+                   "default).")
 @click.option("--seed", type=click.IntRange(min=0), default=None, help="Seed of the run (default: the config's seed).")
 @click.option("--coverage", type=click.FloatRange(0, 1, min_open=True, max_open=True), default=0.95, show_default=True,
               help="Coverage probability of the intervals.")
@@ -500,10 +501,11 @@ def plugins_cmd(config, as_json):
                    "(docs/performance.md, \"Executors on two cores\").")
 @click.option("--workers", type=click.IntRange(min=1), default=None,
               help=f"Worker threads (default: this machine's cores; with auto at most {AUTO_MAX_WORKERS}), worker "
-                   "processes (default 2) or local Dask workers (default 2).")
+                   "processes (default 2) or local Dask workers (default 2); refused with --executor inline and with "
+                   "--address. The output says which executor ran, with its workers.")
 @click.option("--address", default=None,
-              help="Address of an existing Dask scheduler with --executor dask, e.g. tcp://host:8786 (worked example: "
-                   "docs/performance.md); results are bit-identical to an inline run.")
+              help="Address of an existing Dask scheduler, e.g. tcp://host:8786 (worked example: docs/performance.md); "
+                   "needs --executor dask; results are bit-identical to an inline run.")
 @click.option("--attribution-trials", type=click.IntRange(min=0), default=512, show_default=True,
               help="Trials per source for the budget (one source at a time); 0 skips the budget.")
 @click.option("--log", "log_path", type=click.Path(dir_okay=False, path_type=Path), default=None,
@@ -519,13 +521,17 @@ def plugins_cmd(config, as_json):
                    "(a resume takes it from the log).")
 @click.option("--adaptive-batch", type=click.IntRange(min=2), default=None,
               help="With --trials 0: trials per adaptive batch (default: JCGM 101's max(100/(1-p), 10^4)).")
+@click.option("--max-trials", type=click.IntRange(min=2), default=None,
+              help="With --trials 0: the most trials the adaptive run may use (default 10^6). A run that reaches it "
+                   "says how many quantities were not stable, the worst with their tolerance, and about how many "
+                   "trials they need. Memory stays bounded whatever the limit.")
 @click.option("--json", "as_json", is_flag=True, help="Print the results as one JSON object (progress still goes to stderr).")
 @click.option("--quiet", is_flag=True, help="No progress bars.")
 @click.option("--set", "sets", multiple=True, metavar="KEY=VALUE",
               help="Change one key of the configuration, e.g. --set 'sources.tracker_noise.angular_sd=3 urad' "
                    "(repeatable; docs/configuration.md, \"Overlays\").")
 def run_cmd(config, trials, seed, coverage, executor, workers, address, attribution_trials, log_path, force, resume_path,
-            block, adaptive_batch, as_json, quiet, sets):
+            block, adaptive_batch, max_trials, as_json, quiet, sets):
     """Monte Carlo uncertainty of a planned verification (a priori, a virtual experiment), with its budget.
 
     CONFIG is a TOML configuration (default: the built-in paper study; a
@@ -552,9 +558,11 @@ def run_cmd(config, trials, seed, coverage, executor, workers, address, attribut
     if attribution_trials == 1:
         raise click.BadParameter("the budget needs at least 2 trials per source (or 0 to skip it)",
                                  param_hint="--attribution-trials")
+    _refuse_contradictions(trials, executor, workers, address, adaptive_batch, max_trials, resume_path)
     settings = RunSettings(trials=trials or None, seed=seed, coverage=coverage, executor=executor, workers=workers,
                            address=address, attribution_trials=attribution_trials, progress=not quiet,
-                           adaptive_batch=adaptive_batch, block=block)
+                           adaptive_batch=adaptive_batch, block=block,
+                           **({} if max_trials is None else {"max_trials": max_trials}))
     if sets:
         if resume_path is not None:
             raise click.UsageError("--set changes a configuration; a resume continues the logged one")
@@ -598,15 +606,33 @@ def run_cmd(config, trials, seed, coverage, executor, workers, address, attribut
         click.echo(f"note: resume: {n}", err=True)
     if resume_path is not None:  # an option given with --resume that the logged run overrides: said, not ignored
         ctx = click.get_current_context()
-        given = {k for k in ("trials", "seed", "coverage", "block", "attribution_trials", "adaptive_batch")
+        given = {k for k in ("trials", "seed", "coverage", "block", "attribution_trials", "adaptive_batch", "max_trials")
                  if ctx.get_parameter_source(k) == click.core.ParameterSource.COMMANDLINE}
         kept = {k: v for k, v in getattr(res, "resume_kept", {}).items() if k in given}
+        if config is not None:
+            click.echo(f"note: resume: the run keeps its logged configuration ({config} was not used)", err=True)
         if kept:
             click.echo("note: resume: the run keeps its logged settings: " + ", ".join(
                 f"--{k.replace('_', '-')} {v}" for k, v in kept.items()) + " (the options given were not used)", err=True)
     if res.log_problem:
         click.echo(f"warning: {res.log_problem}", err=True)
         raise SystemExit(1)
+
+
+def _refuse_contradictions(trials, executor, workers, address, adaptive_batch, max_trials, resume_path):
+    """Options of ``run`` that cannot apply together: refused in one line, never silently ignored."""
+    if workers is not None and executor == "inline":
+        raise click.UsageError("--workers sets parallel workers; --executor inline runs the trials in this process on "
+                               "one core (leave out --workers, or choose --executor thread, process, dask or auto)")
+    if address is not None and executor != "dask":
+        raise click.UsageError(f"--address names a Dask scheduler; it needs --executor dask (given: {executor})")
+    if address is not None and workers is not None:
+        raise click.UsageError("--workers starts local Dask workers; with --address the scheduler's own workers run "
+                               "the trials (leave out --workers)")
+    for name, value in (("--adaptive-batch", adaptive_batch), ("--max-trials", max_trials)):
+        if value is not None and trials != 0 and resume_path is None:  # a resume: the logged run's (noted after it)
+            raise click.UsageError(f"{name} applies to an adaptive run (--trials 0); --trials {trials} runs exactly "
+                                   "that many trials")
 
 
 @main.command()
@@ -630,6 +656,8 @@ def replay(runlog, verify, as_json):
     from .runner import replay as do_replay
     from .runner import verify as do_verify
 
+    if verify and as_json:  # the check prints its own lines: --json would be ignored
+        raise click.UsageError("--json prints the rebuilt results; --verify prints the bit-for-bit check (use one)")
     if log_kind(runlog) == "placement":
         if verify:
             raise click.UsageError("--verify recomputes Monte Carlo runs; a placement study log has none")

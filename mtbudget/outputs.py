@@ -140,6 +140,12 @@ def accumulate_block(acc: Accumulator, b: BlockResult):
     acc.add(b.block, b.n, scalars, b.vector_moments(), b.not_converged, vectors, b.fallbacks)
 
 
+#: a run keeps every trial's scalar outputs (exact order-statistic intervals) up to this many trials, and histograms
+#: them beyond (memory bounded; the intervals say their method): a fixed run from its start, an adaptive run from the
+#: block that takes it past this many (runner.run)
+KEEP_SAMPLES_TRIALS = 200_000
+
+
 @dataclass
 class RunResult:
     spec: dict
@@ -153,6 +159,8 @@ class RunResult:
     complete: bool = True
     stopped_at_limit: bool = False  # adaptive run that hit max_trials before reaching its tolerance
     adaptive: dict | None = None  # adaptive run: what stabilised at how many trials (report.adaptive_line)
+    #: what ran the trials: {"kind": inline|thread|process|dask, "workers": n, "requested": the --executor given}
+    executor: dict | None = None
     weights: dict | None = None  # stated identification weights when they differ from what the run draws
     log_path: object = None
     log: object = None
@@ -210,7 +218,9 @@ class RunResult:
                                  "coverage": self.coverage, "kind": "probabilistically symmetric", "method": iv["method"]}
                 if iv["shortest_low"] is not None:
                     e["shortest_interval"] = {"low": iv["shortest_low"][sl].tolist(),
-                                              "high": iv["shortest_high"][sl].tolist(), "unit": POINT_UNIT}
+                                              "high": iv["shortest_high"][sl].tolist(), "unit": POINT_UNIT,
+                                              "coverage": self.coverage, "kind": "shortest",
+                                              "method": iv["shortest_method"]}
             if self.guf is not None:
                 g_u = np.sqrt(np.maximum(np.diagonal(self.guf["cov"][i]), 0.0))
                 g_y = self.guf["estimate"][i]

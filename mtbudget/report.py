@@ -8,11 +8,11 @@ from pathlib import Path
 import numpy as np
 
 from .distributions import t_factor
-from .stats import decimals_for, percent
+from .stats import HISTOGRAM_SHORTEST, decimals_for, percent
 from .units import display, pretty, shown_unit
 
 from .budget import conformance
-from .outputs import MAIN_OUTPUT, SCALARS, RunResult
+from .outputs import KEEP_SAMPLES_TRIALS, MAIN_OUTPUT, SCALARS, RunResult
 
 
 def result_json(res: RunResult) -> dict:
@@ -23,9 +23,12 @@ def result_json(res: RunResult) -> dict:
         out["weights"] = res.weights
     if getattr(res, "adaptive", None):
         out["adaptive"] = res.adaptive
+    if getattr(res, "executor", None):
+        out["executor"] = res.executor
     for k, v in res.outputs().items():
         out["outputs"][k] = {"unit": v["unit"], "description": v["description"], "mean": v["mean"], "std": v["std"],
-                             "symmetric": list(v["symmetric"]), "shortest": None if v["shortest"] is None else list(v["shortest"])}
+                             "symmetric": list(v["symmetric"]), "shortest": None if v["shortest"] is None else list(v["shortest"]),
+                             "interval_method": interval_method(v)}
     pm = res.acc.moments.get("point_error")
     if pm is not None:
         out["point_error"] = {"unit": "um", "mean": np.asarray(pm.mean).tolist(), "std": np.asarray(pm.std).tolist()}
@@ -305,7 +308,11 @@ def point_lines(res: RunResult) -> list:
     if "clause8" in sm:
         c = sm["clause8"]
         a = getattr(res, "adaptive", None) or {}
-        if a.get("point_axes") and a["point_axes_stable"] == a["point_axes"]:
+        if a.get("point_axes") and a.get("stopped_at_limit") and a["point_axes_stable"] < a["point_axes"]:
+            why = (f"this adaptive run stopped at its limit of {a.get('max_trials') or a['trials']} trials with "
+                   f"{a['point_axes_stable']} of {a['point_axes']} point-axes stable: the MCM's interval ends of the "
+                   "others are not known to that tolerance (above: which, and how to finish)")
+        elif a.get("point_axes") and a["point_axes_stable"] == a["point_axes"]:
             why = ("the MCM's u and interval ends are stable to that tolerance (adaptive run): where the GUF is not "
                    "validated the output's distribution is not the normal the GUF assumes (non-linearity, a "
                    "hierarchical or non-normal input); quote the MCM there")
@@ -319,17 +326,93 @@ def point_lines(res: RunResult) -> list:
 
 
 def adaptive_line(a: dict) -> str:
-    """The adaptive run's final line: what stabilised, at how many trials."""
+    """The adaptive run's final line: what stabilised, at how many trials (:func:`adaptive_lines`: and, at its limit,
+    what did not and what to do)."""
     what = []
     if a.get("point_axes") is not None:
         what.append(f"{a['point_axes_stable']} of {a['point_axes']} point-axes of the measurand (u and the "
                     f"{100 * a['coverage']:g} % interval ends)")
     what += [f"{o} ({'stable' if ok else 'not stable'})" for o, ok in a.get("outputs_stable", {}).items()]
-    head = ("stopped at its trial limit before every quantity was stable" if a.get("stopped_at_limit") else
-            "every quantity stable")
-    return (f"Adaptive Monte Carlo (JCGM 101 7.9): {head} at {a['trials']} trials ({a['batches']} batches of "
+    if a.get("stopped_at_limit"):
+        limit = f" of {a['max_trials']} trials (--max-trials)" if a.get("max_trials") else ""
+        head = f"stopped at its limit{limit} before every quantity was stable, after"
+    else:
+        head = "every quantity stable at"
+    return (f"Adaptive Monte Carlo (JCGM 101 7.9): {head} {a['trials']} trials ({a['batches']} batches of "
             f"{a['batch_trials']}), to {a['ndig']} significant digits of each u: " + "; ".join(what)
             + (f". Note: {a['note']}" if a.get("note") else ""))
+
+
+def _round_up(n: int, digits: int = 2) -> int:
+    """n rounded up to ``digits`` significant digits (a limit to suggest)."""
+    if n <= 0:
+        return n
+    step = 10 ** max(0, len(str(int(n))) - digits)
+    return int(math.ceil(n / step) * step)
+
+
+def adaptive_lines(a: dict) -> list:
+    """:func:`adaptive_line` and, for a run stopped at its trial limit, the quantities that were not stable (how many,
+    the worst with 2 s, their numerical tolerance and their last change) and how to finish."""
+    lines = [adaptive_line(a)]
+    if not a.get("stopped_at_limit") or "worst" not in a:
+        return lines
+    n = a["not_stable"]
+    lines.append(f"Not stable: {n} quantit{'y' if n == 1 else 'ies'} (outputs and point-axes); "
+                 f"{'the worst' if n > len(a['worst']) else 'each'}, by 2 s (twice the standard deviation of the average "
+                 "of its batch values) against the numerical tolerance delta of its u (JCGM 101 7.9.2, 7.9.4), and how "
+                 "far the last batch moved that average:")
+    for r in a["worst"]:
+        un = pretty(r["unit"])
+        lines.append(f"  {r['quantity']}: {r['statistic']}: 2 s = {r['two_s']:.2g} {un} against delta = "
+                     f"{r['delta']:.2g} {un} (u = {r['u']:.2g} {un}, k = 1); last change {r['last_change']:+.2g} {un}")
+    need = a.get("trials_needed")
+    more = (f"`mtbudget run --trials 0 --max-trials {_round_up(max(need, a['trials'] + a['batch_trials']))}` (at the "
+            f"rate seen, 2 s falling as 1/sqrt(trials), the worst needs about {need} trials; an estimate); "
+            if need else "`mtbudget run --trials 0 --max-trials N` with N above this run's trials; ")
+    lines.append("To finish: raise the limit, " + more + f"or quote this run as a run of a fixed {a['trials']} trials "
+                 f"(`mtbudget run --trials {a['trials']}` with the same seed draws the same trials; their intervals are "
+                 "then quoted with no tolerance checked)")
+    return lines
+
+
+def interval_method(v: dict) -> str:
+    """How a scalar output's intervals were computed (a summary of :meth:`stats.Accumulator.summary`)."""
+    if v.get("exact_intervals", True):
+        return "order statistics of every trial (JCGM 101 7.7.1 symmetric, 7.7.2 shortest)"
+    h = v.get("histogram") or {}
+    bins = h.get("bins", "a")
+    return (f"the run does not keep every value: symmetric from the quantiles of a {bins}-bin histogram, shortest "
+            + HISTOGRAM_SHORTEST.format(bins=bins))
+
+
+def interval_note(outputs: dict, coverage: float) -> list:
+    """The lines under the scalar outputs' table that say how its intervals were computed."""
+    lines = [f"  {percent(coverage)} coverage intervals: {m}" for m in sorted({interval_method(v) for v in outputs.values()})]
+    hist = [v for v in outputs.values() if not v.get("exact_intervals", True) and v.get("histogram")]
+    if hist:
+        worst = max(v["histogram"]["bin_width"] / v["std"] for v in hist if v["std"] > 0) if any(
+            v["std"] > 0 for v in hist) else None
+        if worst is not None:
+            lines.append(f"  a bin is at most {worst:.2%} of its output's std dev (every trial's value is kept for exact "
+                         f"order statistics in runs of up to {KEEP_SAMPLES_TRIALS:,} trials)")
+    if any(v["shortest"] is None for v in outputs.values()):
+        lines.append("  -: no shortest interval: it would reach into values beyond the histogram's range (fixed from "
+                     "the first block); the symmetric interval stands")
+    return lines
+
+
+def executor_text(e: dict | None) -> str:
+    """What ran a run's trials, with its workers, in words (``RunResult.executor``)."""
+    if not e:
+        return "not recorded (a log written before mtbudget recorded it, or a run stopped before its end)"
+    n, kind = e.get("workers"), e.get("kind")
+    what = {"inline": "inline (this process, one core)",
+            "thread": f"threads of this process, {n} worker{'s' if n != 1 else ''}",
+            "process": f"a local process pool, {n} worker process{'es' if n != 1 else ''}",
+            "dask": f"a Dask cluster, {n} worker thread{'s' if n != 1 else ''}"}.get(kind, f"{kind}, {n} workers")
+    chosen = " (chosen by --executor auto)" if e.get("requested") == "auto" else ""
+    return f"{what}{chosen}; the numbers do not depend on it"
 
 
 def _root_i(row: dict) -> float:
@@ -346,8 +429,9 @@ def budget_text(res: RunResult) -> str:
     status = "" if res.complete else "  (INCOMPLETE: partial results)"
     lines.append(statement_kind_line(statement_kind(res)))
     lines.append(f"Monte Carlo: {res.trials} trials, coverage probability {percent(res.coverage)}, seed {res.spec.get('seed')}{status}")
+    lines.append(f"  trials run by: {executor_text(getattr(res, 'executor', None))}")
     if getattr(res, "adaptive", None):
-        lines.append("  " + adaptive_line(res.adaptive))
+        lines += ["  " + x for x in adaptive_lines(res.adaptive)]
     elif getattr(res, "stopped_at_limit", False):
         lines.append("  note: the adaptive run stopped at its trial limit before reaching its numerical tolerance")
     if res.fallbacks:
@@ -396,6 +480,7 @@ def budget_text(res: RunResult) -> str:
         sym = f"[{v['symmetric'][0]:.{nd}f}, {v['symmetric'][1]:.{nd}f}]"
         sh = "-" if v["shortest"] is None else f"[{v['shortest'][0]:.{nd}f}, {v['shortest'][1]:.{nd}f}]"
         lines.append(f"{key:<20} {pretty(v['unit']):<5} {v['mean']:9.{nd}f} {v['std']:9.{nd}f}   {sym:>22}   {sh:>22}")
+    lines += interval_note(res.outputs(), res.coverage)
     b = res.budget.get(MAIN_OUTPUT)
     if b:
         lines.append("")
@@ -589,6 +674,7 @@ def provenance_lines(res: RunResult) -> list:
              *_station_rows(cfg, tr),
              f"| sources drawn | {', '.join(res.spec.get('sources') or []) or 'none'} |",
              f"| trials, seed, coverage | {res.trials}, {res.spec.get('seed')}, {percent(res.coverage)} |",
+             f"| trials run by | {md_escape(executor_text(getattr(res, 'executor', None)))} |",
              f"| mtbudget | {__version__} |", f"| report written | {time.strftime('%Y-%m-%d %H:%M %Z')} |"]
     if res.weights:
         lines.append("| identification weights | stated apart from the drawn noise: " + "; ".join(
@@ -878,7 +964,9 @@ def run_report(res: RunResult, folder, tolerance_um: float | None = None, charac
     data["statement"] = head
     md += headline_lines(head)
     if data.get("adaptive"):
-        md += [md_escape(adaptive_line(data["adaptive"])) + ".", ""]
+        for x in adaptive_lines(data["adaptive"]):
+            md += [f"* {md_escape(x.strip())}"] if x.startswith("  ") else \
+                ["", md_escape(x) + ("" if x.endswith(":") else "."), ""]
     mt = measurand_text(res)
     md += ["## Measurand", "", md_escape(mt[0].upper() + mt[1:]) + ".", ""]
     md += provenance_lines(res)
@@ -961,6 +1049,8 @@ def run_report(res: RunResult, folder, tolerance_um: float | None = None, charac
         sh = "-" if val["shortest"] is None else f"[{val['shortest'][0]:.{nd}f}, {val['shortest'][1]:.{nd}f}]"
         md.append(f"| {k} | {pretty(val['unit'])} | {val['mean']:.{nd}f} | {val['std']:.{nd}f} | "
                   f"[{val['symmetric'][0]:.{nd}f}, {val['symmetric'][1]:.{nd}f}] | {sh} |")
+    for x in interval_note(res.outputs(), res.coverage):
+        md += ["", md_escape(x.strip()[0].upper() + x.strip()[1:]) + "."]
     b = res.budget.get(MAIN_OUTPUT)
     if b:
         md += ["", f"### Budget of {MAIN_OUTPUT}", "",

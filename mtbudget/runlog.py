@@ -105,7 +105,10 @@ SCHEMAS = {
                         "description": "the final results, as `mtbudget run --json` prints them", "properties": {
         "trials": {"type": "integer"}, "coverage": {"type": "number"}, "complete": {"type": "boolean"},
         "seed": {"type": "integer"}, "not_converged": {"type": "integer"},
-        "outputs": {"type": "object", "description": "scalar output -> unit, description, mean, std, symmetric, shortest"},
+        "outputs": {"type": "object", "description": "scalar output -> unit, description, mean, std, symmetric, shortest, "
+                                                     "interval_method"},
+        "executor": {"type": "object", "description": "what ran the trials: kind (inline, thread, process, dask), "
+                                                      "workers, requested (the --executor given)"},
         "budget": {"type": "object", "description": "output -> one-source-at-a-time budget; 'points': the per-point budget"},
         "measurand": {"type": "string"},
         "points": {"type": "array", "description": "per mesh point: nominal (mm), mean, u, covariance, interval, guf_u, clause8 (um)"},

@@ -24,7 +24,7 @@ from .config import SimulationConfig, load_config, parse_config
 from .engine import Engine
 from .errors import ConfigError, RunLogError
 from .executors import EXECUTORS, Executor, one_blas_thread
-from .outputs import MACHINE_SCALARS, MAIN_OUTPUT, SCALARS, RunResult, accumulate_block
+from .outputs import KEEP_SAMPLES_TRIALS, MACHINE_SCALARS, MAIN_OUTPUT, POINT_UNIT, SCALARS, RunResult, accumulate_block
 from .plugins import PluginHost
 from .progress import progress_bar
 from .scenario import Scenario, build_scenario
@@ -42,8 +42,8 @@ class RunSettings:
     per-point measurand, its u and interval ends; the others scalar outputs)
     in batches of ``adaptive_batch`` trials (default max(100 / (1 - p), 10^4)),
     stopping at ``max_trials`` at most.  keep_samples: keep every trial's
-    scalar outputs for exact intervals (default: for runs of up to 200 000
-    trials and adaptive runs); otherwise memory stays bounded and intervals
+    scalar outputs for exact intervals (default: up to ``outputs.KEEP_SAMPLES_TRIALS``, 200 000 trials: a fixed run
+    of at most that many, an adaptive run until it passes them); otherwise memory stays bounded and intervals
     come from fine histograms.  chunk_blocks: blocks identified together, then merged and logged (None:
     :func:`auto_chunk_blocks`); the results do not depend on it, only the speed and the convergence rows.
     """
@@ -180,8 +180,12 @@ def _run(config, settings, *, on_chunk, resume_blocks, engine, host, resume_hist
     scenario = engine.scenario
     spec = make_spec(scenario, engine, settings)
     trials = settings.trials
-    keep = settings.keep_samples if settings.keep_samples is not None else (trials is None or int(trials) <= 200_000)
-    acc = Accumulator(keep, keep_vector_samples(settings, len(scenario.mesh_rows)))
+    # every scalar value kept up to KEEP_SAMPLES_TRIALS trials, histogrammed beyond: a fixed run knows from its start,
+    # an adaptive run switches at the block that takes it past them (its stopping rule needs only the current batch)
+    keep = settings.keep_samples if settings.keep_samples is not None else (
+        trials is None or int(trials) <= KEEP_SAMPLES_TRIALS)
+    keep_until = KEEP_SAMPLES_TRIALS if trials is None and settings.keep_samples is None else None
+    acc = Accumulator(keep, keep_vector_samples(settings, len(scenario.mesh_rows)), keep_until)
     if resume_histogram is not None:
         from .runlog import histogram_from_state, moments_from_state
 
@@ -203,11 +207,13 @@ def _run(config, settings, *, on_chunk, resume_blocks, engine, host, resume_hist
     result.prefix = prefix
     work = None if trials is None else int(trials) + settings.attribution_trials * (len(engine.sources) + 1)
     ex = Executor(engine, spec, settings.executor, settings.workers, settings.address, work=work)
-    result.executor = {"kind": ex.kind, "workers": ex.n_workers}  # what ran the trials (auto: what it chose)
+    # what ran the trials (auto: what it chose), said with the run's conditions and logged with its result
+    result.executor = {"kind": ex.kind, "workers": ex.n_workers, "requested": settings.executor}
     bar = progress_bar(trials, "Monte Carlo", "trial", settings.progress)
     chunk_blocks = chunk_blocks_for(settings, engine.block, len(scenario.plan))
     try:
-        batch: dict = {"parts": None}  # adaptive: the current batch's per-point components, when collected
+        # adaptive: the current batch's per-point components and scalar outputs (name -> values), when collected
+        batch: dict = {"parts": None, "scalars": None}
 
         def merge(b, target_n):
             """Merge block b, cut to the trials the run still needs; the merged (cut) block is what gets logged."""
@@ -216,6 +222,9 @@ def _run(config, settings, *, on_chunk, resume_blocks, engine, host, resume_hist
             accumulate_block(acc, t)
             if batch["parts"] is not None:
                 batch["parts"].append(None if t.components is None else t.components.reshape(t.n, -1))
+            if batch["scalars"] is not None:
+                for o, vals in batch["scalars"].items():
+                    vals.append(np.asarray(t.scalars[o])[:t.n])
             if spec.get("features"):  # [[features]]: every trial's feature errors, for their intervals
                 result.feature_blocks.append(t.features)
             if prefix is not None:
@@ -276,9 +285,11 @@ def _adaptive(settings: RunSettings, engine: Engine, acc: Accumulator, result: R
     After each batch of h trials: per scalar output and, with "points", per point-axis of the measurand, the
     batch's mean, standard deviation and interval ends; the run stops when twice the standard deviation of the batch
     values of every one of them is within the numerical tolerance of its standard uncertainty (two significant
-    digits).  The bar shows how many point-axes are stable; ``result.adaptive`` says what stabilised and at how
-    many trials.  Resumed blocks without their components (a log that histograms them) drop the per-point rule,
-    said in ``result.adaptive["note"]``.
+    digits).  The rule reads the current batch's values (collected as its blocks are merged) and the running
+    moments, never every trial's: the run keeps what a fixed run of as many trials keeps (memory bounded).  The bar
+    shows how many point-axes are stable; ``result.adaptive`` says what stabilised and at how many trials and, for a
+    run stopped at ``max_trials``, which quantities were not stable (:func:`_not_stable`).  Resumed blocks without
+    their components (a log that histograms them) drop the per-point rule, said in ``result.adaptive["note"]``.
     """
     h = settings.adaptive_batch or max(int(100 / (1 - settings.coverage)), 10_000)
     per = math.ceil(h / engine.block)
@@ -287,21 +298,26 @@ def _adaptive(settings: RunSettings, engine: Engine, acc: Accumulator, result: R
     stop_s, stop_p = AdaptiveStop(settings.ndig), AdaptiveStop(settings.ndig)
     note, k = None, 0
     ok_s, ok_p = np.zeros(len(scal), bool), None
+    u_s, u_p = [], None
     while True:
         before = acc.n
         batch["parts"] = [] if points else None
+        batch["scalars"] = {o: [] for o in scal} if scal else None
         consume(list(range(k * per, (k + 1) * per)), before + per * engine.block)
         k += 1
         parts, batch["parts"] = batch["parts"], None
+        values, batch["scalars"] = batch["scalars"], None
         if scal:
-            stop_s.add([batch_row(acc.scalar_samples(o)[before:], settings.coverage) for o in scal])
-            ok_s = stop_s.stable([acc.summary(o, settings.coverage)["std"] for o in scal])
+            stop_s.add([batch_row(np.concatenate(values[o]), settings.coverage) for o in scal])
+            u_s = [float(acc.scalar_moments_of(o).std[0]) for o in scal]
+            ok_s = stop_s.stable(u_s)
         if points and (not parts or any(p is None for p in parts) or "components" not in acc.moments):
             points, note = False, ("the per-point rule was not applied: resumed blocks do not hold their per-point "
                                    "components; the run stopped on the scalar outputs alone")
         if points:
             stop_p.add(batch_rows(np.concatenate(parts), settings.coverage))
-            ok_p = stop_p.stable(acc.moments["components"].std.reshape(-1))
+            u_p = acc.moments["components"].std.reshape(-1)
+            ok_p = stop_p.stable(u_p)
         status = (f"stable: {int(ok_p.sum())} of {ok_p.size} point-axes" if points and ok_p is not None else "") + \
             "".join(f", {o} {'stable' if ok else 'not yet'}" for o, ok in zip(scal, ok_s))
         bar.set_postfix_str(status.lstrip(", "), refresh=True)
@@ -314,9 +330,51 @@ def _adaptive(settings: RunSettings, engine: Engine, acc: Accumulator, result: R
             break
     result.adaptive = {"trials": acc.n, "batches": k, "batch_trials": per * engine.block, "ndig": settings.ndig,
                        "coverage": settings.coverage, "stopped_at_limit": result.stopped_at_limit,
+                       "max_trials": settings.max_trials,
                        "point_axes_stable": None if not points or ok_p is None else int(ok_p.sum()),
                        "point_axes": None if not points or ok_p is None else int(ok_p.size),
                        "outputs_stable": {o: bool(ok) for o, ok in zip(scal, ok_s)}, "note": note}
+    if result.stopped_at_limit:
+        rules = [(stop_s, u_s, ok_s, [(o, SCALARS[o][0]) for o in scal])] if scal else []
+        if points and ok_p is not None:
+            rules.append((stop_p, u_p, ok_p, _point_axis_names(result, ok_p.size)))
+        result.adaptive.update(_not_stable(rules, acc.n, per * engine.block))
+
+
+def _point_axis_names(result: RunResult, n: int) -> list:
+    """(name, unit) of each point-axis of the per-point measurand, in the order of its components."""
+    where = (lambda i: f" at x, y, z = ({', '.join(f'{v:g}' for v in result.commanded[i])}) mm") \
+        if result.commanded is not None else (lambda i: "")
+    return [(f"point #{j // 3}{where(j // 3)}, axis {'xyz'[j % 3]}", POINT_UNIT) for j in range(n)]
+
+
+#: quantities not stable that an adaptive run stopped at its limit names (the worst first)
+NOT_STABLE_SHOWN = 5
+
+
+def _not_stable(rules: list, trials: int, batch_trials: int) -> dict:
+    """What an adaptive run stopped at its trial limit did not stabilise: ``not_stable`` (how many of the outputs and
+    point-axes), ``worst`` (the :data:`NOT_STABLE_SHOWN` farthest from their tolerance, each with the quantity that
+    is, its 2 s, its numerical tolerance delta, its last change and its unit) and ``trials_needed``: about how many
+    trials the worst would need at the rate seen (2 s falls as 1/sqrt(trials): trials (2 s / delta)^2, in whole
+    batches; an estimate).  ``rules``: (AdaptiveStop, u per output, stable per output, (name, unit) per output)."""
+    rows = []
+    for stop, u, ok, names in rules:
+        if len(stop.batches) < 2:
+            continue
+        two_s, delta, change = stop.spread(u)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            ratio = two_s / delta[:, None]
+        for i in np.flatnonzero(~np.asarray(ok)):
+            q = int(np.nanargmax(ratio[i])) if np.isfinite(ratio[i]).any() else 0
+            rows.append({"quantity": names[i][0], "statistic": AdaptiveStop.QUANTITIES[q], "unit": names[i][1],
+                         "two_s": float(two_s[i, q]), "delta": float(delta[i]), "u": float(u[i]),
+                         "last_change": float(change[i, q]),
+                         "ratio": float(ratio[i, q]) if math.isfinite(ratio[i, q]) else None})  # None: u = 0
+    rows.sort(key=lambda r: -r["ratio"] if r["ratio"] is not None else math.inf)
+    worst = max((r["ratio"] for r in rows if r["ratio"] is not None), default=None)
+    needed = None if worst is None else int(math.ceil(trials * worst**2 / batch_trials) * batch_trials)
+    return {"not_stable": len(rows), "worst": rows[:NOT_STABLE_SHOWN], "trials_needed": needed}
 
 
 def _record(result: RunResult):
@@ -555,6 +613,7 @@ def replay(path) -> RunResult:
                           f"first block of trials was saved; `mtbudget run --resume {path}` runs it again from its "
                           "configuration and seed", path=path)
     res.adaptive = logged.get("adaptive")
+    res.executor = logged.get("executor")
     res.logged_features = logged.get("features")
     res.log = log
     return res

@@ -180,6 +180,11 @@ class Moments:
                    np.asarray(d["min"], float), np.asarray(d["max"], float))
 
 
+#: how a histogram's shortest interval is found (VectorHistogram.shortest), said beside it
+HISTOGRAM_SHORTEST = ("the narrowest interval holding the coverage probability under the piecewise-linear CDF of a "
+                      "{bins}-bin histogram (JCGM 101 7.7.2 applied to it; each end within about a bin of the trials' "
+                      "own shortest interval)")
+
 #: counts held by one VectorHistogram at most (64 MB): 4000 bins per component up to 2000 components, fewer beyond
 #: (550 bins for the 14 553 components of a 4851-point mesh), never fewer than HIST_MIN_BINS
 HIST_COUNTS = 8_000_000
@@ -226,6 +231,36 @@ class VectorHistogram:
             raise ValueError("histogram counts must be one contiguous array")
         np.add.at(flat, idx[ok], 1)
 
+    def bin_width(self) -> np.ndarray:
+        """(K,) the width of one bin of each component (its values' unit)."""
+        return (np.asarray(self.high, float) - np.asarray(self.low, float)) / self.bins
+
+    def shortest(self, p: float, rows=None) -> np.ndarray:
+        """(K, 2) the shortest interval holding the fraction p of each component's trials (JCGM 101 7.7.2 applied to
+        the histogram's piecewise-linear CDF, the one :meth:`quantiles` interpolates; ``rows``: only those components).
+
+        The interval's width is piecewise linear in its lower end's probability alpha, with corners where alpha or
+        alpha + p is the CDF at a bin edge: the narrowest is found among those corners, exactly for that CDF.  Its
+        ends lie within about a bin (:meth:`bin_width`) of those of the trials' own shortest interval.  An interval
+        that would reach into the values below or above the histogram's range cannot be located: NaN.
+        """
+        ks = range(self.counts.shape[0]) if rows is None else list(rows)
+        out = np.full((len(ks), 2), np.nan)
+        for i, k in enumerate(ks):
+            tot = self.counts[k].sum() + self.under[k] + self.over[k]
+            cdf = (self.under[k] + np.concatenate([[0], np.cumsum(self.counts[k])])) / tot
+            edges = np.linspace(self.low[k], self.high[k], self.bins + 1)
+            lo_a, hi_a = cdf[0], cdf[-1] - p  # alpha: the interval within the range
+            if not tot or hi_a < lo_a:
+                continue
+            alpha = np.concatenate([cdf, cdf - p])
+            alpha = alpha[(alpha >= lo_a) & (alpha <= hi_a)]
+            a = _cdf_inverse(cdf, edges, alpha, "right")  # the lower end: the last x with F(x) = alpha
+            b = _cdf_inverse(cdf, edges, np.minimum(alpha + p, cdf[-1]), "left")  # the first x with F(x) = alpha + p
+            j = int(np.argmin(b - a))
+            out[i] = a[j], b[j]
+        return out
+
     def quantiles(self, prob, rows=None) -> np.ndarray:
         """(K, len(prob)) quantiles by linear interpolation of the binned CDF (``rows``: only those components,
         (len(rows), len(prob))).
@@ -244,6 +279,22 @@ class VectorHistogram:
             out[i] = np.interp(prob, cdf, edges)
             out[i, (prob <= self.under[k] / tot) | (prob >= 1 - self.over[k] / tot)] = np.nan
         return out
+
+
+def _cdf_inverse(cdf: np.ndarray, edges: np.ndarray, t: np.ndarray, side: str) -> np.ndarray:
+    """x with F(x) = t for the piecewise-linear CDF through (edges, cdf) (non-decreasing): where F is flat at t (an
+    empty bin), the last such x (``side`` "right") or the first ("left")."""
+    n = cdf.size
+    if side == "left":
+        j = np.clip(np.searchsorted(cdf, t, "left"), 1, n - 1)  # cdf[j - 1] < t <= cdf[j]
+        i = j - 1
+    else:
+        i = np.clip(np.searchsorted(cdf, t, "right") - 1, 0, n - 2)  # cdf[i] <= t < cdf[i + 1]
+        j = i + 1
+    d = cdf[j] - cdf[i]
+    # d = 0 only where clipped at the ends (t = cdf[0] on the left, t = cdf[-1] on the right): those ends' edges
+    f = np.divide(t - cdf[i], d, out=np.full(d.shape, 0.0 if side == "left" else 1.0), where=d > 0)
+    return edges[i] + np.clip(f, 0.0, 1.0) * (edges[j] - edges[i])
 
 
 @dataclass
@@ -324,11 +375,15 @@ class Accumulator:
     ``keep_samples``, every value (exact order-statistic intervals), otherwise a fine histogram per output
     (bounded memory; only runs that do not keep every value read it).  Vector outputs: their moments only, and
     the per-component samples or histograms of ``vectors``.  Summaries and intervals are computed once per state
-    (a run's JSON asks for them more than once).
+    (a run's JSON asks for them more than once).  ``keep_until``: with ``keep_samples``, every scalar value is kept
+    only until more than this many trials are merged; then they go into the histogram, ranged from the first block
+    as a run that never kept them would range it (the same counts: an adaptive run of N trials states the intervals a
+    fixed run of N trials states), and memory stays bounded.
     """
 
-    def __init__(self, keep_samples: bool = True, keep_vector_samples: bool = True):
+    def __init__(self, keep_samples: bool = True, keep_vector_samples: bool = True, keep_until: int | None = None):
         self.keep = keep_samples
+        self.keep_until = keep_until
         self.keep_vectors = keep_vector_samples
         self.vector_samples: dict = {}
         self.vector_hist: dict = {}
@@ -377,6 +432,17 @@ class Accumulator:
         self.n += n
         self.not_converged += int(not_converged)
         self.fallbacks += int(fallbacks)
+        if self.keep and self.keep_until is not None and self.n > self.keep_until and self.scalar_names:
+            self._histogram_kept_samples()
+
+    def _histogram_kept_samples(self):
+        """From now on, histogram the scalar outputs: the values kept so far are counted and dropped."""
+        names = self.scalar_names
+        first = np.stack([np.asarray(self.samples[k][0], float) for k in names], axis=1)  # the first block, (n0, K)
+        self.scalar_hist = VectorHistogram(first)
+        for i in range(len(self.samples[names[0]])):
+            self.scalar_hist.add(np.stack([np.asarray(self.samples[k][i], float) for k in names], axis=1))
+        self.samples, self.keep = {}, False
 
     def scalar_moments_of(self, name: str) -> Moments:
         """The moments of one scalar output (as merging ``Moments.of`` of its values block by block gives them)."""
@@ -410,13 +476,16 @@ class Accumulator:
             k = np.argmin(widths, axis=1)
             cols = np.arange(yt.shape[0])
             return {"low": yt[:, r].copy(), "high": yt[:, r + q].copy(), "shortest_low": yt[cols, k],
-                    "shortest_high": yt[cols, k + q], "method": "order statistics of every trial (JCGM 101 7.7)"}
+                    "shortest_high": yt[cols, k + q], "method": "order statistics of every trial (JCGM 101 7.7)",
+                    "shortest_method": "order statistics of every trial (JCGM 101 7.7.2)"}
         h = self.vector_hist.get(name)
         if h is None:
             return None
         q = h.quantiles(np.array([(1 - coverage) / 2, (1 + coverage) / 2]))
-        return {"low": q[:, 0], "high": q[:, 1], "shortest_low": None, "shortest_high": None,
-                "method": f"quantiles of a {h.bins}-bin histogram per component (bounded memory; ranges fixed from the first block)"}
+        sh = h.shortest(coverage)
+        return {"low": q[:, 0], "high": q[:, 1], "shortest_low": sh[:, 0], "shortest_high": sh[:, 1],
+                "method": f"quantiles of a {h.bins}-bin histogram per component (bounded memory; ranges fixed from the first block)",
+                "shortest_method": HISTOGRAM_SHORTEST.format(bins=h.bins)}
 
     def scalar_samples(self, name: str) -> np.ndarray | None:
         if not self.keep or not self.samples.get(name):
@@ -438,11 +507,16 @@ class Accumulator:
             sym, short = symmetric_interval(ys, coverage), shortest_interval(ys, coverage)
             exact = True
         else:
-            q = self.scalar_hist.quantiles(np.array([(1 - coverage) / 2, (1 + coverage) / 2]),
-                                           rows=[self.scalar_names.index(name)])
-            sym, short, exact = (float(q[0, 0]), float(q[0, 1])), None, False
+            row = [self.scalar_names.index(name)]
+            q = self.scalar_hist.quantiles(np.array([(1 - coverage) / 2, (1 + coverage) / 2]), rows=row)
+            sh = self.scalar_hist.shortest(coverage, rows=row)
+            # NaN: the interval would reach into the values beyond the histogram's range; then none is stated
+            short = None if np.isnan(sh).any() else (float(sh[0, 0]), float(sh[0, 1]))
+            sym, exact = (float(q[0, 0]), float(q[0, 1])), False
+            hist = {"bins": int(self.scalar_hist.bins), "bin_width": float(self.scalar_hist.bin_width()[row[0]])}
         return {"mean": float(np.asarray(m.mean).ravel()[0]), "std": float(np.asarray(m.std).ravel()[0]),
-                "symmetric": sym, "shortest": short, "exact_intervals": exact, "n": m.n}
+                "symmetric": sym, "shortest": short, "exact_intervals": exact, "n": m.n,
+                **({} if exact else {"histogram": hist})}
 
 
 class AdaptiveStop:
@@ -476,10 +550,22 @@ class AdaptiveStop:
         u = np.atleast_1d(np.asarray(u, float))
         if len(self.batches) < 2:
             return np.zeros(u.shape, bool)
+        two_s, deltas, _ = self.spread(u)
+        return np.all(two_s <= deltas[:, None], axis=1)
+
+    #: the four quantities of each output the rule checks, in the order of a batch row
+    QUANTITIES = ("estimate", "standard uncertainty", "interval low end", "interval high end")
+
+    def spread(self, u) -> tuple:
+        """What the rule compares, after two batches or more: (2 s, delta, last change) with 2 s (outputs, 4) twice the
+        standard deviation of the average of the batch values of each quantity (:attr:`QUANTITIES`), delta (outputs,)
+        the numerical tolerance of each output's u (JCGM 101 7.9.2), and the last change (outputs, 4): how far the
+        average of the batch values moved with the last batch."""
+        u = np.atleast_1d(np.asarray(u, float))
         arr = np.array(self.batches)  # (h, outputs, 4)
         s = arr.std(axis=0, ddof=1) / math.sqrt(len(arr))
         deltas = np.array([numerical_tolerance(float(x), self.ndig) for x in u])
-        return np.all(2 * s <= deltas[:, None], axis=1)
+        return 2 * s, deltas, arr.mean(axis=0) - arr[:-1].mean(axis=0)
 
 
 def batch_rows(Y: np.ndarray, coverage: float) -> np.ndarray:

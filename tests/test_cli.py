@@ -133,8 +133,9 @@ def test_run_on_threads_prints_the_numbers_of_the_inline_run(tmp_path):
     small = str(__import__("pathlib").Path(__file__).parent / "data" / "small.toml")
     out = {}
     for ex in ("inline", "thread", "auto"):
+        workers = [] if ex == "inline" else ["--workers", "2"]  # inline runs on one core: --workers is refused there
         res = CliRunner().invoke(main, ["run", small, "--trials", "48", "--block", "8", "--attribution-trials", "8",
-                                        "--executor", ex, "--workers", "2", "--json", "--quiet",
+                                        "--executor", ex, *workers, "--json", "--quiet",
                                         "--log", str(tmp_path / f"{ex}.mcap")])
         assert res.exit_code == 0, res.output
         out[ex] = json.loads(res.output)

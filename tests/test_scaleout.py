@@ -122,10 +122,10 @@ def test_auto_runs_short_runs_inline_and_long_ones_on_every_core(small, monkeypa
     coded = Engine(build_scenario(small, _in_code_host(), ["tracker_noise", "in_code_offset"]), block=16, seed=1)
     assert executors.auto_executor(coded, None, 10**6) == ("inline", None)  # workers could not rebuild it
     res = run(small, trials=32, block=16, attribution_trials=0, executor="auto")
-    assert res.executor == {"kind": "inline", "workers": 1}
+    assert res.executor == {"kind": "inline", "workers": 1, "requested": "auto"}
     monkeypatch.setattr(executors, "AUTO_MIN_TRIALS", 16)
     a = run(small, trials=48, block=16, attribution_trials=0, executor="auto", workers=2)
-    assert a.executor == {"kind": executors.AUTO_PARALLEL, "workers": 2}
+    assert a.executor == {"kind": executors.AUTO_PARALLEL, "workers": 2, "requested": "auto"}
     b = run(small, trials=48, block=16, attribution_trials=0)
     assert np.array_equal(a.acc.scalar_samples("compensation_rms"), b.acc.scalar_samples("compensation_rms"))
 
