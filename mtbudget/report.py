@@ -766,6 +766,8 @@ def run_date(res) -> str:
     """The date the evaluation was computed (YYYY-MM-DD): its run log's start, else today (a run reported as it
     ends).  What the statement gives when ``[report] date`` is not stated, said as such: an a priori evaluation
     measures nothing, so the only date it has is its own."""
+    import time
+
     start = str(((getattr(res.log, "metadata", None) or {}).get("start_time")) or "")
     return start[:10] if len(start) >= 10 else time.strftime("%Y-%m-%d")
 
