@@ -25,73 +25,84 @@ from .kernels import compiled, rodrigues  # one njit rule for every kernel modul
 
 
 @compiled
-def xyz_residual(P, idx, x, c0, R, meas, W, t, off, w, e):  # pragma: no cover
-    """A laser tracker's rows for trials ``t``: e = meas - R^T (P - T) (k, m, 3) into ``e`` and W e into the
-    whitened residuals ``w`` (k, n_res) from column ``off``.  P (k, M, 3) the trials' machine points; idx (m,) the
-    station's rows; x (k, n) the unknowns, the pose's translation at columns c0..c0+2; R (k, 3, 3) the pose's
-    rotation; meas (N, m, 3) and W (N, m, 3, 3) the station's measurements and whiteners of every trial, row t[j]
-    for trial j."""
-    k, m = P.shape[0], idx.shape[0]
+def xyz_residual(P, pidx, x, c0, R, meas, W, t, off, w, e):  # pragma: no cover
+    """A laser tracker's rows for trials ``t``: e = meas - R^T (P - T) (m, 3) into ``e`` and W e into the whitened
+    residuals ``w`` from column ``off``.  P (k, Mu, 3) the trials' machine points, row j for trial t[j]; pidx (m,) the
+    station's rows among P's points; everything else indexed by the trial itself, row t[j]: x (N, n) the unknowns,
+    the pose's translation at columns c0..c0+2; R (N, 3, 3) the pose's rotation; meas (N, m, 3) and W (N, m, 3, 3)
+    the station's measurements and whiteners; e (N, m, 3) and w (N, n_res) written."""
+    k, m = P.shape[0], pidx.shape[0]
     for j in range(k):
         i = t[j]
-        T0, T1, T2 = x[j, c0], x[j, c0 + 1], x[j, c0 + 2]
+        T0, T1, T2 = x[i, c0], x[i, c0 + 1], x[i, c0 + 2]
+        R00, R01, R02 = R[i, 0, 0], R[i, 0, 1], R[i, 0, 2]
+        R10, R11, R12 = R[i, 1, 0], R[i, 1, 1], R[i, 1, 2]
+        R20, R21, R22 = R[i, 2, 0], R[i, 2, 1], R[i, 2, 2]
         for r in range(m):
-            p = idx[r]
+            p = pidx[r]
             d0, d1, d2 = P[j, p, 0] - T0, P[j, p, 1] - T1, P[j, p, 2] - T2
-            e0 = meas[i, r, 0] - (R[j, 0, 0] * d0 + R[j, 1, 0] * d1 + R[j, 2, 0] * d2)
-            e1 = meas[i, r, 1] - (R[j, 0, 1] * d0 + R[j, 1, 1] * d1 + R[j, 2, 1] * d2)
-            e2 = meas[i, r, 2] - (R[j, 0, 2] * d0 + R[j, 1, 2] * d1 + R[j, 2, 2] * d2)
-            e[j, r, 0], e[j, r, 1], e[j, r, 2] = e0, e1, e2
+            e0 = meas[i, r, 0] - (R00 * d0 + R10 * d1 + R20 * d2)
+            e1 = meas[i, r, 1] - (R01 * d0 + R11 * d1 + R21 * d2)
+            e2 = meas[i, r, 2] - (R02 * d0 + R12 * d1 + R22 * d2)
+            e[i, r, 0], e[i, r, 1], e[i, r, 2] = e0, e1, e2
             for c in range(3):
-                w[j, off + 3 * r + c] = W[i, r, c, 0] * e0 + W[i, r, c, 1] * e1 + W[i, r, c, 2] * e2
+                w[i, off + 3 * r + c] = W[i, r, c, 0] * e0 + W[i, r, c, 1] * e1 + W[i, r, c, 2] * e2
 
 
 @compiled
-def range_residual(P, idx, x, c0, meas, W, t, off, w, e):  # pragma: no cover
-    """An interferometer's rows for trials ``t``: e = meas - (|P - S| + o) (k, m) into ``e`` and W e into ``w``
-    from column ``off``; S at columns c0..c0+2 of x, o at c0+3; meas and W (N, m), row t[j] for trial j."""
-    k, m = P.shape[0], idx.shape[0]
+def range_residual(P, pidx, x, c0, meas, W, t, off, w, e):  # pragma: no cover
+    """An interferometer's rows for trials ``t``: e = meas - (|P - S| + o) into ``e`` and W e into ``w`` from column
+    ``off``; S at columns c0..c0+2 of x, o at c0+3; P (k, Mu, 3) row j, pidx as :func:`xyz_residual`; x, meas and
+    W (N, m), e (N, m) and w row t[j]."""
+    k, m = P.shape[0], pidx.shape[0]
     for j in range(k):
         i = t[j]
-        S0, S1, S2, o = x[j, c0], x[j, c0 + 1], x[j, c0 + 2], x[j, c0 + 3]
+        S0, S1, S2, o = x[i, c0], x[i, c0 + 1], x[i, c0 + 2], x[i, c0 + 3]
         for r in range(m):
-            p = idx[r]
+            p = pidx[r]
             d0, d1, d2 = P[j, p, 0] - S0, P[j, p, 1] - S1, P[j, p, 2] - S2
             er = meas[i, r] - (math.sqrt(d0 * d0 + d1 * d1 + d2 * d2) + o)
-            e[j, r] = er
-            w[j, off + r] = W[i, r] * er
+            e[i, r] = er
+            w[i, off + r] = W[i, r] * er
 
 
 @compiled
-def xyz_gradient(wa, off, W, t, R, P, idx, cen, c0, v, g):  # pragma: no cover
+def xyz_gradient(w, off, W, t, R, P, pidx, idx, cen, c0, v, g):  # pragma: no cover
     """A laser tracker's part of A^T w for trials ``t``, its pose as a small rigid motion of the station (translation
     t, then rotation w about ``cen``: the chord's coordinates): b = W^T w per row, R b added to the machine-frame
-    vectors ``v`` (k, M, 3) at its rows (the chain's J^T v takes them), and into the pose's columns c0..c0+5 of ``g``
-    (k, n): -R b for the translation and (R b) x (P - cen) for the rotation (the prediction R^T (P - T) moves by
-    R^T (-t + (P - cen) x w)).  R (k, 3, 3) each trial's rotation, P (k, M, 3) its machine points, row j for trial j;
-    W (N, m, 3, 3) the whiteners of every trial, row t[j] for trial j."""
-    k, m = wa.shape[0], idx.shape[0]
+    vectors ``v`` (k, M, 3) at its rows ``idx`` (the chain's J^T v takes them), and into the pose's columns c0..c0+5
+    of ``g`` (k, n): -R b for the translation and (R b) x (P - cen) for the rotation (the prediction R^T (P - T) moves
+    by R^T (-t + (P - cen) x w)); v and g row j for trial t[j].  Indexed by the trial itself, row t[j]: w (N, n_res),
+    W (N, m, 3, 3), R (N, 3, 3) each trial's rotation, P (N, Mu, 3) its machine points (its rows among them
+    ``pidx``).  Each of g's columns is summed over the rows in their order, from its value on entry."""
+    k, m = v.shape[0], idx.shape[0]
     for j in range(k):
         i = t[j]
+        R00, R01, R02 = R[i, 0, 0], R[i, 0, 1], R[i, 0, 2]
+        R10, R11, R12 = R[i, 1, 0], R[i, 1, 1], R[i, 1, 2]
+        R20, R21, R22 = R[i, 2, 0], R[i, 2, 1], R[i, 2, 2]
+        s0, s1, s2, s3, s4, s5 = g[j, c0], g[j, c0 + 1], g[j, c0 + 2], g[j, c0 + 3], g[j, c0 + 4], g[j, c0 + 5]
         for r in range(m):
-            w0, w1, w2 = wa[j, off + 3 * r], wa[j, off + 3 * r + 1], wa[j, off + 3 * r + 2]
+            w0, w1, w2 = w[i, off + 3 * r], w[i, off + 3 * r + 1], w[i, off + 3 * r + 2]
             b0 = W[i, r, 0, 0] * w0 + W[i, r, 1, 0] * w1 + W[i, r, 2, 0] * w2
             b1 = W[i, r, 0, 1] * w0 + W[i, r, 1, 1] * w1 + W[i, r, 2, 1] * w2
             b2 = W[i, r, 0, 2] * w0 + W[i, r, 1, 2] * w1 + W[i, r, 2, 2] * w2
+            q0 = R00 * b0 + R01 * b1 + R02 * b2
+            q1 = R10 * b0 + R11 * b1 + R12 * b2
+            q2 = R20 * b0 + R21 * b1 + R22 * b2
             p = idx[r]
-            q0 = R[j, 0, 0] * b0 + R[j, 0, 1] * b1 + R[j, 0, 2] * b2
-            q1 = R[j, 1, 0] * b0 + R[j, 1, 1] * b1 + R[j, 1, 2] * b2
-            q2 = R[j, 2, 0] * b0 + R[j, 2, 1] * b1 + R[j, 2, 2] * b2
             v[j, p, 0] += q0
             v[j, p, 1] += q1
             v[j, p, 2] += q2
-            d0, d1, d2 = P[j, p, 0] - cen[0], P[j, p, 1] - cen[1], P[j, p, 2] - cen[2]
-            g[j, c0] -= q0
-            g[j, c0 + 1] -= q1
-            g[j, c0 + 2] -= q2
-            g[j, c0 + 3] += q1 * d2 - q2 * d1
-            g[j, c0 + 4] += q2 * d0 - q0 * d2
-            g[j, c0 + 5] += q0 * d1 - q1 * d0
+            q = pidx[r]
+            d0, d1, d2 = P[i, q, 0] - cen[0], P[i, q, 1] - cen[1], P[i, q, 2] - cen[2]
+            s0 -= q0
+            s1 -= q1
+            s2 -= q2
+            s3 += q1 * d2 - q2 * d1
+            s4 += q2 * d0 - q0 * d2
+            s5 += q0 * d1 - q1 * d0
+        g[j, c0], g[j, c0 + 1], g[j, c0 + 2], g[j, c0 + 3], g[j, c0 + 4], g[j, c0 + 5] = s0, s1, s2, s3, s4, s5
 
 
 @compiled
@@ -116,21 +127,27 @@ def rigid_step(R, x, z, c0, cen):  # pragma: no cover
 
 
 @compiled
-def range_gradient(wa, off, W, t, U, pos, idx, c0, v, g):  # pragma: no cover
+def range_gradient(w, off, W, t, U, pos, idx, c0, v, g):  # pragma: no cover
     """An interferometer's part of A^T w for trials ``t``: c = W w per row; u c added to ``v`` at its rows, -u c
-    summed into S's columns c0..c0+2 of ``g`` and c into o's (c0+3).  U (K, m, 3): the unit beam vectors where the
-    stage began, row pos[j] for trial j."""
-    k, m = wa.shape[0], idx.shape[0]
+    summed into S's columns c0..c0+2 of ``g`` and c into o's (c0+3), each column over the rows in their order from
+    its value on entry; v and g row j for trial t[j], w (N, n_res) and W (N, m) row t[j].  U (K, m, 3): the unit
+    beam vectors where the stage began, row pos[j] for trial t[j]."""
+    k, m = v.shape[0], idx.shape[0]
     for j in range(k):
         i, s = t[j], pos[j]
+        s0, s1, s2, s3 = g[j, c0], g[j, c0 + 1], g[j, c0 + 2], g[j, c0 + 3]
         for r in range(m):
-            c = W[i, r] * wa[j, off + r]
+            c = W[i, r] * w[i, off + r]
             p = idx[r]
-            for q in range(3):
-                uc = U[s, r, q] * c
-                v[j, p, q] += uc
-                g[j, c0 + q] -= uc
-            g[j, c0 + 3] += c
+            u0, u1, u2 = U[s, r, 0] * c, U[s, r, 1] * c, U[s, r, 2] * c
+            v[j, p, 0] += u0
+            v[j, p, 1] += u1
+            v[j, p, 2] += u2
+            s0 -= u0
+            s1 -= u1
+            s2 -= u2
+            s3 += c
+        g[j, c0], g[j, c0 + 1], g[j, c0 + 2], g[j, c0 + 3] = s0, s1, s2, s3
 
 
 @compiled
