@@ -186,3 +186,56 @@ def registered_distances(P0, meas, out):  # pragma: no cover
                 q = R[0, c] * (P0[r, 0] - T[0]) + R[1, c] * (P0[r, 1] - T[1]) + R[2, c] * (P0[r, 2] - T[2])
                 s += (meas[j, r, c] - q) ** 2
             out[j, r] = math.sqrt(s)
+
+
+@compiled
+def tracker_whiteners(P, angular, distance, distance_per_length, rep2, out):  # pragma: no cover
+    """Each laser-tracker point's whitener (the inverse of C's Cholesky factor) into ``out`` (N, m, 3, 3), P (N, m, 3)
+    the measured points: C the covariance of :func:`mtbudget.tracker.covariance` (Eq. 23, from the coordinates) plus
+    ``rep2`` (the repeatability squared) times the identity, then :func:`mtbudget.identify.whitener`'s closed form;
+    the same operations in the same order as those numpy passes, point by point (``hypot`` is the C library's, as
+    numpy's).  Returns False where a whitener is not finite (C not positive definite): the caller then takes numpy's
+    path, which says so."""
+    N, m = P.shape[0], P.shape[1]
+    good = True
+    for n in range(N):
+        for r in range(m):
+            x, y, z = P[n, r, 0], P[n, r, 1], P[n, r, 2]
+            rho = math.hypot(x, y)
+            rr = math.hypot(rho, z)
+            ca = x / rho if rho > 0 else 1.0
+            sa = y / rho if rho > 0 else 0.0
+            ce = rho / rr if rr > 0 else 1.0
+            se = z / rr if rr > 0 else 0.0
+            ur = distance + distance_per_length * rr
+            A = ur * ur
+            arho, ar = angular * rho, angular * rr
+            Bv = arho * arho
+            Cv = ar * ar
+            rx, ry = ce * ca, ce * sa
+            ex, ey = se * ca, se * sa
+            c00 = (A * rx * rx + Bv * sa * sa + Cv * ex * ex) + rep2
+            c11 = (A * ry * ry + Bv * ca * ca + Cv * ey * ey) + rep2
+            c22 = (A * se * se + Cv * ce * ce) + rep2
+            c10 = (A * rx * ry - Bv * sa * ca + Cv * ex * ey) + 0.0  # the identity's zeros, added as numpy adds them
+            c20 = (A * rx * se - Cv * ex * ce) + 0.0
+            c21 = (A * ry * se - Cv * ey * ce) + 0.0
+            l00 = math.sqrt(c00) if c00 >= 0 else math.nan
+            l10, l20 = c10 / l00, c20 / l00
+            d11 = c11 - l10 * l10
+            l11 = math.sqrt(d11) if d11 >= 0 else math.nan
+            l21 = (c21 - l20 * l10) / l11
+            d22 = c22 - l20 * l20 - l21 * l21
+            l22 = math.sqrt(d22) if d22 >= 0 else math.nan
+            i00, i11, i22 = 1.0 / l00, 1.0 / l11, 1.0 / l22
+            a10 = -l10 * i00 * i11
+            a21 = -l21 * i11 * i22
+            a20 = (l10 * l21 - l20 * l11) * i00 * i11 * i22
+            W = out[n, r]
+            W[0, 0], W[0, 1], W[0, 2] = i00, 0.0, 0.0
+            W[1, 0], W[1, 1], W[1, 2] = a10, i11, 0.0
+            W[2, 0], W[2, 1], W[2, 2] = a20, a21, i22
+            if not (math.isfinite(i00) and math.isfinite(i11) and math.isfinite(i22) and math.isfinite(a10)
+                    and math.isfinite(a21) and math.isfinite(a20)):
+                good = False
+    return good

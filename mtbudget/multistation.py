@@ -361,6 +361,22 @@ def _range_start(st, points: np.ndarray, ranges: np.ndarray):
                                   "range) and at different distances from it") from None
 
 
+def _tracker_whiteners(meas: np.ndarray, st, repeatability: float) -> np.ndarray:
+    """The whiteners (N, m, 3, 3) of a laser tracker's measured points meas (N, m, 3): ``whitener(covariance +
+    repeatability^2 I)``, in one compiled pass for stated scalar noise (:func:`mtbudget.kernels_stations.
+    tracker_whiteners`, the same bits), else (or where a covariance is not positive definite) with numpy."""
+    stated = (st.angular, st.distance, st.distance_per_length)
+    if all(np.ndim(v) == 0 for v in stated) and np.ndim(repeatability) == 0:
+        from .kernels_stations import tracker_whiteners
+
+        out = np.empty(meas.shape + (3,))
+        if tracker_whiteners(np.ascontiguousarray(meas, float), *(float(v) for v in stated),
+                             float(repeatability**2), out):
+            return out
+    C = lt.covariance(meas, st.angular, st.distance, st.distance_per_length) + repeatability**2 * np.eye(3)
+    return whitener(C)
+
+
 def _station_rows(model, stations, row_station, lt_xyz, lt_range, repeatability, P0):
     """Every station's rows with their fixed whiteners, and the closed-form start of the unknowns (theta = 0)."""
     M = model.n_points
@@ -558,8 +574,7 @@ def identify_stations_batch(model: MeasurementModel, stations: list, row_station
         idx = np.flatnonzero(row_station == st.id)
         if st.kind == "xyz":
             meas = lt_xyz[:, idx]
-            C = lt.covariance(meas, st.angular, st.distance, st.distance_per_length) + repeatability**2 * np.eye(3)
-            blocks.append((st, idx, whitener(C), slice(k, k + 6)))
+            blocks.append((st, idx, _tracker_whiteners(meas, st, repeatability), slice(k, k + 6)))
             x0.append(lt.register(np.broadcast_to(P0[idx], meas.shape), meas))
             k += 6
         else:

@@ -413,6 +413,32 @@ def test_the_chord_evaluates_the_chain_once_per_distinct_row():
         assert np.array_equal(P[:, inv], ref) and np.abs(ref).max() > 100.0  # mm: points, not zeros
 
 
+def test_tracker_whiteners_equal_numpys_covariance_and_whitener():
+    """kernels_stations.tracker_whiteners against tracker.covariance + repeatability^2 I, then identify.whitener (the
+    numpy passes it replaces), bit for bit on random points from 1 um to metres; a covariance that is not positive
+    definite (a point at the tracker, no repeatability) is left to numpy, which raises."""
+    from mtbudget import tracker as lt
+    from mtbudget.identify import whitener
+    from mtbudget.kernels_stations import tracker_whiteners
+    from mtbudget.multistation import _tracker_whiteners
+    from mtbudget.recording import Station
+
+    rng = np.random.default_rng(5)
+    for scale in (1e-3, 1.0, 3e3):
+        P = rng.normal(0, scale, (40, 60, 3))
+        P[0, :2] = [[0.0, 0.0, 1.0], [1.0, 0.0, 0.0]]  # on the tracker's axes: the angles' conventions
+        for ang, dist, dpl, rep in ((5e-6, 4e-3, 0.8e-6, 1.5e-3), (2e-5, 1e-3, 0.0, 1e-4)):
+            out = np.empty(P.shape + (3,))
+            assert tracker_whiteners(P, ang, dist, dpl, float(rep**2), out)
+            ref = whitener(lt.covariance(P, ang, dist, dpl) + rep**2 * np.eye(3))
+            assert np.array_equal(out.view(np.uint64), ref.view(np.uint64)), (scale, ang)
+    P[0, 0] = 0.0
+    assert not tracker_whiteners(P, 5e-6, 4e-3, 0.0, 0.0, np.empty(P.shape + (3,)))
+    st = Station(id=1, kind="xyz", angular=5e-6, distance=4e-3, distance_per_length=0.0)
+    with pytest.raises(np.linalg.LinAlgError):
+        _tracker_whiteners(P, st, 0.0)
+
+
 def test_several_stations_with_stated_scales_take_the_reference_batch():
     """With [scales] the identification has fixed inputs, which the compiled J^T v does not take: the engine's
     several-station batch then iterates by Gauss-Newton (the basis's chord matrices unused), and a block runs."""
