@@ -580,7 +580,7 @@ def identify_stations_batch(model: MeasurementModel, stations: list, row_station
         else:
             meas = lt_range[:, idx]
             starts = _range_start(st, P0[idx], meas)  # (N, 4): every trial's closed-form start at once
-            r = np.sqrt(((P0[idx][None] - starts[:, None, :3]) ** 2).sum(-1))
+            r = lt.norm3(P0[idx][None] - starts[:, None, :3])  # sqrt(((...) ** 2).sum(-1)): the same order
             sigma = np.sqrt((st.distance + st.distance_per_length * r) ** 2 + repeatability**2)
             blocks.append((st, idx, 1.0 / sigma, slice(k, k + 4)))
             x0.append(starts)
@@ -929,7 +929,7 @@ def _batch_chord(model, blocks, x, evaluate, sv, basis, lt_xyz, lt_range, M, N, 
         for xyz, idx, meas, W, c0, o, cen, _ in plan:
             if not xyz:
                 d = P_s[:, idx] - xs[:, None, c0:c0 + 3]
-                beams[c0] = np.ascontiguousarray(d / np.sqrt((d * d).sum(-1))[..., None])
+                beams[c0] = d / lt.norm3(d)[..., None]  # norm3: numpy's sum over the last axis, in its order
         where = np.full(N, -1)
         where[todo] = np.arange(len(todo))
         iterate(lambda v, a, adjoint=adjoint, where=where: adjoint(v, where[a]), beams, lambda a, where=where: where[a],
