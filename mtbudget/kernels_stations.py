@@ -106,24 +106,26 @@ def xyz_gradient(w, off, W, t, R, P, pidx, idx, cen, c0, v, g):  # pragma: no co
 
 
 @compiled
-def rigid_step(R, x, z, c0, cen):  # pragma: no cover
-    """A laser tracker's pose moved by the chord's step, trial by trial: z (k, 6) the translation t (mm) then the
-    rotation vector w (rad) about ``cen``; R (k, 3, 3) <- Rot(w) R and T = x[:, c0:c0+3] <- Rot(w) (T - cen) + cen + t,
-    Rot(w) the exact rotation (Rodrigues, its series below |w| = 1e-6 rad)."""
-    k = R.shape[0]
+def rigid_step(R, x, z, c0, cen, t):  # pragma: no cover
+    """A laser tracker's pose moved by the chord's step, for trials ``t``: z (k, n) the steps, row j for trial t[j],
+    its columns c0..c0+2 the translation t (mm) and c0+3..c0+5 the rotation vector w (rad) about ``cen``; R (N, 3, 3)
+    and x (N, n), row t[j], in place: R <- Rot(w) R and T = x[:, c0:c0+3] <- Rot(w) (T - cen) + cen + t, Rot(w) the
+    exact rotation (Rodrigues, its series below |w| = 1e-6 rad)."""
+    k = t.shape[0]
     Rot = np.empty((3, 3))
     Rn = np.empty((3, 3))
     for j in range(k):
-        rodrigues(z[j, 3], z[j, 4], z[j, 5], Rot)  # the one-tracker chord's rotation of its step
+        i = t[j]
+        rodrigues(z[j, c0 + 3], z[j, c0 + 4], z[j, c0 + 5], Rot)  # the one-tracker chord's rotation of its step
         for r in range(3):
             for c in range(3):
-                Rn[r, c] = Rot[r, 0] * R[j, 0, c] + Rot[r, 1] * R[j, 1, c] + Rot[r, 2] * R[j, 2, c]
+                Rn[r, c] = Rot[r, 0] * R[i, 0, c] + Rot[r, 1] * R[i, 1, c] + Rot[r, 2] * R[i, 2, c]
         for r in range(3):
             for c in range(3):
-                R[j, r, c] = Rn[r, c]
-        e0, e1, e2 = x[j, c0] - cen[0], x[j, c0 + 1] - cen[1], x[j, c0 + 2] - cen[2]
+                R[i, r, c] = Rn[r, c]
+        e0, e1, e2 = x[i, c0] - cen[0], x[i, c0 + 1] - cen[1], x[i, c0 + 2] - cen[2]
         for r in range(3):
-            x[j, c0 + r] = Rot[r, 0] * e0 + Rot[r, 1] * e1 + Rot[r, 2] * e2 + cen[r] + z[j, r]
+            x[i, c0 + r] = Rot[r, 0] * e0 + Rot[r, 1] * e1 + Rot[r, 2] * e2 + cen[r] + z[j, c0 + r]
 
 
 @compiled

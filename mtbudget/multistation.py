@@ -830,6 +830,7 @@ def _batch_chord(model, blocks, x, evaluate, sv, basis, lt_xyz, lt_range, M, N, 
     rot = {c0: np.ascontiguousarray(lt.rotation(x[:, c0 + 3], x[:, c0 + 4], x[:, c0 + 5]))
            for xyz, _, _, _, c0, _, _, _ in plan if xyz}
     angles0 = {c0: x[:, c0 + 3:c0 + 6].copy() for c0 in rot}
+    centres = {c0: cen for xyz, _, _, _, c0, _, cen, _ in plan if xyz}
     P_now = np.empty((N, inv.max() + 1, 3))  # every trial's machine points at its current unknowns (distinct rows)
     # every trial's whitened residuals and each station's raw residuals at its current unknowns, written in place
     w = np.empty((N, n_res))
@@ -865,22 +866,30 @@ def _batch_chord(model, blocks, x, evaluate, sv, basis, lt_xyz, lt_range, M, N, 
         gx[:, :p] = chain(v, a)
         return ((gx / sv)[:, None, :] @ Qr)[:, 0]
 
+    stepped = np.zeros(N, bool)  # the trials whose trackers' rotations moved since the start
+
     def step(a, z):
-        """Move the trials ``a`` by the steps z (scaled unknowns, coordinates of Qr)."""
+        """Move the trials ``a`` by the steps z (scaled unknowns, coordinates of Qr); a laser tracker's rotation in
+        ``rot`` (its Euler angles in x are read back by :func:`angles` where x's are needed)."""
         dx = z / sv
         xa = x[a]
         xa[:, :p] += dx[:, :p]
         for xyz, idx, meas, W, c0, o, cen, _ in plan:
-            if xyz:
-                Ra = np.ascontiguousarray(rot[c0][a])
-                ks.rigid_step(Ra, xa, np.ascontiguousarray(dx[:, c0:c0 + 6]), c0, cen)
-                rot[c0][a] = Ra
-                ang = lt.euler_from_rotation(Ra)  # the branch nearest the start
-                a0 = angles0[c0][a]
-                xa[:, c0 + 3:c0 + 6] = a0 + (ang - a0 + np.pi) % (2 * np.pi) - np.pi
-            else:
+            if not xyz:
                 xa[:, c0:c0 + 4] += dx[:, c0:c0 + 4]
         x[a] = xa
+        for c0, cen in centres.items():
+            ks.rigid_step(rot[c0], x, dx, c0, cen, a)
+        stepped[a] = True
+
+    def angles(t):
+        """x's Euler angles of every laser tracker of the trials ``t`` from their rotations now (the branch nearest
+        the start): what each step read back before, read where x's angles are used (the same numbers)."""
+        t = t[stepped[t]]
+        for c0 in rot:
+            ang = lt.euler_from_rotation(rot[c0][t])
+            a0 = angles0[c0][t]
+            x[t, c0 + 3:c0 + 6] = a0 + (ang - a0 + np.pi) % (2 * np.pi) - np.pi
 
     def iterate(chain, beams, pos, tol, predict=False):
         """Chord steps on the trials not failed, until each one's step is below tol (``predict``: or the next step,
@@ -923,6 +932,7 @@ def _batch_chord(model, blocks, x, evaluate, sv, basis, lt_xyz, lt_range, M, N, 
         todo = np.flatnonzero(~failed)
         if not len(todo):
             break
+        angles(todo)
         xs = x[todo].copy()
         P_s, adjoint = chain_adjoint(model.config, model.errors, xs[:, :p], model.inputs, B=model.B)
         beams = {}  # the interferometers' beams where the stage began
@@ -934,10 +944,12 @@ def _batch_chord(model, blocks, x, evaluate, sv, basis, lt_xyz, lt_range, M, N, 
         where[todo] = np.arange(len(todo))
         iterate(lambda v, a, adjoint=adjoint, where=where: adjoint(v, where[a]), beams, lambda a, where=where: where[a],
                 tol)
+        angles(todo)
         moved = np.abs((x[todo] - xs) * sv).max(axis=1)
     if len(todo):  # what the last stage moved, against the distance from the start: its own bias is about
         dist = np.maximum(np.abs((xs - x_start[todo]) * sv).max(axis=1), 1.0)  # moved * (moved / distance)
         failed[todo[moved * moved / dist > chord_bias]] = True
+    angles(all_trials)
     cost = (w * w).sum(axis=1)
     res_xyz, res_rng = _split_residuals(blocks, raw, N, M)
     return {"theta": x[:, :p], "x": x, "converged": ~failed, "iterations": iterations, "chi2": cost,

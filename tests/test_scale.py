@@ -234,7 +234,10 @@ def test_a_tracker_step_is_an_exact_rigid_motion_about_the_centre():
     z = np.ascontiguousarray(np.concatenate([rng.normal(0, 0.01, (k, 3)), om], axis=1))
     cen = np.array([1000.0, 300.0, 300.0])
     R1, x1 = R.copy(), x.copy()
-    rigid_step(R1, x1, z, 2, cen)
+    zx = np.zeros((k, 9))  # the steps of every unknown, the pose's at columns 2..7
+    zx[:, 2:8] = z
+    t = np.arange(k)[::-1].copy()  # trial t[j] moved by row j of the steps
+    rigid_step(R1, x1, zx[::-1].copy(), 2, cen, t)
     Rot = Rotation.from_rotvec(om).as_matrix()
     assert np.abs(R1 - Rot @ R).max() < 1e-15
     T = (Rot @ (x[:, 2:5] - cen)[:, :, None])[:, :, 0] + cen + z[:, :3]
@@ -382,9 +385,9 @@ def test_the_station_kernels_equal_the_numpy_residuals_and_the_exact_gradient(mo
             for sign in (1, -1):
                 xk = xt.copy()
                 Rk = np.ascontiguousarray(lt.rotation(xk[:, c0 + 3], xk[:, c0 + 4], xk[:, c0 + 5]))
-                z = np.zeros((3, 6))
-                z[:, k] = sign * h
-                ks.rigid_step(Rk, xk, z, c0, cen)
+                z = np.zeros(xk.shape)
+                z[:, c0 + k] = sign * h
+                ks.rigid_step(Rk, xk, z, c0, cen, np.arange(3))
                 xk[:, c0 + 3:c0 + 6] = lt.euler_from_rotation(Rk)
                 diff.append(got["evaluate"](xk, t, jacobian=False)[0])
             dw = (diff[0] - diff[1]) / (2 * h)  # d(whitened residual) = -d(whitened prediction)
