@@ -25,12 +25,17 @@ from .kernels import compiled, rodrigues  # one njit rule for every kernel modul
 
 
 @compiled
-def xyz_residual(P, pidx, x, c0, R, meas, W, t, off, w, e):  # pragma: no cover
+def xyz_residual(P, pidx, x, c0, R, meas, W, t, off, w, e, cen, q, s):  # pragma: no cover
     """A laser tracker's rows for trials ``t``: e = meas - R^T (P - T) (m, 3) into ``e`` and W e into the whitened
-    residuals ``w`` from column ``off``.  P (k, Mu, 3) the trials' machine points, row j for trial t[j]; pidx (m,) the
-    station's rows among P's points; everything else indexed by the trial itself, row t[j]: x (N, n) the unknowns,
-    the pose's translation at columns c0..c0+2; R (N, 3, 3) the pose's rotation; meas (N, m, 3) and W (N, m, 3, 3)
-    the station's measurements and whiteners; e (N, m, 3) and w (N, n_res) written."""
+    residuals ``w`` from column ``off``, and what the trial's next gradient takes of them (:func:`xyz_gradient`),
+    while they are at hand: b = W^T w per row, q = R b into ``q`` (N, m, 3) and, the pose as a small rigid motion
+    of the station about ``cen`` (translation t, then rotation w: the chord's coordinates), the pose's six gradient
+    columns into ``s`` (N, 6): -R b summed over the rows for the translation and (R b) x (P - cen) for the rotation
+    (the prediction R^T (P - T) moves by R^T (-t + (P - cen) x w)), each from zero in the rows' order.  P (k, Mu, 3)
+    the trials' machine points, row j for trial t[j]; pidx (m,) the station's rows among P's points; everything else
+    indexed by the trial itself, row t[j]: x (N, n) the unknowns, the pose's translation at columns c0..c0+2; R (N,
+    3, 3) the pose's rotation; meas (N, m, 3) and W (N, m, 3, 3) the station's measurements and whiteners; e (N, m,
+    3), w (N, n_res), q and s written."""
     k, m = P.shape[0], pidx.shape[0]
     for j in range(k):
         i = t[j]
@@ -38,15 +43,34 @@ def xyz_residual(P, pidx, x, c0, R, meas, W, t, off, w, e):  # pragma: no cover
         R00, R01, R02 = R[i, 0, 0], R[i, 0, 1], R[i, 0, 2]
         R10, R11, R12 = R[i, 1, 0], R[i, 1, 1], R[i, 1, 2]
         R20, R21, R22 = R[i, 2, 0], R[i, 2, 1], R[i, 2, 2]
+        s0 = s1 = s2 = s3 = s4 = s5 = 0.0
         for r in range(m):
             p = pidx[r]
-            d0, d1, d2 = P[j, p, 0] - T0, P[j, p, 1] - T1, P[j, p, 2] - T2
+            P0, P1, P2 = P[j, p, 0], P[j, p, 1], P[j, p, 2]
+            d0, d1, d2 = P0 - T0, P1 - T1, P2 - T2
             e0 = meas[i, r, 0] - (R00 * d0 + R10 * d1 + R20 * d2)
             e1 = meas[i, r, 1] - (R01 * d0 + R11 * d1 + R21 * d2)
             e2 = meas[i, r, 2] - (R02 * d0 + R12 * d1 + R22 * d2)
             e[i, r, 0], e[i, r, 1], e[i, r, 2] = e0, e1, e2
-            for c in range(3):
-                w[i, off + 3 * r + c] = W[i, r, c, 0] * e0 + W[i, r, c, 1] * e1 + W[i, r, c, 2] * e2
+            w0 = W[i, r, 0, 0] * e0 + W[i, r, 0, 1] * e1 + W[i, r, 0, 2] * e2
+            w1 = W[i, r, 1, 0] * e0 + W[i, r, 1, 1] * e1 + W[i, r, 1, 2] * e2
+            w2 = W[i, r, 2, 0] * e0 + W[i, r, 2, 1] * e1 + W[i, r, 2, 2] * e2
+            w[i, off + 3 * r], w[i, off + 3 * r + 1], w[i, off + 3 * r + 2] = w0, w1, w2
+            b0 = W[i, r, 0, 0] * w0 + W[i, r, 1, 0] * w1 + W[i, r, 2, 0] * w2
+            b1 = W[i, r, 0, 1] * w0 + W[i, r, 1, 1] * w1 + W[i, r, 2, 1] * w2
+            b2 = W[i, r, 0, 2] * w0 + W[i, r, 1, 2] * w1 + W[i, r, 2, 2] * w2
+            q0 = R00 * b0 + R01 * b1 + R02 * b2
+            q1 = R10 * b0 + R11 * b1 + R12 * b2
+            q2 = R20 * b0 + R21 * b1 + R22 * b2
+            q[i, r, 0], q[i, r, 1], q[i, r, 2] = q0, q1, q2
+            f0, f1, f2 = P0 - cen[0], P1 - cen[1], P2 - cen[2]
+            s0 -= q0
+            s1 -= q1
+            s2 -= q2
+            s3 += q1 * f2 - q2 * f1
+            s4 += q2 * f0 - q0 * f2
+            s5 += q0 * f1 - q1 * f0
+        s[i, 0], s[i, 1], s[i, 2], s[i, 3], s[i, 4], s[i, 5] = s0, s1, s2, s3, s4, s5
 
 
 @compiled
@@ -67,42 +91,21 @@ def range_residual(P, pidx, x, c0, meas, W, t, off, w, e):  # pragma: no cover
 
 
 @compiled
-def xyz_gradient(w, off, W, t, R, P, pidx, idx, cen, c0, v, g):  # pragma: no cover
-    """A laser tracker's part of A^T w for trials ``t``, its pose as a small rigid motion of the station (translation
-    t, then rotation w about ``cen``: the chord's coordinates): b = W^T w per row, R b added to the machine-frame
-    vectors ``v`` (k, M, 3) at its rows ``idx`` (the chain's J^T v takes them), and into the pose's columns c0..c0+5
-    of ``g`` (k, n): -R b for the translation and (R b) x (P - cen) for the rotation (the prediction R^T (P - T) moves
-    by R^T (-t + (P - cen) x w)); v and g row j for trial t[j].  Indexed by the trial itself, row t[j]: w (N, n_res),
-    W (N, m, 3, 3), R (N, 3, 3) each trial's rotation, P (N, Mu, 3) its machine points (its rows among them
-    ``pidx``).  Each of g's columns is summed over the rows in their order, from its value on entry."""
+def xyz_gradient(q, s, t, idx, c0, v, g):  # pragma: no cover
+    """A laser tracker's part of A^T w for trials ``t``, from what :func:`xyz_residual` left at their current unknowns
+    (row t[j] of q (N, m, 3) and s (N, 6)): R b added to the machine-frame vectors ``v`` (k, M, 3) at the station's
+    rows ``idx`` (the chain's J^T v takes them), the pose's six columns c0..c0+5 of ``g`` (k, n) set to s (they start
+    at zero: the sums over the rows are s); v and g row j."""
     k, m = v.shape[0], idx.shape[0]
     for j in range(k):
         i = t[j]
-        R00, R01, R02 = R[i, 0, 0], R[i, 0, 1], R[i, 0, 2]
-        R10, R11, R12 = R[i, 1, 0], R[i, 1, 1], R[i, 1, 2]
-        R20, R21, R22 = R[i, 2, 0], R[i, 2, 1], R[i, 2, 2]
-        s0, s1, s2, s3, s4, s5 = g[j, c0], g[j, c0 + 1], g[j, c0 + 2], g[j, c0 + 3], g[j, c0 + 4], g[j, c0 + 5]
         for r in range(m):
-            w0, w1, w2 = w[i, off + 3 * r], w[i, off + 3 * r + 1], w[i, off + 3 * r + 2]
-            b0 = W[i, r, 0, 0] * w0 + W[i, r, 1, 0] * w1 + W[i, r, 2, 0] * w2
-            b1 = W[i, r, 0, 1] * w0 + W[i, r, 1, 1] * w1 + W[i, r, 2, 1] * w2
-            b2 = W[i, r, 0, 2] * w0 + W[i, r, 1, 2] * w1 + W[i, r, 2, 2] * w2
-            q0 = R00 * b0 + R01 * b1 + R02 * b2
-            q1 = R10 * b0 + R11 * b1 + R12 * b2
-            q2 = R20 * b0 + R21 * b1 + R22 * b2
             p = idx[r]
-            v[j, p, 0] += q0
-            v[j, p, 1] += q1
-            v[j, p, 2] += q2
-            q = pidx[r]
-            d0, d1, d2 = P[i, q, 0] - cen[0], P[i, q, 1] - cen[1], P[i, q, 2] - cen[2]
-            s0 -= q0
-            s1 -= q1
-            s2 -= q2
-            s3 += q1 * d2 - q2 * d1
-            s4 += q2 * d0 - q0 * d2
-            s5 += q0 * d1 - q1 * d0
-        g[j, c0], g[j, c0 + 1], g[j, c0 + 2], g[j, c0 + 3], g[j, c0 + 4], g[j, c0 + 5] = s0, s1, s2, s3, s4, s5
+            v[j, p, 0] += q[i, r, 0]
+            v[j, p, 1] += q[i, r, 1]
+            v[j, p, 2] += q[i, r, 2]
+        for c in range(6):
+            g[j, c0 + c] = s[i, c]
 
 
 @compiled

@@ -831,18 +831,19 @@ def _batch_chord(model, blocks, x, evaluate, sv, basis, lt_xyz, lt_range, M, N, 
            for xyz, _, _, _, c0, _, _, _ in plan if xyz}
     angles0 = {c0: x[:, c0 + 3:c0 + 6].copy() for c0 in rot}
     centres = {c0: cen for xyz, _, _, _, c0, _, cen, _ in plan if xyz}
-    P_now = np.empty((N, inv.max() + 1, 3))  # every trial's machine points at its current unknowns (distinct rows)
     # every trial's whitened residuals and each station's raw residuals at its current unknowns, written in place
     w = np.empty((N, n_res))
     raw = [np.empty((N, len(idx), 3) if xyz else (N, len(idx))) for xyz, idx, *_ in plan]
+    # a laser tracker's part of every trial's next gradient, left by its residuals (kernels_stations.xyz_residual):
+    # the machine-frame vectors of its rows and its pose's six columns
+    ahead = {c0: (np.empty((N, len(idx), 3)), np.empty((N, 6))) for xyz, idx, _, _, c0, *_ in plan if xyz}
 
     def residuals(a):
         """The whitened and raw residuals of trials ``a`` at their unknowns x[a], into w and raw."""
         P = chain_at(x[a, :p])
-        P_now[a] = P
-        for (xyz, idx, meas, W, c0, o, _, pidx), e in zip(plan, raw):
+        for (xyz, idx, meas, W, c0, o, cen, pidx), e in zip(plan, raw):
             if xyz:
-                ks.xyz_residual(P, pidx, x, c0, rot[c0], meas, W, a, o, w, e)
+                ks.xyz_residual(P, pidx, x, c0, rot[c0], meas, W, a, o, w, e, cen, *ahead[c0])
             else:
                 ks.range_residual(P, pidx, x, c0, meas, W, a, o, w, e)
 
@@ -860,7 +861,7 @@ def _batch_chord(model, blocks, x, evaluate, sv, basis, lt_xyz, lt_range, M, N, 
         gx = np.zeros((len(a), x.shape[1]))
         for xyz, idx, meas, W, c0, o, cen, pidx in plan:
             if xyz:
-                ks.xyz_gradient(w, o, W, a, rot[c0], P_now, pidx, idx, cen, c0, v, gx)
+                ks.xyz_gradient(*ahead[c0], a, idx, c0, v, gx)
             else:
                 ks.range_gradient(w, o, W, a, beams[c0], pos(a), idx, c0, v, gx)
         gx[:, :p] = chain(v, a)

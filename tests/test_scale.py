@@ -331,9 +331,8 @@ def test_the_station_kernels_equal_the_numpy_residuals_and_the_exact_gradient(mo
     t = np.array([4, 1, 3])  # trials out of order, a subset
     w_ref, raw_ref, A = got["evaluate"](x[t], t, jacobian=True)
     P = model.machine_points(x[t][:, :p])  # the trials' points, row j for trial t[j]
-    P_all = np.zeros((len(x), model.n_points, 3))  # the same, row t[j] (the gradient's layout); row 0 never read
-    P_all[t] = P
     P0 = model.machine_points(np.zeros((1, p)))[0]
+    ahead, centre = {}, {}  # a tracker's part of the next gradient, left by its residuals; its centre of rotation
     xt = np.ascontiguousarray(x[t])
     x = np.ascontiguousarray(x)
     w = np.full((len(x), w_ref.shape[1]), np.nan)  # written at rows t only
@@ -347,7 +346,9 @@ def test_the_station_kernels_equal_the_numpy_residuals_and_the_exact_gradient(mo
         e = np.full((len(x),) + e_ref.shape[1:], np.nan)
         if st.kind == "xyz":
             R = np.ascontiguousarray(lt.rotation(x[:, sl.start + 3], x[:, sl.start + 4], x[:, sl.start + 5]))
-            ks.xyz_residual(P, idx, x, sl.start, R, meas, W, t, off, w, e)
+            centre[sl.start] = cen = np.ascontiguousarray(P0[idx].mean(axis=0))
+            ahead[sl.start] = (np.full((len(x), len(idx), 3), np.nan), np.full((len(x), 6), np.nan))
+            ks.xyz_residual(P, idx, x, sl.start, R, meas, W, t, off, w, e, cen, *ahead[sl.start])
         else:
             ks.range_residual(P, idx, x, sl.start, meas, W, t, off, w, e)
         assert np.abs(e[t] - e_ref).max() < 1e-12  # mm
@@ -358,14 +359,11 @@ def test_the_station_kernels_equal_the_numpy_residuals_and_the_exact_gradient(mo
     # rigid motion of the station (the chord's coordinates), against central differences of the numpy residuals
     # along ks.rigid_step
     off = 0
-    centre = {}
     for st, idx, W, sl in got["blocks"]:
         idx = np.ascontiguousarray(idx, np.int64)
         W, pos = np.ascontiguousarray(W), np.arange(3)
         if st.kind == "xyz":
-            R = np.ascontiguousarray(lt.rotation(x[:, sl.start + 3], x[:, sl.start + 4], x[:, sl.start + 5]))
-            centre[sl.start] = cen = np.ascontiguousarray(P0[idx].mean(axis=0))
-            ks.xyz_gradient(w, off, W, t, R, P_all, idx, idx, cen, sl.start, v, g)
+            ks.xyz_gradient(*ahead[sl.start], t, idx, sl.start, v, g)
             off += 3 * len(idx)
         else:
             d = P[:, idx] - xt[:, None, sl.start:sl.start + 3]
