@@ -778,11 +778,10 @@ def _distinct_rows_chain(model: MeasurementModel):
         u = inv = np.arange(M)
     fixed = tuple(np.ascontiguousarray(a) for a in (
         px[:, u], py[:, u], pz[:, u], tool[u], L[:, :, u], rcos[:, :, u], rsin[:, :, u]))
-    scratch = np.empty((1, L.shape[0], 3, len(u)))  # nothing kept for an adjoint
-
     def chain_at(theta):
         coef, sq = kernel_parameters(k, theta)
         ux, uy, uz, utool, uL, ucos, usin = fixed
+        scratch = np.empty((1, uL.shape[0], 3, len(u)))  # nothing kept for an adjoint (per call: threads share it)
         return chain_points(k["tool_axes"], k["wp_axes"], k["side"], ux, uy, uz, utool, coef, uL, sq, k["rdir"],
                             k["pivot"], ucos, usin, np.empty((theta.shape[0], len(u), 3)), scratch, scratch, scratch)
 
