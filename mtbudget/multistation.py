@@ -778,6 +778,7 @@ def _distinct_rows_chain(model: MeasurementModel):
         u = inv = np.arange(M)
     fixed = tuple(np.ascontiguousarray(a) for a in (
         px[:, u], py[:, u], pz[:, u], tool[u], L[:, :, u], rcos[:, :, u], rsin[:, :, u]))
+
     def chain_at(theta):
         coef, sq = kernel_parameters(k, theta)
         ux, uy, uz, utool, uL, ucos, usin = fixed
