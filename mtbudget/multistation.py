@@ -361,6 +361,22 @@ def _range_start(st, points: np.ndarray, ranges: np.ndarray):
                                   "range) and at different distances from it") from None
 
 
+def _tracker_whiteners(meas: np.ndarray, st, repeatability: float) -> np.ndarray:
+    """The whiteners (N, m, 3, 3) of a laser tracker's measured points meas (N, m, 3): ``whitener(covariance +
+    repeatability^2 I)``, in one compiled pass for stated scalar noise (:func:`mtbudget.kernels_stations.
+    tracker_whiteners`, the same bits), else (or where a covariance is not positive definite) with numpy."""
+    stated = (st.angular, st.distance, st.distance_per_length)
+    if all(np.ndim(v) == 0 for v in stated) and np.ndim(repeatability) == 0:
+        from .kernels_stations import tracker_whiteners
+
+        out = np.empty(meas.shape + (3,))
+        if tracker_whiteners(np.ascontiguousarray(meas, float), *(float(v) for v in stated),
+                             float(repeatability**2), out):
+            return out
+    C = lt.covariance(meas, st.angular, st.distance, st.distance_per_length) + repeatability**2 * np.eye(3)
+    return whitener(C)
+
+
 def _station_rows(model, stations, row_station, lt_xyz, lt_range, repeatability, P0):
     """Every station's rows with their fixed whiteners, and the closed-form start of the unknowns (theta = 0)."""
     M = model.n_points
@@ -558,14 +574,13 @@ def identify_stations_batch(model: MeasurementModel, stations: list, row_station
         idx = np.flatnonzero(row_station == st.id)
         if st.kind == "xyz":
             meas = lt_xyz[:, idx]
-            C = lt.covariance(meas, st.angular, st.distance, st.distance_per_length) + repeatability**2 * np.eye(3)
-            blocks.append((st, idx, whitener(C), slice(k, k + 6)))
+            blocks.append((st, idx, _tracker_whiteners(meas, st, repeatability), slice(k, k + 6)))
             x0.append(lt.register(np.broadcast_to(P0[idx], meas.shape), meas))
             k += 6
         else:
             meas = lt_range[:, idx]
             starts = _range_start(st, P0[idx], meas)  # (N, 4): every trial's closed-form start at once
-            r = np.sqrt(((P0[idx][None] - starts[:, None, :3]) ** 2).sum(-1))
+            r = lt.norm3(P0[idx][None] - starts[:, None, :3])  # sqrt(((...) ** 2).sum(-1)): the same order
             sigma = np.sqrt((st.distance + st.distance_per_length * r) ** 2 + repeatability**2)
             blocks.append((st, idx, 1.0 / sigma, slice(k, k + 4)))
             x0.append(starts)
@@ -734,6 +749,48 @@ def chord_basis(batch: dict, model: MeasurementModel, stations: list, row_statio
     return Q, rank, Qr, np.linalg.inv(G0.T @ G0), (np.ascontiguousarray(J0.reshape(3 * model.n_points, p)), beams)
 
 
+def _distinct_rows_chain(model: MeasurementModel):
+    """(chain_at, inv): ``chain_at(theta)`` the compiled chain's points (k, Mu, 3) of the parameters theta (k, p) at
+    the plan's distinct rows only (rows whose inputs to the chain are the same bits: several stations measuring the
+    same poses), in the order of their first row, and inv (M,) the distinct row of each of the plan's rows.  A
+    point's numbers depend on its own inputs only (:func:`mtbudget.kernels.chain_points`), so
+    ``chain_at(theta)[:, inv]`` is ``model.machine_points(theta)`` bit for bit (no perturbations: the chord's case).
+    Remembered on the model (with its plan and basis values)."""
+    from .kernels import chain_points
+    from .machine import kernel_chain, kernel_parameters
+
+    hit = model.__dict__.get("_distinct_rows_chain")
+    if hit is not None and hit[0] is model.plan and hit[1] is model.B and hit[2] is model.errors.params:
+        return hit[3]
+    k = kernel_chain(model.config, model.errors, model.chain_inputs({}), model.B, 1)
+    M = model.n_points
+    px, py, pz, tool, L, rcos, rsin = k["px"], k["py"], k["pz"], k["tool"], k["L"], k["rcos"], k["rsin"]
+    if px.shape[0] == 1 and py.shape[0] == 1 and pz.shape[0] == 1 and rcos.shape[1] == 1 and rsin.shape[1] == 1:
+        rows = np.concatenate([px, py, pz, tool.T, L.reshape(-1, M), rcos.reshape(-1, M), rsin.reshape(-1, M)]).T
+        _, first, inv = np.unique(np.ascontiguousarray(rows).view(np.uint64), axis=0, return_index=True,
+                                  return_inverse=True)
+        order = np.argsort(first)
+        u = first[order]
+        rank = np.empty_like(order)
+        rank[order] = np.arange(len(order))
+        inv = rank[inv.reshape(-1)]
+    else:  # per-trial positions or angles: every row its own
+        u = inv = np.arange(M)
+    fixed = tuple(np.ascontiguousarray(a) for a in (
+        px[:, u], py[:, u], pz[:, u], tool[u], L[:, :, u], rcos[:, :, u], rsin[:, :, u]))
+
+    def chain_at(theta):
+        coef, sq = kernel_parameters(k, theta)
+        ux, uy, uz, utool, uL, ucos, usin = fixed
+        scratch = np.empty((1, uL.shape[0], 3, len(u)))  # nothing kept for an adjoint (per call: threads share it)
+        return chain_points(k["tool_axes"], k["wp_axes"], k["side"], ux, uy, uz, utool, coef, uL, sq, k["rdir"],
+                            k["pivot"], ucos, usin, np.empty((theta.shape[0], len(u), 3)), scratch, scratch, scratch)
+
+    hit = (chain_at, np.ascontiguousarray(inv, np.int64))
+    model.__dict__["_distinct_rows_chain"] = (model.plan, model.B, model.errors.params, hit)
+    return hit
+
+
 def _batch_chord(model, blocks, x, evaluate, sv, basis, lt_xyz, lt_range, M, N, p, max_iter, xtol, chord_bias):
     """:func:`identify_stations_batch` with one iteration matrix shared by every trial (``basis`` from
     :func:`chord_basis`), as the one-tracker identification (:func:`mtbudget.identify.identify`) does.
@@ -758,74 +815,82 @@ def _batch_chord(model, blocks, x, evaluate, sv, basis, lt_xyz, lt_range, M, N, 
     _, rank, Qr, Hinv, (J0, beams0) = basis
     n_res = sum(3 * len(idx) if st.kind == "xyz" else len(idx) for st, idx, _, _ in blocks)
     P0 = model.machine_points(np.zeros((1, p)))[0]
+    chain_at, inv = _distinct_rows_chain(model)  # the chain on the plan's distinct rows; row r is inv[r] of them
     # per station, once: its rows, its measurements and whiteners of every trial (contiguous), its first column
-    # among the unknowns and among the whitened residuals, and an xyz station's centre of rotation
+    # among the unknowns and among the whitened residuals, an xyz station's centre of rotation, and its rows among
+    # the distinct rows the chain evaluates
     plan, off = [], 0
     for st, idx, W, sl in blocks:
         meas = lt_xyz[:, idx] if st.kind == "xyz" else lt_range[:, idx]
         plan.append((st.kind == "xyz", np.ascontiguousarray(idx, np.int64), np.ascontiguousarray(meas),
-                     np.ascontiguousarray(W), sl.start, off, np.ascontiguousarray(P0[idx].mean(axis=0))))
+                     np.ascontiguousarray(W), sl.start, off, np.ascontiguousarray(P0[idx].mean(axis=0)),
+                     np.ascontiguousarray(inv[idx], np.int64)))
         off += 3 * len(idx) if st.kind == "xyz" else len(idx)
     # the rotation of every xyz station of every trial, moved by the steps (x keeps its Euler angles, read back)
     rot = {c0: np.ascontiguousarray(lt.rotation(x[:, c0 + 3], x[:, c0 + 4], x[:, c0 + 5]))
-           for xyz, _, _, _, c0, _, _ in plan if xyz}
+           for xyz, _, _, _, c0, _, _, _ in plan if xyz}
     angles0 = {c0: x[:, c0 + 3:c0 + 6].copy() for c0 in rot}
-    P_now = np.empty((N, M, 3))  # every trial's machine points at its current unknowns
+    centres = {c0: cen for xyz, _, _, _, c0, _, cen, _ in plan if xyz}
+    # every trial's whitened residuals and each station's raw residuals at its current unknowns, written in place
+    w = np.empty((N, n_res))
+    raw = [np.empty((N, len(idx), 3) if xyz else (N, len(idx))) for xyz, idx, *_ in plan]
+    # a laser tracker's part of every trial's next gradient, left by its residuals (kernels_stations.xyz_residual):
+    # the machine-frame vectors of its rows and its pose's six columns
+    ahead = {c0: (np.empty((N, len(idx), 3)), np.empty((N, 6))) for xyz, idx, _, _, c0, *_ in plan if xyz}
 
-    def residuals(xa, a):
-        """Whitened residuals (k, n_res) and each station's raw residuals of trials ``a`` at unknowns ``xa``."""
-        xa = np.ascontiguousarray(xa)
-        P = model.machine_points(xa[:, :p])
-        P_now[a] = P
-        wa, raws = np.empty((len(a), n_res)), []
-        for xyz, idx, meas, W, c0, o, _ in plan:
+    def residuals(a):
+        """The whitened and raw residuals of trials ``a`` at their unknowns x[a], into w and raw."""
+        P = chain_at(x[a, :p])
+        for (xyz, idx, meas, W, c0, o, cen, pidx), e in zip(plan, raw):
             if xyz:
-                e = np.empty((len(a), len(idx), 3))
-                ks.xyz_residual(P, idx, xa, c0, np.ascontiguousarray(rot[c0][a]), meas, W, a, o, wa, e)
+                ks.xyz_residual(P, pidx, x, c0, rot[c0], meas, W, a, o, w, e, cen, *ahead[c0])
             else:
-                e = np.empty((len(a), len(idx)))
-                ks.range_residual(P, idx, xa, c0, meas, W, a, o, wa, e)
-            raws.append(e)
-        return wa, raws
+                ks.range_residual(P, pidx, x, c0, meas, W, a, o, w, e)
 
     all_trials = np.arange(N)
-    w, raw = residuals(x, all_trials)
+    residuals(all_trials)
     failed = np.zeros(N, bool)
     iterations = np.zeros(N, int)
     x_start = x.copy()
 
-    def gradient(a, wa, chain, beams, pos):
+    def gradient(a, chain, beams, pos):
         """The trials' A^T w in the directions Qr: a laser tracker's columns at its current pose, an interferometer's
         with the beams the stage holds (``beams``: first column -> (K, m, 3), row pos[j] for trial j), the chain's
         ``chain(v, a)`` = J^T v with the Jacobian the stage holds."""
-        wa = np.ascontiguousarray(wa)
-        P = np.ascontiguousarray(P_now[a])
         v = np.zeros((len(a), M, 3))
         gx = np.zeros((len(a), x.shape[1]))
-        for xyz, idx, meas, W, c0, o, cen in plan:
+        for xyz, idx, meas, W, c0, o, cen, pidx in plan:
             if xyz:
-                ks.xyz_gradient(wa, o, W, a, np.ascontiguousarray(rot[c0][a]), P, idx, cen, c0, v, gx)
+                ks.xyz_gradient(*ahead[c0], a, idx, c0, v, gx)
             else:
-                ks.range_gradient(wa, o, W, a, beams[c0], pos(a), idx, c0, v, gx)
+                ks.range_gradient(w, o, W, a, beams[c0], pos(a), idx, c0, v, gx)
         gx[:, :p] = chain(v, a)
         return ((gx / sv)[:, None, :] @ Qr)[:, 0]
 
+    stepped = np.zeros(N, bool)  # the trials whose trackers' rotations moved since the start
+
     def step(a, z):
-        """Move the trials ``a`` by the steps z (scaled unknowns, coordinates of Qr)."""
+        """Move the trials ``a`` by the steps z (scaled unknowns, coordinates of Qr); a laser tracker's rotation in
+        ``rot`` (its Euler angles in x are read back by :func:`angles` where x's are needed)."""
         dx = z / sv
         xa = x[a]
         xa[:, :p] += dx[:, :p]
-        for xyz, idx, meas, W, c0, o, cen in plan:
-            if xyz:
-                Ra = np.ascontiguousarray(rot[c0][a])
-                ks.rigid_step(Ra, xa, np.ascontiguousarray(dx[:, c0:c0 + 6]), c0, cen)
-                rot[c0][a] = Ra
-                ang = lt.euler_from_rotation(Ra)  # the branch nearest the start
-                a0 = angles0[c0][a]
-                xa[:, c0 + 3:c0 + 6] = a0 + (ang - a0 + np.pi) % (2 * np.pi) - np.pi
-            else:
+        for xyz, idx, meas, W, c0, o, cen, _ in plan:
+            if not xyz:
                 xa[:, c0:c0 + 4] += dx[:, c0:c0 + 4]
         x[a] = xa
+        for c0, cen in centres.items():
+            ks.rigid_step(rot[c0], x, dx, c0, cen, a)
+        stepped[a] = True
+
+    def angles(t):
+        """x's Euler angles of every laser tracker of the trials ``t`` from their rotations now (the branch nearest
+        the start): what each step read back before, read where x's angles are used (the same numbers)."""
+        t = t[stepped[t]]
+        for c0 in rot:
+            ang = lt.euler_from_rotation(rot[c0][t])
+            a0 = angles0[c0][t]
+            x[t, c0 + 3:c0 + 6] = a0 + (ang - a0 + np.pi) % (2 * np.pi) - np.pi
 
     def iterate(chain, beams, pos, tol, predict=False):
         """Chord steps on the trials not failed, until each one's step is below tol (``predict``: or the next step,
@@ -835,14 +900,11 @@ def _batch_chord(model, blocks, x, evaluate, sv, basis, lt_xyz, lt_range, M, N, 
         for it in range(max_iter):
             if not len(a):
                 return
-            g = gradient(a, w[a], chain, beams, pos)  # (na, q)
+            g = gradient(a, chain, beams, pos)  # (na, q)
             y = (Hinv @ g[..., None])[..., 0]  # trial by trial
             z = (Qr @ y[..., None])[..., 0]
             step(a, z)
-            w_a, raw_a = residuals(x[a], a)
-            w[a] = w_a
-            for r_all, r_new in zip(raw, raw_a):
-                r_all[a] = r_new
+            residuals(a)
             iterations[a] += 1
             size = np.abs(z).max(axis=1)
             # the step's energy norm (what it changes in the fit): y^T H0 y = y^T g, as H0 y = g (H0 = Hinv^-1)
@@ -871,21 +933,24 @@ def _batch_chord(model, blocks, x, evaluate, sv, basis, lt_xyz, lt_range, M, N, 
         todo = np.flatnonzero(~failed)
         if not len(todo):
             break
+        angles(todo)
         xs = x[todo].copy()
         P_s, adjoint = chain_adjoint(model.config, model.errors, xs[:, :p], model.inputs, B=model.B)
         beams = {}  # the interferometers' beams where the stage began
-        for xyz, idx, meas, W, c0, o, cen in plan:
+        for xyz, idx, meas, W, c0, o, cen, _ in plan:
             if not xyz:
                 d = P_s[:, idx] - xs[:, None, c0:c0 + 3]
-                beams[c0] = np.ascontiguousarray(d / np.sqrt((d * d).sum(-1))[..., None])
+                beams[c0] = d / lt.norm3(d)[..., None]  # norm3: numpy's sum over the last axis, in its order
         where = np.full(N, -1)
         where[todo] = np.arange(len(todo))
         iterate(lambda v, a, adjoint=adjoint, where=where: adjoint(v, where[a]), beams, lambda a, where=where: where[a],
                 tol)
+        angles(todo)
         moved = np.abs((x[todo] - xs) * sv).max(axis=1)
     if len(todo):  # what the last stage moved, against the distance from the start: its own bias is about
         dist = np.maximum(np.abs((xs - x_start[todo]) * sv).max(axis=1), 1.0)  # moved * (moved / distance)
         failed[todo[moved * moved / dist > chord_bias]] = True
+    angles(all_trials)
     cost = (w * w).sum(axis=1)
     res_xyz, res_rng = _split_residuals(blocks, raw, N, M)
     return {"theta": x[:, :p], "x": x, "converged": ~failed, "iterations": iterations, "chi2": cost,

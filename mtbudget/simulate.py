@@ -328,14 +328,16 @@ def measure_stations(scenario: Scenario, P_W: np.ndarray, pert: dict):
     offset = pert.get("tracker_offset")
     for st, spec in zip(scenario.stations, scenario.station_specs):
         rows = np.flatnonzero(scenario.row_station == st.id)
+        if rows.size and rows[-1] - rows[0] + 1 == rows.size:  # the station's rows one after the other: views of
+            rows = slice(rows[0], rows[-1] + 1)  # the arrays, not copies by fancy indexing (the same numbers)
         P = lt.read(P_W[:, rows], spec.tracker_pose[None] + dpose,
                     None if noise is None else np.broadcast_to(noise, (n, M, 3))[:, rows])
         if offset is not None:
-            P = P + np.broadcast_to(offset, (n, M, 3))[:, rows]
+            P += np.broadcast_to(offset, (n, M, 3))[:, rows]  # P is read's new array
         if st.kind == "xyz":
             xyz[:, rows] = P
-        else:
-            ranges[:, rows] = np.sqrt((P * P).sum(axis=-1)) + spec.dead_path
+        else:  # |P| summed in order (x^2 + y^2) + z^2, as numpy's sum over the last axis: the same bits
+            ranges[:, rows] = lt.norm3(P) + spec.dead_path
     return xyz, ranges
 
 

@@ -234,7 +234,10 @@ def test_a_tracker_step_is_an_exact_rigid_motion_about_the_centre():
     z = np.ascontiguousarray(np.concatenate([rng.normal(0, 0.01, (k, 3)), om], axis=1))
     cen = np.array([1000.0, 300.0, 300.0])
     R1, x1 = R.copy(), x.copy()
-    rigid_step(R1, x1, z, 2, cen)
+    zx = np.zeros((k, 9))  # the steps of every unknown, the pose's at columns 2..7
+    zx[:, 2:8] = z
+    t = np.arange(k)[::-1].copy()  # trial t[j] moved by row j of the steps
+    rigid_step(R1, x1, zx[::-1].copy(), 2, cen, t)
     Rot = Rotation.from_rotvec(om).as_matrix()
     assert np.abs(R1 - Rot @ R).max() < 1e-15
     T = (Rot @ (x[:, 2:5] - cen)[:, :, None])[:, :, 0] + cen + z[:, :3]
@@ -327,10 +330,12 @@ def test_the_station_kernels_equal_the_numpy_residuals_and_the_exact_gradient(mo
     x = got["x"] + rng.normal(0, 1, got["x"].shape) / sv  # off the start by about 1 um or urad in every unknown
     t = np.array([4, 1, 3])  # trials out of order, a subset
     w_ref, raw_ref, A = got["evaluate"](x[t], t, jacobian=True)
-    P = model.machine_points(x[t][:, :p])
+    P = model.machine_points(x[t][:, :p])  # the trials' points, row j for trial t[j]
     P0 = model.machine_points(np.zeros((1, p)))[0]
+    ahead, centre = {}, {}  # a tracker's part of the next gradient, left by its residuals; its centre of rotation
     xt = np.ascontiguousarray(x[t])
-    w = np.empty_like(w_ref)
+    x = np.ascontiguousarray(x)
+    w = np.full((len(x), w_ref.shape[1]), np.nan)  # written at rows t only
     v, g = np.zeros((3, model.n_points, 3)), np.zeros_like(xt)
     _, adjoint = chain_adjoint(model.config, model.errors, xt[:, :p], model.inputs, B=model.B)
     off = 0
@@ -338,28 +343,27 @@ def test_the_station_kernels_equal_the_numpy_residuals_and_the_exact_gradient(mo
         idx = np.ascontiguousarray(idx, np.int64)
         meas = np.ascontiguousarray(sim[0][:, idx] if st.kind == "xyz" else sim.ranges[:, idx])
         W = np.ascontiguousarray(W)
-        e = np.empty_like(e_ref)
+        e = np.full((len(x),) + e_ref.shape[1:], np.nan)
         if st.kind == "xyz":
-            R = np.ascontiguousarray(lt.rotation(xt[:, sl.start + 3], xt[:, sl.start + 4], xt[:, sl.start + 5]))
-            ks.xyz_residual(P, idx, xt, sl.start, R, meas, W, t, off, w, e)
+            R = np.ascontiguousarray(lt.rotation(x[:, sl.start + 3], x[:, sl.start + 4], x[:, sl.start + 5]))
+            centre[sl.start] = cen = np.ascontiguousarray(P0[idx].mean(axis=0))
+            ahead[sl.start] = (np.full((len(x), len(idx), 3), np.nan), np.full((len(x), 6), np.nan))
+            ks.xyz_residual(P, idx, x, sl.start, R, meas, W, t, off, w, e, cen, *ahead[sl.start])
         else:
-            ks.range_residual(P, idx, xt, sl.start, meas, W, t, off, w, e)
-        assert np.abs(e - e_ref).max() < 1e-12  # mm
+            ks.range_residual(P, idx, x, sl.start, meas, W, t, off, w, e)
+        assert np.abs(e[t] - e_ref).max() < 1e-12  # mm
+        assert np.isnan(e[0]).all()  # a trial not asked for is not written
         off += e[0].size
-    assert np.abs(w - w_ref).max() < 1e-9 * np.abs(w_ref).max()
+    assert np.abs(w[t] - w_ref).max() < 1e-9 * np.abs(w_ref).max()
     # the gradient: the chain's part against A^T w from the exact Jacobian; a laser tracker's pose, moved by a small
     # rigid motion of the station (the chord's coordinates), against central differences of the numpy residuals
     # along ks.rigid_step
     off = 0
-    centre = {}
     for st, idx, W, sl in got["blocks"]:
         idx = np.ascontiguousarray(idx, np.int64)
         W, pos = np.ascontiguousarray(W), np.arange(3)
         if st.kind == "xyz":
-            pose = xt[:, sl]
-            R = np.ascontiguousarray(lt.rotation(pose[:, 3], pose[:, 4], pose[:, 5]))
-            centre[sl.start] = cen = np.ascontiguousarray(P0[idx].mean(axis=0))
-            ks.xyz_gradient(w, off, W, t, R, np.ascontiguousarray(P), idx, cen, sl.start, v, g)
+            ks.xyz_gradient(*ahead[sl.start], t, idx, sl.start, v, g)
             off += 3 * len(idx)
         else:
             d = P[:, idx] - xt[:, None, sl.start:sl.start + 3]
@@ -367,7 +371,7 @@ def test_the_station_kernels_equal_the_numpy_residuals_and_the_exact_gradient(mo
             ks.range_gradient(w, off, W, t, U, pos, idx, sl.start, v, g)
             off += len(idx)
     g[:, :p] = adjoint(v)
-    ref = np.einsum("kri,kr->ki", A, w)  # A^T w from the exact whitened Jacobian (scaled unknowns)
+    ref = np.einsum("kri,kr->ki", A, w[t])  # A^T w from the exact whitened Jacobian (scaled unknowns)
     rigid = np.zeros(g.shape[1], bool)
     for c0 in centre:
         rigid[c0:c0 + 6] = True
@@ -379,14 +383,61 @@ def test_the_station_kernels_equal_the_numpy_residuals_and_the_exact_gradient(mo
             for sign in (1, -1):
                 xk = xt.copy()
                 Rk = np.ascontiguousarray(lt.rotation(xk[:, c0 + 3], xk[:, c0 + 4], xk[:, c0 + 5]))
-                z = np.zeros((3, 6))
-                z[:, k] = sign * h
-                ks.rigid_step(Rk, xk, z, c0, cen)
+                z = np.zeros(xk.shape)
+                z[:, c0 + k] = sign * h
+                ks.rigid_step(Rk, xk, z, c0, cen, np.arange(3))
                 xk[:, c0 + 3:c0 + 6] = lt.euler_from_rotation(Rk)
                 diff.append(got["evaluate"](xk, t, jacobian=False)[0])
             dw = (diff[0] - diff[1]) / (2 * h)  # d(whitened residual) = -d(whitened prediction)
-            fd = -(dw * w).sum(axis=1)
+            fd = -(dw * w[t]).sum(axis=1)
             assert np.abs(g[:, c0 + k] - fd).max() < 1e-6 * np.abs(fd).max(), (c0, k)
+
+
+def test_the_chord_evaluates_the_chain_once_per_distinct_row():
+    """multistation._distinct_rows_chain (the several-station chord's chain: each of the plan's distinct rows once)
+    against the model's own chain at every row, bit for bit, with random parameters: four stations measuring the same
+    75 poses (300 rows, 75 distinct), and a five-axis plan whose rows are all distinct."""
+    from mtbudget.config import bundled_config
+    from mtbudget.identify import scale_vector
+    from mtbudget.multistation import _distinct_rows_chain
+
+    rng = np.random.default_rng(8)
+    for name, distinct in (("four_stations", 75), ("five_axis_cafxyz", None)):
+        model = build_scenario(load_config(bundled_config(name))).id_model
+        plan = model.plan
+        rows = np.column_stack([plan.nominal, plan.tool] + [plan.angles[a] for a in sorted(plan.angles)])
+        assert distinct is None or len(np.unique(rows, axis=0)) == distinct
+        chain_at, inv = _distinct_rows_chain(model)
+        theta = rng.normal(0, 1, (5, model.n_params)) / scale_vector(model)  # about 1 um or urad each
+        P, ref = chain_at(theta), model.machine_points(theta)
+        assert P.shape == (5, len(np.unique(rows, axis=0)), 3) and inv.shape == (model.n_points,)
+        assert np.array_equal(P[:, inv], ref) and np.abs(ref).max() > 100.0  # mm: points, not zeros
+
+
+def test_tracker_whiteners_equal_numpys_covariance_and_whitener():
+    """kernels_stations.tracker_whiteners against tracker.covariance + repeatability^2 I, then identify.whitener (the
+    numpy passes it replaces), bit for bit on random points from 1 um to metres; a covariance that is not positive
+    definite (a point at the tracker, no repeatability) is left to numpy, which raises."""
+    from mtbudget import tracker as lt
+    from mtbudget.identify import whitener
+    from mtbudget.kernels_stations import tracker_whiteners
+    from mtbudget.multistation import _tracker_whiteners
+    from mtbudget.recording import Station
+
+    rng = np.random.default_rng(5)
+    for scale in (1e-3, 1.0, 3e3):
+        P = rng.normal(0, scale, (40, 60, 3))
+        P[0, :2] = [[0.0, 0.0, 1.0], [1.0, 0.0, 0.0]]  # on the tracker's axes: the angles' conventions
+        for ang, dist, dpl, rep in ((5e-6, 4e-3, 0.8e-6, 1.5e-3), (2e-5, 1e-3, 0.0, 1e-4)):
+            out = np.empty(P.shape + (3,))
+            assert tracker_whiteners(P, ang, dist, dpl, float(rep**2), out)
+            ref = whitener(lt.covariance(P, ang, dist, dpl) + rep**2 * np.eye(3))
+            assert np.array_equal(out.view(np.uint64), ref.view(np.uint64)), (scale, ang)
+    P[0, 0] = 0.0
+    assert not tracker_whiteners(P, 5e-6, 4e-3, 0.0, 0.0, np.empty(P.shape + (3,)))
+    st = Station(id=1, kind="xyz", angular=5e-6, distance=4e-3, distance_per_length=0.0)
+    with pytest.raises(np.linalg.LinAlgError):
+        _tracker_whiteners(P, st, 0.0)
 
 
 def test_several_stations_with_stated_scales_take_the_reference_batch():
