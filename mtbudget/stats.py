@@ -182,8 +182,9 @@ class Moments:
 
 #: how a histogram's shortest interval is found (VectorHistogram.shortest), said beside it
 HISTOGRAM_SHORTEST = ("the narrowest interval holding the coverage probability under the piecewise-linear CDF of a "
-                      "{bins}-bin histogram (JCGM 101 7.7.2 applied to it; each end within about a bin of the trials' "
-                      "own shortest interval)")
+                      "{bins}-bin histogram (JCGM 101 7.7.2 applied to it; its length within about a bin of the "
+                      "trials' own shortest interval, its ends less determined where the distribution is nearly "
+                      "symmetric, as the trials' own are)")
 
 #: counts held by one VectorHistogram at most (64 MB): 4000 bins per component up to 2000 components, fewer beyond
 #: (550 bins for the 14 553 components of a 4851-point mesh), never fewer than HIST_MIN_BINS
