@@ -242,7 +242,8 @@ class VectorHistogram:
 
         The interval's width is piecewise linear in its lower end's probability alpha, with corners where alpha or
         alpha + p is the CDF at a bin edge: the narrowest is found among those corners, exactly for that CDF.  Its
-        ends lie within about a bin (:meth:`bin_width`) of those of the trials' own shortest interval.  An interval
+        length lies within about a bin (:meth:`bin_width`) of the trials' own shortest interval's; its ends are less
+        determined where the distribution is nearly symmetric (the length hardly changes as the interval slides).  An interval
         that would reach into the values below or above the histogram's range cannot be located: NaN.
         """
         ks = range(self.counts.shape[0]) if rows is None else list(rows)
