@@ -307,22 +307,25 @@ def point_lines(res: RunResult) -> list:
                  f"{_vec(w['u'], nd)} {u}, mean (bias) {_vec(w['mean'], nd)} {u}")
     if "clause8" in sm:
         c = sm["clause8"]
-        a = getattr(res, "adaptive", None) or {}
-        if a.get("point_axes") and a.get("stopped_at_limit") and a["point_axes_stable"] < a["point_axes"]:
-            why = (f"this adaptive run stopped at its limit of {a.get('max_trials') or a['trials']} trials with "
-                   f"{a['point_axes_stable']} of {a['point_axes']} point-axes stable: the MCM's interval ends of the "
-                   "others are not known to that tolerance (above: which, and how to finish)")
-        elif a.get("point_axes") and a["point_axes_stable"] == a["point_axes"]:
-            why = ("the MCM's u and interval ends are stable to that tolerance (adaptive run): where the GUF is not "
-                   "validated the output's distribution is not the normal the GUF assumes (non-linearity, a "
-                   "hierarchical or non-normal input); quote the MCM there")
-        else:
-            why = ("the MCM's interval ends are not known to that tolerance unless the run is adaptive: for a statement "
-                   "to sign, run `mtbudget run --trials 0` (adaptive on every point-axis, JCGM 101 7.9)")
         lines.append(f"  GUF vs MCM per point and axis (JCGM 101 clause 8, 2 significant digits): {c['passed']} of {c['of']} "
-                     f"validated; {c['note']}; {why}")
+                     f"validated; {c['note']}; {clause8_why(res)}")
     lines.append("  every point and axis: mtbudget run --json (\"points\"), or the report's table")
     return lines
+
+
+def clause8_why(res) -> str:
+    """What the clause 8 comparison means for this run, and what to do before signing (the text and the report)."""
+    a = getattr(res, "adaptive", None) or {}
+    if a.get("point_axes") and a.get("stopped_at_limit") and a["point_axes_stable"] < a["point_axes"]:
+        return (f"this adaptive run stopped at its limit of {a.get('max_trials') or a['trials']} trials with "
+                f"{a['point_axes_stable']} of {a['point_axes']} point-axes stable: the MCM's interval ends of the "
+                "others are not known to that tolerance (the adaptive run's lines say which, and how to finish)")
+    if a.get("point_axes") and a["point_axes_stable"] == a["point_axes"]:
+        return ("the MCM's u and interval ends are stable to that tolerance (adaptive run): where the GUF is not "
+                "validated the output's distribution is not the normal the GUF assumes (non-linearity, a "
+                "hierarchical or non-normal input); quote the MCM there")
+    return ("the MCM's interval ends are not known to that tolerance unless the run is adaptive: for a statement "
+            "to sign, run `mtbudget run --trials 0` (adaptive on every point-axis, JCGM 101 7.9)")
 
 
 def adaptive_line(a: dict) -> str:
@@ -1031,7 +1034,8 @@ def run_report(res: RunResult, folder, tolerance_um: float | None = None, charac
     v = data.get("validation")
     if v:
         md += ["", "## GUF vs MCM (JCGM 101 clause 8), per point and axis", "",
-               f"{v['passed']} of {v['of']} point-axes validated at two significant digits. {v['note']}."]
+               f"{v['passed']} of {v['of']} point-axes validated at two significant digits. {v['note']}; "
+               f"{md_escape(clause8_why(res))}."]
     if tolerance_um is not None:
         conf = conformance(res, tolerance_um, characteristic)
         md += ["", "## Decision (ISO 14253-1)", "", f"Characteristic: {conf['characteristic']}.", "",

@@ -302,3 +302,16 @@ def test_the_conditions_state_a_per_axis_mesh_step():
 
     assert _mesh_step({"step_x": "200 mm", "step_y": "200 mm", "step_z": "150 mm"}) == "x 200 mm, y 200 mm, z 150 mm"
     assert _mesh_step({"step": "100 mm"}) == "100 mm"
+
+
+def test_the_report_carries_the_clause8_caveat_the_terminal_prints(logged, tmp_path):
+    """A fixed run's clause 8 line says its interval ends are not known to the tolerance and what to run before
+    signing; report.md said only 'validated at 126 of 1620'."""
+    from mtbudget.report import budget_text
+
+    res, _, _ = logged
+    text = budget_text(res)
+    md = run_report(res, tmp_path / "rep")["markdown"].read_text()
+    part = md[md.index("## GUF vs MCM"):]
+    assert "for a statement to sign, run `mtbudget run --trials 0`" in text
+    assert "for a statement to sign, run \\`mtbudget run --trials 0\\`" in part.split("\n## ")[0]
