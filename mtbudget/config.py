@@ -36,6 +36,9 @@ MAX_MESH_POINTS = 10_000
 MAX_PLAN_ROWS = 100_000
 MAX_LENGTH = 1.0e5
 MAX_CONFIG_BYTES = 1_048_576
+#: a [[sensors]] reading noise (K, standard deviation) above this is a unit mistake: the temperature sensors of a
+#: machine-tool verification read to 0.01-0.1 K, and 1 K is ten times the poorest (the rule of UNCERTAINTIES)
+MAX_SENSOR_NOISE = 1.0
 
 
 def _printable(text: str) -> str:
@@ -847,6 +850,9 @@ def parse_config(data: dict, path=None) -> SimulationConfig:
         for key in ("noise", "cycle_amplitude", "cycle_period"):
             if getattr(spec, key) < 0 or (key == "cycle_period" and not spec.cycle_period > 0):
                 raise ConfigError(f"{sr.where(key)}: must be {'positive' if key == 'cycle_period' else 'zero or positive'}")
+        if spec.noise > MAX_SENSOR_NOISE:
+            raise ConfigError(f"{sr.where('noise')}: {spec.noise:g} K is not a plausible standard deviation of a "
+                              f"temperature reading; expected 0 to {MAX_SENSOR_NOISE:g} K (a value in mK written as K?)")
         sensors.append(spec)
     eff = r.sub("effects")
     effects = {

@@ -40,6 +40,7 @@ from . import tracker as lt
 from .model import MeasurementModel
 from .plan import Plan
 from .plugins import PluginHost, call, default_host
+from .recording import UNCERTAINTIES, uncertainty_problem
 from .units import Q_, to_internal
 
 #: keys of the [sources] table that are not source names
@@ -495,6 +496,9 @@ def _resolve_links(config: SimulationConfig, sources: list, tables: dict) -> dic
             unit = PHYSICAL_INPUTS[key][0]
             where = config.where(f"sources.{s.name}.{param}")
             value = to_internal(tables[s.name][param], unit, where=where, error=ConfigError)
+            problem = uncertainty_problem(key, value) if key in UNCERTAINTIES else None
+            if problem:  # the rule of the key it states ([tracker], [machine_tool]), whichever key states it
+                raise ConfigError(f"{where}: {problem}")
             if key in stated_by and not np.isclose(value, drawn[key], rtol=1e-12, atol=0.0):
                 raise ConfigError(f"{where}: states the physical input {key} a second time with another value "
                                   f"(already {Q_(drawn[key], unit).to(_unit_of(s, param)):~P} at {stated_by[key]}); "
