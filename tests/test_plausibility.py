@@ -10,6 +10,7 @@
 """
 
 import copy
+import re
 import shutil
 import sys
 from pathlib import Path
@@ -355,3 +356,25 @@ def test_posterior_makes_no_statement_about_an_implausible_identification(tmp_pa
     _edit(folder / "points.csv", "lt_x [mm]", "lt_x [in]")
     with pytest.raises(IdentificationError, match="no a posteriori statement is made: the mean error before"):
         posterior(folder, trials=4)
+
+
+@pytest.mark.parametrize("key, slip, words", [
+    ("probing_error", "2 mm", "2000 um is not plausible; expected 0 to 100 um"),
+    ("machine_temperature_change", "300 K", "300 K is not plausible; expected 0 to 10 K"),
+    ("part_temperature_u", "200 K", "200 K is not plausible; expected 0 to 10 K"),
+    ("part_cte_u", "1 mm/(m*K)", "1000 um/(m*K) is not plausible; expected 0 to 10 um/(m*K)"),
+])
+def test_a_features_in_use_uncertainty_obeys_the_same_rule(key, slip, words):
+    from mtbudget.engine import Engine
+
+    raw = load_config(default_config_path()).source
+    feature = {"name": "x length", "kind": "distance", "points": [["800 mm", "100 mm", "200 mm"],
+                                                                   ["1200 mm", "100 mm", "200 mm"]], key: slip}
+    if key == "part_cte_u":
+        feature["part_temperature"] = "21 degC"
+    raw["features"] = [feature]
+    with pytest.raises(ConfigError, match=rf"^run\.toml: features\[0\]\.{key}: {re.escape(words)}"):
+        Engine(build_scenario(parse_config(raw, "run.toml")))  # the engine reads [[features]]
+    feature[key] = {"probing_error": "2 um", "machine_temperature_change": "0.3 K", "part_temperature_u": "0.2 K",
+                    "part_cte_u": "1 um/(m*K)"}[key]
+    Engine(build_scenario(parse_config(raw, "run.toml")))  # the values in use stand
