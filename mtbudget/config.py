@@ -965,7 +965,8 @@ def parse_config(data: dict, path=None, provenance: list | None = None) -> Simul
                 raise ConfigError(f"{sr.where(key)}: must be {'positive' if key == 'cycle_period' else 'zero or positive'}")
         if spec.noise > MAX_SENSOR_NOISE:
             raise ConfigError(f"{sr.where('noise')}: {spec.noise:g} K is not a plausible standard deviation of a "
-                              f"temperature reading; expected 0 to {MAX_SENSOR_NOISE:g} K (a value in mK written as K?)")
+                              f"temperature reading; expected 0 to {MAX_SENSOR_NOISE:g} K (a value in mK written as "
+                              "K?)")
         sensors.append(spec)
     eff = r.sub("effects")
     effects = {

@@ -361,9 +361,10 @@ def implausible(res: "Identification", trial: int = 0) -> list:
         if excess[k] > bound:
             name = f"{iso_name(err)} ({err})"
             if err[0] == "d":
+                per_m = PLAUSIBLE_ERROR_PER_LENGTH * 1e3
                 out.append((abs(values[k]) / bound, f"{name} changes by {values[k]:.4g} mm over {travel:g} mm of "
-                                                    f"travel (at most {bound:.3g} mm: {PLAUSIBLE_ERROR_PER_LENGTH * 1e3:g}"
-                                                    f" mm/m + {PLAUSIBLE_ERROR_FLOOR:g} mm)"))
+                                                    f"travel (at most {bound:.3g} mm: {per_m:g} mm/m + "
+                                                    f"{PLAUSIBLE_ERROR_FLOOR:g} mm)"))
             else:
                 out.append((abs(values[k]) / bound, f"{name} reaches {values[k] * 1e3:.4g} mrad (at most "
                                                     f"{bound * 1e3:g} mrad)"))

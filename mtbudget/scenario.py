@@ -485,7 +485,7 @@ def _resolve_links(config: SimulationConfig, sources: list, tables: dict) -> dic
     Fills the linked parameters of every source table and returns the value drawn for each physical input.
     """
     drawn = {key: getattr(config, attr) for key, (_, attr, _) in PHYSICAL_INPUTS.items()}
-    stated_by: dict = {key: key for key in PHYSICAL_INPUTS if config.stated(key)}  # physical input -> the key stating it
+    stated_by: dict = {key: key for key in PHYSICAL_INPUTS if config.stated(key)}  # input -> the key that states it
     for s in sources:
         for param, key in s.links.items():
             if key not in PHYSICAL_INPUTS:
@@ -506,7 +506,8 @@ def _resolve_links(config: SimulationConfig, sources: list, tables: dict) -> dic
             drawn[key], stated_by[key] = value, here
     scales = getattr(config, "scales", None) or {}
     if "machine_tool.cte" in stated_by and len(scales) == 3:
-        raise ConfigError(f"{config.where(stated_by['machine_tool.cte'])}: the scales' expansion coefficient is stated twice, here and "
+        raise ConfigError(f"{config.where(stated_by['machine_tool.cte'])}: the scales' expansion coefficient is stated "
+                          "twice, here and "
                           "in [scales.x], [scales.y] and [scales.z]; [machine_tool] cte (and a thermal source's cte) is "
                           "the CTE of the axes without a [scales.<axis>] table: remove it")
     for s in sources:
