@@ -160,6 +160,15 @@ def _print_identification(folder, as_json=False, max_degree=3, strategy="one-pha
         rec, res = identify_recording_any(rec, max_degree=max_degree)
         s = station_summary(rec, res)
         s["thermal_correction"] = rec.thermal_correction
+        problems = implausible(res)
+        if problems:  # as for one tracker, below
+            s["warning"] = (f"warning: {rec.path or rec.name}: {problems[0]}"
+                            + (f"; also {'; '.join(problems[1:3])}" if len(problems) > 1 else "")
+                            + ": this is not an identification of the machine; check the recording's units (the "
+                            "column headers of points.csv), its stated noise and the machine code before using any "
+                            "number below")
+            s["implausible"] = problems
+            click.echo(s["warning"], err=True)
         click.echo(json.dumps(s, indent=1) if as_json else "\n".join(summary_text(rec, res) +
                                                                       [f"  {rec.thermal_correction}"]))
         return s

@@ -316,20 +316,22 @@ _PLAUSIBILITY_GRID = np.linspace(-1.0, 1.0, 41)
 def implausible(res: "Identification", trial: int = 0) -> list:
     """What in trial ``trial`` of ``res`` no machine tool can show (empty: nothing): one phrase per figure, naming
     it (the chi-square per dof, an ISO 230-1 error function with its value and bound, the pose-only error), worst
-    first.  ``mtbudget identify`` warns with them, ``mtbudget compensate`` refuses with them (see the bounds above)."""
+    first.  ``res`` may also be one identification over several stations (``multistation.MultiIdentification``:
+    its chi-square and error functions; it has no pose-only registration).  ``mtbudget identify`` warns with them, ``mtbudget compensate`` refuses with them (see the bounds above)."""
     from numpy.polynomial import legendre as npleg
 
     from .model import iso_name
 
     out = []
-    chi2 = float(res.chi2_per_dof[trial])
+    chi2 = float(np.atleast_1d(res.chi2_per_dof)[trial])
     if not np.isfinite(chi2) or chi2 > ABSURD_CHI2_PER_DOF:
         out.append((np.inf, f"chi-square per dof {chi2:.3g} (at most {ABSURD_CHI2_PER_DOF:g} for residuals that "
                             "match the stated noise within a factor of 30)"))
     errors = res.model.errors
-    theta = np.asarray(res.theta[trial], float)
+    theta = np.atleast_2d(np.asarray(res.theta, float))[trial]  # (N, p), or (p,): one identification of stations
     try:
-        cov = np.asarray(res.cov_theta[trial], float)
+        cov = np.asarray(res.cov_theta, float)
+        cov = cov[trial] if cov.ndim == 3 else cov
     except Exception:  # no covariance at this solution (a singular design): the values alone
         cov = np.zeros((len(theta), len(theta)))
     if not np.all(np.isfinite(cov)):
@@ -368,6 +370,9 @@ def implausible(res: "Identification", trial: int = 0) -> list:
             else:
                 out.append((abs(values[k]) / bound, f"{name} reaches {values[k] * 1e3:.4g} mrad (at most "
                                                     f"{bound * 1e3:g} mrad)"))
+    if getattr(res, "initial_error", None) is None:  # several stations: no pose-only registration to judge
+        out.sort(key=lambda x: -x[0])
+        return [text for _, text in out]
     before = float(res.mean_error_before[trial])
     extent = float(np.sqrt(sum((hi - lo) ** 2 for lo, hi in errors.ranges.values())))
     tool = np.asarray(res.model.plan.tool, float)

@@ -378,3 +378,16 @@ def test_a_features_in_use_uncertainty_obeys_the_same_rule(key, slip, words):
     feature[key] = {"probing_error": "2 um", "machine_temperature_change": "0.3 K", "part_temperature_u": "0.2 K",
                     "part_cte_u": "1 um/(m*K)"}[key]
     Engine(build_scenario(parse_config(raw, "run.toml")))  # the values in use stand
+
+
+def test_identify_warns_on_a_recording_of_several_stations_too(tmp_path):
+    folder = tmp_path / "fs"
+    shutil.copytree(example_recording("four_stations"), folder)
+    res = CliRunner().invoke(main, ["identify", str(folder), "--json"])
+    assert res.exit_code == 0 and "warning" not in res.stderr, res.stderr  # as recorded: no false alarm
+    _edit(folder / "points.csv", "lt_x [mm]", "lt_x [in]")
+    res = CliRunner().invoke(main, ["identify", str(folder), "--json"])
+    assert res.exit_code == 0 and "not an identification of the machine" in res.stderr, res.stderr
+    import json
+
+    assert json.loads(res.stdout)["implausible"][0].startswith("chi-square per dof")
