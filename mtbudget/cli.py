@@ -160,12 +160,8 @@ def simulate(config, out, seed, trial, no_identify, sets):
         _print_identification(out)
 
 
-#: a fit this far from its stated noise is not an identification of the machine (units, machine code, geometry)
-ABSURD_CHI2_PER_DOF = 1e3
-
-
 def _print_identification(folder, as_json=False, max_degree=3, strategy="one-phase", rotary_harmonics=0):
-    from .identify import Noise, Strategy, identify
+    from .identify import Noise, Strategy, identify, implausible
     from .model import MeasurementModel, iso_parameter
     from .recording import read_recording
     from .units import display, pretty as pretty_unit, shown_unit
@@ -177,6 +173,15 @@ def _print_identification(folder, as_json=False, max_degree=3, strategy="one-pha
         rec, res = identify_recording_any(rec, max_degree=max_degree)
         s = station_summary(rec, res)
         s["thermal_correction"] = rec.thermal_correction
+        problems = implausible(res)
+        if problems:  # as for one tracker, below
+            s["warning"] = (f"warning: {rec.path or rec.name}: {problems[0]}"
+                            + (f"; also {'; '.join(problems[1:3])}" if len(problems) > 1 else "")
+                            + ": this is not an identification of the machine; check the recording's units (the "
+                            "column headers of points.csv), its stated noise and the machine code before using any "
+                            "number below")
+            s["implausible"] = problems
+            click.echo(s["warning"], err=True)
         click.echo(json.dumps(s, indent=1) if as_json else "\n".join(summary_text(rec, res) +
                                                                       [f"  {rec.thermal_correction}"]))
         return s
@@ -221,17 +226,23 @@ def _print_identification(folder, as_json=False, max_degree=3, strategy="one-pha
                     "rotary axes' location offsets, nearest the bed first; the tool offsets are exact",
             "weights_unit": "um or urad of each parameter per um or urad of the held one",
         }
-    if summary["chi2_per_dof"] > ABSURD_CHI2_PER_DOF:  # said before any number, on stderr (and in the JSON)
-        warn = (f"warning: {rec.path or rec.name}: the fit leaves chi-square per dof {summary['chi2_per_dof']:.3g} "
-                f"(largest residual {summary['max_residual_um'] / 1000:.3g} mm): this is not an identification of the "
-                "machine; check the units of the columns, the machine code and the rotary axes' pivots and "
-                "directions before using any number below")
+    problems = implausible(res)
+    if problems:  # said before any number, on stderr, on stdout and in the JSON (the bounds: mtbudget.identify)
+        warn = (f"warning: {rec.path or rec.name}: {problems[0]}"
+                + (f"; also {'; '.join(problems[1:3])}" if len(problems) > 1 else "")
+                + f" (largest residual {summary['max_residual_um'] / 1000:.3g} mm): this is not an identification of "
+                "the machine; check the recording's units (the column headers of points.csv), its stated noise, the "
+                "machine code and the rotary axes' pivots and directions before using any number below")
         summary["warning"] = warn
+        summary["implausible"] = problems
         click.echo(warn, err=True)
     if as_json:
         click.echo(json.dumps(summary, indent=1))
         return summary
     click.echo(f"identified {rec.name!r}: {len(rec)} points, {res.dof} degrees of freedom")
+    if problems:
+        click.echo(f"  NOT AN IDENTIFICATION of the machine: {problems[0]}; the numbers below describe that mistake, "
+                   "not the machine (the warning on stderr says what to check)")
     click.echo(f"  chi-square per dof        {summary['chi2_per_dof']:.3f}  (1 = residuals match the stated uncertainties)")
     click.echo(f"  mean volumetric error     {summary['mean_error_before_um']:.2f} µm before, "
                f"{summary['mean_error_after_um']:.2f} µm after compensation (paper Eq. 27, fit residuals)")

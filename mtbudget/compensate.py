@@ -394,6 +394,20 @@ def identify_recording(rec, max_degree: int = 3, strategy: str = "one-phase"):
     return model, identify(model, rec.lt, Noise.of(rec), strat, fixed=rec.fixed_inputs())
 
 
+def refuse_implausible(rec, res) -> None:
+    """Refuse, in one line, an identification no machine tool can give (``identify.implausible``: a chi-square per
+    dof, an error function or a pose-only error beyond what a machine shows): a controller table is never written
+    from one.  The line names the worst figure (and the next) and what to check."""
+    from .identify import implausible
+
+    problems = implausible(res)
+    if problems:
+        more = f"; also {problems[1]}" if len(problems) > 1 else ""
+        raise CompensationError(f"{rec.path or rec.name}: not an identification of the machine, no table is written: "
+                                f"{problems[0]}{more}; check the recording's units (the column headers of points.csv), "
+                                "its stated noise ([tracker], [machine_tool]) and the machine code")
+
+
 def parse_step(text) -> float:
     """The grid step in mm from a quantity such as "50 mm"; a one-line error otherwise."""
     from .units import to_internal
@@ -501,6 +515,7 @@ def build_table(rec, step: float = DEFAULT_STEP_MM, max_degree: int = 3, referen
     model, res = identified if identified is not None else identify_recording(rec, max_degree)
     if not bool(res.converged[0]):
         raise CompensationError(f"the identification of {rec.name!r} did not converge; no table is written")
+    refuse_implausible(rec, res)
     errors, config = model.errors, model.config
     theta, cov = res.theta[0], res.cov_theta[0]
     ident = res.identifiability

@@ -7,6 +7,7 @@ See docs/configuration.md for every key.
 
 from __future__ import annotations
 
+import copy
 import datetime
 import difflib
 import re
@@ -36,6 +37,9 @@ MAX_MESH_POINTS = 10_000
 MAX_PLAN_ROWS = 100_000
 MAX_LENGTH = 1.0e5
 MAX_CONFIG_BYTES = 1_048_576
+#: a [[sensors]] reading noise (K, standard deviation) above this is a unit mistake: the temperature sensors of a
+#: machine-tool verification read to 0.01-0.1 K, and 1 K is ten times the poorest (the rule of UNCERTAINTIES)
+MAX_SENSOR_NOISE = 1.0
 
 
 def _printable(text: str) -> str:
@@ -69,11 +73,13 @@ def example_recording(name: str) -> Path:
 class Reader:
     """Typed access to a TOML table with errors that name file and key."""
 
-    def __init__(self, data: dict, path, prefix: str = ""):
-        self.data, self.path, self.prefix = data, path, prefix
+    def __init__(self, data: dict, path, prefix: str = "", provenance: list | None = None):
+        self.data, self.path, self.prefix, self.provenance = data, path, prefix, provenance
 
     def where(self, key):
-        return _printable(f"{self.path}: {self.prefix}{key}" if self.path else f"{self.prefix}{key}")
+        label = origin(self.provenance, f"{self.prefix}{key}")
+        path = self.path if label is None or label == SET_ORIGIN else label
+        return _printable(f"{path}: {self.prefix}{key}" if path else f"{self.prefix}{key}")
 
     def has(self, key):
         return key in self.data
@@ -86,7 +92,7 @@ class Reader:
             v = {}
         if not isinstance(v, dict):
             raise ConfigError(f"{self.where(key)}: expected a table")
-        return Reader(v, self.path, f"{self.prefix}{key}.")
+        return Reader(v, self.path, f"{self.prefix}{key}.", self.provenance)
 
     def raw(self, key, default=None):
         return self.data.get(key, default)
@@ -259,6 +265,9 @@ class SimulationConfig:
     #: the configuration's text as the run log keeps it: None for a plain file (its own text is read), the text
     #: with the resolved table appended for a file that `extends` another or a configuration changed by --set
     text: str | None = None
+    #: where each key was stated, nearest first: [(SET_ORIGIN, the --set items as a table), (this file, its own
+    #: table), (the file it extends, its own table), ...]; None: every key is this file's (see :func:`origin`)
+    provenance: list | None = None
 
     def mesh_points(self) -> np.ndarray:
         """The plan's nominal poses, (M0, 3 + R): the linear mesh (x fastest) at every combination of the rotary
@@ -281,7 +290,15 @@ class SimulationConfig:
         return True
 
     def where(self, key: str) -> str:
-        return _printable(f"{self.path}: {key}" if self.path else key)
+        """``file: key``, the file being the one that states ``key`` (a base this file extends names itself; a key
+        given with --set names this file, and the error gets "(given with --set)", :func:`given_with_set`)."""
+        label = origin(self.provenance, key)
+        path = self.path if label is None or label == SET_ORIGIN else label
+        return _printable(f"{path}: {key}" if path else key)
+
+    def origin_rank(self, key: str) -> int:
+        """How near the user ``key`` was stated: 0 for --set, 1 for this file, higher for the files it extends."""
+        return origin_rank(self.provenance, key)
 
     def plan(self, rng: np.random.Generator | None = None) -> Plan:
         """Build the plan (mesh, passes, timing) and its sensor readings."""
@@ -469,7 +486,7 @@ def _rotary(r: "Reader", code: str) -> tuple[dict, dict]:
     """[rotary.<A|B|C>] pivot, direction, angles: ({letter: RotaryAxis}, {letter: commanded angles (rad)}), one table
     per rotary letter of the machine code, none for another."""
     letters = sorted(ch.lower() for ch in code if ch in "ABC")
-    tables = r.sub("rotary") if r.has("rotary") else Reader({}, r.path, "rotary.")
+    tables = r.sub("rotary") if r.has("rotary") else Reader({}, r.path, "rotary.", r.provenance)
     for key in tables.data:
         if str(key).lower() not in letters:
             raise ConfigError(f"{tables.where(key)}: machine {code!r} has no rotary axis {key}" +
@@ -511,13 +528,13 @@ def _rotary(r: "Reader", code: str) -> tuple[dict, dict]:
     return geometry, angles
 
 
-def _stations(raw: list, path) -> list:
+def _stations(raw: list, path, provenance: list | None = None) -> list:
     """The [[stations]] tables (keys already checked against the schema)."""
     if len(raw) > MAX_STATIONS:
         raise ConfigError(f"{path}: stations: {len(raw)} [[stations]]; at most {MAX_STATIONS}")
     out = []
     for i, s in enumerate(raw):
-        sr = Reader(s, path, f"stations[{i}].")
+        sr = Reader(s, path, f"stations[{i}].", provenance)
         kind = s.get("kind")
         if kind not in ("xyz", "range"):
             got = "it is missing" if kind is None else f"got {kind!r:.60}"
@@ -574,25 +591,110 @@ def load_config(path=None, sets: tuple | list = ()) -> SimulationConfig:
     (the built-in paper configuration); its own tables and keys then replace the base's, table by table and key by
     key (a list or a value is replaced whole).  ``sets``: "dotted.key=value" overrides applied last (the CLI's
     ``--set``), the value a TOML value or else a string (``sources.tracker_noise.angular_sd=3 urad``); an index
-    reaches into an array of tables (``sensors.0.noise=0.02 K``)."""
+    reaches into an array of tables (``sensors.0.noise=0.02 K``).  An error names the file that states the key (a
+    base for a key this file does not state) and ends "(given with --set)" for a key of ``sets``."""
     path = Path(path) if path is not None else default_config_path()
-    data, chain = _load_with_extends(path, [])
+    data, chain, own = _load_with_extends(path, [])
+    own = [(p, copy.deepcopy(t)) for p, t in own]  # as the files state them, whatever --set changes in ``data``
+    given: dict = {}
     for item in sets:
         _apply_set(data, item, path)
+        _apply_set(given, item, path, lenient=True)
+    provenance = ([(SET_ORIGIN, given)] if sets else []) + own
     try:
-        cfg = parse_config(data, path)
+        cfg = parse_config(data, path, provenance)
     except ConfigError as exc:
-        keys = [str(x).partition("=")[0].strip() for x in sets]
-        if any(k and f": {k}:" in str(exc) for k in keys):  # a key of --set, not of the file
-            raise ConfigError(f"{exc} (given with --set)") from None
-        raise
+        raise given_with_set(exc, provenance) from None
     if len(chain) > 1 or sets:
         import json
 
-        own = path.read_text(encoding="utf-8", errors="replace")
-        cfg.text = (own + "\n\n# resolved by mtbudget (extends: " + " <- ".join(str(p) for p in chain[1:]) +
+        own_text = path.read_text(encoding="utf-8", errors="replace")
+        cfg.text = (own_text + "\n\n# resolved by mtbudget (extends: " + " <- ".join(str(p) for p in chain[1:]) +
                     ("; --set " + ", ".join(sets) if sets else "") + "), as JSON:\n# " + json.dumps(data, default=str) + "\n")
     return cfg
+
+
+#: the origin of a key given with --set (:attr:`SimulationConfig.provenance`)
+SET_ORIGIN = "--set"
+
+
+def _key_parts(key: str) -> list:
+    """``sensors[0].noise`` or ``sensors.0.noise`` -> ["sensors", "0", "noise"]."""
+    return [p for p in re.sub(r"\[(\d+)\]", r".\1", str(key)).split(".") if p]
+
+
+_ABSENT = object()
+
+
+def _at(tree, parts):
+    node = tree
+    for part in parts:
+        if isinstance(node, dict) and part in node:
+            node = node[part]
+        elif isinstance(node, list) and part.isdigit() and int(part) < len(node):
+            node = node[int(part)]
+        else:
+            return _ABSENT
+    return node
+
+
+def _holds(tree, parts) -> bool:
+    return _at(tree, parts) is not _ABSENT
+
+
+def _origin_index(provenance, key: str) -> int | None:
+    """Index into ``provenance`` of the nearest statement of ``key`` or, where no one states it (a missing key), of
+    its nearest stated table; None without provenance."""
+    if not provenance:
+        return None
+    parts = _key_parts(key)
+    while parts:
+        for i, (label, tree) in enumerate(provenance):
+            node = _at(tree, parts)
+            if node is _ABSENT:
+                continue
+            if label == SET_ORIGIN and isinstance(node, dict) and any(_holds(t, parts) for _, t in provenance[1:]):
+                continue  # a file's table that --set reaches into is the file's
+            return i
+        parts = parts[:-1]
+    return None
+
+
+def origin(provenance, key: str):
+    """Who states ``key``: :data:`SET_ORIGIN`, a file's path, or None (unknown: the configuration's own file)."""
+    i = _origin_index(provenance, key)
+    return None if i is None else provenance[i][0]
+
+
+def origin_rank(provenance, key: str) -> int:
+    """0 for a key given with --set, 1 for one the configuration's own file states (or nobody), 2 for the file it
+    extends, ..."""
+    i = _origin_index(provenance, key)
+    if i is None:
+        return 1
+    return i + (0 if provenance[0][0] == SET_ORIGIN else 1)
+
+
+def given_with_set(exc: ConfigError, provenance) -> ConfigError:
+    """``exc`` with "(given with --set)" appended where the key it names was given with --set (a key, or a table
+    only --set created, such as a misspelt ``trackr`` of ``trackr.angular``)."""
+    if not provenance or provenance[0][0] != SET_ORIGIN or str(exc).endswith("(given with --set)"):
+        return exc
+    message = str(exc)
+    forms = set()
+
+    def walk(node, parts):
+        for k, v in (node.items() if isinstance(node, dict) else enumerate(node) if isinstance(node, list) else ()):
+            here = parts + [str(k)]
+            if _origin_index(provenance, ".".join(here)) == 0:  # this key (or table) exists only through --set
+                forms.add(".".join(here))
+                forms.add(re.sub(r"\.(\d+)(?=\.|$)", r"[\1]", ".".join(here)))
+            walk(v, here)
+
+    walk(provenance[0][1], [])
+    if any(f": {f}:" in message or f": {f}." in message or message.endswith(f": {f}") for f in forms):
+        return ConfigError(f"{message} (given with --set)")
+    return exc
 
 
 def _merge(base: dict, over: dict) -> dict:
@@ -602,8 +704,9 @@ def _merge(base: dict, over: dict) -> dict:
     return out
 
 
-def _load_with_extends(path: Path, seen: list) -> tuple[dict, list]:
-    """The TOML table of ``path`` with its ``extends`` chain merged in; the chain of files (this one first)."""
+def _load_with_extends(path: Path, seen: list) -> tuple[dict, list, list]:
+    """The TOML table of ``path`` with its ``extends`` chain merged in; the chain of files (this one first); each
+    file's own table, nearest first, as ``(path, table)`` (the provenance of every key)."""
     if len(seen) >= MAX_EXTENDS:
         raise ConfigError(f"{path}: extends: more than {MAX_EXTENDS} files deep")
     if path.resolve() in [p.resolve() for p in seen]:
@@ -611,17 +714,30 @@ def _load_with_extends(path: Path, seen: list) -> tuple[dict, list]:
     data = _read_toml(path)
     base = data.pop("extends", None)
     if base is None:
-        return data, [path]
+        return data, [path], [(path, data)]
     if not isinstance(base, str) or not base.strip():
         raise ConfigError(f"{path}: extends: expected a file name or \"default\" (the built-in configuration)")
     base_path = default_config_path() if base.strip() == "default" else (path.parent / base).resolve()
     if not base_path.exists():
         raise ConfigError(f"{path}: extends: no such configuration file {base_path}")
-    merged, chain = _load_with_extends(base_path, seen + [path])
-    return _merge(merged, data), [path] + chain
+    merged, chain, own = _load_with_extends(base_path, seen + [path])
+    return _merge(merged, data), [path] + chain, [(path, data)] + own
 
 
-def _apply_set(data: dict, item: str, path) -> None:
+def _apply_set(data: dict, item: str, path, lenient: bool = False) -> None:
+    """Set the dotted key of ``item`` in ``data``; ``lenient``: into a table of the --set items alone (the
+    provenance), where an index makes a list entry rather than reaching into one."""
+    if lenient:
+        key, _, text = str(item).partition("=")
+        node, parts = data, [p for p in key.strip().split(".") if p]
+        for part in parts[:-1]:
+            nxt = node.setdefault(part, {})
+            if not isinstance(nxt, dict):
+                nxt = node[part] = {}
+            node = nxt
+        if parts:
+            node[parts[-1]] = text
+        return
     key, sep, text = str(item).partition("=")
     key = key.strip()
     if not sep or not key:
@@ -669,8 +785,8 @@ def _read_toml(path: Path) -> dict:
     return data
 
 
-def parse_config(data: dict, path=None) -> SimulationConfig:
-    r = Reader(data, path)
+def parse_config(data: dict, path=None, provenance: list | None = None) -> SimulationConfig:
+    r = Reader(data, path, provenance=provenance)
     fmt = r.raw("format")
     if fmt != CONFIG_FORMAT:
         raise ConfigError(f"{r.where('format')}: expected \"{CONFIG_FORMAT}\", got {fmt!r}")
@@ -685,7 +801,7 @@ def parse_config(data: dict, path=None) -> SimulationConfig:
         if not isinstance(entries, list) or not all(isinstance(x, dict) for x in entries):
             raise ConfigError(f"{r.where(table)}: expected [[{table}]] tables")
         for i, x in enumerate(entries):
-            Reader(x, path, f"{table}[{i}].").check_keys(SCHEMA[table], f"[[{table}]]")
+            Reader(x, path, f"{table}[{i}].", provenance).check_keys(SCHEMA[table], f"[[{table}]]")
     for name in ("name", "description", "machine"):
         if r.has(name) and not isinstance(r.raw(name), str):
             raise ConfigError(f"{r.where(name)}: expected a string, got {r.raw(name)!r}")
@@ -758,7 +874,7 @@ def parse_config(data: dict, path=None) -> SimulationConfig:
         raise ConfigError(f"{tr.where('mount')}: a tracker on the bed with the reflector in the spindle sees none of the "
                           f"workpiece-side axes of {machine} ({', '.join(a.upper() for a in cfg.workpiece)}); stand it "
                           "on the table (mount = \"table\")")
-    stations = _stations(data.get("stations", []), path)
+    stations = _stations(data.get("stations", []), path, provenance)
     if stations:
         stated = [k for k in POSE_KEYS if tr.has(k)]
         if stated:
@@ -820,7 +936,7 @@ def parse_config(data: dict, path=None) -> SimulationConfig:
     sensors = []
     sensors_raw = data.get("sensors", [])
     for i, s in enumerate(sensors_raw):
-        sr = Reader(s, path, f"sensors[{i}].")
+        sr = Reader(s, path, f"sensors[{i}].", provenance)
         if "column" not in s or "attached_to" not in s:
             raise ConfigError(f"{sr.where('column')}: each [[sensors]] needs column and attached_to")
         for key in ("column", "attached_to"):
@@ -847,6 +963,10 @@ def parse_config(data: dict, path=None) -> SimulationConfig:
         for key in ("noise", "cycle_amplitude", "cycle_period"):
             if getattr(spec, key) < 0 or (key == "cycle_period" and not spec.cycle_period > 0):
                 raise ConfigError(f"{sr.where(key)}: must be {'positive' if key == 'cycle_period' else 'zero or positive'}")
+        if spec.noise > MAX_SENSOR_NOISE:
+            raise ConfigError(f"{sr.where('noise')}: {spec.noise:g} K is not a plausible standard deviation of a "
+                              f"temperature reading; expected 0 to {MAX_SENSOR_NOISE:g} K (a value in mK written as "
+                              "K?)")
         sensors.append(spec)
     eff = r.sub("effects")
     effects = {
@@ -919,4 +1039,5 @@ def parse_config(data: dict, path=None) -> SimulationConfig:
         effects=effects,
         source=data,
         path=path,
+        provenance=provenance,
     )

@@ -30,6 +30,15 @@ from .plan import Plan
 from .stats import decimals_for, percent
 from .units import pretty
 
+#: upper bounds of the in-use uncertainties of [[features]] (internal unit, display unit, display per internal), by
+#: the rule of every stated uncertainty (mtbudget.recording.UNCERTAINTIES): several times the poorest in use, below a
+#: thousand times the smallest, so a value in the next unit up is refused: a touch probe's P_FTU is 1-20 um; the
+#: axes' temperature change since the verification and a part's temperature are known to 0.1-2 K; a part's CTE to
+#: 0.1-2 um/(m*K)
+IN_USE_BOUNDS = {"probing_error": (0.1, "um", 1e3), "machine_temperature_change": (10.0, "K", 1.0),
+                 "part_temperature_u": (10.0, "K", 1.0), "part_cte_u": (10e-6, "um/(m*K)", 1e6)}
+
+
 #: kinds -> (fewest points, unit of the value, one-sided characteristic (value <= T) or two-sided (|deviation| <= T))
 KINDS = {
     "distance": (2, "um", False),
@@ -228,6 +237,10 @@ def _parse_one(r: Reader, config) -> FeatureSpec:
         v = r.quantity(key, unit, default)
         if v < 0 or not np.isfinite(v):
             raise ConfigError(f"{r.where(key)}: must not be negative")
+        high, shown, factor = IN_USE_BOUNDS[key]
+        if v > high:  # the rule of every stated uncertainty (mtbudget.recording.UNCERTAINTIES)
+            raise ConfigError(f"{r.where(key)}: {v * factor:g} {shown} is not plausible; expected 0 to "
+                              f"{high * factor:g} {shown}")
         return v
 
     part_keys = [k for k in ("part_temperature", "part_temperature_u", "part_cte", "part_cte_u") if r.has(k)]

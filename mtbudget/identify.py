@@ -290,6 +290,102 @@ class Identification:
         return np.sqrt(np.maximum(np.diagonal(self.cov_theta, axis1=1, axis2=2), 0))
 
 
+#: What an identification of a machine tool a laser tracker verifies can plausibly give.  Beyond these, the numbers
+#: are not an identification of the machine but of a mistake (a column in inches labelled mm, degrees labelled rad,
+#: a wrong machine code or stated noise), and no table may be written from them (docs/compensation.md,
+#: "Implausible identifications"):
+#: - chi-square per degree of freedom above ABSURD_CHI2_PER_DOF: residuals some 30 times the stated noise; a real
+#:   recording with an effect the model leaves out (thermal drift, reversal) stays within 1-100 (`diagnose`);
+#: - a linear axis' positioning or straightness error changing by more than PLAUSIBLE_ERROR_PER_LENGTH (2 mm per
+#:   metre) of its travel plus PLAUSIBLE_ERROR_FLOOR (0.1 mm): uncompensated machine tools show tens of um per
+#:   metre, a steel scale 50 K off 20 degC 0.6 mm/m, so 2 mm/m is several times the worst and far below a unit
+#:   slip (an inch read as a mm is 24 400 mm/m);
+#: - an angular error (pitch, yaw, roll, a tool-holder tilt) or a squareness above PLAUSIBLE_ANGLE (2 mrad, the
+#:   same 2 mm per metre of lever: machine tools show tens to hundreds of urad);
+#: - the pose-only ("before") error larger than the measured volume itself (its diagonal plus the longest tool):
+#:   a deviation the size of the machine is not a geometric error of it.
+#: A value counts as beyond its bound only by more than 3 times its standard uncertainty (a short travel identifies
+#: its higher orders loosely: noise is not a mistake).
+ABSURD_CHI2_PER_DOF = 1e3
+PLAUSIBLE_ERROR_PER_LENGTH = 2e-3
+PLAUSIBLE_ERROR_FLOOR = 0.1  # mm
+PLAUSIBLE_ANGLE = 2e-3  # rad
+_PLAUSIBILITY_GRID = np.linspace(-1.0, 1.0, 41)
+
+
+def implausible(res: "Identification", trial: int = 0) -> list:
+    """What in trial ``trial`` of ``res`` no machine tool can show (empty: nothing): one phrase per figure, naming
+    it (the chi-square per dof, an ISO 230-1 error function with its value and bound, the pose-only error), worst
+    first.  ``res`` may also be one identification over several stations (``multistation.MultiIdentification``:
+    its chi-square and error functions; it has no pose-only registration).  ``mtbudget identify`` warns with them, ``mtbudget compensate`` refuses with them (see the bounds above)."""
+    from numpy.polynomial import legendre as npleg
+
+    from .model import iso_name
+
+    out = []
+    chi2 = float(np.atleast_1d(res.chi2_per_dof)[trial])
+    if not np.isfinite(chi2) or chi2 > ABSURD_CHI2_PER_DOF:
+        out.append((np.inf, f"chi-square per dof {chi2:.3g} (at most {ABSURD_CHI2_PER_DOF:g} for residuals that "
+                            "match the stated noise within a factor of 30)"))
+    errors = res.model.errors
+    theta = np.atleast_2d(np.asarray(res.theta, float))[trial]  # (N, p), or (p,): one identification of stations
+    try:
+        cov = np.asarray(res.cov_theta, float)
+        cov = cov[trial] if cov.ndim == 3 else cov
+    except Exception:  # no covariance at this solution (a singular design): the values alone
+        cov = np.zeros((len(theta), len(theta)))
+    if not np.all(np.isfinite(cov)):
+        cov = np.zeros_like(cov)
+    groups: dict = {}
+    for j, p in enumerate(errors.params):
+        if p.is_squareness:
+            v, u = abs(theta[j]), np.sqrt(max(cov[j, j], 0.0))
+            if not np.isfinite(v) or v - 3 * u > PLAUSIBLE_ANGLE:
+                out.append((v / PLAUSIBLE_ANGLE, f"squareness {iso_name(p.error)} = {v * 1e3:.4g} mrad (at most "
+                                                 f"{PLAUSIBLE_ANGLE * 1e3:g} mrad)"))
+        elif p.error[3] in AXES:
+            groups.setdefault(p.error, []).append(j)
+    for err, idx in groups.items():
+        axis = err[3]
+        lo, hi = errors.ranges[axis]
+        travel = hi - lo
+        orders = [errors.params[j].order for j in idx]
+        basis = np.stack([npleg.legval(_PLAUSIBILITY_GRID, np.eye(max(orders) + 1)[n]) for n in orders], axis=1)
+        if err[0] == "d":  # a change along the travel, from its start: the constant term cancels
+            basis = basis - basis[:1]
+            bound = PLAUSIBLE_ERROR_PER_LENGTH * travel + PLAUSIBLE_ERROR_FLOOR
+        else:
+            bound = PLAUSIBLE_ANGLE
+        values = basis @ theta[idx]
+        u = np.sqrt(np.maximum(np.einsum("kj,jl,kl->k", basis, cov[np.ix_(idx, idx)], basis), 0.0))
+        excess = np.where(np.isfinite(values), np.abs(values) - 3 * u, np.inf)
+        k = int(np.argmax(excess))
+        if excess[k] > bound:
+            name = f"{iso_name(err)} ({err})"
+            if err[0] == "d":
+                per_m = PLAUSIBLE_ERROR_PER_LENGTH * 1e3
+                out.append((abs(values[k]) / bound, f"{name} changes by {values[k]:.4g} mm over {travel:g} mm of "
+                                                    f"travel (at most {bound:.3g} mm: {per_m:g} mm/m + "
+                                                    f"{PLAUSIBLE_ERROR_FLOOR:g} mm)"))
+            else:
+                out.append((abs(values[k]) / bound, f"{name} reaches {values[k] * 1e3:.4g} mrad (at most "
+                                                    f"{bound * 1e3:g} mrad)"))
+    if getattr(res, "initial_error", None) is None:  # several stations: no pose-only registration to judge
+        out.sort(key=lambda x: -x[0])
+        return [text for _, text in out]
+    before = float(res.mean_error_before[trial])
+    extent = float(np.sqrt(sum((hi - lo) ** 2 for lo, hi in errors.ranges.values())))
+    tool = np.asarray(res.model.plan.tool, float)
+    extent += float(np.abs(tool).max()) if tool.size else 0.0
+    extent = max(extent, PLAUSIBLE_ERROR_FLOOR)
+    if not np.isfinite(before) or before > extent:
+        out.append((before / extent if np.isfinite(before) else np.inf,
+                    f"the mean error before compensation {before:.4g} mm is larger than the measured volume "
+                    f"({extent:.4g} mm: its diagonal and the longest tool)"))
+    out.sort(key=lambda x: -x[0])
+    return [text for _, text in out]
+
+
 #: the scaled parameter units: lengths in um, angles in urad (on a 1 m lever both are um of effect)
 
 

@@ -21,8 +21,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import ConfigError
-from .identify import Noise, identify
+from .errors import ConfigError, IdentificationError
+from .identify import Noise, identify, implausible
 from .model import MeasurementModel
 from .recording import read_recording
 from .scenario import rigid_projector
@@ -75,6 +75,11 @@ def posterior(folder, trials: int = 2000, seed: int = 1, coverage: float = 0.95,
     stated = Noise.of(rec)
     fixed = rec.fixed_inputs()
     res = identify(model, rec.lt, stated, fixed=fixed)
+    problems = implausible(res)
+    if problems:  # a statement around a fit that is not one of the machine would be a number about a mistake
+        raise IdentificationError(f"{folder}: not an identification of the machine, no a posteriori statement is made: "
+                                  f"{problems[0]}; check the recording's units (the column headers of points.csv), its "
+                                  "stated noise ([tracker], [machine_tool]) and the machine code")
     theta, pose = res.theta[0], res.pose[0]
     chi2 = float(res.chi2_per_dof[0])
     scale = math.sqrt(chi2) if noise == "estimated" else 1.0

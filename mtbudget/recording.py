@@ -69,15 +69,20 @@ MIN_ROWS = 3  # three points fix the tracker pose (6 unknowns); the identificati
 MAX_INDEX = 999_999_999  # point and run: whole numbers 0 .. MAX_INDEX
 MAX_LENGTH = 1.0e6  # mm: |x|, |tool_x|, |lt_x| ... at most 1 km
 MAX_TIME = 1.0e8  # s: about three years
-#: the stated standard uncertainties (k = 1) of recording.toml and of a configuration: key -> (internal
-#: unit, display unit, low, high): positive and within low .. high, or, where low is 0, zero or at most
-#: high.  Outside, a value is a unit mistake (and 1e-300 or 1e300 would overflow the identification's
-#: weights).
+#: the stated standard uncertainties (k = 1) of recording.toml and of a configuration (every key that states
+#: one: [tracker], [[stations]], [weights], [machine_tool] repeatability, the sources' parameters linked to them,
+#: --set): key -> (internal unit, display unit, low, high): positive and within low .. high, or, where low is 0,
+#: zero or at most high.  One rule for the four upper bounds: several times the poorest instrument or machine of
+#: its kind (laser trackers state about 1-25 urad per angle, 0.5-15 um and 0.3-6 um/m; a machine tool a tracker
+#: verifies repeats within about 0.5-25 um), and below a thousand times the smallest value in use, so a value
+#: written in the next unit up (mm for um, mrad for urad, mm/m for um/m) is refused, never run.  The lower
+#: bounds only keep the identification's weights finite (1e-300 would overflow them).  docs/configuration.md
+#: and docs/recording-format.md state the same bounds.
 UNCERTAINTIES = {
-    "tracker.angular": ("rad", "urad", 1e-12, 1e-2),
-    "tracker.distance": ("mm", "um", 1e-9, 10.0),
-    "tracker.distance_per_length": ("mm/mm", "um/m", 0.0, 1e-2),
-    "machine_tool.repeatability": ("mm", "um", 1e-9, 10.0),
+    "tracker.angular": ("rad", "urad", 1e-12, 200e-6),
+    "tracker.distance": ("mm", "um", 1e-9, 0.05),
+    "tracker.distance_per_length": ("mm/mm", "um/m", 0.0, 50e-6),
+    "machine_tool.repeatability": ("mm", "um", 1e-9, 0.1),
 }
 ATTACHED_TO = ("x axis", "y axis", "z axis", "air")
 #: keys of recording.toml this version reads (others are kept in Recording.extra)
@@ -214,7 +219,7 @@ def _quantity(text, *, path, key, dim, unit, nonnegative=False, absolute_tempera
     value = to_internal(text, unit, where=key, absolute_temperature=absolute_temperature,
                         error=lambda m: RecordingError(m.split(": ", 1)[1] if m.startswith(key + ": ") else m, path, key=key))
     if nonnegative and value < 0:
-        raise RecordingError(f"{text!r} is negative; a standard uncertainty must not be", path, key=key)
+        raise RecordingError(f"{text!r} is negative; a standard uncertainty must not be negative", path, key=key)
     return value
 
 

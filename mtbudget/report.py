@@ -427,6 +427,15 @@ def _root_total(table: dict) -> float:
     return next(table[k] for k in ("rms_total", "u_total") if k in table)
 
 
+def not_converged_line(n: int, trials: int) -> str:
+    """What trials whose identification did not converge mean for the run's numbers (text and report alike)."""
+    return (f"WARNING: the identification of {n} of {trials} trials ({100.0 * n / max(trials, 1):.3g} %) did not "
+            "converge: they stopped at the iteration limit, away from the solution a verification would report, and "
+            "every number below includes them as they stood, so it describes a verification whose identification "
+            "may fail, not one that succeeds; before signing, check the stated inputs (units, noise, the machine's "
+            "errors) against the machine (`mtbudget run --json`: not_converged)")
+
+
 def budget_text(res: RunResult) -> str:
     lines = []
     status = "" if res.complete else "  (INCOMPLETE: partial results)"
@@ -441,8 +450,7 @@ def budget_text(res: RunResult) -> str:
         lines.append(f"  note: {res.fallbacks} of {res.trials} trials left the linear range of the fast identification "
                      "and were solved by full Gauss-Newton (the reference solver)")
     if res.not_converged:
-        lines.append(f"  note: the identification of {res.not_converged} of {res.trials} trials did not converge; "
-                     "their results are included as they stood at the iteration limit")
+        lines.append("  " + not_converged_line(res.not_converged, res.trials))
     if res.weights:
         lines.append("  identification weights stated apart from what the run draws ([weights]):")
         for name, w in res.weights.items():
@@ -965,6 +973,8 @@ def run_report(res: RunResult, folder, tolerance_um: float | None = None, charac
           "## Kind of statement", "", md_escape(statement_kind_line(kind)), ""]
     if not res.complete:
         md += ["**INCOMPLETE run: partial results.**", ""]
+    if res.not_converged:
+        md += ["**" + md_escape(not_converged_line(res.not_converged, res.trials)) + ".**", ""]
     head = headline(res, tolerance_um, characteristic)
     data["statement"] = head
     md += headline_lines(head)

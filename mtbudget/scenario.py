@@ -31,7 +31,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .config import PHYSICAL_INPUTS, WEIGHT_KEYS, SimulationConfig
+from .config import PHYSICAL_INPUTS, WEIGHT_KEYS, SimulationConfig, given_with_set
 from .contracts import Context, TARGETS
 from .errors import ConfigError, PluginError
 from .identify import Noise, null_coordinates
@@ -40,6 +40,7 @@ from . import tracker as lt
 from .model import MeasurementModel
 from .plan import Plan
 from .plugins import PluginHost, call, default_host
+from .recording import UNCERTAINTIES, uncertainty_problem
 from .units import Q_, to_internal
 
 #: keys of the [sources] table that are not source names
@@ -484,7 +485,7 @@ def _resolve_links(config: SimulationConfig, sources: list, tables: dict) -> dic
     Fills the linked parameters of every source table and returns the value drawn for each physical input.
     """
     drawn = {key: getattr(config, attr) for key, (_, attr, _) in PHYSICAL_INPUTS.items()}
-    stated_by: dict = {key: config.where(key) for key in PHYSICAL_INPUTS if config.stated(key)}
+    stated_by: dict = {key: key for key in PHYSICAL_INPUTS if config.stated(key)}  # input -> the key that states it
     for s in sources:
         for param, key in s.links.items():
             if key not in PHYSICAL_INPUTS:
@@ -493,17 +494,20 @@ def _resolve_links(config: SimulationConfig, sources: list, tables: dict) -> dic
             if param not in tables[s.name]:
                 continue
             unit = PHYSICAL_INPUTS[key][0]
-            where = config.where(f"sources.{s.name}.{param}")
+            here = f"sources.{s.name}.{param}"
+            where = config.where(here)
             value = to_internal(tables[s.name][param], unit, where=where, error=ConfigError)
+            problem = uncertainty_problem(key, value) if key in UNCERTAINTIES else None
+            if problem:  # the rule of the key it states ([tracker], [machine_tool]), whichever key states it
+                raise ConfigError(f"{where}: {problem}")
             if key in stated_by and not np.isclose(value, drawn[key], rtol=1e-12, atol=0.0):
-                raise ConfigError(f"{where}: states the physical input {key} a second time with another value "
-                                  f"(already {Q_(drawn[key], unit).to(_unit_of(s, param)):~P} at {stated_by[key]}); "
-                                  "state it once, or put "
-                                  "the identification weights apart in a [weights] table")
-            drawn[key], stated_by[key] = value, where
+                raise ConfigError(_stated_twice(config, key, (here, value, _unit_of(s, param) or unit),
+                                                (stated_by[key], drawn[key], _unit_of(s, param) or unit)))
+            drawn[key], stated_by[key] = value, here
     scales = getattr(config, "scales", None) or {}
     if "machine_tool.cte" in stated_by and len(scales) == 3:
-        raise ConfigError(f"{stated_by['machine_tool.cte']}: the scales' expansion coefficient is stated twice, here and "
+        raise ConfigError(f"{config.where(stated_by['machine_tool.cte'])}: the scales' expansion coefficient is stated "
+                          "twice, here and "
                           "in [scales.x], [scales.y] and [scales.z]; [machine_tool] cte (and a thermal source's cte) is "
                           "the CTE of the axes without a [scales.<axis>] table: remove it")
     for s in sources:
@@ -514,6 +518,21 @@ def _resolve_links(config: SimulationConfig, sources: list, tables: dict) -> dic
     return drawn
 
 
+def _stated_twice(config: SimulationConfig, key: str, second: tuple, first: tuple) -> str:
+    """The one line for a physical input stated twice with different values: it names the statement nearest the
+    user (--set, then the configuration's own file, then the files it extends; the later one where both are as
+    near), and says where the other is.  ``second``, ``first``: (dotted key, value in internal units, unit shown)."""
+    if config.origin_rank(first[0]) < config.origin_rank(second[0]):
+        second, first = first, second
+    unit = PHYSICAL_INPUTS[key][0]
+    base = config.origin_rank(first[0]) >= 2  # the other statement is in a file this one extends
+    shown = [f"{Q_(v, unit).to(u) if u else Q_(v, unit):~P}" for _, v, u in (second, first)]
+    fix = (f"change it there too (or state it only there: {first[0]})" if base else "state it once")
+    return (f"{config.where(second[0])}: states the physical input {key} a second time with another value ({shown[0]}; "
+            f"already {shown[1]} at {config.where(first[0])}{', a file this configuration extends' if base else ''}); "
+            f"{fix}, or put the identification weights apart in a [weights] table")
+
+
 def _unit_of(src, param):
     v = type(src).parameters.get(param)
     return v.units if hasattr(v, "units") else ""
@@ -522,7 +541,10 @@ def _unit_of(src, param):
 def build_scenario(config: SimulationConfig, host: PluginHost | None = None, sources: list | None = None) -> Scenario:
     """Build the scenario of ``config`` (plan, truth, pose, weights, configured sources)."""
     host = host or default_host()
-    srcs, drawn = select_sources(config, host, sources)
+    try:
+        srcs, drawn = select_sources(config, host, sources)
+    except ConfigError as exc:  # a key given with --set says so, as parse errors do
+        raise given_with_set(exc, getattr(config, "provenance", None)) from None
     rng = np.random.default_rng(np.random.SeedSequence(config.seed))  # the plan and sensor readings of the study
     plan = config.plan(rng)
     truth = truth_model(config, plan, richer=any(s.name in RICHER_TRUTH for s in srcs))
