@@ -158,7 +158,7 @@ def posterior_text(p: dict) -> str:
     return "\n".join(([f"WARNING: {warn}."] if warn else []) + [
         f"Kind of statement: A POSTERIORI, the {k['name']} (recording {k['recording']}): {k['what']}.",
         f"Measurand: {p['measurand']} ({p['not_identifiable']} combination(s) not identifiable).",
-        f"Identification: chi2/dof {i['chi2_per_dof']:.3f} on {i['dof']} degrees of freedom ({_fit_said(i)}); "
+        f"Identification: chi2/dof {i['chi2_per_dof']:.3f} on {i['dof']} degrees of freedom ({fit_said(i)}); "
         f"{i['thermal_correction']}.",
         f"Monte Carlo: {p['trials']} trials, seed {p['seed']}, {percent(p['coverage'])} intervals, "
         f"{p['not_converged']} not converged.",
@@ -170,7 +170,7 @@ def posterior_text(p: dict) -> str:
     ])
 
 
-def _fit_said(i: dict) -> str:
+def fit_said(i: dict) -> str:
     """The chi-square test in a few words (the statement's identification line)."""
     t = i.get("fit_test")
     if not t:

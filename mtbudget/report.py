@@ -1094,7 +1094,7 @@ def posterior_report(p: dict, folder) -> dict:
     (:func:`mtbudget.posterior.posterior`)."""
     import json as _json
 
-    from .posterior import _fit_said
+    from .posterior import fit_said
 
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
@@ -1106,7 +1106,7 @@ def posterior_report(p: dict, folder) -> dict:
           "## Measurand", "", md_escape(p["measurand"][0].upper() + p["measurand"][1:]) +
           f" ({p['not_identifiable']} combination(s) not identifiable).", "",
           "## Identification", "",
-          md_escape(f"chi2/dof {i['chi2_per_dof']:.3f} on {i['dof']} degrees of freedom ({_fit_said(i)}); noise: "
+          md_escape(f"chi2/dof {i['chi2_per_dof']:.3f} on {i['dof']} degrees of freedom ({fit_said(i)}); noise: "
                     f"{i['noise']} (scale {i['noise_scale']:.3f}); {i['thermal_correction']}."), "",
           *([f"**Warning: {md_escape((i.get('fit_test') or {})['warning'])}.**", ""]
             if (i.get("fit_test") or {}).get("warning") else []),
