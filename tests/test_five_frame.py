@@ -108,3 +108,132 @@ def test_check_names_the_sources_the_tables_u_does_not_contain(tmp_path):
     text = C.table_text(table, [], ex, check)
     assert "also drew backlash, temperature_drift: physics the identification does not model" in text
     assert C.check_json(check)["not_in_u"] == ["backlash", "temperature_drift"]
+
+
+# ----------------------------------------------------------------------------- the frame of the per-point measurand
+def small_five(sources=("tracker_noise", "repeatability")):
+    """The bundled CAFXYZ example on a smaller plan: 2 x 2 x 2 linear points at 3 A x 3 C angles, two tools."""
+    raw = copy.deepcopy(load_config(bundled_config("five_axis_cafxyz")).source)
+    raw["mesh"] = {"x": ["-200 mm", "200 mm"], "y": ["-200 mm", "200 mm"], "z": ["-100 mm", "200 mm"],
+                   "step_x": "400 mm", "step_y": "400 mm", "step_z": "300 mm"}
+    raw["rotary"]["A"]["angles"] = ["-90 deg", "0 deg", "60 deg"]
+    raw["rotary"]["C"]["angles"] = ["0 deg", "90 deg", "240 deg"]
+    raw["machine_tool"]["max_degree"] = 1
+    raw["geometric_errors"]["translational"] = ["8 um"]
+    raw["geometric_errors"]["angular"] = ["20 urad"]
+    raw["sources"] = {"enable": list(sources)}
+    return parse_config(raw)
+
+
+def table_orientation(a_deg, c_deg):
+    """Written here with scipy: CAFXYZ's table (C on A, A about +X on the bed) turned by a about X, then the C table
+    by c about its own Z: a table-frame vector in the machine frame is Rx(a) Rz(c) v."""
+    from scipy.spatial.transform import Rotation
+
+    return (Rotation.from_rotvec(np.radians(a_deg) * np.array([1.0, 0.0, 0.0])) *
+            Rotation.from_rotvec(np.radians(c_deg) * np.array([0.0, 0.0, 1.0]))).as_matrix()
+
+
+def test_workpiece_rotation_is_the_nominal_chain_s_turn_of_a_tool_offset():
+    """machine.workpiece_rotation against scipy (above) and against the nominal chain itself: moving the tool by d in
+    the machine frame moves the table-frame point by R^T d (finite difference of machine_points, no error)."""
+    from mtbudget.machine import workpiece_rotation
+
+    sc = build_scenario(small_five())
+    plan = sc.plan
+    R = workpiece_rotation(sc.truth.config, plan.angles)
+    deg = {r: np.degrees(v) for r, v in plan.angles.items()}
+    want = np.array([table_orientation(a, c) for a, c in zip(deg["a"], deg["c"])])
+    assert np.abs(R - want).max() < 1e-12
+    model = MeasurementModel(sc.truth.config, sc.truth.errors, plan)
+    zero = np.zeros((1, model.n_params))
+    base = model.machine_points(zero)[0]
+    for k in range(3):
+        d = np.zeros(3)
+        d[k] = 1.0
+        moved = MeasurementModel(sc.truth.config, sc.truth.errors, _shift_tool(plan, d)).machine_points(zero)[0]
+        assert np.abs((moved - base) - R[:, k, :]).max() < 1e-9  # row k of R = (R^T e_k)
+
+
+def _shift_tool(plan, d):
+    import dataclasses
+
+    return dataclasses.replace(plan, tool=plan.tool + d)
+
+
+@pytest.fixture(scope="module")
+def five_run(tmp_path_factory):
+    from mtbudget.report import run_report
+    from mtbudget.report_dcc import write_dcc
+    from mtbudget.runner import execute, replay
+
+    folder = tmp_path_factory.mktemp("five")
+    execute(small_five(), trials=64, block=16, attribution_trials=32, log_path=folder / "r.mcap")
+    res = replay(folder / "r.mcap")
+    run_report(res, folder / "rep")
+    write_dcc(res, folder / "rep" / "certificate.xml")
+    return res, folder
+
+
+def test_each_point_states_its_frame_and_the_machine_frame_is_its_covariance_turned_by_the_table(five_run):
+    """The per-point components are in the table frame and say so; machine_frame is the same covariance turned by the
+    table's orientation at the point's pose (computed here with scipy), after the log's round trip (replay)."""
+    res, _ = five_run
+    pts = res.points()
+    assert len(pts) == 72
+    for q in pts:
+        R = table_orientation(q["angles"]["value"]["a"], q["angles"]["value"]["c"])
+        C = np.array(q["covariance"]["value"])
+        m = q["machine_frame"]
+        assert np.allclose(m["u"], np.sqrt(np.diag(R @ C @ R.T)), rtol=1e-12, atol=1e-12)
+        assert np.allclose(m["mean"], R @ np.array(q["mean"]["value"]), atol=1e-12)
+        assert q["frame"].startswith("workpiece (table) frame")
+    # a point at c = 90 deg: its table-frame x is the machine's Y (A at 0 deg): the u of x there is u(Y)
+    q = next(q for q in pts if q["angles"]["value"] == {"a": 0.0, "c": 90.0})
+    assert q["machine_frame"]["u"][1] == pytest.approx(q["u"]["value"][0], rel=1e-12)
+
+
+def test_the_text_report_and_certificate_name_the_frame_and_every_point_s_angles(five_run):
+    import xml.etree.ElementTree as ET
+
+    from mtbudget.report import budget_text
+    from mtbudget.report_dcc import DCC_NS
+
+    res, folder = five_run
+    text = budget_text(res)
+    assert "per machine axis" not in text and "per axis of the workpiece (table) frame" in text
+    assert "in the machine frame (X, Y, Z at each pose" in text
+    md = (folder / "rep" / "report.md").read_text()
+    assert "per machine axis" not in md and "u X, Y, Z (machine frame)" in md and "mean x, y, z (table frame)" in md
+    root = ET.parse(folder / "rep" / "certificate.xml").getroot()
+    names = [el.text for el in root.iter(f"{{{DCC_NS}}}content") if el.text and el.text.startswith("point ")]
+    assert len(names) == 72 and len(set(names)) == 72  # the commanded a, c make every label its point's own
+    assert all(", a, c = " in n and n.endswith(" deg (commanded)") for n in names)
+    assert "e_machine_Y" in (folder / "rep" / "certificate.xml").read_text()
+    results = json.loads((folder / "rep" / "results.json").read_text())
+    assert results["points_summary"]["frame"].startswith("workpiece (table) frame")
+    assert set(results["points"][0]) >= {"angles", "frame", "machine_frame"}
+
+
+def test_the_posterior_labels_every_point_with_its_angles_and_frame(tmp_path):
+    from mtbudget.posterior import posterior, posterior_text
+    from mtbudget.report import posterior_report
+
+    sc = build_scenario(small_five())
+    rec, truth = simulate_recording(sc, trial=0)
+    write_recording(rec, tmp_path / "rec", truth=truth)
+    p = posterior(tmp_path / "rec", trials=48, max_degree=1)
+    assert "per machine axis" not in p["measurand"] and "workpiece (table) frame" in p["measurand"]
+    labels = set()
+    for q in p["points"]:
+        ang = q["angles"]["value"]
+        labels.add((*q["nominal"]["value"], ang["a"], ang["c"]))
+        R = table_orientation(ang["a"], ang["c"])
+        assert np.allclose(q["machine_frame"]["mean"], R @ np.array(q["mean"]["value"]), atol=1e-9)
+        # a rotation keeps the sum of the variances of the three components
+        assert np.sum(np.square(q["machine_frame"]["u"])) == pytest.approx(np.sum(np.square(q["u"]["value"])), rel=1e-9)
+    assert len(labels) == len(p["points"]) == 72
+    assert "(table frame)" in posterior_text(p)
+    md = posterior_report(p, tmp_path / "post")["markdown"].read_text()
+    rows = [ln for ln in md.splitlines() if ln.startswith("| ") and "a, c = (" in ln]
+    assert len(rows) == 72 and "u X, Y, Z (machine frame)" in md
