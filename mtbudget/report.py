@@ -270,7 +270,7 @@ def measurand_at_tool(m: dict | None) -> str:
     return text
 
 
-def _angles(point: dict) -> str:
+def angles_label(point: dict) -> str:
     """A five-axis point's commanded angles (", a, c = (-90, 0) deg"), empty for three axes."""
     a = point.get("angles")
     if not a:
@@ -346,7 +346,7 @@ def point_lines(res: RunResult) -> list:
         lines.append("    RMS of u over the mesh                          " + "".join(f"{x:9.{nd}f}" for x in mf["u_rms_over_mesh"]))
         lines.append("    largest u                                       " + "".join(f"{x:9.{nd}f}" for x in mf["u_max"]))
     w = sm["worst_point"]
-    lines.append(f"  worst point #{w['point']} at x, y, z = {_vec(w['nominal']['value'], 0)} mm{_angles(w)}: u = "
+    lines.append(f"  worst point #{w['point']} at x, y, z = {_vec(w['nominal']['value'], 0)} mm{angles_label(w)}: u = "
                  f"{_vec(w['u'], nd)} {u}{frame_word(res)}, mean (bias) {_vec(w['mean'], nd)} {u}"
                  + (f"; machine frame u = {_vec(pts[w['point']]['machine_frame']['u'], nd)} {u}" if mf is not None else ""))
     if "clause8" in sm:
@@ -937,7 +937,7 @@ def run_report(res: RunResult, folder, tolerance_um: float | None = None, charac
                    "| smallest u | " + " | ".join(f"{x:.{nd}f}" for x in mf["u_min"]) + " |",
                    "| largest u | " + " | ".join(f"{x:.{nd}f}" for x in mf["u_max"]) + " |", ""]
         w = sm["worst_point"]
-        md.append(f"Worst point: #{w['point']} at x, y, z = {_vec(w['nominal']['value'], 0)} mm{_angles(w)}, u = "
+        md.append(f"Worst point: #{w['point']} at x, y, z = {_vec(w['nominal']['value'], 0)} mm{angles_label(w)}, u = "
                   f"{_vec(w['u'], nd)} {pretty(sm['unit'])}{frame_word(res)}" +
                   (f", machine frame u = {_vec(pts[w['point']]['machine_frame']['u'], nd)} {pretty(sm['unit'])}"
                    if mf is not None else "") + ".")
@@ -949,7 +949,7 @@ def run_report(res: RunResult, folder, tolerance_um: float | None = None, charac
                "| --- | --- | --- | --- | " + ("--- | " if mf is not None else "") + "--- | --- | --- |"]
         for q in pts:
             iv = q["interval"]
-            md.append(f"| {q['point']} | {_vec(q['nominal']['value'], 0)}{_angles(q)} | {_vec(q['mean']['value'], nd)} | "
+            md.append(f"| {q['point']} | {_vec(q['nominal']['value'], 0)}{angles_label(q)} | {_vec(q['mean']['value'], nd)} | "
                       f"{_vec(q['u']['value'], nd)} | " +
                       (f"{_vec(q['machine_frame']['u'], nd)} | " if mf is not None else "") + " | ".join(
                           f"[{lo:.{nd}f}, {hi:.{nd}f}]" for lo, hi in zip(iv["low"], iv["high"])) + " |")
@@ -1059,7 +1059,7 @@ def posterior_report(p: dict, folder) -> dict:
         md[-1] = "| --- | --- | --- | --- | --- | --- | --- | --- | --- |"
     for q in p["points"]:
         iv = q["interval"]
-        md.append(f"| {q['point']} | {_vec(q['nominal']['value'], 0)}{_angles(q)} | {_vec(q['mean']['value'], 2)} | "
+        md.append(f"| {q['point']} | {_vec(q['nominal']['value'], 0)}{angles_label(q)} | {_vec(q['mean']['value'], 2)} | "
                   f"{_vec(q['u']['value'], 2)} | {_vec(q['u_linear']['value'], 2)} | "
                   + (f"{_vec(q['machine_frame']['u'], 2)} | " if mf else "")
                   + " | ".join(f"[{lo:.2f}, {hi:.2f}]" for lo, hi in zip(iv["low"], iv["high"])) + " |")
