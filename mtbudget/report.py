@@ -314,8 +314,8 @@ def _vec(v, nd=1) -> str:
 
 
 def _columns(label: str) -> str:
-    """A header line with x, y, z at the columns of the three-axis header (one space at least after a longer label)."""
-    return label.ljust(64) + "x        y        z" if len(label) < 64 else label + " x        y        z"
+    """The header line of the per-axis u: x, y, z six spaces after the label (as a three-axis run has always printed)."""
+    return label + "      x        y        z"
 
 
 def point_lines(res: RunResult) -> list:
@@ -1043,9 +1043,14 @@ def posterior_report(p: dict, folder) -> dict:
                     f"(scale {i['noise_scale']:.3f}); {i['thermal_correction']}."), "",
           "## Result", "",
           f"Standard uncertainty u (k = 1) from {p['trials']} Monte Carlo trials (seed {p['seed']}); values in µm.", "",
-          "| summary over the mesh | x | y | z |", "| --- | --- | --- | --- |",
+          f"| summary over the mesh{' (workpiece (table) frame)' if 'frame' in s else ''} | x | y | z |",
+          "| --- | --- | --- | --- |",
           "| RMS of u | " + " | ".join(f"{x:.2f}" for x in s["u_rms_over_mesh"]) + " |",
           "| largest u | " + " | ".join(f"{x:.2f}" for x in s["u_max"]) + " |", "",
+          *(["| summary over the mesh (machine frame, X, Y, Z at each pose) | X | Y | Z |", "| --- | --- | --- | --- |",
+             "| RMS of u | " + " | ".join(f"{x:.2f}" for x in s["machine_frame"]["u_rms_over_mesh"]) + " |",
+             "| largest u | " + " | ".join(f"{x:.2f}" for x in s["machine_frame"]["u_max"]) + " |", ""]
+            if "machine_frame" in s else []),
           f"Check: u(MCM) / u(identification covariance propagated linearly) median {r['median']:.3f} "
           f"({r['min']:.3f}-{r['max']:.3f}) over the point-axes.", "",
           "## Every point", "",
