@@ -43,6 +43,13 @@ MODEL_DRAWS = 4000  # Monte Carlo draws over cov_theta for the uncertainty of th
 MAX_ROUNDING_UM = 0.1  # --check: a read-back entry further than this from the table is a mismatch, not a rounding
 GRID_RESOLUTION_MM = 1e-3  # grid positions and steps are whole micrometres, so a printed MIN + N STEP = MAX exactly
 STATED_COVERAGE = 0.95  # --check: at least this fraction of a line's points within 2u (k = 2) or it is under-covered
+#: sources of a simulated recording whose effect a table's u contains or that do not act on the table: the stated noise
+#: (tracker_noise, repeatability: the identification's weights and covariance), the tracker pose (registration: an
+#: unknown of the identification), the machine itself (geometric_error_uncertainty: truth.json holds the trial's
+#: machine) and the Monte Carlo's own identification settings (compensate identifies with its own).  Any other source
+#: a simulation drew is physics the identification does not model: --check names it (``not_in_u``)
+IN_TABLE_U = frozenset({"tracker_noise", "repeatability", "registration", "geometric_error_uncertainty",
+                        "convergence_criteria", "phase_sequence"})
 
 CONVENTIONS = {
     "names": "ISO 230-1: E<error direction><axis>: EXX positioning of X, EYX/EZX straightness of X in Y/Z, "
@@ -64,7 +71,13 @@ CONVENTIONS = {
                 "targets of the recording; forward = mean + B/2, reverse = mean - B/2",
     "uncertainty": "standard uncertainty (k = 1): identification covariance through the basis "
                    "(B cov B^T) or the chain Jacobian on the line relative to the datum ((J - J0) cov (J - J0)^T); "
-                   "directional entries add u(B)/2 in quadrature; empty where the plan cannot identify the function",
+                   "directional entries add u(B)/2 in quadrature; empty where the plan cannot identify the function. "
+                   "It is the identification's covariance from the recording's stated tracker noise and repeatability: "
+                   "it shrinks as 1/sqrt(points) and does not contain what the identification does not model (a "
+                   "reversal on a plan approaching from one side, temperatures drifting without [scales] or beyond "
+                   "them, reflector centring ...: docs/compensation.md). Between two entries the controller "
+                   "interpolates linearly: the identified line's deviation from that chord (largest per table: "
+                   "interpolation_um) is left there besides u; a finer --step reduces it",
 }
 
 
@@ -164,6 +177,9 @@ class AxisTable:
     tool: np.ndarray  # (3,) mm
     note: str = ""
     zero_at: float = float("nan")  # mm: where the table is zero (the reference point, clamped to the table)
+    #: um: the largest deviation of the identified line from the chord between two entries (the controller interpolates
+    #: linearly): what the table leaves between its entries besides its u, reduced by a finer --step
+    interpolation: float = 0.0
 
     @property
     def forward(self):
@@ -194,6 +210,7 @@ class CrossTable:
     deviation: np.ndarray
     u: np.ndarray
     note: str = ""
+    interpolation: float = 0.0  # um, as AxisTable.interpolation
 
 
 @dataclass
@@ -273,13 +290,13 @@ class CompensationTable:
                                 "u_directional": _list(t.u_directional), "reversal_B": _num(t.reversal),
                                 "u_reversal_B": _num(t.u_reversal), "reversal_source": t.reversal_source,
                                 "reference_mm": t.reference, "zero_at_mm": t.zero_at, "tool_mm": t.tool.tolist(),
-                                "note": t.note}
+                                "interpolation_um": _num(t.interpolation), "note": t.note}
                             for a, t in self.axes.items()},
             "iso230_2": {a: {k: (v.to_dict() if v is not None else None) for k, v in d.items()}
                          for a, d in self.iso230_2.items()},
             "cross": {k: {"iso": c.iso, "input_axis": c.axis, "output_axis": c.output, "unit": "um",
                           "positions_mm": c.positions.tolist(), "deviation": _list(c.deviation), "u": _list(c.u),
-                          "note": c.note} for k, c in self.cross.items()},
+                          "interpolation_um": _num(c.interpolation), "note": c.note} for k, c in self.cross.items()},
             "residual_against_U": {
                 "what": "residual = measured - identified model at the recording's points (machine frame), against "
                         "U = 2 u of that residual from the stated tracker noise and repeatability (k = 2, about 95 %)",
@@ -474,6 +491,24 @@ def line_deviation(config, errors, theta, cov, axis: str, positions, reference: 
     return e, u, D
 
 
+def interpolation_error(config, errors, theta, axis: str, grid_mm, positions, reference: dict, tool,
+                        component: str | None = None) -> np.ndarray:
+    """What a table on ``grid_mm`` leaves at ``positions`` (mm, within the grid) because the controller interpolates
+    it linearly: the identified line (``line_deviation`` with ``theta``) minus the chord through its values at the
+    grid points (mm; zero at the grid points).  A straight line (a rigid rotation, a scale) leaves nothing."""
+    g = np.asarray(grid_mm, float)
+    x = np.asarray(positions, float)
+    e, _, _ = line_deviation(config, errors, theta, None, axis, np.concatenate([g, x]), reference, tool, datum=g[0],
+                             component=component)
+    return e[len(g):] - np.interp(x, g, e[:len(g)])
+
+
+def _between(g) -> np.ndarray:
+    """The points midway between the entries of a grid (where the chord is furthest from a smooth line)."""
+    g = np.asarray(g, float)
+    return 0.5 * (g[1:] + g[:-1])
+
+
 # ----------------------------------------------------------------------------- the table from a recording
 def _at(g, M, x):
     """The rows of ``M`` (G, ...) linearly interpolated at ``x`` on the ascending positions ``g`` (as a controller
@@ -584,8 +619,9 @@ def build_table(rec, step: float = DEFAULT_STEP_MM, max_degree: int = 3, referen
         B, uB = _reversal_estimate(r_rec)
         src = ("ISO 230-2 mean reversal value of the recording" if r_rec.figures else
                f"none: {r_rec.note}; the directional entries equal the mean")
+        interp = interpolation_error(config, errors, theta, a, grids[a], _between(grids[a]), reference, tool)
         axes[a] = AxisTable(a, grids[a], display(e, "mm", "um"), display(u, "mm", "um"), B, uB, src, others, tool, note,
-                            zero_at[a])
+                            zero_at[a], float(display(np.abs(interp).max(), "mm", "um")))
         # model: the identified line at the recording's targets, the table's reversal, the stated repeatability
         targets = r_rec.targets
         if len(targets) < 2:  # not bidirectional (a plan approaching from one side): the model at all its targets
@@ -618,8 +654,10 @@ def build_table(rec, step: float = DEFAULT_STEP_MM, max_degree: int = 3, referen
         if null.shape[1] and np.max(np.abs(Db @ null)) > 1e-6:
             cnote = "depends on a combination the plan cannot identify: its uncertainty is understated"
             notes.append(f"cross table E{b.upper()}{a.upper()}: {cnote}")
+        ib = interpolation_error(config, errors, theta, a, g, _between(g), reference, tool, component=b)
         cross[f"E{b.upper()}{a.upper()}"] = CrossTable(f"E{b.upper()}{a.upper()}", a, b, g,
-                                                       display(eb, "mm", "um"), display(ub, "mm", "um"), cnote)
+                                                       display(eb, "mm", "um"), display(ub, "mm", "um"), cnote,
+                                                       float(display(np.abs(ib).max(), "mm", "um")))
 
     rotary = []
     held = set(ident.held or [])
@@ -1142,7 +1180,8 @@ def check_export(table: CompensationTable, rec, exporter, written: list) -> dict
     cross_tables = tables.pop("cross", {})
     truth_lines = None
     out = {"format": exporter.name, "files": [str(p) for p in written], "axes": {}, "cross": {},
-           "ignored": [k for k in ("thermal", "drift") if _present_effect(effects.get(k))]}
+           "ignored": [k for k in ("thermal", "drift") if _present_effect(effects.get(k))],
+           "not_in_u": sorted(k for k in (truth.get("sources") or {}) if k not in IN_TABLE_U)}
     for (a, b), (pos_tab, trim) in cross_tables.items():
         c = table.cross.get(f"E{b.upper()}{a.upper()}")
         if c is None:
@@ -1167,7 +1206,10 @@ def check_export(table: CompensationTable, rec, exporter, written: list) -> dict
         q = float(np.max(np.abs(interpolate(pos_tab, trim, g) * 1e3 + c.deviation)))
         if q > MAX_ROUNDING_UM:
             out.setdefault("mismatch", {})[c.iso] = q
-        u = np.sqrt((u_line * 1e3) ** 2 + min(q, MAX_ROUNDING_UM) ** 2 / 3.0)
+        # the table's own interpolation between its entries (the identified line minus its chord there), stated
+        i_line = interpolation_error(table.model.config, table.model.errors, table.theta, a, g, pts,
+                                     {**t.reference, a: 0.0}, t.tool, component=b)
+        u = np.sqrt((u_line * 1e3) ** 2 + (i_line * 1e3) ** 2 + min(q, MAX_ROUNDING_UM) ** 2 / 3.0)
         out["cross"][c.iso] = CrossCheck(c.iso, a, b, pts, before, after, u, q)
     for a, t in table.axes.items():
         if a not in tables:
@@ -1195,7 +1237,12 @@ def check_export(table: CompensationTable, rec, exporter, written: list) -> dict
                 float(np.max(np.abs(interpolate(pos_tab, trim_r, g) * 1e3 + t.reverse))))
         if q > MAX_ROUNDING_UM:  # not a rounding: the file does not say what the table says (a sign, a unit)
             out.setdefault("mismatch", {})[a] = q
-        u = np.sqrt((u_line * 1e3) ** 2 + (0.5 * t.u_reversal) ** 2 + min(q, MAX_ROUNDING_UM) ** 2 / 3.0)
+        # between the entries the controller's linear interpolation leaves the identified line's deviation from the
+        # chord (known, not correctable by the table: taken as a standard uncertainty of its size, conservative)
+        i_line = interpolation_error(table.model.config, table.model.errors, table.theta, a, g, pts,
+                                     {**t.reference, a: 0.0}, t.tool)
+        u = np.sqrt((u_line * 1e3) ** 2 + (i_line * 1e3) ** 2 + (0.5 * t.u_reversal) ** 2 +
+                    min(q, MAX_ROUNDING_UM) ** 2 / 3.0)
         u2 = np.vstack([u, u])
         dirs = np.concatenate([np.ones(len(pts)), -np.ones(len(pts))])
         tt = np.concatenate([pts, pts])
@@ -1244,7 +1291,8 @@ def table_text(table: CompensationTable, written: list, exporter, check: dict | 
         ref = ", ".join(f"{b} = {v:g} mm" for b, v in t.reference.items())
         lines.append(f"  {a.upper()}: {len(t.positions)} entries {t.positions[0]:g}..{t.positions[-1]:g} mm, zero at "
                      f"{t.zero_at:g} mm, on the line {ref}; range of the mean deviation {np.ptp(t.deviation):.2f} um, largest u {t.u.max():.2f} um; "
-                     f"reversal B {t.reversal:+.2f} ({t.u_reversal:.2f}) um")
+                     f"reversal B {t.reversal:+.2f} ({t.u_reversal:.2f}) um; between entries (linear interpolation) up "
+                     f"to {t.interpolation:.2f} um")
         if t.note:
             lines.append(f"     note: {t.note}")
     lines += ["", "ISO 230-2 per axis (um; model figures with their standard uncertainty in brackets):"]
@@ -1263,7 +1311,8 @@ def table_text(table: CompensationTable, written: list, exporter, check: dict | 
                       "input axis' reference point; squareness and Abbe effects on the line included):"]
         for c in table.cross.values():
             lines.append(f"  {c.iso} ({c.output.upper()} as a function of {c.axis.upper()}): range {np.ptp(c.deviation):6.2f} um, "
-                         f"largest u {c.u.max():5.2f} um" + (f"  [{c.note}]" if c.note else ""))
+                         f"largest u {c.u.max():5.2f} um, between entries up to {c.interpolation:.2f} um" +
+                         (f"  [{c.note}]" if c.note else ""))
     lines += ["", *residual_lines(table)]
     for n in table.notes:
         lines.append(f"note: {n}")
@@ -1288,8 +1337,21 @@ def table_text(table: CompensationTable, written: list, exporter, check: dict | 
         if check["ignored"]:
             lines.append(f"  (truth.json also has {', '.join(check['ignored'])}: not applied, the check is at the "
                          "reference temperature and in the machine frame)")
+        if check.get("not_in_u"):
+            lines.append(not_in_u_line(check))
         lines += ["", verdict_line(check)]
     return "\n".join(lines)
+
+
+def not_in_u_line(check: dict) -> str:
+    """What the tables' u cannot cover on this simulated recording: the sources it drew that the identification does
+    not model."""
+    return ("note: the simulation behind truth.json also drew " + ", ".join(check["not_in_u"]) + ": physics the "
+            "identification does not model, which it takes for geometry; the tables carry it and their u (the "
+            "identification's, from the stated tracker noise and repeatability) does not contain it, so a line can be "
+            "under-covered by it. A simulation that draws only what the u contains ([sources] enable = "
+            "[\"tracker_noise\", \"repeatability\", \"geometric_error_uncertainty\"]) checks the tables' own statement "
+            "(docs/compensation.md)")
 
 
 def verdict_line(check: dict) -> str:
@@ -1303,6 +1365,7 @@ def verdict_line(check: dict) -> str:
 
 def check_json(check: dict) -> dict:
     return {"format": check["format"], "files": check["files"], "ignored": check["ignored"],
+            "not_in_u": check.get("not_in_u", []),
             "mismatch": check.get("mismatch", {}), "worse": check_worse(check),
             "axes": {a: c.to_dict() for a, c in check["axes"].items()},
             "cross": {k: c.to_dict() for k, c in check.get("cross", {}).items()}}

@@ -451,6 +451,24 @@ def rotation_exact(eps: np.ndarray) -> np.ndarray:
     return np.eye(3) + a * S + b * (S @ S)
 
 
+def workpiece_rotation(config: Configuration, angles: dict) -> np.ndarray | None:
+    """The nominal orientation of the workpiece (table) frame in the machine frame at each pose: (M, 3, 3) R with
+    ``v_machine = R v_workpiece`` for a vector (a deviation), from the workpiece-side rotary axes' commanded angles
+    (``angles``: letter -> (M,) rad; the rotary axes nominal, no error motion).  With the workpiece-side axes
+    ``B_1`` (on the bed) ... ``B_m`` (carrying the workpiece), ``P_W = B_m^-1(...B_1^-1(P))`` turns a machine-frame
+    vector by ``R_m^T ... R_1^T``, so ``R = R_1 R_2 ... R_m`` (CAFXYZ: ``R_A(a) R_C(c)``).  None when no rotary axis
+    carries the workpiece (a three-axis machine, a head-head FXYZCB): the two frames are then the same."""
+    letters = [a for a in config.workpiece if is_rotary(a)]
+    if not letters:
+        return None
+    M = len(np.atleast_1d(angles[letters[0]]))
+    R = np.broadcast_to(np.eye(3), (M, 3, 3)).copy()
+    for a in letters:  # the bed's first
+        th = np.asarray(angles[a], float).reshape(M)
+        R = R @ rotation_exact(th[:, None] * config.rotary_axis(a).direction)
+    return R
+
+
 @dataclass
 class ChainInputs:
     """Per-point inputs of the chain, internal units.

@@ -146,6 +146,25 @@ def accumulate_block(acc: Accumulator, b: BlockResult):
 KEEP_SAMPLES_TRIALS = 200_000
 
 
+#: the frame of a five-axis machine's per-point components (docs/measurand.md, "Five-axis machines: the frame")
+WORKPIECE_FRAME = ("workpiece (table) frame: x, y, z are the machine's X, Y, Z with every rotary axis at zero, "
+                   "turning with the table (the tracker's frame; ISO 230-1's tool relative to the workpiece)")
+
+
+def machine_frame(mean, cov, R) -> dict:
+    """A five-axis point's entries beside its workpiece-frame statement: ``frame`` and ``machine_frame`` (mean R m,
+    u from R C R^T, covariance; R the nominal orientation of the table at the point's pose)."""
+    R = np.asarray(R, float)
+    C = R @ np.asarray(cov, float) @ R.T
+    return {"frame": WORKPIECE_FRAME,
+            "machine_frame": {"what": "the same error in the machine's X, Y, Z at this pose (the workpiece-frame "
+                                      "components turned by the table's nominal orientation): what a compensation in "
+                                      "the linear axes acts on; mean and covariance exact, no coverage interval",
+                              "mean": (R @ np.asarray(mean, float)).tolist(),
+                              "u": np.sqrt(np.maximum(np.diagonal(C), 0.0)).tolist(),
+                              "covariance": C.tolist(), "unit": POINT_UNIT, "rotation": R.tolist()}}
+
+
 @dataclass
 class RunResult:
     spec: dict
@@ -167,6 +186,9 @@ class RunResult:
     mesh: np.ndarray | None = None  # (M0, 3) nominal tool points of the mesh, machine frame (mm)
     commanded: np.ndarray | None = None  # (M0, 3) commanded axis positions of the mesh points (mm)
     angles: dict | None = None  # five-axis: {letter: (M0,) commanded angle of each rotary axis (deg)} at the mesh points
+    #: five-axis with a rotary table: (M0, 3, 3) the nominal orientation of the workpiece (table) frame, in which the
+    #: per-point components are stated, in the machine frame at each point's pose (machine.workpiece_rotation)
+    to_machine: np.ndarray | None = None
     guf: dict | None = None  # law of propagation per point: {"estimate": (M0, 3) um, "cov": (M0, 3, 3) um^2}
     logged_points: list | None = None  # per-point results of a complete log (replay of a run too long to log trials)
     log_problem: str | None = None  # the run log could not be written (a full disk): what happened, how to resume
@@ -212,6 +234,8 @@ class RunResult:
                  "mean": {"value": cm.mean[i].tolist(), "unit": POINT_UNIT},
                  "u": {"value": u[i].tolist(), "unit": POINT_UNIT},
                  "covariance": {"value": cm.cov[i].tolist(), "unit": f"{POINT_UNIT}^2"}}
+            if self.to_machine is not None:  # five-axis: the same components, turned into the machine axes
+                e.update(machine_frame(cm.mean[i], cm.cov[i], self.to_machine[i]))
             if iv is not None:
                 sl = slice(3 * i, 3 * i + 3)
                 e["interval"] = {"low": iv["low"][sl].tolist(), "high": iv["high"][sl].tolist(), "unit": POINT_UNIT,

@@ -24,6 +24,7 @@ import numpy as np
 from .errors import ConfigError, IdentificationError
 from .identify import Noise, identify, implausible
 from .model import MeasurementModel
+from .outputs import WORKPIECE_FRAME
 from .recording import read_recording
 from .scenario import rigid_projector
 from .stats import percent, symmetric_interval
@@ -113,9 +114,29 @@ def posterior(folder, trials: int = 2000, seed: int = 1, coverage: float = 0.95,
     u_lin = np.sqrt(np.maximum(np.diagonal(cov), 0.0))
     ok = u_lin > 1e-9 * max(u_lin.max(), 1e-30)
     ratio = u[ok] / u_lin[ok]
+    # five-axis: each point's commanded angles, and with a rotary table the frame of its components and the same errors
+    # in the machine's X, Y, Z at its pose (every trial's components turned: mean, u and interval alike)
+    angles = {r: np.degrees(v[rows]) for r, v in sorted(plan.angles.items())}
+    from .machine import workpiece_rotation
+
+    R = workpiece_rotation(model.config, {r: v[rows] for r, v in plan.angles.items()}) if plan.angles else None
+    if R is not None:
+        Em = np.einsum("mij,nmj->nmi", R, E.reshape(trials, M0, 3)).reshape(trials, -1)
+        mean_m, u_m = Em.mean(axis=0), Em.std(axis=0, ddof=1)
+        Ems = np.sort(Em, axis=0)
+        ends_m = np.array([symmetric_interval(Ems[:, j], coverage) for j in range(Ems.shape[1])])
     digest = hashlib.sha256((folder / "points.csv").read_bytes()).hexdigest()[:16] if (folder / "points.csv").exists() else None
     combos = res.identifiability.combinations()
     points = [{"point": i, "nominal": {"value": plan.nominal[rows[i]].tolist(), "unit": "mm"},
+               **({"angles": {"value": {r: float(v[i]) for r, v in angles.items()}, "unit": "deg"}} if angles else {}),
+               **({"frame": WORKPIECE_FRAME,
+                   "machine_frame": {"what": "the same errors in the machine's X, Y, Z at this pose (every trial's "
+                                             "components turned by the table's nominal orientation there)",
+                                     "mean": mean_m[3 * i:3 * i + 3].tolist(), "u": u_m[3 * i:3 * i + 3].tolist(),
+                                     "interval": {"low": ends_m[3 * i:3 * i + 3, 0].tolist(),
+                                                  "high": ends_m[3 * i:3 * i + 3, 1].tolist(), "coverage": coverage,
+                                                  "kind": "probabilistically symmetric"},
+                                     "unit": "um", "rotation": R[i].tolist()}} if R is not None else {}),
                "mean": {"value": mean[3 * i:3 * i + 3].tolist(), "unit": "um"},
                "u": {"value": u[3 * i:3 * i + 3].tolist(), "unit": "um"},
                "u_linear": {"value": u_lin[3 * i:3 * i + 3].tolist(), "unit": "um"},
@@ -131,8 +152,11 @@ def posterior(folder, trials: int = 2000, seed: int = 1, coverage: float = 0.95,
                                                                "(the noise the fit estimated)") +
                      ", identifies it as the recording was identified and compensates it"),
             "recording": rec.name, "points_csv_sha256": digest},
-        "measurand": ("error of the compensated machine at each mesh point (the recording's first tool, first run), per "
-                      "machine axis, after compensating with the identified errors: true minus identified error field, "
+        "measurand": ("error of the compensated machine at each mesh point (the recording's first tool, first run), " +
+                      ("per axis of the workpiece (table) frame (x, y, z: the machine's X, Y, Z with every rotary axis at "
+                       "zero, turning with the table; the machine's X, Y, Z at each pose: machine_frame)" if R is not None
+                       else "per machine axis") +
+                      ", after compensating with the identified errors: true minus identified error field, "
                       "rigid-body part removed (docs/measurand.md); the combinations the plan cannot identify are not in "
                       "it"),
         "not_identifiable": len(combos),
@@ -143,6 +167,9 @@ def posterior(folder, trials: int = 2000, seed: int = 1, coverage: float = 0.95,
         "points": points,
         "summary": {"unit": "um", "u_rms_over_mesh": np.sqrt((u.reshape(-1, 3) ** 2).mean(axis=0)).tolist(),
                     "u_max": u.reshape(-1, 3).max(axis=0).tolist(),
+                    **({"frame": WORKPIECE_FRAME,
+                        "machine_frame": {"u_rms_over_mesh": np.sqrt((u_m.reshape(-1, 3) ** 2).mean(axis=0)).tolist(),
+                                          "u_max": u_m.reshape(-1, 3).max(axis=0).tolist()}} if R is not None else {}),
                     "u_over_u_linear": {"median": float(np.median(ratio)), "min": float(ratio.min()),
                                         "max": float(ratio.max()),
                                         "what": "Monte Carlo u over the identification covariance propagated linearly, "
@@ -162,9 +189,13 @@ def posterior_text(p: dict) -> str:
         f"{i['thermal_correction']}.",
         f"Monte Carlo: {p['trials']} trials, seed {p['seed']}, {percent(p['coverage'])} intervals, "
         f"{p['not_converged']} not converged.",
-        "  standard uncertainty u (k = 1), µm:      x        y        z",
+        "  standard uncertainty u (k = 1), µm:      x        y        z" + (" (table frame)" if "frame" in s else ""),
         "    RMS of u over the mesh          " + "".join(f"{x:9.2f}" for x in s["u_rms_over_mesh"]),
         "    largest u                       " + "".join(f"{x:9.2f}" for x in s["u_max"]),
+        *(["  in the machine frame (X, Y, Z at each pose):",
+           "    RMS of u over the mesh          " + "".join(f"{x:9.2f}" for x in s["machine_frame"]["u_rms_over_mesh"]),
+           "    largest u                       " + "".join(f"{x:9.2f}" for x in s["machine_frame"]["u_max"])]
+          if "machine_frame" in s else []),
         f"  check: u(MCM) / u(identification covariance propagated linearly) median {r['median']:.3f} "
         f"({r['min']:.3f}-{r['max']:.3f}) over the point-axes",
     ])

@@ -137,11 +137,42 @@ MEASURAND = ("error of the compensated machine at each mesh point, per machine a
              "(docs/measurand.md)")
 
 
+#: a five-axis machine with a rotary table: the frame of the per-point components (docs/measurand.md)
+TABLE_FRAME = ("per axis of the workpiece (table) frame (x, y, z: the machine's X, Y, Z with every rotary axis at zero, "
+               "turning with the table; at another pose they are not the machine's X, Y, Z, which are stated beside "
+               "them: machine_frame)")
+
+
+def table_frame(res) -> bool:
+    """Whether the run's per-point components are in a turning table's frame (a rotary axis carries the workpiece):
+    then x, y, z are not the machine's X, Y, Z at every pose."""
+    if getattr(res, "to_machine", None) is not None:
+        return True
+    code = str(((res.spec or {}).get("config") or {}).get("machine") or "").upper()
+    return bool(getattr(res, "angles", None)) and any(ch in "ABC" for ch in code.partition("F")[0])
+
+
+def frame_word(res) -> str:
+    """" (table frame)" after x, y, z where the components are in a turning table's frame; empty otherwise."""
+    return " (table frame)" if table_frame(res) else ""
+
+
 def measurand_text(res) -> str:
     """The measurand of this run in one sentence: which tool offset, and what the verification leaves unidentified
     there ([measurand] tool; docs/measurand.md), and from which stations ([[stations]])."""
     spec = res.spec or {}
-    return measurand_at_tool(spec.get("measurand")) + _stations_clause(spec) + _scales_clause(spec)
+    text = measurand_at_tool(spec.get("measurand")) + _stations_clause(spec) + _scales_clause(spec)
+    return text.replace("per machine axis (x, y, z)", TABLE_FRAME) if table_frame(res) else text
+
+
+def machine_frame_summary(pts: list) -> dict | None:
+    """Five-axis with a rotary table: per machine axis X, Y, Z, the RMS over the mesh and the largest of u in the
+    machine frame (the workpiece-frame components turned by the table's orientation at each pose); None otherwise."""
+    if not pts or "machine_frame" not in pts[0]:
+        return None
+    u = np.array([q["machine_frame"]["u"] for q in pts])
+    return {"unit": pts[0]["machine_frame"]["unit"], "u_rms_over_mesh": np.sqrt((u**2).mean(axis=0)).tolist(),
+            "u_max": u.max(axis=0).tolist(), "u_min": u.min(axis=0).tolist()}
 
 
 def _scales_clause(spec: dict) -> str:
@@ -242,7 +273,7 @@ def measurand_at_tool(m: dict | None) -> str:
     return text
 
 
-def _angles(point: dict) -> str:
+def angles_label(point: dict) -> str:
     """A five-axis point's commanded angles (", a, c = (-90, 0) deg"), empty for three axes."""
     a = point.get("angles")
     if not a:
@@ -264,6 +295,10 @@ def points_summary(pts: list) -> dict:
                            **({"angles": pts[worst]["angles"]} if "angles" in pts[worst] else {}),
                            "mean": pts[worst]["mean"]["value"]},
            "bias_rms_over_mesh": np.sqrt((mean**2).mean(axis=0)).tolist()}
+    mf = machine_frame_summary(pts)
+    if mf is not None:  # five-axis with a rotary table: the frame of the above, and the machine's X, Y, Z beside it
+        out["frame"] = pts[0]["frame"]
+        out["machine_frame"] = mf
     c8 = [v["passed"] for p in pts for v in p.get("clause8", [])]
     if c8:
         out["clause8"] = {"passed": int(sum(c8)), "of": len(c8),
@@ -281,6 +316,11 @@ def _vec(v, nd=1) -> str:
     return "(" + ", ".join(f"{x:.{nd}f}" for x in v) + ")"
 
 
+def _columns(label: str) -> str:
+    """The header line of the per-axis u: x, y, z six spaces after the label (as a three-axis run has always printed)."""
+    return label + "      x        y        z"
+
+
 def point_lines(res: RunResult) -> list:
     """The per-point statement as text: what it is, u per axis over the mesh, the worst point, the interval, GUF."""
     pts = res.points()
@@ -292,8 +332,9 @@ def point_lines(res: RunResult) -> list:
     half = np.array([[(h - lo) / 2 for lo, h in zip(p["interval"]["low"], p["interval"]["high"])] for p in pts]) \
         if "interval" in pts[0] else None
     nd = decimals_for(min(sm["u_min"]))
+    fw = frame_word(res)
     lines = [f"Measurand: {measurand_text(res)}.",
-             f"  {len(pts)} points; standard uncertainty u per axis (k = 1), {u}:      x        y        z"]
+             _columns(f"  {len(pts)} points; standard uncertainty u per axis{fw} (k = 1), {u}:")]
     lines.append("    RMS of u over the mesh                          " + "".join(f"{x:9.{nd}f}" for x in sm["u_rms_over_mesh"]))
     lines.append("    smallest u                                      " + "".join(f"{x:9.{nd}f}" for x in sm["u_min"]))
     lines.append("    largest u                                       " + "".join(f"{x:9.{nd}f}" for x in sm["u_max"]))
@@ -302,9 +343,15 @@ def point_lines(res: RunResult) -> list:
         lines.append(f"    {label:<48}" + "".join(f"{x:9.{nd}f}" for x in half.max(axis=0))
                      + f"   (coverage {percent(res.coverage)}; {pts[0]['interval']['method']}; a normal would give "
                        f"k = {k:.2f})")
+    mf = machine_frame_summary(pts)
+    if mf is not None:  # five-axis, rotary table: the same u per machine axis X, Y, Z at each pose
+        lines.append("  in the machine frame (X, Y, Z at each pose: the same errors turned by the table's orientation):")
+        lines.append("    RMS of u over the mesh                          " + "".join(f"{x:9.{nd}f}" for x in mf["u_rms_over_mesh"]))
+        lines.append("    largest u                                       " + "".join(f"{x:9.{nd}f}" for x in mf["u_max"]))
     w = sm["worst_point"]
-    lines.append(f"  worst point #{w['point']} at x, y, z = {_vec(w['nominal']['value'], 0)} mm{_angles(w)}: u = "
-                 f"{_vec(w['u'], nd)} {u}, mean (bias) {_vec(w['mean'], nd)} {u}")
+    lines.append(f"  worst point #{w['point']} at x, y, z = {_vec(w['nominal']['value'], 0)} mm{angles_label(w)}: u = "
+                 f"{_vec(w['u'], nd)} {u}{frame_word(res)}, mean (bias) {_vec(w['mean'], nd)} {u}"
+                 + (f"; machine frame u = {_vec(pts[w['point']]['machine_frame']['u'], nd)} {u}" if mf is not None else ""))
     if "clause8" in sm:
         c = sm["clause8"]
         lines.append(f"  GUF vs MCM per point and axis (JCGM 101 clause 8, 2 significant digits): {c['passed']} of {c['of']} "
@@ -468,6 +515,8 @@ def budget_text(res: RunResult) -> str:
         lines.append("")
         lines.append(f"Budget of the per-point measurand, each source alone on the same trials ({pretty(pb['unit'])}, k = 1):")
         lines.append(f"  {'source':<32} {'group':<22} {'u_i, RMS over the mesh (x, y, z)':>34} {'share':>7}")
+        if table_frame(res):
+            lines.append("  (x, y, z: the workpiece (table) frame, as the statement above; no budget in the machine frame)")
         idle = _idle_sources(res.spec or {}, pb["rows"])
         for r in sorted(pb["rows"], key=lambda r: -r["share"]):
             lines.append(f"  {r['source']:<32} {r['group']:<22} {_vec(r['u_rms_over_mesh'], 2):>34} {r['share']:7.1%}"
@@ -523,7 +572,7 @@ def _save(plt, fig, folder, name: str) -> Path:
     return path
 
 
-def _pose_map(plt, pts: list, u: np.ndarray, folder: Path, um: str) -> Path:
+def _pose_map(plt, pts: list, u: np.ndarray, folder: Path, um: str, mframe: bool = False) -> Path:
     """Five-axis: the largest u (k = 1) over the linear points at each rotary pose, per axis, as a grid of the first
     two rotary axes' angles (one row for a single rotary axis)."""
     letters = sorted(pts[0]["angles"]["value"])
@@ -544,7 +593,8 @@ def _pose_map(plt, pts: list, u: np.ndarray, folder: Path, um: str) -> Path:
         if len(letters) > 1:
             axes[k].set_xticks(range(len(cols)), [f"{v:g}" for v in cols])
             axes[k].set_xlabel(f"{letters[1]} commanded [deg]")
-        axes[k].set_title(f"largest u of the {a} error over the linear points (k = 1)", fontsize=9)
+        axes[k].set_title(f"largest u of the {a.upper() + ' (machine frame)' if mframe else a} error over the linear "
+                          "points (k = 1)", fontsize=9)
         fig.colorbar(im, ax=axes[k], shrink=0.8, label=f"u [{um}]")
     fig.suptitle("standard uncertainty of the compensated machine at each rotary pose")
     return _save(plt, fig, folder, "uncertainty_poses.png")
@@ -563,7 +613,9 @@ def _figures(res: RunResult, folder):
     pts = res.points()
     # the per-point statement: u of each axis over the mesh (the map a metrologist looks at first)
     if pts and res.mesh is not None:
-        u = np.array([q["u"]["value"] for q in pts])
+        # five-axis with a rotary table: the machine's X, Y, Z at each pose (the table frame's x at c = 90 deg is Y)
+        mframe = "machine_frame" in pts[0]
+        u = np.array([q["machine_frame"]["u"] if mframe else q["u"]["value"] for q in pts])
         cmd = np.array([q["nominal"]["value"] for q in pts])
         if "angles" in pts[0]:  # five-axis: the largest u over the rotary poses at each linear point
             uniq, inv = np.unique(np.round(cmd, 6), axis=0, return_inverse=True)
@@ -579,7 +631,8 @@ def _figures(res: RunResult, folder):
             ax = fig.add_subplot(1, 3, j + 1, projection="3d")
             sc = ax.scatter(cmd_plot[:, 0], cmd_plot[:, 1], cmd_plot[:, 2], c=u_plot[:, j], cmap="viridis", vmin=0,
                             vmax=vmax, s=45)
-            ax.set_title(f"u of the {a} error after compensation (k = 1)", fontsize=9)
+            ax.set_title(f"u of the {a.upper() + ' (machine frame)' if mframe else a} error after compensation (k = 1)",
+                         fontsize=9)
             ax.set_xlabel("x [mm]", labelpad=6)
             ax.set_ylabel("y [mm]", labelpad=6)
             ax.set_zlabel("z [mm]", labelpad=6)
@@ -588,7 +641,7 @@ def _figures(res: RunResult, folder):
                      + ("; largest u over the rotary poses at each point" if "angles" in pts[0] else ""))
         figs["uncertainty_map"] = _save(plt, fig, folder, "uncertainty_map.png")
         if "angles" in pts[0]:
-            figs["uncertainty_poses"] = _pose_map(plt, pts, u, folder, um)
+            figs["uncertainty_poses"] = _pose_map(plt, pts, u, folder, um, mframe)
     # distributions of the volume summaries
     names = [k for k in SCALARS if res.acc.scalar_samples(k) is not None]
     if names:
@@ -733,7 +786,8 @@ def headline(res, tolerance_um: float | None = None, characteristic: str = "comp
         out.update(unit=unit, points=len(pts), U_max=round(U, nd), U_rms=round(k * float(np.sqrt((u ** 2).mean())), nd),
                    half_width_max=round(float(half.max()), nd), bias_max=round(float(np.abs(mean).max()), nd),
                    k=k, k_text=k_text, coverage=res.coverage, decimals=nd)
-        out["result_text"] = (f"the error of each component (x, y, z) at each of the {len(pts)} mesh points after "
+        out["result_text"] = (f"the error of each component (x, y, z{', workpiece (table) frame' if table_frame(res) else ''}) "
+                              f"at each of the {len(pts)} mesh points after "
                               f"compensation is estimated by the mean of the trials: at most {out['bias_max']:.{nd}f} "
                               f"{unit} from zero")
         out["U_text"] = (f"U = {out['U_max']:.{nd}f} {unit} ({k_text}), the largest over the mesh points and axes "
@@ -998,22 +1052,39 @@ def run_report(res: RunResult, folder, tolerance_um: float | None = None, charac
                f"Standard uncertainty u (k = 1) and the {percent(res.coverage)} coverage interval of each error component, "
                f"from {res.trials} Monte Carlo trials (JCGM 101); values in {pretty(sm['unit'])}, shown to the digits the "
                "run supports.", "",
-               "| summary over the mesh | x | y | z |", "| --- | --- | --- | --- |",
+               f"| summary over the mesh{' (workpiece (table) frame)' if table_frame(res) else ''} | x | y | z |",
+               "| --- | --- | --- | --- |",
                "| RMS of u | " + " | ".join(f"{x:.{nd}f}" for x in sm["u_rms_over_mesh"]) + " |",
                "| smallest u | " + " | ".join(f"{x:.{nd}f}" for x in sm["u_min"]) + " |",
                "| largest u | " + " | ".join(f"{x:.{nd}f}" for x in sm["u_max"]) + " |",
                f"| largest half-width of the {percent(res.coverage)} interval | " + " | ".join(f"{x:.{nd}f}" for x in half.max(axis=0)) + " |",
                "| RMS of the mean (bias) | " + " | ".join(f"{x:.{nd}f}" for x in sm["bias_rms_over_mesh"]) + " |", ""]
+        mf = machine_frame_summary(pts)
+        if mf is not None:
+            md += [f"Five-axis: x, y, z above are the axes of the workpiece (table) frame, the machine's X, Y, Z with every "
+                   "rotary axis at zero, turning with the table (docs/measurand.md). The same errors in the machine's "
+                   "X, Y, Z at each pose (turned by the table's orientation there; mean and covariance exactly, no "
+                   "coverage interval):", "",
+                   "| summary over the mesh (machine frame) | X | Y | Z |", "| --- | --- | --- | --- |",
+                   "| RMS of u | " + " | ".join(f"{x:.{nd}f}" for x in mf["u_rms_over_mesh"]) + " |",
+                   "| smallest u | " + " | ".join(f"{x:.{nd}f}" for x in mf["u_min"]) + " |",
+                   "| largest u | " + " | ".join(f"{x:.{nd}f}" for x in mf["u_max"]) + " |", ""]
         w = sm["worst_point"]
-        md.append(f"Worst point: #{w['point']} at x, y, z = {_vec(w['nominal']['value'], 0)} mm{_angles(w)}, u = "
-                  f"{_vec(w['u'], nd)} {pretty(sm['unit'])}.")
+        md.append(f"Worst point: #{w['point']} at x, y, z = {_vec(w['nominal']['value'], 0)} mm{angles_label(w)}, u = "
+                  f"{_vec(w['u'], nd)} {pretty(sm['unit'])}{frame_word(res)}" +
+                  (f", machine frame u = {_vec(pts[w['point']]['machine_frame']['u'], nd)} {pretty(sm['unit'])}"
+                   if mf is not None else "") + ".")
+        fw = " (table frame)" if mf is not None or table_frame(res) else ""
         md += ["", "## Every point", "",
-               f"| point | x, y, z commanded [mm] | mean x, y, z [{pretty(sm['unit'])}] | u x, y, z [{pretty(sm['unit'])}] | "
-               f"{percent(res.coverage)} interval x | y | z |", "| --- | --- | --- | --- | --- | --- | --- |"]
+               f"| point | x, y, z commanded [mm] | mean x, y, z{fw} [{pretty(sm['unit'])}] | u x, y, z{fw} [{pretty(sm['unit'])}] | "
+               + (f"u X, Y, Z (machine frame) [{pretty(sm['unit'])}] | " if mf is not None else "") +
+               f"{percent(res.coverage)} interval x | y | z{fw} |",
+               "| --- | --- | --- | --- | " + ("--- | " if mf is not None else "") + "--- | --- | --- |"]
         for q in pts:
             iv = q["interval"]
-            md.append(f"| {q['point']} | {_vec(q['nominal']['value'], 0)}{_angles(q)} | {_vec(q['mean']['value'], nd)} | "
-                      f"{_vec(q['u']['value'], nd)} | " + " | ".join(
+            md.append(f"| {q['point']} | {_vec(q['nominal']['value'], 0)}{angles_label(q)} | {_vec(q['mean']['value'], nd)} | "
+                      f"{_vec(q['u']['value'], nd)} | " +
+                      (f"{_vec(q['machine_frame']['u'], nd)} | " if mf is not None else "") + " | ".join(
                           f"[{lo:.{nd}f}, {hi:.{nd}f}]" for lo, hi in zip(iv["low"], iv["high"])) + " |")
         md += ["", f"Intervals: {pts[0]['interval']['kind']}, {pts[0]['interval']['method']}."]
     pb = res.budget.get("points")
@@ -1023,7 +1094,7 @@ def run_report(res: RunResult, folder, tolerance_um: float | None = None, charac
                "trials: u_i is the standard deviation of each component with only that source active (k = 1); the share is "
                "of the variance summed over points and axes. No sensitivity coefficient is given: a source perturbs many "
                "inputs at once, so none is defined.", "",
-               f"| source | group | u_i RMS over the mesh x, y, z [{pretty(pb['unit'])}] | u_i at the worst point | share |",
+               f"| source | group | u_i RMS over the mesh x, y, z{frame_word(res)} [{pretty(pb['unit'])}] | u_i at the worst point | share |",
                "| --- | --- | --- | --- | --- |"]
         idle = _idle_sources(res.spec or {}, pb["rows"])
         for r in sorted(pb["rows"], key=lambda r: -r["share"]):
@@ -1112,18 +1183,30 @@ def posterior_report(p: dict, folder) -> dict:
             if (i.get("fit_test") or {}).get("warning") else []),
           "## Result", "",
           f"Standard uncertainty u (k = 1) from {p['trials']} Monte Carlo trials (seed {p['seed']}); values in µm.", "",
-          "| summary over the mesh | x | y | z |", "| --- | --- | --- | --- |",
+          f"| summary over the mesh{' (workpiece (table) frame)' if 'frame' in s else ''} | x | y | z |",
+          "| --- | --- | --- | --- |",
           "| RMS of u | " + " | ".join(f"{x:.2f}" for x in s["u_rms_over_mesh"]) + " |",
           "| largest u | " + " | ".join(f"{x:.2f}" for x in s["u_max"]) + " |", "",
+          *(["| summary over the mesh (machine frame, X, Y, Z at each pose) | X | Y | Z |", "| --- | --- | --- | --- |",
+             "| RMS of u | " + " | ".join(f"{x:.2f}" for x in s["machine_frame"]["u_rms_over_mesh"]) + " |",
+             "| largest u | " + " | ".join(f"{x:.2f}" for x in s["machine_frame"]["u_max"]) + " |", ""]
+            if "machine_frame" in s else []),
           f"Check: u(MCM) / u(identification covariance propagated linearly) median {r['median']:.3f} "
           f"({r['min']:.3f}-{r['max']:.3f}) over the point-axes.", "",
           "## Every point", "",
           f"| point | x, y, z commanded [mm] | mean x, y, z [µm] | u x, y, z [µm] | u linear x, y, z [µm] | "
           f"{percent(p['coverage'])} interval x | y | z |", "| --- | --- | --- | --- | --- | --- | --- | --- |"]
+    mf = bool(p["points"]) and "machine_frame" in p["points"][0]
+    if mf:  # five-axis with a rotary table: the components' frame, and the machine's X, Y, Z beside them
+        fw = " (table frame)"
+        md[-2] = (f"| point | x, y, z commanded [mm] | mean x, y, z{fw} [µm] | u x, y, z{fw} [µm] | u linear x, y, z{fw} "
+                  f"[µm] | u X, Y, Z (machine frame) [µm] | {percent(p['coverage'])} interval x | y | z{fw} |")
+        md[-1] = "| --- | --- | --- | --- | --- | --- | --- | --- | --- |"
     for q in p["points"]:
         iv = q["interval"]
-        md.append(f"| {q['point']} | {_vec(q['nominal']['value'], 0)} | {_vec(q['mean']['value'], 2)} | "
+        md.append(f"| {q['point']} | {_vec(q['nominal']['value'], 0)}{angles_label(q)} | {_vec(q['mean']['value'], 2)} | "
                   f"{_vec(q['u']['value'], 2)} | {_vec(q['u_linear']['value'], 2)} | "
+                  + (f"{_vec(q['machine_frame']['u'], 2)} | " if mf else "")
                   + " | ".join(f"[{lo:.2f}, {hi:.2f}]" for lo, hi in zip(iv["low"], iv["high"])) + " |")
     (folder / "posterior.md").write_text("\n".join(md) + "\n")
     write_html(md, folder, folder / "posterior.html", "mtbudget a posteriori uncertainty statement")

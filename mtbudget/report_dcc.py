@@ -28,7 +28,7 @@ from pathlib import Path
 import numpy as np
 
 from . import __version__
-from .report import headline
+from .report import headline, table_frame
 
 DCC_NS = "https://ptb.de/dcc"
 SI_NS = "https://ptb.de/si"
@@ -179,22 +179,37 @@ def dcc_tree(res, tolerance_um: float | None = None, characteristic: str = "comp
         data = _sub(first, _d("data"))
         pts = res.points()
         u = np.array([q["u"]["value"] for q in pts])
+        fw = " (workpiece (table) frame: the machine's axis with every rotary axis at zero, turning with the table)" \
+            if table_frame(res) else ""
         for j, a in enumerate("xyz"):
-            _quantity(data, f"largest expanded uncertainty U ({h['k_text']}) of the {a} error over the mesh",
+            _quantity(data, f"largest expanded uncertainty U ({h['k_text']}) of the {a} error{fw} over the mesh",
                       label=f"U_max_{a}", value=round(k * float(u[:, j].max()), nd), unit=unit, nd=nd)
             _quantity(data, f"RMS over the mesh of the expanded uncertainty U (k = {k:g}) of the {a} error",
                       label=f"U_rms_{a}", value=round(k * float(np.sqrt((u[:, j] ** 2).mean())), nd), unit=unit, nd=nd)
         per = _sub(results, _d("result"))
+        mf = "machine_frame" in pts[0]
         _text(per, "name", "error of each axis at each mesh point after compensation: estimate, standard "
-                           f"uncertainty and {100 * p:g} % coverage interval (JCGM 101)")
+                           f"uncertainty and {100 * p:g} % coverage interval (JCGM 101)" +
+              (f"; x, y, z{fw}; X, Y, Z: the same error in the machine frame at the point's pose (expanded "
+               f"uncertainty U = {k:g}u, {h['k_text']})" if mf else
+               f"; x, y, z{fw}" if fw else ""))
         lst = _sub(_sub(per, _d("data")), _d("list"))
         for q in pts:
             pl = _sub(lst, _d("list"))
+            ang = q.get("angles")
+            at = "" if not ang else ", " + ", ".join(sorted(ang["value"])) + " = " + ", ".join(
+                f"{ang['value'][r]:.3f}" for r in sorted(ang["value"])) + f" {ang['unit']}"
             _text(pl, "name", f"point {q['point']} at x, y, z = " +
-                  ", ".join(f"{v:.3f}" for v in q["nominal"]["value"]) + " mm (commanded)")
+                  ", ".join(f"{v:.3f}" for v in q["nominal"]["value"]) + f" mm{at} (commanded)")
             for j, a in enumerate("xyz"):
-                _quantity(pl, f"{a} error", label=f"e_{a}", value=q["mean"]["value"][j], unit=unit, nd=nd,
-                          u=q["u"]["value"][j], interval=(q["interval"]["low"][j], q["interval"]["high"][j]), p=p)
+                _quantity(pl, f"{a} error" + (" (table frame)" if fw else ""), label=f"e_{a}", value=q["mean"]["value"][j],
+                          unit=unit, nd=nd, u=q["u"]["value"][j],
+                          interval=(q["interval"]["low"][j], q["interval"]["high"][j]), p=p)
+            if mf:
+                m = q["machine_frame"]
+                for j, a in enumerate("XYZ"):
+                    _quantity(pl, f"{a} error (machine frame at this pose)", label=f"e_machine_{a}",
+                              value=m["mean"][j], unit=unit, nd=nd, U=k * m["u"][j], k=k, p=float(res.coverage))
     else:
         r = _sub(results, _d("result"))
         _text(r, "name", "no per-point statement")

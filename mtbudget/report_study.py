@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .report import write_html
+from .report import angles_label, write_html
 from .units import factor
 
 #: captions of the paper study's figures (the HTML reports show them under each figure)
@@ -339,7 +339,8 @@ def stations_report(r: dict, folder: Path) -> Path:
               + " |", "| --- | --- | " + " | ".join("---" for _ in r["variants"]) + " |"]
     for i, nom in enumerate(r["commanded"]):
         cells = [", ".join(f"{x:.2f}" for x in np.asarray(v["u"])[i]) for v in r["variants"]]
-        lines.append(f"| {i} | {', '.join(f'{x:g}' for x in nom)} | " + " | ".join(cells) + " |")
+        at = angles_label({"angles": r["angles"][i]}) if r.get("angles") else ""  # five-axis: the point's rotary angles
+        lines.append(f"| {i} | {', '.join(f'{x:g}' for x in nom)}{at} | " + " | ".join(cells) + " |")
     lines += ["", f"![u per point and axis, one station vs several]({p.name})"]
     (folder / "stations.md").write_text("\n".join(lines) + "\n")
     write_html(lines, folder, folder / "stations.html", "mtbudget: one station or several")

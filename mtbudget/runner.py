@@ -136,6 +136,16 @@ def keep_vector_samples(settings: RunSettings, n_points: int) -> bool:
     return total * n_points * 3 <= VECTOR_SAMPLE_LIMIT
 
 
+def _to_machine(scenario: Scenario):
+    """Five-axis with a rotary table: (M0, 3, 3) the nominal orientation of the table frame, in which the per-point
+    components are stated, in the machine frame at each mesh point's pose; None otherwise."""
+    from .machine import workpiece_rotation
+
+    if not scenario.commanded_angles:
+        return None
+    return workpiece_rotation(scenario.truth.config, {r: np.radians(v) for r, v in scenario.commanded_angles.items()})
+
+
 def make_spec(scenario: Scenario, engine: Engine, settings: RunSettings) -> dict:
     """The JSON-able description a worker (or replay --verify) rebuilds the engine from."""
     cfg = scenario.config
@@ -199,7 +209,7 @@ def _run(config, settings, *, on_chunk, resume_blocks, engine, host, resume_hist
             acc.moments.update(moments)
     result = RunResult(spec, 0, settings.coverage, acc, engine.parameter_names, engine.parameter_units,
                        weights=scenario.weights_report(), mesh=scenario.mesh_points, commanded=scenario.commanded,
-                       angles=scenario.commanded_angles or None, guf=point_guf(scenario))
+                       angles=scenario.commanded_angles or None, to_machine=_to_machine(scenario), guf=point_guf(scenario))
     done = {b.block: b for b in (resume_blocks or [])}
     resumed = set(done)
     # the budget's "all sources" row is this run's first attribution_trials trials: collected as they are merged
@@ -529,6 +539,7 @@ def _execute(config, settings, *, source, target, force, histogram_every) -> Run
               "mesh_unit": "mm", "commanded": scenario.commanded.tolist(), "weights": scenario.weights_report(),
               **({"commanded_angles": {r: v.tolist() for r, v in scenario.commanded_angles.items()},
                   "commanded_angles_unit": "deg"} if scenario.commanded_angles else {}),
+              **({"workpiece_to_machine": _to_machine(scenario).tolist()} if _to_machine(scenario) is not None else {}),
               "settings": {k: (list(getattr(settings, k)) if k == "adaptive_outputs" else getattr(settings, k))
                            for k in RESUMED_SETTINGS}}
     writer = RunLogWriter(target, header, config_text, log_components=keep_vectors, copy=copy, histogram=hist,
@@ -605,6 +616,7 @@ def replay(path) -> RunResult:
                     commanded=np.asarray(h["commanded"]) if h.get("commanded") else None,
                     angles={r: np.asarray(v) for r, v in h["commanded_angles"].items()} if h.get("commanded_angles")
                     else None,
+                    to_machine=np.asarray(h["workpiece_to_machine"]) if h.get("workpiece_to_machine") else None,
                     guf=None if guf is None else {"estimate": np.asarray(guf["estimate"]), "cov": np.asarray(guf["cov"]),
                                                   **({"basis": guf["basis"]} if guf.get("basis") else {})},
                     logged_points=logged.get("points"))

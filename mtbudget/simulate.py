@@ -370,13 +370,16 @@ def simulate_recording(scenario: Scenario, seed: int | None = None, trial: int =
         reference_temperature=cfg.reference_temperature,
         description=cfg.description or f"simulated by mtbudget (seed {seed}, trial {trial})", **several,
     )
-    return rec, truth_dict(scenario, seed, trial, None if sim.pose_offset is None else sim.pose_offset[i])
+    return rec, truth_dict(scenario, seed, trial, None if sim.pose_offset is None else sim.pose_offset[i], sim[1][i])
 
 
-def truth_dict(scenario: Scenario, seed: int, trial: int, pose_offset: np.ndarray | None = None) -> dict:
-    """What a simulated recording holds, in display units (the ``truth.json`` beside it)."""
+def truth_dict(scenario: Scenario, seed: int, trial: int, pose_offset: np.ndarray | None = None,
+               theta: np.ndarray | None = None) -> dict:
+    """What a simulated recording holds, in display units (the ``truth.json`` beside it).  ``theta``: the geometric
+    errors of the machine the trial measured (the configuration's machine plus what ``geometric_error_uncertainty``
+    drew; default the configuration's): what ``compensate --check`` and a comparison with the identification need."""
     model = scenario.truth
-    coefs, sq = model.errors.coefficients(scenario.theta)
+    coefs, sq = model.errors.coefficients(scenario.theta if theta is None else np.asarray(theta, float))
     rotary = {k: sq.pop(k) for k in list(sq) if k[3:4] in ("a", "b", "c") and "(" in k}  # five-axis: the rotary axes' terms, by name
     by_name = {s.name: s for s in scenario.sources}
 
@@ -396,6 +399,9 @@ def truth_dict(scenario: Scenario, seed: int, trial: int, pose_offset: np.ndarra
             "scales": "axis -> the nominal expansion of its scale, stated in recording.toml [scales]: the simulated scale moves to fixed_point + (p - fixed_point) * (1 + cte * (T_axis - 20 degC)) at the true axis temperature (the reading plus what the sensor-calibration and drift sources drew), the identification corrects it at the read temperature",
             "reversal": "axis -> full reversal value B in um: approaching from either side the axis stops B/2 short of the target",
             "drift": "apparent velocity of the measured points in the machine frame, um/h, from the start of the test",
+            "geometric_errors": "the machine this trial measured: the configuration's geometric errors plus what the "
+                                "geometric_error_uncertainty source drew in this trial (the per-verification variation "
+                                "of every coefficient, paper Eq. 18-20), as the Monte Carlo's measurand takes it",
             "tracker_pose": "D, L, H in mm and Euler angles a, b, d in rad of the tracker frame in the machine frame (the paper's Eq. 21-22), as simulated (the configured pose plus what the registration source drew in this trial); with several stations, the first's",
             "stations": "with several stations, as simulated: each xyz station's pose as tracker_pose, each range station's position (mm, machine frame) and dead path (mm); the registration source moves every station by the same drawn offset",
         },
