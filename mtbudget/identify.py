@@ -560,6 +560,14 @@ def _rows(fixed: dict, idx, N: int) -> dict:
 MAX_POINTS = 100_000
 
 
+def default_chunk(n_points: int, n_params: int) -> int:
+    """The trials :func:`identify` solves together when not told (``chunk=None``, no ``groups``): about 8 MB of
+    Jacobian per chunk, at least 16.  The chord solver's trials of one chunk share an iteration matrix (their mean
+    information), so a trial's bits depend on the trials of its chunk: calls on pieces of the trials that are
+    multiples of this give the numbers of one call."""
+    return max(16, int(8e6 // (n_points * 3 * max(n_params, 1) * 8)))
+
+
 def identify(
     model: MeasurementModel,
     measured: np.ndarray,
@@ -640,7 +648,7 @@ def identify(
     theta0 = np.zeros((N, p)) if theta0 is None else np.broadcast_to(np.asarray(theta0, float), (N, p))
     pose0 = None if pose0 is None else np.broadcast_to(np.asarray(pose0, float), (N, 6))
     if chunk is None:
-        chunk = max(16, int(8e6 // (M * 3 * max(p, 1) * 8)))
+        chunk = default_chunk(M, p)
     chord = strategy.solver == "chord"
     parts = []
     if groups is not None:

@@ -235,3 +235,22 @@ def test_the_field_at_the_mesh_is_the_chain_at_the_mesh_rows_alone():
             ref = chain_reference(model.config, model.errors, th, model.inputs, B=model.B)[:, sc.mesh_rows]
             assert np.abs(F - ref).max() < 1e-9  # mm
             assert np.array_equal(sc.evaluate(model, th[2:4]), F[2:4])  # a trial's points are its own
+
+
+def test_the_gufs_identifications_in_pieces_are_those_of_one_call(monkeypatch):
+    """point_guf's central differences identify in calls of whole chunks of identify's (budget._identified, issue 31:
+    a five-axis run's GUF peaked at 1.5 GB in one call): every theta bit for bit that of one identify call on all
+    the trials (the trials of a chunk share their iteration matrix, so the chunks must be the same)."""
+    from mtbudget import budget
+    from mtbudget.identify import default_chunk
+    from mtbudget.simulate import simulate_block
+
+    sc = build_scenario(small_five_axis())
+    meas0 = simulate_block(sc, 0, 1, 0, active=[])[0]
+    chunk = default_chunk(meas0.shape[1], sc.id_model.n_params)
+    meas = meas0 + np.random.default_rng(4).normal(0, 2e-3, (2 * chunk + 5, meas0.shape[1], 3))
+    whole = identify(sc.id_model, meas, sc.noise).theta
+    monkeypatch.setattr(budget, "GUF_TRIALS_PER_CALL", 1)  # one chunk per call: three calls
+    assert np.array_equal(budget._identified(sc, meas, None), whole)
+    monkeypatch.setattr(budget, "GUF_TRIALS_PER_CALL", 10 * len(meas))  # one call
+    assert np.array_equal(budget._identified(sc, meas, None), whole)
