@@ -394,27 +394,48 @@ GUF_DIRECTIONS = 2048
 GUF_MAX_DIRECTIONS = 6000
 
 
+#: trials of the central differences identified per call (rounded down to a multiple of identify's chunk, at least
+#: one chunk): a call's result holds every trial's whiteners, residuals and points (about 0.2 MB a trial on a
+#: 1080-point plan), of which point_guf keeps theta; in one call of 2048 trials the five-axis example's run peaked at
+#: 1.5 GB, in calls of 256 at 0.39 GB, the same numbers (issue 31)
+GUF_TRIALS_PER_CALL = 256
+
+
+def _identified(sc, meas, fixed) -> np.ndarray:
+    """theta_hat (N, p) of every verification in ``meas`` (N, M, 3): identify's numbers for all of them in one call,
+    from calls on pieces that are whole multiples of its chunk (:func:`mtbudget.identify.default_chunk`: the trials
+    that share an iteration matrix are the same), each result dropped once its theta is taken."""
+    from .identify import default_chunk, identify
+
+    model = sc.id_model
+    chunk = default_chunk(meas.shape[1], model.n_params)
+    step = chunk * max(1, GUF_TRIALS_PER_CALL // chunk)
+    if len(meas) <= step:
+        return identify(model, meas, sc.noise, fixed=fixed).theta
+    return np.concatenate([identify(model, meas[lo:lo + step], sc.noise, fixed=fixed).theta
+                           for lo in range(0, len(meas), step)])
+
+
 def _identification_map(sc, meas0, fixed, h):
     """(d theta_hat / d y (p, 3 M), theta_hat at the noise-free measurements (1, p)) by central differences of the
-    identification in each measured coordinate: in one call up to GUF_DIRECTIONS coordinates, in chunks beyond (a
-    plan of thousands of points would otherwise hold 2 x (3 M)^2 numbers at once)."""
-    from .identify import identify
-
+    identification in each measured coordinate: up to GUF_DIRECTIONS coordinates at once, in chunks beyond (a
+    plan of thousands of points would otherwise hold 2 x (3 M)^2 numbers at once); each identified in calls of
+    GUF_TRIALS_PER_CALL trials (:func:`_identified`)."""
     M = meas0.shape[1]
     n = 3 * M
     if n <= GUF_DIRECTIONS:
         E = np.eye(n).reshape(n, M, 3) * h
-        res = identify(sc.id_model, np.concatenate([meas0, meas0 + E, meas0 - E]), sc.noise, fixed=fixed)
-        return ((res.theta[1:1 + n] - res.theta[1 + n:]) / (2 * h)).T, res.theta[:1]
-    theta0 = identify(sc.id_model, meas0, sc.noise, fixed=fixed).theta
+        theta = _identified(sc, np.concatenate([meas0, meas0 + E, meas0 - E]), fixed)
+        return ((theta[1:1 + n] - theta[1 + n:]) / (2 * h)).T, theta[:1]
+    theta0 = _identified(sc, meas0, fixed)
     G = np.empty((theta0.shape[1], n))
     for start in range(0, n, GUF_DIRECTIONS // 2):
         k = min(GUF_DIRECTIONS // 2, n - start)
         E = np.zeros((k, n))
         E[np.arange(k), start + np.arange(k)] = h
         E = E.reshape(k, M, 3)
-        res = identify(sc.id_model, np.concatenate([meas0 + E, meas0 - E]), sc.noise, fixed=fixed)
-        G[:, start:start + k] = ((res.theta[:k] - res.theta[k:]) / (2 * h)).T
+        theta = _identified(sc, np.concatenate([meas0 + E, meas0 - E]), fixed)
+        G[:, start:start + k] = ((theta[:k] - theta[k:]) / (2 * h)).T
     return G, theta0
 
 

@@ -69,7 +69,7 @@ import numpy as np
 
 from . import tracker as lt
 from .errors import IdentificationError
-from .machine import (AXES, AXIS_INDEX, chain_adjoint, kernel_array, kernel_chain, kernel_parameters, skew,
+from .machine import (AXES, AXIS_INDEX, chain_adjoint, kernel_array, kernel_chain, kernel_points, skew,
                       skew_basis, vjp_layout)
 from .model import MeasurementModel
 from .units import factor, shown_unit
@@ -656,6 +656,14 @@ def _rows(fixed: dict, idx, N: int) -> dict:
 MAX_POINTS = 100_000
 
 
+def default_chunk(n_points: int, n_params: int) -> int:
+    """The trials :func:`identify` solves together when not told (``chunk=None``, no ``groups``): about 8 MB of
+    Jacobian per chunk, at least 16.  The chord solver's trials of one chunk share an iteration matrix (their mean
+    information), so a trial's bits depend on the trials of its chunk: calls on pieces of the trials that are
+    multiples of this give the numbers of one call."""
+    return max(16, int(8e6 // (n_points * 3 * max(n_params, 1) * 8)))
+
+
 def identify(
     model: MeasurementModel,
     measured: np.ndarray,
@@ -736,7 +744,7 @@ def identify(
     theta0 = np.zeros((N, p)) if theta0 is None else np.broadcast_to(np.asarray(theta0, float), (N, p))
     pose0 = None if pose0 is None else np.broadcast_to(np.asarray(pose0, float), (N, 6))
     if chunk is None:
-        chunk = max(16, int(8e6 // (M * 3 * max(p, 1) * 8)))
+        chunk = default_chunk(M, p)
     chord = strategy.solver == "chord"
     parts = []
     if groups is not None:
@@ -1361,17 +1369,10 @@ def _chord_chain(model, fixed: dict, N: int) -> dict:
 
 def _chain_at(kc: dict, theta: np.ndarray, fixed: dict) -> np.ndarray:
     """``model.machine_points(theta, fixed)`` (N, M, 3), the same numbers, from the chain's inputs ``kc``
-    (:func:`_chord_chain`) instead of building them again: the fixed geometry added to theta, the coefficient table
-    filled as :func:`mtbudget.machine.chain_points` fills it, the compiled chain, the fixed point offsets added."""
-    from .kernels import chain_points
-
+    (:func:`_chord_chain`) instead of building them again: the fixed geometry added to theta, the compiled chain
+    (:func:`mtbudget.machine.kernel_points`), the fixed point offsets added."""
     th = theta + fixed["geometry"] if "geometry" in fixed else theta
-    N, M = th.shape[0], kc["tool"].shape[0]
-    coef, sq = kernel_parameters(kc, th)
-    scratch = np.empty((1, coef.shape[1], 3, M))  # nothing kept for the adjoint
-    out = chain_points(kc["tool_axes"], kc["wp_axes"], kc["side"], kc["px"], kc["py"], kc["pz"], kc["tool"],
-                       coef, kc["L"], sq, kc["rdir"], kc["pivot"], kc["rcos"], kc["rsin"],
-                       np.empty((N, M, 3)), scratch, scratch, scratch)
+    out = kernel_points(kc, th)
     return out + fixed["point_offset"] if "point_offset" in fixed else out
 
 

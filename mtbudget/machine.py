@@ -652,6 +652,34 @@ def kernel_parameters(k: dict, theta: np.ndarray) -> tuple:
     return coef.reshape(N, A, 6, K), sq
 
 
+def kernel_points(k: dict, theta: np.ndarray) -> np.ndarray:
+    """The compiled chain's points (N, M, 3) of the parameters theta (N, p) through the inputs ``k`` of
+    :func:`kernel_chain` (no point offsets: :meth:`mtbudget.model.MeasurementModel.machine_points` adds those):
+    :func:`chain_points`' numbers from inputs built once."""
+    from .kernels import chain_points as kernel
+
+    coef, sq = kernel_parameters(k, theta)
+    N, M = theta.shape[0], k["tool"].shape[0]
+    scratch = np.empty((1, coef.shape[1], 3, M))  # nothing kept for the adjoint
+    return kernel(k["tool_axes"], k["wp_axes"], k["side"], k["px"], k["py"], k["pz"], k["tool"], coef, k["L"], sq,
+                  k["rdir"], k["pivot"], k["rcos"], k["rsin"], np.empty((N, M, 3)), scratch, scratch, scratch)
+
+
+def kernel_rows(k: dict, rows: np.ndarray) -> dict:
+    """The inputs ``k`` of :func:`kernel_chain` at the points ``rows`` only (every per-point array's columns, copied
+    C-contiguous): the chain's points from them are the points of ``k`` at those rows, bit for bit (a point's chain
+    uses that point's inputs only; nothing is summed across points)."""
+    rows = np.asarray(rows, np.int64)
+    out = dict(k)
+    for key in ("px", "py", "pz"):
+        out[key] = np.ascontiguousarray(k[key][:, rows])
+    out["tool"] = np.ascontiguousarray(k["tool"][rows])
+    out["L"] = np.ascontiguousarray(k["L"][:, :, rows])
+    out["rcos"] = np.ascontiguousarray(k["rcos"][:, :, rows])
+    out["rsin"] = np.ascontiguousarray(k["rsin"][:, :, rows])
+    return out
+
+
 def kernel_chain(config, model, inputs, B, N: int) -> dict:
     """What the compiled chain takes besides the parameters, for N trials: the axes (``tool_axes``, ``wp_axes``,
     ``side``), the effective positions ``px``, ``py``, ``pz`` (1 or N, M), ``tool`` (M, 3), the basis values ``L``
@@ -714,9 +742,15 @@ def _rotary_inputs(config, inputs, N, M):
     pivot = np.array([r.pivot for r in config.rotary], float).reshape(R, 3)
     th = [np.asarray(inputs.effective(r.letter), float) for r in config.rotary]
     n = max(t.shape[0] for t in th)
-    th = np.stack([np.broadcast_to(t, (n, M)) for t in th])
-    sign = np.array([r.sign for r in config.rotary])[:, None, None]
-    return rdir, pivot, np.ascontiguousarray(np.cos(th)), np.ascontiguousarray(sign * np.sin(th))
+    # each axis' cosine and sine written into its row of the (R, n, M) arrays (a trial's angles broadcast over the
+    # trials where they are shared), the sine times the sense in place: the numbers of np.cos and sign * np.sin of
+    # the stacked angles, without the stacked copy and the product's array (issue 31: 37.5 -> 32 us a five-axis trial)
+    rcos, rsin = np.empty((R, n, M)), np.empty((R, n, M))
+    for i, (r, t) in enumerate(zip(config.rotary, th)):
+        np.cos(t, out=rcos[i])
+        np.sin(t, out=rsin[i])
+        np.multiply(float(r.sign), rsin[i], out=rsin[i])
+    return rdir, pivot, rcos, rsin
 
 
 _NO_ROTARY: dict = {}  # number of points -> _rotary_inputs of a machine without rotary axes (empty arrays)

@@ -216,3 +216,41 @@ def test_diagnose_a_five_axis_null_names_nothing(tmp_path, kind):
     d = json.loads(r.output[r.output.index("{"):])
     assert not d.get("findings"), d.get("findings")
     assert 0.8 < d["baseline"]["chi2_per_dof"] < 1.25
+
+
+def test_the_field_at_the_mesh_is_the_chain_at_the_mesh_rows_alone():
+    """Scenario.evaluate without an identification's points evaluates the compiled chain at the mesh rows only
+    (machine.kernel_rows, issue 31): bit for bit the whole plan's chain at those rows, and the matrix-form chain
+    (machine.chain_reference, written apart) to round-off, for a five-axis and a three-axis machine."""
+    from mtbudget.machine import chain_reference
+
+    rng = np.random.default_rng(31)
+    for cfg in (small_five_axis(), load_config()):  # the paper's three-axis configuration beside it
+        sc = build_scenario(cfg)
+        for model in (sc.truth, sc.id_model):
+            th = rng.standard_normal((5, model.n_params)) * 1e-3
+            F = sc.evaluate(model, th)
+            assert F.shape == (5, len(sc.mesh_rows), 3)
+            assert np.array_equal(F, model.machine_points(th)[:, sc.mesh_rows])
+            ref = chain_reference(model.config, model.errors, th, model.inputs, B=model.B)[:, sc.mesh_rows]
+            assert np.abs(F - ref).max() < 1e-9  # mm
+            assert np.array_equal(sc.evaluate(model, th[2:4]), F[2:4])  # a trial's points are its own
+
+
+def test_the_gufs_identifications_in_pieces_are_those_of_one_call(monkeypatch):
+    """point_guf's central differences identify in calls of whole chunks of identify's (budget._identified, issue 31:
+    a five-axis run's GUF peaked at 1.5 GB in one call): every theta bit for bit that of one identify call on all
+    the trials (the trials of a chunk share their iteration matrix, so the chunks must be the same)."""
+    from mtbudget import budget
+    from mtbudget.identify import default_chunk
+    from mtbudget.simulate import simulate_block
+
+    sc = build_scenario(small_five_axis())
+    meas0 = simulate_block(sc, 0, 1, 0, active=[])[0]
+    chunk = default_chunk(meas0.shape[1], sc.id_model.n_params)
+    meas = meas0 + np.random.default_rng(4).normal(0, 2e-3, (2 * chunk + 5, meas0.shape[1], 3))
+    whole = identify(sc.id_model, meas, sc.noise).theta
+    monkeypatch.setattr(budget, "GUF_TRIALS_PER_CALL", 1)  # one chunk per call: three calls
+    assert np.array_equal(budget._identified(sc, meas, None), whole)
+    monkeypatch.setattr(budget, "GUF_TRIALS_PER_CALL", 10 * len(meas))  # one call
+    assert np.array_equal(budget._identified(sc, meas, None), whole)
