@@ -15,6 +15,8 @@ source only) are used for every row.
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
+from typing import Callable
 
 import numpy as np
 
@@ -23,7 +25,7 @@ from .executors import Executor
 from .outputs import MEAN_SQUARE_OUTPUTS, SCALARS, RunResult
 from .plugins import call
 from .progress import progress_bar
-from .stats import percent
+from .stats import percent, symmetric_interval
 
 
 class RunReduction:
@@ -539,8 +541,70 @@ def point_guf(scenario, draws: int = 1024, seed: int = 0, h: float = 2e-4) -> di
 
 CHARACTERISTICS = ("component", "max")
 
+#: the per-trial figures over the mesh a decision reads (mtbudget.outputs.SCALARS names)
+DECISION_FIGURES = ("largest_abs_component", "largest_abs_component_x", "largest_abs_component_y",
+                    "largest_abs_component_z", "compensation_max")
 
-def conformance(res: RunResult, tolerance_um: float, characteristic: str = "component") -> dict:
+
+@dataclass
+class Evidence:
+    """What an ISO 14253-1 decision needs of a statement, whichever its kind: a run's a priori statement
+    (:class:`mtbudget.outputs.RunResult`) or a recording's a posteriori one (:class:`mtbudget.posterior.Posterior`).
+
+    ``coverage`` p; ``points()`` the per-point statement (its coverage intervals); ``figures`` the names of the
+    per-trial figures over the mesh it holds (:data:`DECISION_FIGURES`), ``samples(name)`` every trial's value (None
+    when only a histogram is kept) and ``quantiles(name, probs)`` their order statistics (JCGM 101 7.7.1) or the
+    histogram's; ``trials`` how many; ``components()`` every trial's components (trials, 3 M0) or None;
+    ``max_interval()`` the symmetric coverage interval of compensation_max; ``refers_to`` what the decision is
+    about, in words."""
+
+    coverage: float
+    points: Callable
+    figures: tuple
+    samples: Callable
+    quantiles: Callable
+    trials: int
+    components: Callable
+    max_interval: Callable
+    refers_to: str
+
+    @classmethod
+    def of(cls, statement) -> "Evidence":
+        """The evidence of a run, of an a posteriori statement, or itself."""
+        if isinstance(statement, cls):
+            return statement
+        from .posterior import Posterior
+
+        return cls.of_posterior(statement) if isinstance(statement, Posterior) else cls.of_run(statement)
+
+    @classmethod
+    def of_run(cls, res: RunResult) -> "Evidence":
+        def components():
+            parts = res.acc.vector_samples.get("components")
+            return np.concatenate(parts) if parts else None
+
+        in_use = bool(((res.spec or {}).get("measurand") or {}).get("in_use"))
+        return cls(coverage=res.coverage, points=res.points, figures=tuple(res.acc.scalar_names),
+                   samples=res.acc.scalar_samples, quantiles=lambda name, probs: _quantiles(res, name, probs),
+                   trials=res.acc.n, components=components,
+                   max_interval=lambda: res.summary("compensation_max")["symmetric"],
+                   refers_to=("the compensated machine in use (repeatability, reversal and thermal residual included)"
+                              if in_use else "the compensated machine as the verification sees it (not its use: add "
+                                             "the source in_use for a tolerance on positioning in use)"))
+
+    @classmethod
+    def of_posterior(cls, post) -> "Evidence":
+        p = post.coverage
+        return cls(coverage=p, points=post.points, figures=DECISION_FIGURES, samples=post.figure,
+                   quantiles=lambda name, probs: [_order_quantile(post.figure(name), q) for q in probs],
+                   trials=post.trials, components=lambda: post.components,
+                   max_interval=lambda: symmetric_interval(np.sort(post.figure("compensation_max")), p),
+                   refers_to="the compensated machine as this recorded verification identified it, given the "
+                             "recording's stated noise (only the physics the identified model holds; not the machine "
+                             "in use)")
+
+
+def conformance(res, tolerance_um: float, characteristic: str = "component") -> dict:
     """ISO 14253-1 decision for a tolerance T on the compensated machine's error, with the rule and its scope stated.
 
     characteristic "component": every error component (x, y, z) at every mesh point must lie within [-T, T].  The
@@ -551,9 +615,13 @@ def conformance(res: RunResult, tolerance_um: float, characteristic: str = "comp
     machine (225 intervals of 95 % each do not make a 95 % statement about all 225).
     characteristic "max": the largest 3-D error over the mesh (compensation_max) must not exceed T; decided on the
     upper end of its coverage interval (scope "machine").
+
+    ``res``: a run, an a posteriori statement (:class:`mtbudget.posterior.Posterior`) or their :class:`Evidence`: the
+    same rule on either kind of statement.
     """
     if characteristic not in CHARACTERISTICS:
         raise ValueError(f"characteristic must be one of {CHARACTERISTICS}")
+    res = Evidence.of(res)
     if characteristic == "max":
         out = _conformance(res, tolerance_um, characteristic)
     else:
@@ -567,10 +635,7 @@ def conformance(res: RunResult, tolerance_um: float, characteristic: str = "comp
             out["per_point"] = pp
             out["statement"] += " Per point (each point-axis on its own interval, not a statement about the machine): " + \
                 pp["statement"]
-    in_use = bool(((res.spec or {}).get("measurand") or {}).get("in_use"))
-    out["refers_to"] = ("the compensated machine in use (repeatability, reversal and thermal residual included)"
-                        if in_use else "the compensated machine as the verification sees it (not its use: add the "
-                                       "source in_use for a tolerance on positioning in use)")
+    out["refers_to"] = res.refers_to
     out["statement"] += f" The decision refers to {out['refers_to']}."
     return out
 
@@ -591,7 +656,7 @@ def _quantiles(res: RunResult, name: str, probs) -> list:
     return h.quantiles(np.asarray(probs, float), rows=[res.acc.scalar_names.index(name)])[0].tolist()
 
 
-def machine_conformance(res: RunResult, tolerance_um: float) -> dict | None:
+def machine_conformance(res, tolerance_um: float) -> dict | None:
     """The whole machine against a tolerance T on every error component at every mesh point (scope "machine").
 
     The figure decided on is m = max over points and axes of |e|, per trial (``largest_abs_component``): every
@@ -603,12 +668,13 @@ def machine_conformance(res: RunResult, tolerance_um: float) -> dict | None:
     7.7.3: y_j +- k u_j with k the p-quantile of max_j |e_j - y_j| / u_j).  None when the run's blocks do not hold
     the figure (a log written before it existed).
     """
-    if "largest_abs_component" not in res.acc.scalar_names:
+    res = Evidence.of(res)
+    if "largest_abs_component" not in res.figures:
         return None
     p, T = res.coverage, float(tolerance_um)
-    lo, hi = _quantiles(res, "largest_abs_component", [1 - p, p])
-    axes = [_quantiles(res, f"largest_abs_component_{a}", [p])[0] for a in "xyz"]
-    y = res.acc.scalar_samples("largest_abs_component")
+    lo, hi = res.quantiles("largest_abs_component", [1 - p, p])
+    axes = [res.quantiles(f"largest_abs_component_{a}", [p])[0] for a in "xyz"]
+    y = res.samples("largest_abs_component")
     prob = None if y is None else float(np.mean(y <= T))
     verdict = "conforms" if hi <= T else "does not conform" if lo > T else "undecided"
     band = simultaneous_band(res, T)
@@ -622,7 +688,7 @@ def machine_conformance(res: RunResult, tolerance_um: float) -> dict | None:
                     f"exceeds T); undecided otherwise",
             "tolerance": T, "unit": "um", "coverage": p, "verdict": verdict,
             "largest_abs_component": {"quantile": hi, "lower_quantile": lo, "per_axis_quantile": axes,
-                                      "probability_within": prob, "unit": "um", "trials": res.acc.n,
+                                      "probability_within": prob, "unit": "um", "trials": res.trials,
                                       "what": f"the {percent(p)} quantile (and the {percent(1 - p)} quantile) of the "
                                               "largest |error component| over the mesh, per trial; per axis: of the "
                                               "largest |x|, |y|, |z| error"},
@@ -633,14 +699,14 @@ def machine_conformance(res: RunResult, tolerance_um: float) -> dict | None:
                           f"{verdict}.")}
 
 
-def simultaneous_band(res: RunResult, tolerance_um: float | None = None) -> dict | None:
+def simultaneous_band(res, tolerance_um: float | None = None) -> dict | None:
     """The simultaneous coverage band over every point-axis (JCGM 102 7.7.3's hyperrectangular region) when the
     run kept every trial's components: {"k", "coverage", "half_width" (per point-axis, um), "largest_extent"
     (max_j |y_j| + k u_j), "verdict" against the tolerance}; None otherwise."""
-    parts = res.acc.vector_samples.get("components")
-    if not parts:
+    res = Evidence.of(res)
+    Y = res.components()  # (M, 3 M0) um
+    if Y is None:
         return None
-    Y = np.concatenate(parts)  # (M, 3 M0) um
     ym, u = Y.mean(axis=0), Y.std(axis=0, ddof=1)
     ok = u > 0
     t = (np.abs(Y[:, ok] - ym[ok]) / u[ok]).max(axis=1)
@@ -658,12 +724,11 @@ def simultaneous_band(res: RunResult, tolerance_um: float | None = None) -> dict
     return out
 
 
-def _conformance(res: RunResult, tolerance_um: float, characteristic: str) -> dict:
+def _conformance(res: Evidence, tolerance_um: float, characteristic: str) -> dict:
     p = res.coverage
     T = tolerance_um
     if characteristic == "max":
-        s = res.summary("compensation_max")
-        lo, hi = s["symmetric"]
+        lo, hi = res.max_interval()
         verdict = "conforms" if hi <= T else "does not conform" if lo > T else "undecided"
         return {"characteristic": "largest 3-D error over the mesh after compensation (compensation_max)",
                 "scope": "machine",

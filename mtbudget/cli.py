@@ -312,11 +312,19 @@ def identify(recording, example, as_json, max_degree, strategy, rotary_harmonics
 @click.option("--noise", type=click.Choice(["stated", "estimated"]), default="stated", show_default=True,
               help="The recording's stated noise, or scaled by sqrt(chi2/dof) of the fit (the noise it estimated).")
 @click.option("--max-degree", type=click.IntRange(min=1, max=9), default=3, show_default=True)
+@click.option("--tolerance", default=None,
+              help='Tolerance on the compensated machine\'s error, e.g. "20 um": adds the ISO 14253-1 decision (the '
+                   'rule `mtbudget report` applies, on this statement\'s own intervals and trials).')
+@click.option("--characteristic", type=click.Choice(["component", "max"]), default="component", show_default=True,
+              help="What the tolerance applies to: each error component at each point (component), or the largest "
+                   "3-D error over the mesh (max).")
 @click.option("--json", "as_json", is_flag=True, help="Print the statement as one JSON object.")
 @click.option("--out", "out", type=click.Path(file_okay=False, path_type=Path), default=None,
-              help="Also write posterior.md, a self-contained posterior.html and posterior.json into this folder.")
+              help="Also write posterior.md, a self-contained posterior.html, posterior.json and certificate.xml (the "
+                   "DCC: PTB DCC 3.3.0 XML) into this folder.")
 @_quiet_option
-def posterior_cmd(recording, example, trials, seed, coverage, noise, max_degree, as_json, out):
+def posterior_cmd(recording, example, trials, seed, coverage, noise, max_degree, tolerance, characteristic, as_json,
+                  out):
     """The a posteriori statement of a recorded verification.
 
     The uncertainty of the compensated machine that this verification
@@ -325,24 +333,43 @@ def posterior_cmd(recording, example, trials, seed, coverage, noise, max_degree,
     identified as the recording was, with the identification covariance
     propagated linearly beside it as the check. A `run` on a configuration is
     the a priori statement of a planned verification; this is the statement
-    of a verification carried out.
+    of a verification carried out, the one a laboratory signs.
+
+    It opens, as `mtbudget report` does, with the statement in brief: the
+    kind of statement (a posteriori: the recording and its points.csv
+    sha256), the measurand (five-axis: the workpiece frame, the machine frame
+    beside it), the result, U = k u (k = 2 at the default 95 %; the normal
+    quantile of --coverage otherwise) with the largest half-width of the
+    Monte Carlo intervals, the decision and its rule with --tolerance, the
+    chi-square test's warning where the fit fails it, and the laboratory,
+    instrument, machine, customer, operator, date and traceability of
+    recording.toml's optional [report] table ("not stated" where absent).
+    --out writes the same statement as Markdown, HTML, JSON and a DCC.
     """
-    from .config import example_recording
-    from .posterior import posterior, posterior_text
+    from .config import example_recording, to_unit
+    from .posterior import posterior_result, posterior_text
+    from .report import posterior_json
 
     if recording is None and example is None:
         raise click.UsageError("give a RECORDING folder or --example NAME")
+    tol = None if tolerance is None else to_unit(tolerance, "um", "--tolerance")
+    if tol is not None and not tol > 0:
+        raise click.BadParameter("must be a positive length, e.g. \"20 um\"", param_hint="--tolerance")
     folder = example_recording(example) if example else recording
-    p = posterior(folder, trials=trials, seed=seed, coverage=coverage, noise=noise, max_degree=max_degree)
+    post = posterior_result(folder, trials=trials, seed=seed, coverage=coverage, noise=noise, max_degree=max_degree)
+    p = posterior_json(post, tol, characteristic)
     if p["identification"]["fit_test"]["warning"]:  # said on stderr too, where a script that reads --json sees it
         click.echo(f"warning: {p['identification']['fit_test']['warning']}", err=True)
     click.echo(json.dumps(p, indent=1) if as_json else posterior_text(p))
     if out is not None:
         from .report import posterior_report
+        from .report_dcc import write_dcc
 
-        paths = posterior_report(p, out)
+        paths = posterior_report(post, out, tol, characteristic)
+        dcc = write_dcc(post, Path(out) / "certificate.xml", tol, characteristic)
         if not as_json:  # stdout stays one JSON object
-            click.echo(f"wrote {paths['markdown']}, {paths['html']} and {paths['json']}")
+            click.echo(f"wrote {paths['markdown']}, {paths['html']}, {paths['json']} and {dcc} (the DCC: PTB DCC "
+                       "3.3.0 XML)")
 
 
 @main.command("compensate")

@@ -8,7 +8,6 @@ See docs/configuration.md for every key.
 from __future__ import annotations
 
 import copy
-import datetime
 import difflib
 import re
 from dataclasses import dataclass, field
@@ -20,7 +19,8 @@ import numpy as np
 from .errors import ConfigError
 from .machine import AXES, COMPONENT_ERRORS, SQUARENESS, Configuration, RotaryAxis, check_code
 from .plan import Plan, Scale, Sensor, build_plan, mesh
-from .recording import ATTACHED_TO, COLUMNS, CTE_RANGE, MAX_TIME, UNCERTAINTIES, uncertainty_problem
+from .recording import (ATTACHED_TO, COLUMNS, CTE_RANGE, MAX_TIME, REPORT_INSTRUMENT_KEYS,
+                        REPORT_KEYS, UNCERTAINTIES, report_problem, uncertainty_problem)
 from .units import ABSOLUTE_TEMPERATURE, to_internal
 
 try:
@@ -159,9 +159,8 @@ SCHEMA = {
                  "repeatability", "machine_temperature_change", "part_temperature", "part_temperature_u", "part_cte",
                  "part_cte_u"),
     # [report]: what a laboratory states on the report and the DCC (all optional, free text; mtbudget.report)
-    "report": ("laboratory", "instrument", "machine", "customer", "operator", "date", "traceability", "certificate",
-               "country", "location"),
-    "report.instrument": ("model", "serial", "calibration"),
+    "report": REPORT_KEYS,
+    "report.instrument": REPORT_INSTRUMENT_KEYS,
 }
 #: at most this many commanded angles per rotary axis in a plan
 MAX_ROTARY_ANGLES = 72
@@ -405,41 +404,17 @@ def _placement(r: "Reader") -> None:
             raise ConfigError(f"{p.where(k)}: expected one of {', '.join(map(repr, choices))}, got {raw[k]!r:.60}")
 
 
-#: [report] location: where the verification is performed (the DCC 3.3.0 performanceLocation values)
-PERFORMANCE_LOCATIONS = ("laboratory", "customer", "laboratoryBranch", "customerBranch", "other")
-
-
 def _report_fields(r: "Reader") -> None:
-    """[report]: optional text fields of the report and the DCC (keys already checked), checked for their types."""
+    """[report]: optional text fields of the report and the DCC (keys already checked), checked for their types by
+    the rule recording.toml's [report] follows too (:func:`mtbudget.recording.report_problem`)."""
     if not r.has("report"):
         return
     p = r.sub("report")
-    for k in SCHEMA["report"]:
-        if k not in p.data or k == "instrument":
-            continue
-        v = p.data[k]
-        if not isinstance(v, str) or not v.strip():
-            raise ConfigError(f"{p.where(k)}: expected a non-empty string" + (' (a date as "2026-11-25", quoted)'
-                                                                               if k == "date" else ""))
-    if "date" in p.data:
-        try:
-            datetime.date.fromisoformat(p.data["date"].strip())
-        except ValueError:
-            raise ConfigError(f"{p.where('date')}: expected a date YYYY-MM-DD, got {p.data['date']!r:.40}") from None
-    if "location" in p.data and p.data["location"] not in PERFORMANCE_LOCATIONS:
-        raise ConfigError(f"{p.where('location')}: where the verification is performed: one of "
-                          f"{', '.join(map(repr, PERFORMANCE_LOCATIONS))} (the DCC's performanceLocation)")
-    if "country" in p.data and not re.fullmatch(r"[A-Z]{2}", p.data["country"]):
-        raise ConfigError(f"{p.where('country')}: expected an ISO 3166-1 code of two capital letters (DE, ES, FR ...)")
-    if "instrument" in p.data:
-        ins = p.data["instrument"]
-        if not isinstance(ins, dict):
-            raise ConfigError(f"{p.where('instrument')}: expected a table: model, serial, calibration")
-        it = p.sub("instrument")
-        it.check_keys(SCHEMA["report.instrument"], "[report.instrument]")
-        for k, v in ins.items():
-            if not isinstance(v, str) or not v.strip():
-                raise ConfigError(f"{it.where(k)}: expected a non-empty string")
+    if isinstance(p.data.get("instrument"), dict):
+        p.sub("instrument").check_keys(SCHEMA["report.instrument"], "[report.instrument]")
+    bad = report_problem(p.data)
+    if bad:
+        raise ConfigError(f"{p.where(bad[0])}: {bad[1]}")
 
 
 def config_states(data: dict, key: str) -> bool:

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import hashlib
 import math
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -60,9 +61,49 @@ def fit_test(chi2_per_dof: float, dof: int, noise: str, recording: str) -> dict:
     return out
 
 
+@dataclass
+class Posterior:
+    """An a posteriori statement with its trials: ``data`` the JSON-able statement (:func:`posterior`), ``components``
+    (trials, 3 M0) every trial's compensated error at the mesh points, x, y, z per point in the statement's frame (um),
+    from which the per-point figures and the decision's per-trial figures come."""
+
+    data: dict
+    components: np.ndarray
+
+    @property
+    def coverage(self) -> float:
+        return float(self.data["coverage"])
+
+    @property
+    def trials(self) -> int:
+        return int(self.data["trials"])
+
+    def points(self) -> list:
+        return self.data["points"]
+
+    def figure(self, name: str) -> np.ndarray | None:
+        """A per-trial figure of the compensated machine over the mesh (um), as a run keeps them (mtbudget.outputs):
+        ``largest_abs_component`` (and ``_x``, ``_y``, ``_z``: the largest |error component| over the mesh) and
+        ``compensation_max`` (the largest 3-D error over the mesh); None for another name."""
+        E = self.components.reshape(len(self.components), -1, 3)
+        if name == "largest_abs_component":
+            return np.abs(E).max(axis=(1, 2))
+        if name.startswith("largest_abs_component_") and name[-1] in "xyz":
+            return np.abs(E[:, :, "xyz".index(name[-1])]).max(axis=1)
+        if name == "compensation_max":
+            return np.linalg.norm(E, axis=2).max(axis=1)
+        return None
+
+
 def posterior(folder, trials: int = 2000, seed: int = 1, coverage: float = 0.95, noise: str = "stated",
               max_degree: int = 3, block: int = 256) -> dict:
     """The a posteriori statement of the recording in ``folder`` (see the module docstring), as a JSON-able dict."""
+    return posterior_result(folder, trials, seed, coverage, noise, max_degree, block).data
+
+
+def posterior_result(folder, trials: int = 2000, seed: int = 1, coverage: float = 0.95, noise: str = "stated",
+                     max_degree: int = 3, block: int = 256) -> Posterior:
+    """The a posteriori statement of the recording in ``folder`` with its trials (:class:`Posterior`)."""
     if noise not in ("stated", "estimated"):
         raise ConfigError(f"noise must be 'stated' or 'estimated', got {noise!r}", key="--noise")
     if trials < 2:
@@ -143,7 +184,7 @@ def posterior(folder, trials: int = 2000, seed: int = 1, coverage: float = 0.95,
                "interval": {"low": ends[3 * i:3 * i + 3, 0].tolist(), "high": ends[3 * i:3 * i + 3, 1].tolist(),
                             "unit": "um", "coverage": coverage, "kind": "probabilistically symmetric"}}
               for i in range(M0)]
-    return {
+    data = {
         "statement_kind": {
             "kind": "a posteriori", "name": "uncertainty of the compensated machine this recorded verification identified",
             "what": ("Monte Carlo around the identified errors: each trial re-measures the identified machine at the "
@@ -152,6 +193,8 @@ def posterior(folder, trials: int = 2000, seed: int = 1, coverage: float = 0.95,
                                                                "(the noise the fit estimated)") +
                      ", identifies it as the recording was identified and compensates it"),
             "recording": rec.name, "points_csv_sha256": digest},
+        "machine": rec.machine,
+        "report": rec.report,
         "measurand": ("error of the compensated machine at each mesh point (the recording's first tool, first run), " +
                       ("per axis of the workpiece (table) frame (x, y, z: the machine's X, Y, Z with every rotary axis at "
                        "zero, turning with the table; the machine's X, Y, Z at each pose: machine_frame)" if R is not None
@@ -175,6 +218,7 @@ def posterior(folder, trials: int = 2000, seed: int = 1, coverage: float = 0.95,
                                         "what": "Monte Carlo u over the identification covariance propagated linearly, "
                                                 "per point-axis"}},
     }
+    return Posterior(data, E)
 
 
 def posterior_text(p: dict) -> str:
@@ -198,6 +242,8 @@ def posterior_text(p: dict) -> str:
           if "machine_frame" in s else []),
         f"  check: u(MCM) / u(identification covariance propagated linearly) median {r['median']:.3f} "
         f"({r['min']:.3f}-{r['max']:.3f}) over the point-axes",
+        *([f"Expanded uncertainty: {p['statement']['U_text']}.",
+           f"Decision (ISO 14253-1): {p['statement']['decision']}"] if "U_text" in p.get("statement", {}) else []),
     ])
 
 

@@ -87,7 +87,14 @@ UNCERTAINTIES = {
 ATTACHED_TO = ("x axis", "y axis", "z axis", "air")
 #: keys of recording.toml this version reads (others are kept in Recording.extra)
 KNOWN_KEYS = ("format", "name", "machine", "description", "reference_temperature", "tracker", "machine_tool",
-              "sensors", "scales", "ignore_columns", "stations", "rotary")
+              "sensors", "scales", "ignore_columns", "stations", "rotary", "report")
+#: [report]: what a laboratory states on its statement and DCC (all optional text), in a configuration (the a priori
+#: statement of a run) and in recording.toml (the a posteriori statement of a recording) alike
+REPORT_KEYS = ("laboratory", "instrument", "machine", "customer", "operator", "date", "traceability", "certificate",
+               "country", "location")
+REPORT_INSTRUMENT_KEYS = ("model", "serial", "calibration")
+#: [report] location: where the verification is performed (the DCC 3.3.0 performanceLocation values)
+PERFORMANCE_LOCATIONS = ("laboratory", "customer", "laboratoryBranch", "customerBranch", "other")
 #: format 3: the commanded angle of each rotary axis and, optionally, the direction it last approached from
 ROTARY_COLUMNS = {r: ("[angle]", "rad") for r in "abc"}
 ROTARY_DIRECTIONS = {f"dir_{r}": None for r in "abc"}
@@ -172,6 +179,8 @@ class Recording:
     lt_range: np.ndarray | None = None  # (M,) mm: the range of every row of a range station, else NaN
     format_version: int = 1
     mount: str = "table"  # format 3: where the tracker stands ("table": on the workpiece side, moving with it)
+    #: [report]: the laboratory's fields of the statement (laboratory, instrument, customer ...); empty: not stated
+    report: dict = field(default_factory=dict)
 
     @property
     def rotary(self) -> dict:
@@ -315,6 +324,61 @@ def _no_misspelt_keys(table: dict, known, prefix: str, path):
                                  "reads are kept and ignored)", path, key=prefix + k)
 
 
+def report_problem(data: dict) -> tuple | None:
+    """The first problem of a [report] table's values (its keys checked by the caller): (key below [report], what is
+    wrong), None when every value is sound.  The configuration's reader and recording.toml's share it."""
+    import datetime
+
+    for k in REPORT_KEYS:
+        if k not in data or k == "instrument":
+            continue
+        v = data[k]
+        if not isinstance(v, str) or not v.strip():
+            return k, "expected a non-empty string" + (' (a date as "2026-11-25", quoted)' if k == "date" else "")
+    if "date" in data:
+        try:
+            datetime.date.fromisoformat(data["date"].strip())
+        except ValueError:
+            return "date", f"expected a date YYYY-MM-DD, got {data['date']!r:.40}"
+    if "location" in data and data["location"] not in PERFORMANCE_LOCATIONS:
+        return "location", (f"where the verification is performed: one of {', '.join(map(repr, PERFORMANCE_LOCATIONS))} "
+                            "(the DCC's performanceLocation)")
+    if "country" in data and not re.fullmatch(r"[A-Z]{2}", data["country"]):
+        return "country", "expected an ISO 3166-1 code of two capital letters (DE, ES, FR ...)"
+    if "instrument" in data:
+        ins = data["instrument"]
+        if not isinstance(ins, dict):
+            return "instrument", "expected a table: model, serial, calibration"
+        for k, v in ins.items():
+            if k in REPORT_INSTRUMENT_KEYS and (not isinstance(v, str) or not v.strip()):
+                return f"instrument.{k}", "expected a non-empty string"
+    return None
+
+
+def _report(meta, path) -> dict:
+    """recording.toml's optional [report] table, strict: every key known, every value sound (:func:`report_problem`);
+    errors name the file and the key."""
+    import difflib
+
+    if "report" not in meta:
+        return {}
+    rep = meta["report"]
+    if not isinstance(rep, dict):
+        raise RecordingError(f"expected a table [report], got {type(rep).__name__}", path, key="report")
+    for prefix, table, known in (("report.", rep, REPORT_KEYS),
+                                 ("report.instrument.", rep.get("instrument") if isinstance(rep.get("instrument"), dict)
+                                  else {}, REPORT_INSTRUMENT_KEYS)):
+        for k in table:
+            if k not in known:
+                close = difflib.get_close_matches(str(k), list(known), n=1)
+                hint = f"did you mean {close[0]!r}?" if close else f"[{prefix[:-1]}] takes {', '.join(known)}"
+                raise RecordingError(f"unknown key {str(k)!r:.40}; {hint}", path, key=prefix + str(k))
+    bad = report_problem(rep)
+    if bad:
+        raise RecordingError(bad[1], path, key="report." + bad[0])
+    return {k: (dict(v) if isinstance(v, dict) else v.strip() if k == "date" else v) for k, v in rep.items()}
+
+
 def _sensors(meta, path) -> list:
     raw = meta.get("sensors", [])
     if not isinstance(raw, list) or not all(isinstance(s, dict) for s in raw):
@@ -434,6 +498,7 @@ def read_recording(folder, *, max_rows: int = MAX_ROWS, max_columns: int = MAX_C
                      dim="[temperature]", unit="K", absolute_temperature=True)
     sensors = _sensors(meta, toml_path)
     scales = _scales(meta, toml_path, sensors)
+    report = _report(meta, toml_path)
     if version == 1 and "stations" in meta:
         raise RecordingError(f"[[stations]] needs format = \"{FORMAT2}\" (several stations)", toml_path, key="stations")
     stations = _stations(meta, toml_path, angular, distance, dpl) if version == 2 or (
@@ -524,7 +589,7 @@ def read_recording(folder, *, max_rows: int = MAX_ROWS, max_columns: int = MAX_C
         angular=angular, distance=distance, distance_per_length=dpl, repeatability=repeat,
         reference_temperature=tref, description=description,
         extra={k: v for k, v in meta.items() if k not in KNOWN_KEYS}, path=folder, unused_columns=unused,
-        station=station, stations=stations, lt_range=lt_range, format_version=version, mount=mount,
+        station=station, stations=stations, lt_range=lt_range, format_version=version, mount=mount, report=report,
     )
 
 
@@ -1094,6 +1159,10 @@ def write_recording(rec: Recording, folder, *, truth: dict | None = None) -> Pat
                       f'distance_per_length = "{display(st.distance_per_length, "", "um/m"):.9g} um/m"']
             if st.description:
                 lines.append(f"description = {_toml_string(st.description)}")
+    if rec.report:  # the laboratory's [report] fields, as read
+        lines += ["", "[report]"] + [f"{k} = {_toml_string(v)}" for k, v in rec.report.items() if not isinstance(v, dict)]
+        if isinstance(rec.report.get("instrument"), dict):
+            lines += ["", "[report.instrument]"] + [f"{k} = {_toml_string(v)}" for k, v in rec.report["instrument"].items()]
     (folder / "recording.toml").write_text("\n".join(lines) + "\n", encoding="utf-8")
     tcols = [s.column for s in p.sensors if s.column in p.temperature]
     kinds = {st.kind for st in stations}

@@ -771,48 +771,92 @@ def report_fields(res) -> dict:
 def headline(res, tolerance_um: float | None = None, characteristic: str = "component") -> dict:
     """The statement in brief a laboratory issues: kind of statement, measurand in words, result, U with k and
     coverage (two significant digits), the decision and its rule, and the [report] fields (or "not stated")."""
-    import time
+    cfg = (res.spec or {}).get("config") or {}
+    return statement_in_brief(
+        kind="a priori", kind_text=A_PRIORI.format(n=res.trials), measurand=measurand_text(res), points=res.points(),
+        coverage=res.coverage, frame=table_frame(res), statement=res, tolerance_um=tolerance_um,
+        characteristic=characteristic, fields=report_fields(res),
+        machine=f"machine tool of kinematic chain {cfg.get('machine', 'XFYZ')} (no name stated)", date=run_date(res),
+        command="mtbudget report")
 
-    pts = res.points()
-    out = {"kind": "a priori", "kind_text": A_PRIORI.format(n=res.trials), "measurand": measurand_text(res)}
+
+def statement_in_brief(*, kind: str, kind_text: str, measurand: str, points: list | None, coverage: float,
+                       frame: bool, statement, tolerance_um: float | None, characteristic: str, fields: dict,
+                       machine: str, date: str, command: str, warning: str | None = None) -> dict:
+    """The statement in brief of either kind of statement (:func:`headline` of a run, :func:`posterior_headline` of a
+    recording): from what both have, its per-point statement (mean, u, coverage interval of each component at each
+    mesh point), its coverage probability, its decision (:func:`mtbudget.budget.conformance` on ``statement``), its
+    [report] ``fields``, the ``machine`` and ``date`` it says where [report] states none, the ``command`` whose
+    --tolerance gives a decision, and a ``warning`` that must be read before signing."""
+    pts = points
+    out = {"kind": kind, "kind_text": kind_text, "measurand": measurand}
+    if warning:
+        out["warning"] = warning
     if pts and "interval" in pts[0]:
         u = np.array([q["u"]["value"] for q in pts])
         mean = np.array([q["mean"]["value"] for q in pts])
         half = np.array([[(h - lo) / 2 for lo, h in zip(q["interval"]["low"], q["interval"]["high"])] for q in pts])
-        k, k_text = coverage_factor(res.coverage)
+        k, k_text = coverage_factor(coverage)
         U = k * float(u.max())
         nd = decimals_for(U)
         unit = pretty(pts[0]["u"]["unit"])
         out.update(unit=unit, points=len(pts), U_max=round(U, nd), U_rms=round(k * float(np.sqrt((u ** 2).mean())), nd),
                    half_width_max=round(float(half.max()), nd), bias_max=round(float(np.abs(mean).max()), nd),
-                   k=k, k_text=k_text, coverage=res.coverage, decimals=nd)
-        out["result_text"] = (f"the error of each component (x, y, z{', workpiece (table) frame' if table_frame(res) else ''}) "
+                   k=k, k_text=k_text, coverage=coverage, decimals=nd)
+        out["result_text"] = (f"the error of each component (x, y, z{', workpiece (table) frame' if frame else ''}) "
                               f"at each of the {len(pts)} mesh points after "
                               f"compensation is estimated by the mean of the trials: at most {out['bias_max']:.{nd}f} "
                               f"{unit} from zero")
         out["U_text"] = (f"U = {out['U_max']:.{nd}f} {unit} ({k_text}), the largest over the mesh points and axes "
                          f"(U = {k:g}u); RMS over the mesh {out['U_rms']:.{nd}f} {unit}; the largest half-width of the "
-                         f"Monte Carlo {percent(res.coverage)} coverage intervals is {out['half_width_max']:.{nd}f} {unit}")
+                         f"Monte Carlo {percent(coverage)} coverage intervals is {out['half_width_max']:.{nd}f} {unit}")
     if tolerance_um is not None:
         from .budget import conformance
 
-        conf = conformance(res, tolerance_um, characteristic)
+        conf = conformance(statement, tolerance_um, characteristic)
         out["decision"], out["rule"] = conf["statement"], conf["rule"]
     else:
-        out["decision"] = "none: no tolerance was given (mtbudget report --tolerance \"20 um\")"
+        out["decision"] = f"none: no tolerance was given ({command} --tolerance \"20 um\")"
         out["rule"] = "ISO 14253-1, applied when a tolerance is given"
-    f = report_fields(res)
+    f = fields
     ins = f.get("instrument") if isinstance(f.get("instrument"), dict) else {}
-    cfg = (res.spec or {}).get("config") or {}
     out["fields"] = {
         "laboratory": f.get("laboratory"), "customer": f.get("customer"), "operator": f.get("operator"),
-        "machine": f.get("machine") or f"machine tool of kinematic chain {cfg.get('machine', 'XFYZ')} (no name stated)",
+        "machine": f.get("machine") or machine,
         "instrument": ", ".join(x for x in (ins.get("model"), ins.get("serial") and f"serial {ins['serial']}",
                                             ins.get("calibration") and f"calibration: {ins['calibration']}") if x) or None,
-        "date": f.get("date") or run_date(res), "traceability": f.get("traceability"),
+        "date": f.get("date") or date, "traceability": f.get("traceability"),
         "certificate": f.get("certificate"), "country": f.get("country"), "location": f.get("location")}
     out["fields"]["date_stated"] = bool(f.get("date"))
     return out
+
+
+#: the kind of statement of a recording's a posteriori statement (mtbudget.posterior)
+A_POSTERIORI = ("a posteriori: the uncertainty of the compensated machine that the recorded verification {recording} "
+                "(points.csv sha256 {sha}) identified, evaluated after it was measured (JCGM 101, {n} trials): {what}")
+
+
+def posterior_headline(post, tolerance_um: float | None = None, characteristic: str = "component") -> dict:
+    """The statement in brief of an a posteriori statement (:class:`mtbudget.posterior.Posterior`), by the code of a
+    run's (:func:`statement_in_brief`): its recording and points.csv digest as the kind of statement, its measurand
+    (the workpiece frame of a five-axis table with the machine frame beside it), U = k u from its own per-point u, the
+    decision from its own intervals and trials, recording.toml's [report] fields, and the chi-square test's warning
+    where the fit fails it."""
+    import time
+
+    p = post.data
+    k = p["statement_kind"]
+    pts = p["points"]
+    return statement_in_brief(
+        kind="a posteriori",
+        kind_text=A_POSTERIORI.format(recording=k["recording"], sha=k.get("points_csv_sha256") or "-", n=p["trials"],
+                                      what=k["what"]),
+        measurand=f"{p['measurand']} ({p['not_identifiable']} combination(s) not identifiable)",
+        points=pts, coverage=p["coverage"], frame=bool(pts) and "frame" in pts[0], statement=post,
+        tolerance_um=tolerance_um, characteristic=characteristic, fields=p.get("report") or {},
+        machine=f"machine tool of kinematic chain {p.get('machine', 'XFYZ')} (no name stated)",
+        date=time.strftime("%Y-%m-%d"), command="mtbudget posterior",
+        warning=((p.get("identification") or {}).get("fit_test") or {}).get("warning"))
 
 
 def coverage_factor(p: float) -> tuple:
@@ -844,6 +888,8 @@ def headline_lines(h: dict) -> list:
         return md_escape(v) if v else f"not stated ([report] {hint})"
 
     rows = [("kind of statement", md_escape(h["kind_text"])), ("measurand", md_escape(h["measurand"]))]
+    if h.get("warning"):
+        rows.insert(0, ("WARNING", f"**{md_escape(h['warning'])}**"))
     if "U_text" in h:
         rows += [("result", md_escape(h["result_text"])), ("expanded uncertainty", f"**{md_escape(h['U_text'])}**")]
     rows += [("decision", md_escape(h["decision"])), ("decision rule", md_escape(h["rule"])),
@@ -1119,11 +1165,7 @@ def run_report(res: RunResult, folder, tolerance_um: float | None = None, charac
                f"{md_escape(clause8_why(res))}."]
     if tolerance_um is not None:
         conf = conformance(res, tolerance_um, characteristic)
-        md += ["", "## Decision (ISO 14253-1)", "", f"Characteristic: {conf['characteristic']}.", "",
-               f"Scope of the verdict: {'the whole machine' if conf['scope'] == 'machine' else 'each point-axis on its own'}.",
-               "", f"Rule: {conf['rule']}.", "", f"**{conf['statement']}**"]
-        if conf.get("per_point") and conf["scope"] == "machine":
-            md += ["", f"Per point (scope: each point-axis on its own, not the machine): {conf['per_point']['rule']}."]
+        md += decision_lines(conf)
         data["conformance"] = conf
     if compensation:  # CompensationTable.to_dict() (with "check"), where a compensation is available
         md += compensation_lines(compensation)
@@ -1160,18 +1202,43 @@ def run_report(res: RunResult, folder, tolerance_um: float | None = None, charac
     return {"markdown": folder / "report.md", "html": folder / "report.html", "figures": figs}
 
 
-def posterior_report(p: dict, folder) -> dict:
+def decision_lines(conf: dict) -> list:
+    """The ISO 14253-1 decision (:func:`mtbudget.budget.conformance`) as a Markdown section, either kind of statement."""
+    md = ["", "## Decision (ISO 14253-1)", "", f"Characteristic: {conf['characteristic']}.", "",
+          f"Scope of the verdict: {'the whole machine' if conf['scope'] == 'machine' else 'each point-axis on its own'}.",
+          "", f"Rule: {conf['rule']}.", "", f"**{conf['statement']}**"]
+    if conf.get("per_point") and conf["scope"] == "machine":
+        md += ["", f"Per point (scope: each point-axis on its own, not the machine): {conf['per_point']['rule']}."]
+    return md
+
+
+def posterior_json(post, tolerance_um: float | None = None, characteristic: str = "component") -> dict:
+    """The a posteriori statement as JSON (:func:`mtbudget.posterior.posterior`'s dict) with its statement in brief
+    (``statement``, :func:`posterior_headline`) and, with a tolerance, its ISO 14253-1 decision (``conformance``)."""
+    from .budget import conformance
+
+    data = dict(post.data)
+    data["statement"] = posterior_headline(post, tolerance_um, characteristic)
+    if tolerance_um is not None:
+        data["conformance"] = conformance(post, tolerance_um, characteristic)
+    return data
+
+
+def posterior_report(post, folder, tolerance_um: float | None = None, characteristic: str = "component") -> dict:
     """posterior.md, posterior.html (self-contained) and posterior.json for an a posteriori statement
-    (:func:`mtbudget.posterior.posterior`)."""
+    (:class:`mtbudget.posterior.Posterior`), opening with the statement in brief a run's report opens with, and the
+    ISO 14253-1 decision when a tolerance is given."""
     import json as _json
 
     from .posterior import fit_said
 
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
+    p = posterior_json(post, tolerance_um, characteristic)
     k, s, i = p["statement_kind"], p["summary"], p["identification"]
     r = s["u_over_u_linear"]
-    md = ["# mtbudget a posteriori uncertainty statement", "", "## Kind of statement", "",
+    half = np.array([[(h - lo) / 2 for lo, h in zip(q["interval"]["low"], q["interval"]["high"])] for q in p["points"]])
+    md = ["# mtbudget a posteriori uncertainty statement", "", *headline_lines(p["statement"]), "## Kind of statement", "",
           md_escape(f"A POSTERIORI: the {k['name']} (recording {k['recording']}, points.csv sha256 "
                     f"{k.get('points_csv_sha256') or '-'}). {k['what'][0].upper() + k['what'][1:]}."), "",
           "## Measurand", "", md_escape(p["measurand"][0].upper() + p["measurand"][1:]) +
@@ -1186,13 +1253,16 @@ def posterior_report(p: dict, folder) -> dict:
           f"| summary over the mesh{' (workpiece (table) frame)' if 'frame' in s else ''} | x | y | z |",
           "| --- | --- | --- | --- |",
           "| RMS of u | " + " | ".join(f"{x:.2f}" for x in s["u_rms_over_mesh"]) + " |",
-          "| largest u | " + " | ".join(f"{x:.2f}" for x in s["u_max"]) + " |", "",
+          "| largest u | " + " | ".join(f"{x:.2f}" for x in s["u_max"]) + " |",
+          f"| largest half-width of the {percent(p['coverage'])} interval | " +
+          " | ".join(f"{x:.2f}" for x in half.max(axis=0)) + " |", "",
           *(["| summary over the mesh (machine frame, X, Y, Z at each pose) | X | Y | Z |", "| --- | --- | --- | --- |",
              "| RMS of u | " + " | ".join(f"{x:.2f}" for x in s["machine_frame"]["u_rms_over_mesh"]) + " |",
              "| largest u | " + " | ".join(f"{x:.2f}" for x in s["machine_frame"]["u_max"]) + " |", ""]
             if "machine_frame" in s else []),
           f"Check: u(MCM) / u(identification covariance propagated linearly) median {r['median']:.3f} "
-          f"({r['min']:.3f}-{r['max']:.3f}) over the point-axes.", "",
+          f"({r['min']:.3f}-{r['max']:.3f}) over the point-axes.",
+          *(decision_lines(p["conformance"]) if "conformance" in p else []), "",
           "## Every point", "",
           f"| point | x, y, z commanded [mm] | mean x, y, z [µm] | u x, y, z [µm] | u linear x, y, z [µm] | "
           f"{percent(p['coverage'])} interval x | y | z |", "| --- | --- | --- | --- | --- | --- | --- | --- |"]

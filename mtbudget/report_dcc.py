@@ -1,4 +1,8 @@
-"""A machine-readable Digital Calibration Certificate (PTB DCC 3.3.0, D-SI quantities) of a run.
+"""A machine-readable Digital Calibration Certificate (PTB DCC 3.3.0, D-SI quantities) of a run or of a recording.
+
+One certificate for either kind of statement (``statement_tree``): a run's a priori statement (``dcc_tree``) and a
+recording's a posteriori one (``posterior_dcc_tree``, ``mtbudget posterior --out``), with the [report] table of the
+configuration or of recording.toml.
 
 The same statement as report.md (``report.headline``), as XML a laboratory's
 software reads: the administrative data (software, core data, the item, the
@@ -119,6 +123,39 @@ def certificate_id(res, fields: dict) -> str:
 def dcc_tree(res, tolerance_um: float | None = None, characteristic: str = "component") -> ET.ElementTree:
     """The DCC of a run (a RunResult from ``runner.replay``) as an ElementTree."""
     h = headline(res, tolerance_um, characteristic)
+    chain = ((res.spec or {}).get("config") or {}).get("machine", "XFYZ")
+    return statement_tree(h, res.points(), coverage=float(res.coverage), frame=table_frame(res),
+                          identifier=certificate_id(res, h["fields"]), chain=chain,
+                          method=f"Monte Carlo method, {res.trials} trials",
+                          no_points="the run log holds no per-point coverage intervals",
+                          more=lambda results: _features(results, res))
+
+
+def posterior_dcc_tree(post, tolerance_um: float | None = None, characteristic: str = "component") -> ET.ElementTree:
+    """The DCC of an a posteriori statement (:class:`mtbudget.posterior.Posterior`): the same certificate as a run's
+    (:func:`statement_tree`), its kind of statement the recording and its digest, its per-point estimate, u and
+    interval, its U and decision, and the chi-square test's warning where the fit fails it."""
+    from .report import posterior_headline
+
+    h = posterior_headline(post, tolerance_um, characteristic)
+    p = post.data
+    k = p["statement_kind"]
+    ident = h["fields"].get("certificate") or (
+        f"mtbudget-posterior-{k.get('points_csv_sha256') or 'nodigest'}-{p['seed']}-{p['trials']}")
+    pts = p["points"]
+    return statement_tree(h, pts, coverage=float(p["coverage"]), frame=bool(pts) and "frame" in pts[0],
+                          identifier=ident, chain=p.get("machine", "XFYZ"),
+                          method=f"Monte Carlo method around the identified errors of the recording {k['recording']} "
+                                 f"(a posteriori), {p['trials']} trials, seed {p['seed']}",
+                          no_points="the statement holds no per-point coverage intervals")
+
+
+def statement_tree(h: dict, pts: list | None, *, coverage: float, frame: bool, identifier: str, chain: str,
+                   method: str, no_points: str, more=None) -> ET.ElementTree:
+    """The DCC of either kind of statement from its statement in brief ``h`` (``report.statement_in_brief``) and its
+    per-point statement ``pts``: administrative data from h's fields, the statements (kind of statement, a warning
+    where there is one, traceability, decision rule, decision), U per axis over the mesh and every point's estimate,
+    u and coverage interval; ``more(results)`` adds results of its own (a run's features)."""
     f = h["fields"]
     country = f.get("country") or "ZZ"  # ZZ: user-assigned code of ISO 3166-1, "no country stated"
     date = f["date"]
@@ -133,7 +170,7 @@ def dcc_tree(res, tolerance_um: float | None = None, characteristic: str = "comp
     _sub(core, _d("countryCodeISO3166_1"), country)
     _sub(core, _d("usedLangCodeISO639_1"), "en")
     _sub(core, _d("mandatoryLangCodeISO639_1"), "en")
-    _sub(core, _d("uniqueIdentifier"), certificate_id(res, f))
+    _sub(core, _d("uniqueIdentifier"), identifier)
     _sub(core, _d("beginPerformanceDate"), date)
     _sub(core, _d("endPerformanceDate"), date)
     _sub(core, _d("performanceLocation"), f.get("location") or "other")
@@ -143,7 +180,7 @@ def dcc_tree(res, tolerance_um: float | None = None, characteristic: str = "comp
     ids = _sub(item, _d("identifications"))
     ident = _sub(ids, _d("identification"))
     _sub(ident, _d("issuer"), "calibrationLaboratory")
-    _sub(ident, _d("value"), f"kinematic chain {((res.spec or {}).get('config') or {}).get('machine', 'XFYZ')}")
+    _sub(ident, _d("value"), f"kinematic chain {chain}")
     _text(ident, "name", "machine tool configuration (ISO 10791 / ISO 230-1 axis order)")
     lab = _sub(adm, _d("calibrationLaboratory"))
     _contact(lab, "contact", f.get("laboratory"), country)
@@ -153,6 +190,7 @@ def dcc_tree(res, tolerance_um: float | None = None, characteristic: str = "comp
     _contact(adm, "customer", f.get("customer"), country)
     st = _sub(adm, _d("statements"))
     for name, text in (("kind of statement", h["kind_text"]),
+                       *((("warning", h["warning"]),) if h.get("warning") else ()),
                        ("traceability", f.get("traceability") or NOT_STATED),
                        ("decision rule", h["rule"]), ("decision", h["decision"])):
         s = _sub(st, _d("statement"))
@@ -164,7 +202,7 @@ def dcc_tree(res, tolerance_um: float | None = None, characteristic: str = "comp
     desc = _sub(mres, _d("description"))
     _sub(desc, _d("content"), h["measurand"], lang="en")
     meth = _sub(_sub(mres, _d("usedMethods")), _d("usedMethod"))
-    _text(meth, "name", f"Monte Carlo method, {res.trials} trials")
+    _text(meth, "name", method)
     _sub(meth, _d("norm"), "JCGM 101:2008")
     if f.get("instrument"):
         eq = _sub(_sub(mres, _d("measuringEquipments")), _d("measuringEquipment"))
@@ -172,15 +210,14 @@ def dcc_tree(res, tolerance_um: float | None = None, characteristic: str = "comp
     results = _sub(mres, _d("results"))
     if "U_max" in h:
         unit = DSI_UNITS.get(h["unit"], h["unit"])
-        nd, p = h["decimals"], float(res.coverage)
+        nd, p = h["decimals"], coverage
         first = _sub(results, _d("result"))
         k = h["k"]
         _text(first, "name", f"expanded uncertainty of the error after compensation over the mesh, per axis (k = {k:g})")
         data = _sub(first, _d("data"))
-        pts = res.points()
         u = np.array([q["u"]["value"] for q in pts])
         fw = " (workpiece (table) frame: the machine's axis with every rotary axis at zero, turning with the table)" \
-            if table_frame(res) else ""
+            if frame else ""
         for j, a in enumerate("xyz"):
             _quantity(data, f"largest expanded uncertainty U ({h['k_text']}) of the {a} error{fw} over the mesh",
                       label=f"U_max_{a}", value=round(k * float(u[:, j].max()), nd), unit=unit, nd=nd)
@@ -209,14 +246,15 @@ def dcc_tree(res, tolerance_um: float | None = None, characteristic: str = "comp
                 m = q["machine_frame"]
                 for j, a in enumerate("XYZ"):
                     _quantity(pl, f"{a} error (machine frame at this pose)", label=f"e_machine_{a}",
-                              value=m["mean"][j], unit=unit, nd=nd, U=k * m["u"][j], k=k, p=float(res.coverage))
+                              value=m["mean"][j], unit=unit, nd=nd, U=k * m["u"][j], k=k, p=p)
     else:
         r = _sub(results, _d("result"))
         _text(r, "name", "no per-point statement")
         d = _sub(r, _d("data"))
         t = _sub(d, _d("text"))
-        _sub(t, _d("content"), "the run log holds no per-point coverage intervals", lang="en")
-    _features(results, res)
+        _sub(t, _d("content"), no_points, lang="en")
+    if more is not None:
+        more(results)
     ET.indent(root, space=" ")
     return ET.ElementTree(root)
 
@@ -244,7 +282,11 @@ def _features(results, res):
 
 
 def write_dcc(res, path, tolerance_um: float | None = None, characteristic: str = "component") -> Path:
-    """Write the DCC of a run to ``path`` (UTF-8 XML); returns the path."""
+    """Write the DCC of a run, or of an a posteriori statement (:class:`mtbudget.posterior.Posterior`), to ``path``
+    (UTF-8 XML); returns the path."""
+    from .posterior import Posterior
+
     path = Path(path)
-    dcc_tree(res, tolerance_um, characteristic).write(path, encoding="UTF-8", xml_declaration=True)
+    tree = (posterior_dcc_tree if isinstance(res, Posterior) else dcc_tree)(res, tolerance_um, characteristic)
+    tree.write(path, encoding="UTF-8", xml_declaration=True)
     return path
