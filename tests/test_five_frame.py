@@ -216,13 +216,15 @@ def test_the_text_report_and_certificate_name_the_frame_and_every_point_s_angles
 
 
 def test_the_posterior_labels_every_point_with_its_angles_and_frame(tmp_path):
-    from mtbudget.posterior import posterior, posterior_text
+    from mtbudget.posterior import posterior_result, posterior_text
     from mtbudget.report import posterior_report
+    from mtbudget.report_dcc import write_dcc
 
     sc = build_scenario(small_five())
     rec, truth = simulate_recording(sc, trial=0)
     write_recording(rec, tmp_path / "rec", truth=truth)
-    p = posterior(tmp_path / "rec", trials=48, max_degree=1)
+    post = posterior_result(tmp_path / "rec", trials=48, max_degree=1)
+    p = post.data
     assert "per machine axis" not in p["measurand"] and "workpiece (table) frame" in p["measurand"]
     labels = set()
     for q in p["points"]:
@@ -234,6 +236,11 @@ def test_the_posterior_labels_every_point_with_its_angles_and_frame(tmp_path):
         assert np.sum(np.square(q["machine_frame"]["u"])) == pytest.approx(np.sum(np.square(q["u"]["value"])), rel=1e-9)
     assert len(labels) == len(p["points"]) == 72
     assert "(table frame)" in posterior_text(p)
-    md = posterior_report(p, tmp_path / "post")["markdown"].read_text()
+    md = posterior_report(post, tmp_path / "post")["markdown"].read_text()
     rows = [ln for ln in md.splitlines() if ln.startswith("| ") and "a, c = (" in ln]
     assert len(rows) == 72 and "u X, Y, Z (machine frame)" in md
+    # the statement in brief names the frame of its components, the machine frame beside it, as a run's does
+    brief = md[md.index("## Statement in brief"):md.index("## Kind of statement")]
+    assert "workpiece (table) frame" in brief and "machine\\_frame" in brief and "per machine axis" not in brief
+    xml = write_dcc(post, tmp_path / "post" / "certificate.xml").read_text()
+    assert "e_machine_Y" in xml and "workpiece (table) frame" in xml
