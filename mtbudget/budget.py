@@ -640,6 +640,11 @@ def conformance(res, tolerance_um: float, characteristic: str = "component") -> 
     return out
 
 
+def _said(verdict: str) -> str:
+    """A verdict after "the compensated machine": conforms, does not conform, or is undecided (neither proven)."""
+    return "is undecided (neither conformance nor non-conformance is proven)" if verdict == "undecided" else verdict
+
+
 def _order_quantile(y: np.ndarray, prob: float) -> float:
     """The prob-quantile of values y as JCGM 101 7.7.1 reads one: the q-th smallest, q = the integer part of prob M + 1/2."""
     M = y.shape[0]
@@ -696,7 +701,7 @@ def machine_conformance(res, tolerance_um: float) -> dict | None:
             "statement": (f"Whole machine, tolerance ±{T:g} µm on every component at every point: the largest "
                           f"|component| over the mesh is at most {hi:.1f} µm with probability {percent(p)} (per axis "
                           f"x, y, z: {axes[0]:.1f}, {axes[1]:.1f}, {axes[2]:.1f} µm){P}: the compensated machine "
-                          f"{verdict}.")}
+                          f"{_said(verdict)}.")}
 
 
 def simultaneous_band(res, tolerance_um: float | None = None) -> dict | None:
@@ -736,7 +741,7 @@ def _conformance(res: Evidence, tolerance_um: float, characteristic: str) -> dic
                         f"interval is within the tolerance; non-conformance when its lower end exceeds it",
                 "tolerance": T, "unit": "um", "coverage": p, "interval": [lo, hi], "verdict": verdict,
                 "statement": f"The largest error over the mesh after compensation lies in [{lo:.1f}, {hi:.1f}] µm "
-                             f"({percent(p)} coverage): against a tolerance of {T:g} µm the compensated machine {verdict}."}
+                             f"({percent(p)} coverage): against a tolerance of {T:g} µm the compensated machine {_said(verdict)}."}
     pts = res.points()
     if not pts or "interval" not in pts[0]:
         raise ValueError("the per-point intervals are not available for this run")
