@@ -604,6 +604,13 @@ class Evidence:
                              "in use)")
 
 
+def _xyz(res: Evidence) -> str:
+    """"x, y, z" of the statement's components, with their frame where it is a turning table's (five-axis): a
+    tolerance box +-T is not the same box in another frame, so the decision says which one it is decided in."""
+    pts = res.points()
+    return "x, y, z of the workpiece (table) frame" if pts and "frame" in pts[0] else "x, y, z"
+
+
 def conformance(res, tolerance_um: float, characteristic: str = "component") -> dict:
     """ISO 14253-1 decision for a tolerance T on the compensated machine's error, with the rule and its scope stated.
 
@@ -684,7 +691,7 @@ def machine_conformance(res, tolerance_um: float) -> dict | None:
     verdict = "conforms" if hi <= T else "does not conform" if lo > T else "undecided"
     band = simultaneous_band(res, T)
     P = "" if prob is None else f"; the probability that every component lies within ±{T:g} µm is {prob:.3f}"
-    return {"characteristic": "every error component (x, y, z) at every mesh point after compensation, all at once",
+    return {"characteristic": f"every error component ({_xyz(res)}) at every mesh point after compensation, all at once",
             "scope": "machine",
             "rule": f"ISO 14253-1 guarded acceptance for the whole machine: conformance proven when, with probability "
                     f"at least {percent(p)}, every component at every point lies within [-T, T] (the {percent(p)} "
@@ -700,7 +707,7 @@ def machine_conformance(res, tolerance_um: float) -> dict | None:
             "simultaneous_band": band,
             "statement": (f"Whole machine, tolerance ±{T:g} µm on every component at every point: the largest "
                           f"|component| over the mesh is at most {hi:.1f} µm with probability {percent(p)} (per axis "
-                          f"x, y, z: {axes[0]:.1f}, {axes[1]:.1f}, {axes[2]:.1f} µm){P}: the compensated machine "
+                          f"{_xyz(res)}: {axes[0]:.1f}, {axes[1]:.1f}, {axes[2]:.1f} µm){P}: the compensated machine "
                           f"{_said(verdict)}.")}
 
 
@@ -751,7 +758,7 @@ def _conformance(res: Evidence, tolerance_um: float, characteristic: str) -> dic
     inside = (lo >= -T) & (hi <= T)
     outside = (hi < -T) | (lo > T)
     n = lo.size
-    return {"characteristic": "each error component (x, y, z) at each mesh point after compensation, each on its own",
+    return {"characteristic": f"each error component ({_xyz(res)}) at each mesh point after compensation, each on its own",
             "scope": "per point",
             "rule": f"ISO 14253-1 guarded acceptance per point and axis: conformance proven where the {percent(p)} coverage "
                     f"interval lies within [-T, T] (for a symmetric interval: |mean| <= T - U, U its half-width), "

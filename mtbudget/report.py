@@ -807,9 +807,15 @@ def statement_in_brief(*, kind: str, kind_text: str, measurand: str, points: lis
                               f"at each of the {len(pts)} mesh points after "
                               f"compensation is estimated by the mean of the trials: at most {out['bias_max']:.{nd}f} "
                               f"{unit} from zero")
-        out["U_text"] = (f"U = {out['U_max']:.{nd}f} {unit} ({k_text}), the largest over the mesh points and axes "
+        where = " of the workpiece (table) frame" if frame else ""
+        out["U_text"] = (f"U = {out['U_max']:.{nd}f} {unit} ({k_text}), the largest over the mesh points and axes{where} "
                          f"(U = {k:g}u); RMS over the mesh {out['U_rms']:.{nd}f} {unit}; the largest half-width of the "
                          f"Monte Carlo {percent(coverage)} coverage intervals is {out['half_width_max']:.{nd}f} {unit}")
+        if frame and "machine_frame" in pts[0]:  # the same errors in the machine's X, Y, Z at each pose: their U too
+            um = max(max(q["machine_frame"]["u"]) for q in pts)
+            out["U_machine_max"] = round(k * um, nd)
+            out["U_text"] += (f"; in the machine's X, Y, Z at each pose the largest U (= {k:g}u) is "
+                              f"{out['U_machine_max']:.{nd}f} {unit}")
     if tolerance_um is not None:
         from .budget import conformance
 

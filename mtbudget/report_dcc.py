@@ -10,7 +10,7 @@ laboratory, the responsible person, the customer, the statements: kind of
 statement, traceability, decision rule) from the optional ``[report]`` table
 of the configuration, and the results as D-SI quantities: per axis the
 largest and the RMS expanded uncertainty over the mesh (``si:expandedUnc``,
-k = 2), and for every mesh point and axis the estimate with its Monte Carlo
+k from the coverage: 2 at 95 %), and for every mesh point and axis the estimate with its Monte Carlo
 coverage interval (``si:coverageInterval``: standard uncertainty, interval
 ends, coverage probability), and the ``[[features]]`` of the run with their decisions.  Units are D-SI unit strings (``\\micro\\metre``,
 ``\\milli\\metre``).  Fields the configuration does not state are written as
@@ -82,8 +82,10 @@ def _num(x: float, nd: int) -> str:
     return f"{x:.{nd}f}"
 
 
-def _real(parent, label: str, value: float, unit: str, nd: int, *, U=None, k=None, p=None, interval=None, u=None):
-    """An si:real: value and unit, with an expanded uncertainty (U, k, p) or a coverage interval (u, [lo, hi], p)."""
+def _real(parent, label: str, value: float, unit: str, nd: int, *, U=None, k=None, p=None, interval=None, u=None,
+          distribution: str | None = "normal"):
+    """An si:real: value and unit, with an expanded uncertainty (U, k, p; ``distribution`` what p assumes, None: no
+    claim) or a coverage interval (u, [lo, hi], p)."""
     r = _sub(parent, _s("real"))
     _sub(r, _s("label"), label)
     _sub(r, _s("value"), _num(value, nd))
@@ -93,7 +95,8 @@ def _real(parent, label: str, value: float, unit: str, nd: int, *, U=None, k=Non
         _sub(e, _s("uncertainty"), _num(U, nd))
         _sub(e, _s("coverageFactor"), f"{k:g}")
         _sub(e, _s("coverageProbability"), f"{p:g}")
-        _sub(e, _s("distribution"), "normal")
+        if distribution:
+            _sub(e, _s("distribution"), distribution)
     elif interval is not None:
         c = _sub(r, _s("coverageInterval"))
         _sub(c, _s("standardUnc"), _num(u, nd))
@@ -221,14 +224,16 @@ def statement_tree(h: dict, pts: list | None, *, coverage: float, frame: bool, i
         for j, a in enumerate("xyz"):
             _quantity(data, f"largest expanded uncertainty U ({h['k_text']}) of the {a} error{fw} over the mesh",
                       label=f"U_max_{a}", value=round(k * float(u[:, j].max()), nd), unit=unit, nd=nd)
-            _quantity(data, f"RMS over the mesh of the expanded uncertainty U (k = {k:g}) of the {a} error",
+            _quantity(data, f"RMS over the mesh of the expanded uncertainty U (k = {k:g}) of the {a} error{fw}",
                       label=f"U_rms_{a}", value=round(k * float(np.sqrt((u[:, j] ** 2).mean())), nd), unit=unit, nd=nd)
         per = _sub(results, _d("result"))
         mf = "machine_frame" in pts[0]
         _text(per, "name", "error of each axis at each mesh point after compensation: estimate, standard "
                            f"uncertainty and {100 * p:g} % coverage interval (JCGM 101)" +
-              (f"; x, y, z{fw}; X, Y, Z: the same error in the machine frame at the point's pose (expanded "
-               f"uncertainty U = {k:g}u, {h['k_text']})" if mf else
+              (f"; x, y, z{fw}; X, Y, Z: the same error in the machine frame at the point's pose" +
+               (f" ({100 * p:g} % coverage interval of every trial turned to it)" if "interval" in pts[0]["machine_frame"]
+                else f" (U = {k:g}u from its standard uncertainty, the covariance turned; the Monte Carlo gives it no "
+                     "coverage interval and no distribution is claimed)") if mf else
                f"; x, y, z{fw}" if fw else ""))
         lst = _sub(_sub(per, _d("data")), _d("list"))
         for q in pts:
@@ -245,8 +250,13 @@ def statement_tree(h: dict, pts: list | None, *, coverage: float, frame: bool, i
             if mf:
                 m = q["machine_frame"]
                 for j, a in enumerate("XYZ"):
-                    _quantity(pl, f"{a} error (machine frame at this pose)", label=f"e_machine_{a}",
-                              value=m["mean"][j], unit=unit, nd=nd, U=k * m["u"][j], k=k, p=p)
+                    if "interval" in m:  # an a posteriori statement turns every trial: real intervals
+                        _quantity(pl, f"{a} error (machine frame at this pose)", label=f"e_machine_{a}",
+                                  value=m["mean"][j], unit=unit, nd=nd, u=m["u"][j],
+                                  interval=(m["interval"]["low"][j], m["interval"]["high"][j]), p=p)
+                    else:  # a run: the mean and covariance turned, U = k u, no distribution claimed
+                        _quantity(pl, f"{a} error (machine frame at this pose)", label=f"e_machine_{a}",
+                                  value=m["mean"][j], unit=unit, nd=nd, U=k * m["u"][j], k=k, p=p, distribution=None)
     else:
         r = _sub(results, _d("result"))
         _text(r, "name", "no per-point statement")

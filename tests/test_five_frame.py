@@ -244,3 +244,31 @@ def test_the_posterior_labels_every_point_with_its_angles_and_frame(tmp_path):
     assert "workpiece (table) frame" in brief and "machine\\_frame" in brief and "per machine axis" not in brief
     xml = write_dcc(post, tmp_path / "post" / "certificate.xml").read_text()
     assert "e_machine_Y" in xml and "workpiece (table) frame" in xml
+
+
+def test_U_and_the_decision_say_their_frame_and_the_machine_frame_claims_no_distribution(five_run):
+    """U_max is the largest of the table-frame components and says so, with the machine frame's largest U (from
+    machine_frame's u, computed here) beside it; a decision names the frame it is decided in (a +-T box is not the
+    same box turned); the DCC's machine-frame values of a run carry U = k u and claim no distribution (the Monte Carlo
+    gave them no interval)."""
+    import xml.etree.ElementTree as ET
+
+    from mtbudget.budget import conformance
+    from mtbudget.report import headline
+    from mtbudget.report_dcc import SI_NS
+
+    res, folder = five_run
+    h = headline(res, 20.0)
+    pts = res.points()
+    um = max(max(q["machine_frame"]["u"]) for q in pts)
+    assert "the largest over the mesh points and axes of the workpiece (table) frame" in h["U_text"]
+    assert h["U_machine_max"] == pytest.approx(2 * um, abs=0.51 * 10 ** -h["decimals"])
+    assert f"{h['U_machine_max']:.{h['decimals']}f}" in h["U_text"].split("machine's X, Y, Z")[1]
+    conf = conformance(res, 20.0)
+    assert "x, y, z of the workpiece (table) frame" in conf["characteristic"]
+    assert "x, y, z of the workpiece (table) frame" in conf["per_point"]["characteristic"]
+    root = ET.parse(folder / "rep" / "certificate.xml").getroot()
+    reals = [r for r in root.iter(f"{{{SI_NS}}}real") if r.find(f"{{{SI_NS}}}label").text.startswith("e_machine_")]
+    assert len(reals) == 3 * len(pts)
+    assert all(r.find(f".//{{{SI_NS}}}distribution") is None and r.find(f".//{{{SI_NS}}}coverageFactor").text == "2"
+               for r in reals)
