@@ -136,6 +136,27 @@ def keep_vector_samples(settings: RunSettings, n_points: int) -> bool:
     return total * n_points * 3 <= VECTOR_SAMPLE_LIMIT
 
 
+def logged_to_machine(header: dict):
+    """The table frame's orientation at each mesh point's pose of a logged five-axis run: the header's
+    ``workpiece_to_machine``, or, for a log written before it was logged, the same computed from the logged
+    configuration and commanded angles (None where neither gives it: three axes, or a configuration no longer read)."""
+    if header.get("workpiece_to_machine"):
+        return np.asarray(header["workpiece_to_machine"])
+    angles = header.get("commanded_angles")
+    if not angles:
+        return None
+    from .config import parse_config
+    from .errors import MtbudgetError
+    from .machine import Configuration, workpiece_rotation
+
+    try:
+        cfg = parse_config(header["spec"]["config"])
+        machine = Configuration.parse(cfg.machine, cfg.plan().rotary or None)
+    except (MtbudgetError, KeyError, TypeError, ValueError):
+        return None
+    return workpiece_rotation(machine, {r: np.radians(np.asarray(v, float)) for r, v in angles.items()})
+
+
 def _to_machine(scenario: Scenario):
     """Five-axis with a rotary table: (M0, 3, 3) the nominal orientation of the table frame, in which the per-point
     components are stated, in the machine frame at each mesh point's pose; None otherwise."""
@@ -616,7 +637,7 @@ def replay(path) -> RunResult:
                     commanded=np.asarray(h["commanded"]) if h.get("commanded") else None,
                     angles={r: np.asarray(v) for r, v in h["commanded_angles"].items()} if h.get("commanded_angles")
                     else None,
-                    to_machine=np.asarray(h["workpiece_to_machine"]) if h.get("workpiece_to_machine") else None,
+                    to_machine=logged_to_machine(h),
                     guf=None if guf is None else {"estimate": np.asarray(guf["estimate"]), "cov": np.asarray(guf["cov"]),
                                                   **({"basis": guf["basis"]} if guf.get("basis") else {})},
                     logged_points=logged.get("points"))

@@ -272,3 +272,19 @@ def test_U_and_the_decision_say_their_frame_and_the_machine_frame_claims_no_dist
     assert len(reals) == 3 * len(pts)
     assert all(r.find(f".//{{{SI_NS}}}distribution") is None and r.find(f".//{{{SI_NS}}}coverageFactor").text == "2"
                for r in reals)
+
+
+def test_a_log_written_before_the_machine_frame_was_logged_gets_it_from_its_configuration(five_run):
+    """A five-axis log without workpiece_to_machine (written before it was logged) states the machine frame all the
+    same, computed from its logged configuration and commanded angles: the same as a new log's to round-off (the
+    measurand text promises it)."""
+    from mtbudget.runlog import read_runlog
+    from mtbudget.runner import logged_to_machine
+
+    res, folder = five_run
+    h = dict(read_runlog(folder / "r.mcap").header)
+    assert h.get("workpiece_to_machine")
+    old = {k: v for k, v in h.items() if k != "workpiece_to_machine"}
+    assert np.allclose(logged_to_machine(old), np.asarray(h["workpiece_to_machine"]), atol=1e-15, rtol=0)
+    three = {k: v for k, v in old.items() if k != "commanded_angles"}
+    assert logged_to_machine(three) is None
