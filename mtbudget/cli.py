@@ -560,7 +560,8 @@ def plugins_cmd(config, as_json):
 @click.option("--adaptive-batch", type=click.IntRange(min=2), default=None,
               help="With --trials 0: trials per adaptive batch (default: JCGM 101's max(100/(1-p), 10^4)).")
 @click.option("--max-trials", type=click.IntRange(min=2), default=None,
-              help="With --trials 0: the most trials the adaptive run may use (default 10^6). A run that reaches it "
+              help="With --trials 0: the trial limit of the adaptive run (default 10^6): it stops at the end of the "
+                   "batch that reaches it, so at most one batch past it; at least two batches. A run that reaches it "
                    "says how many quantities were not stable, the worst with their tolerance, and about how many "
                    "trials they need. Memory stays bounded whatever the limit.")
 @click.option("--json", "as_json", is_flag=True, help="Print the results as one JSON object (progress still goes to stderr).")

@@ -385,7 +385,7 @@ def adaptive_line(a: dict) -> str:
     what += [f"{o} ({'stable' if ok else 'not stable'})" for o, ok in a.get("outputs_stable", {}).items()]
     if a.get("stopped_at_limit"):
         limit = f" of {a['max_trials']} trials (--max-trials)" if a.get("max_trials") else ""
-        head = f"stopped at its limit{limit} before every quantity was stable, after"
+        head = f"stopped at its limit{limit}, at the end of the batch that reached it, before every quantity was stable, after"
     else:
         head = "every quantity stable at"
     return (f"Adaptive Monte Carlo (JCGM 101 7.9): {head} {a['trials']} trials ({a['batches']} batches of "
@@ -414,8 +414,10 @@ def adaptive_lines(a: dict) -> list:
                  "far the last batch moved that average:")
     for r in a["worst"]:
         un = pretty(r["unit"])
-        lines.append(f"  {r['quantity']}: {r['statistic']}: 2 s = {r['two_s']:.2g} {un} against delta = "
-                     f"{r['delta']:.2g} {un} (u = {r['u']:.2g} {un}, k = 1); last change {r['last_change']:+.2g} {un}")
+        nd = decimals_for(r["delta"], 1) + 1  # every figure of the row to a decimal below delta's
+        lines.append(f"  {r['quantity']}: {r['statistic']}: 2 s = {r['two_s']:.{nd}f} {un} against delta = "
+                     f"{r['delta']:.{nd}f} {un} (u = {r['u']:.{nd}f} {un}, k = 1); last change "
+                     f"{r['last_change']:+.{nd}f} {un}")
     need = a.get("trials_needed")
     more = (f"`mtbudget run --trials 0 --max-trials {_round_up(max(need, a['trials'] + a['batch_trials']))}` (at the "
             f"rate seen, 2 s falling as 1/sqrt(trials), the worst needs about {need} trials; an estimate); "

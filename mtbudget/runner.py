@@ -65,6 +65,13 @@ class RunSettings:
     adaptive_outputs: tuple = ("points", MAIN_OUTPUT)
     max_trials: int = 1_000_000
 
+    def adaptive_batch_trials(self, block: int | None = None) -> int:
+        """Trials of one batch of an adaptive run: ``adaptive_batch`` or JCGM 101's max(100 / (1 - p), 10^4), in
+        whole blocks."""
+        block = block or self.block
+        h = self.adaptive_batch or max(int(100 / (1 - self.coverage)), 10_000)
+        return math.ceil(h / block) * block
+
     def validate(self) -> "RunSettings":
         """Every number checked at the boundary; the error names the option."""
         def need(ok, option, text):
@@ -88,6 +95,11 @@ class RunSettings:
         need(self.adaptive_batch is None or self.adaptive_batch >= 2, "--adaptive-batch",
              f"must be >= 2, got {self.adaptive_batch}")
         need(self.max_trials >= 2, "max_trials", f"must be >= 2, got {self.max_trials}")
+        if self.trials is None:  # adaptive: the rule compares batches, so it always runs two
+            batch = self.adaptive_batch_trials()
+            need(self.max_trials >= 2 * batch, "--max-trials",
+                 f"must be at least two adaptive batches ({2 * batch} trials: two of {batch}, JCGM 101 7.9 compares "
+                 f"batches), got {self.max_trials}; raise it or make the batches smaller (--adaptive-batch)")
         need(1 <= self.ndig <= 4, "ndig", f"must be 1 to 4 significant digits, got {self.ndig}")
         return self
 
@@ -322,8 +334,7 @@ def _adaptive(settings: RunSettings, engine: Engine, acc: Accumulator, result: R
     run stopped at ``max_trials``, which quantities were not stable (:func:`_not_stable`).  Resumed blocks without
     their components (a log that histograms them) drop the per-point rule, said in ``result.adaptive["note"]``.
     """
-    h = settings.adaptive_batch or max(int(100 / (1 - settings.coverage)), 10_000)
-    per = math.ceil(h / engine.block)
+    per = settings.adaptive_batch_trials(engine.block) // engine.block
     scal = [o for o in settings.adaptive_outputs if o != "points"]
     points = "points" in settings.adaptive_outputs
     stop_s, stop_p = AdaptiveStop(settings.ndig), AdaptiveStop(settings.ndig)
@@ -374,9 +385,16 @@ def _adaptive(settings: RunSettings, engine: Engine, acc: Accumulator, result: R
 
 def _point_axis_names(result: RunResult, n: int) -> list:
     """(name, unit) of each point-axis of the per-point measurand, in the order of its components."""
-    where = (lambda i: f" at x, y, z = ({', '.join(f'{v:g}' for v in result.commanded[i])}) mm") \
-        if result.commanded is not None else (lambda i: "")
-    return [(f"point #{j // 3}{where(j // 3)}, axis {'xyz'[j % 3]}", POINT_UNIT) for j in range(n)]
+    angles = result.angles or {}
+
+    def where(i):
+        if result.commanded is None:
+            return ""
+        at = "".join(f", {r} = {float(v[i]):g} deg" for r, v in sorted(angles.items()))
+        return f" at x, y, z = ({', '.join(f'{v:g}' for v in result.commanded[i])}) mm{at}"
+
+    fw = " (table frame)" if result.to_machine is not None else ""  # a turning table's components (five-axis)
+    return [(f"point #{j // 3}{where(j // 3)}, axis {'xyz'[j % 3]}{fw}", POINT_UNIT) for j in range(n)]
 
 
 #: quantities not stable that an adaptive run stopped at its limit names (the worst first)

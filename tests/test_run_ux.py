@@ -171,7 +171,7 @@ def test_an_adaptive_run_at_its_limit_names_what_did_not_stabilise_and_how_to_fi
     # 2 s falls as 1/sqrt(trials): the trials the worst needs, in whole batches
     assert a["trials_needed"] == 256 * math.ceil(768 * ratio.max() ** 2 / 256)
     text = budget_text(res)
-    assert f"stopped at its limit of 768 trials (--max-trials)" in text
+    assert "stopped at its limit of 768 trials (--max-trials), at the end of the batch that reached it" in text
     assert f"Not stable: {a['not_stable']} quantities" in text and "against delta = " in text
     assert "--max-trials " in text.split("To finish:")[1]
     assert "run `mtbudget run --trials 0`" not in text  # never the advice to run what was just run
@@ -201,3 +201,20 @@ def test_an_adaptive_run_histograms_its_values_beyond_the_fixed_runs_limit_and_d
     assert not fixed.acc.keep
     for o in ("compensation_rms", "max_residual"):
         assert streamed.summary(o) == fixed.summary(o)
+
+
+def test_the_adaptive_limit_stops_at_the_end_of_the_batch_that_reaches_it_and_needs_two_batches(small, tmp_path,
+                                                                                                 monkeypatch):
+    """--max-trials is met at the end of a batch (a limit between batches runs the batch that crosses it: 600 ->
+    768 with batches of 256, and says so); a limit below two batches, which the rule always runs, is refused in one
+    line before any log is opened."""
+    res = run(small, trials=None, block=32, adaptive_batch=256, attribution_trials=0, max_trials=600,
+              adaptive_outputs=("points",))
+    assert res.stopped_at_limit and res.adaptive["trials"] == 768 and 768 - 256 < 600 <= 768
+    assert "limit of 600 trials (--max-trials), at the end of the batch that reached it" in budget_text(res)
+    monkeypatch.chdir(tmp_path)
+    out = CliRunner().invoke(main, ["run", str(SMALL), "--trials", "0", "--adaptive-batch", "256", "--block", "32",
+                                    "--max-trials", "500", "--log", "a.mcap", "--quiet"])
+    assert out.exit_code == 2 and out.output.count("\n") == 1, out.output
+    assert "--max-trials: must be at least two adaptive batches (512 trials: two of 256" in out.output
+    assert not list(tmp_path.glob("a.mcap*"))
