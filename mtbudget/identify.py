@@ -294,8 +294,12 @@ class Identification:
 #: are not an identification of the machine but of a mistake (a column in inches labelled mm, degrees labelled rad,
 #: a wrong machine code or stated noise), and no table may be written from them (docs/compensation.md,
 #: "Implausible identifications"):
-#: - chi-square per degree of freedom above ABSURD_CHI2_PER_DOF: residuals some 30 times the stated noise; a real
-#:   recording with an effect the model leaves out (thermal drift, reversal) stays within 1-100 (`diagnose`);
+#: - chi-square per degree of freedom above ABSURD_CHI2_PER_DOF (residuals some 30 times the stated noise) with an
+#:   RMS residual above ABSURD_RESIDUAL_RMS (0.1 mm), or above ABSURD_CHI2_ALONE (300 times the noise) whatever the
+#:   residual: a real recording with an effect the model leaves out (thermal drift, reversal) stays within 1-100
+#:   against a tracker's noise, but a tracking interferometer's 0.15 um makes 10 um of unmodelled drift a chi2/dof
+#:   of 1000-10 000; no verification leaves 0.1 mm RMS after its geometric errors are identified, while a unit slip
+#:   in a column leaves millimetres and one in the stated noise (nm for um) a chi2/dof near 10^6;
 #: - a linear axis' positioning or straightness error changing by more than PLAUSIBLE_ERROR_PER_LENGTH (2 mm per
 #:   metre) of its travel plus PLAUSIBLE_ERROR_FLOOR (0.1 mm): uncompensated machine tools show tens of um per
 #:   metre, a steel scale 50 K off 20 degC 0.6 mm/m, so 2 mm/m is several times the worst and far below a unit
@@ -307,10 +311,23 @@ class Identification:
 #: A value counts as beyond its bound only by more than 3 times its standard uncertainty (a short travel identifies
 #: its higher orders loosely: noise is not a mistake).
 ABSURD_CHI2_PER_DOF = 1e3
+ABSURD_RESIDUAL_RMS = 0.1  # mm
+ABSURD_CHI2_ALONE = 1e5
 PLAUSIBLE_ERROR_PER_LENGTH = 2e-3
 PLAUSIBLE_ERROR_FLOOR = 0.1  # mm
 PLAUSIBLE_ANGLE = 2e-3  # rad
 _PLAUSIBILITY_GRID = np.linspace(-1.0, 1.0, 41)
+
+
+def _residual_rms(res, trial: int) -> float:
+    """RMS of the fit's residuals (mm) of one trial of an identification, or of an identification over several
+    stations (its xyz and range residuals; NaN where a row has none)."""
+    if getattr(res, "residual_xyz", None) is not None:
+        r = np.concatenate([np.asarray(res.residual_xyz, float).reshape(-1), np.asarray(res.residual_range, float)])
+        r = r[np.isfinite(r)]
+    else:
+        r = np.asarray(res.residual, float)[trial].reshape(-1)
+    return float(np.sqrt(np.mean(r ** 2))) if r.size else float("nan")
 
 
 def implausible(res: "Identification", trial: int = 0) -> list:
@@ -324,9 +341,11 @@ def implausible(res: "Identification", trial: int = 0) -> list:
 
     out = []
     chi2 = float(np.atleast_1d(res.chi2_per_dof)[trial])
-    if not np.isfinite(chi2) or chi2 > ABSURD_CHI2_PER_DOF:
-        out.append((np.inf, f"chi-square per dof {chi2:.3g} (at most {ABSURD_CHI2_PER_DOF:g} for residuals that "
-                            "match the stated noise within a factor of 30)"))
+    rms = _residual_rms(res, trial)
+    if not np.isfinite(chi2) or chi2 > ABSURD_CHI2_ALONE or (chi2 > ABSURD_CHI2_PER_DOF and not rms <= ABSURD_RESIDUAL_RMS):
+        out.append((np.inf, f"chi-square per dof {chi2:.3g} (at most {ABSURD_CHI2_PER_DOF:g}, or "
+                            f"{ABSURD_CHI2_ALONE:g} where the RMS residual, here {rms:.3g} mm, is under "
+                            f"{ABSURD_RESIDUAL_RMS:g} mm)"))
     errors = res.model.errors
     theta = np.atleast_2d(np.asarray(res.theta, float))[trial]  # (N, p), or (p,): one identification of stations
     try:

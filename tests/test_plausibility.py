@@ -391,3 +391,29 @@ def test_identify_warns_on_a_recording_of_several_stations_too(tmp_path):
     import json
 
     assert json.loads(res.stdout)["implausible"][0].startswith("chi-square per dof")
+
+
+def test_a_tight_instrument_with_unmodelled_drift_is_not_called_a_unit_slip():
+    """chi2/dof of 1000-10 000 with micrometre residuals (a tracking interferometer's 0.15 um noise and 10 um of
+    drift the model leaves out) is diagnose's business, not a mistake: implausible says nothing; the same chi2 with
+    residuals of millimetres (a unit slip in a column), or a chi2 of 10^6 whatever the residual (the stated noise
+    a thousand times too small), is named."""
+    from types import SimpleNamespace
+
+    from mtbudget.config import example_recording
+    from mtbudget.identify import implausible
+    from mtbudget.model import MeasurementModel
+
+    rec = read_recording(example_recording("null"))
+    model = MeasurementModel.for_plan(rec.machine, rec.plan)
+
+    def res(chi2, rms_mm):
+        M = 50
+        r = np.full((1, M, 3), rms_mm)
+        return SimpleNamespace(chi2_per_dof=np.array([chi2]), residual=r, model=model,
+                               theta=np.zeros((1, model.n_params)), cov_theta=np.zeros((1, model.n_params, model.n_params)),
+                               initial_error=None)
+
+    assert implausible(res(5e3, 0.010)) == []
+    assert "chi-square per dof" in implausible(res(5e3, 2.0))[0]
+    assert "chi-square per dof" in implausible(res(1e6, 0.004))[0]
