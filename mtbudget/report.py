@@ -447,7 +447,7 @@ def interval_note(outputs: dict, coverage: float) -> list:
             v["std"] > 0 for v in hist) else None
         if worst is not None:
             lines.append(f"  a bin is at most {worst:.2%} of its output's std dev (every trial's value is kept for exact "
-                         f"order statistics in runs of up to {KEEP_SAMPLES_TRIALS:,} trials)")
+                         f"order statistics in runs of up to {KEEP_SAMPLES_TRIALS:,} trials)".replace(",", " "))
     if any(v["shortest"] is None for v in outputs.values()):
         lines.append("  -: no shortest interval: it would reach into values beyond the histogram's range (fixed from "
                      "the first block); the symmetric interval stands")
@@ -1115,7 +1115,7 @@ def run_report(res: RunResult, folder, tolerance_um: float | None = None, charac
                "| RMS of the mean (bias) | " + " | ".join(f"{x:.{nd}f}" for x in sm["bias_rms_over_mesh"]) + " |", ""]
         mf = machine_frame_summary(pts)
         if mf is not None:
-            md += [f"Five-axis: x, y, z above are the axes of the workpiece (table) frame, the machine's X, Y, Z with every "
+            md += ["Five-axis: x, y, z above are the axes of the workpiece (table) frame, the machine's X, Y, Z with every "
                    "rotary axis at zero, turning with the table (docs/measurand.md). The same errors in the machine's "
                    "X, Y, Z at each pose (turned by the table's orientation there; mean and covariance exactly, no "
                    "coverage interval):", "",

@@ -282,7 +282,7 @@ class Siemens840d(Exporter):
         eec.write_text("\n".join(lines) + "\n")
 
         tables = self.cec_tables(table)
-        what = (f"tables 0..5: reversal, one table per direction of travel of the same axis ($AN_CEC_DIRECTION = 1 / -1)"
+        what = ("tables 0..5: reversal, one table per direction of travel of the same axis ($AN_CEC_DIRECTION = 1 / -1)"
                 + ("; then the cross (sag) tables: output axis as a function of the input axis' setpoint" if self.cross
                    else f"; the cross (sag) tables are left out: the {self.control} has {self.max_cec_tables} tables "
                         "and the reversal takes six (neutral-json carries them)"))
