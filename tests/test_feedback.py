@@ -154,15 +154,21 @@ def test_the_newcomers_path_is_never_silent_for_more_than_2_s_on_a_pipe(tmp_path
     assert max(worst.values()) <= 2.0, worst
 
 
-@pytest.mark.parametrize("argv", [["simulate", "--out", "{tmp}/sim", "--no-identify"], ["identify", "--example", "null"],
-                                  ["report", "{log}", "--out", "{tmp}/rep"], ["replay", "{log}"]])
-def test_quiet_silences_stderr_of_every_computing_command(tmp_path, argv):
-    """The user guide says --quiet silences every bar, note and heartbeat: simulate, identify, report and replay had
-    no --quiet at all (a usage error).  With it, stderr is empty on a real file; the results still reach stdout."""
-    log = tmp_path / "r.mcap"
+@pytest.fixture(scope="module")
+def small_log(tmp_path_factory):
+    log = tmp_path_factory.mktemp("quiet") / "r.mcap"
     res = CliRunner().invoke(main, ["run", str(SMALL), "--trials", "16", "--block", "8", "--attribution-trials", "0",
                                     "--log", str(log), "--quiet"])
     assert res.exit_code == 0, res.output
+    return log
+
+
+@pytest.mark.parametrize("argv", [["simulate", "--out", "{tmp}/sim", "--no-identify"], ["identify", "--example", "null"],
+                                  ["report", "{log}", "--out", "{tmp}/rep"], ["replay", "{log}"]])
+def test_quiet_silences_stderr_of_every_computing_command(tmp_path, argv, small_log):
+    """The user guide says --quiet silences every bar, note and heartbeat: simulate, identify, report and replay had
+    no --quiet at all (a usage error).  With it, stderr is empty on a real file; the results still reach stdout."""
+    log = small_log
     args = [a.format(tmp=tmp_path, log=log) for a in argv] + ["--quiet"]
     with open(tmp_path / "err.txt", "wb") as err, open(tmp_path / "out.txt", "wb") as out:
         rc = subprocess.run([sys.executable, "-m", "mtbudget", *args], stderr=err, stdout=out, cwd=tmp_path).returncode
