@@ -161,7 +161,11 @@ def measurand_text(res) -> str:
     """The measurand of this run in one sentence: which tool offset, and what the verification leaves unidentified
     there ([measurand] tool; docs/measurand.md), and from which stations ([[stations]])."""
     spec = res.spec or {}
-    text = measurand_at_tool(spec.get("measurand")) + _stations_clause(spec) + _scales_clause(spec)
+    return in_frame(measurand_at_tool(spec.get("measurand")) + _stations_clause(spec) + _scales_clause(spec), res)
+
+
+def in_frame(text: str, res) -> str:
+    """A measurand sentence with the frame of this run's components: a turning table's (five-axis) where it is one."""
     return text.replace("per machine axis (x, y, z)", TABLE_FRAME) if table_frame(res) else text
 
 

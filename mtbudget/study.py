@@ -762,7 +762,7 @@ def stations_comparison(config, trials: int = 256, attribution_trials: int = 64,
     side (issue 20; the paper's Section 2.2.3 leaves it open): each variant of :func:`station_variants` is one
     Monte Carlo run of the engine (same seed), with its budget when ``attribution_trials`` > 0.  Per point and axis:
     u (k = 1) of each variant and their ratio; per variant the volume summaries and the budget by group."""
-    from .report import TABLE_FRAME, measurand_at_tool, points_summary, table_frame
+    from .report import in_frame, measurand_at_tool, points_summary
     from .runner import run
 
     variants = []
@@ -785,9 +785,7 @@ def stations_comparison(config, trials: int = 256, attribution_trials: int = 64,
                          "budget_groups": pb.get("groups"), "budget_rows": pb.get("rows"),
                          "interaction_share": pb.get("interaction_share")})
     one, many = variants[0]["u"], variants[-1]["u"]
-    text = measurand_at_tool(res.spec.get("measurand"))
-    if table_frame(res):  # five-axis with a rotary table: the components are the table's (docs/measurand.md)
-        text = text.replace("per machine axis (x, y, z)", TABLE_FRAME)
+    text = in_frame(measurand_at_tool(res.spec.get("measurand")), res)  # five-axis: the table's frame (measurand.md)
     return {"measurand": text + "; u is the standard uncertainty (k = 1) from the Monte Carlo",
             "unit": "um", "commanded": [p["nominal"]["value"] for p in pts], "variants": variants,
             **({"angles": [p["angles"] for p in pts]} if pts and "angles" in pts[0] else {}),
