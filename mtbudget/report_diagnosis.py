@@ -80,6 +80,8 @@ def diagnosis_text(d) -> str:
         out.append(f"  final: chi-square per dof {d.final['chi2_per_dof']:.3f}, RMS {_rms(d.final)}")
         if unexplained is None:
             out.append(f"  the final model explains the recording within its {which} uncertainty")
+    for e in getattr(d, "directions", None) or []:
+        out.append(f"  APPROACH DIRECTION ({e['accounted']}): {e['sentence'].replace(' um ', ' ' + pretty('um') + ' ')}")
     if unexplained is not None:
         out += _unexplained_text(unexplained)
     out += _scan_text(getattr(d, "scan", None) or [])
