@@ -649,7 +649,7 @@ def _diagnose(rec, candidates, alpha, max_set, confound_margin, max_degree, gate
             where_base=lambda: locate(ctx, base.residual_machine[0], base.whitened[0]),
             base_quality=lambda: _quality(base))
     directions = _direction_accounts(
-        mismatch, sel, findings, skipped, untestable, unexplained, alpha, level,
+        ctx.plan, mismatch, sel, findings, skipped, untestable, unexplained, alpha, level,
         after=lambda: locate(ctx, res.residual_machine[0], res.whitened[0]) if findings else None)
     return Diagnosis(rec.name, _quality(base), mismatch, findings, final, skipped, untestable, considered,
                      _settings(rec, candidates, alpha, level, max_set, confound_margin, gate_alpha,
@@ -1065,7 +1065,7 @@ def _diagnose_stations(rec, candidates, alpha, max_set, confound_margin, max_deg
                                      "station's frame, and all stations are identified again"),
                      residuals_before=L.residual_machine, residuals_after=res_after,
                      noise=est, unexplained=unexplained, stand_ins=stand_ins,
-                     directions=_direction_accounts(mismatch, sel, findings, skipped, untestable, unexplained, alpha,
+                     directions=_direction_accounts(ctx.plan, mismatch, sel, findings, skipped, untestable, unexplained, alpha,
                                                     level, after=lambda: where_now() if findings else None))
 
 
@@ -1223,7 +1223,7 @@ def _label(c) -> str:
     return c.effect + (f"[{c.axis}]" if c.axis else "")
 
 
-def _direction_accounts(mismatch, sel, findings, skipped, untestable, unexplained, alpha, level, after) -> list:
+def _direction_accounts(plan, mismatch, sel, findings, skipped, untestable, unexplained, alpha, level, after) -> list:
     """What accounts for each approach-direction difference the mismatch summary reports: the finding
     ``reversal[axis]``; a finding declared confounded with it (both explain the same residuals: the plan cannot tell
     them apart); the findings, given which ``reversal[axis]`` adds nothing (its partial F-test not significant at
@@ -1286,15 +1286,29 @@ def _direction_accounts(mismatch, sel, findings, skipped, untestable, unexplaine
                                                        f"{aft['difference']:+.1f} um ({aft['z']:.1f} sigma)" if aft else ""))
         else:
             r = entry["reversal"]
-            why = (f"not significant at the selection's Bonferroni level {level:.2g}" if r["p_given_findings"] >= level
-                   else "significant, but not chosen by selection (BIC, significance given the others, plausibility)")
+            if r["p_given_findings"] >= level:
+                why = f"not significant at the selection's Bonferroni level {level:.2g}"
+            elif r["p_alone"] >= level:
+                why = (f"significant at the selection's level {level:.2g} given them but not alone (p = "
+                       f"{r['p_alone']:.2g}): selection combines only candidates significant alone")
+            else:
+                why = "significant, but not chosen by selection (BIC, significance given the others, plausibility)"
             entry.update(accounted="not explained", by=labels,
                          sentence=f"{head}: NOT ACCOUNTED FOR: reversal[{a}] "
                                   + (f"given the findings ({', '.join(labels)}) " if labels else "alone ")
-                                  + f"has p = {r['p_given_findings']:.2g}, {why}, so no reversal is named; "
-                                    + SEPARATE["direction"])
+                                  + f"has p = {r['p_given_findings']:.2g}, {why}, so no reversal is named. "
+                                  + (SEPARATE["direction"] if not _both_sides_within_runs(plan, a)
+                                     else "The plan approaches both sides within each run: more points, or "
+                                          "repeated runs, would show a reversal of this size"))
         out.append(entry)
     return out
+
+
+def _both_sides_within_runs(plan, axis) -> bool:
+    """Whether every run of the plan approaches ``axis`` from both sides at a quarter of its points at least (then a
+    reversal is not a change between runs, and approaching both sides is no advice)."""
+    d = plan.direction[:, AXIS_INDEX[axis]]
+    return all(min((d[plan.run == r] > 0).mean(), (d[plan.run == r] < 0).mean()) >= 0.25 for r in np.unique(plan.run))
 
 
 def _explains_alike(sel, i, j, rest, level, alpha) -> dict | None:
