@@ -1242,7 +1242,8 @@ def _direction_accounts(plan, mismatch, sel, findings, skipped, untestable, unex
                  "unit": mismatch.get("unit", "um")}
         head = f"the {a} residuals differ by {v['difference']:+.1f} um between + and - approaches ({v['z']:.1f} sigma)"
         if a in after_dirs:
-            entry["after"] = {"difference": float(after_dirs[a]["difference"]), "z": float(after_dirs[a]["z"])}
+            entry["after"] = {"difference": float(after_dirs[a]["difference"]), "z": float(after_dirs[a]["z"]),
+                              "unit": entry["unit"]}
         rev = next((i for i, u in enumerate(usable) if u[0].effect == "reversal" and u[0].axis == a
                     and i not in sel.exclude), None)
         named = [f for f in findings if f.candidate.effect == "reversal" and f.candidate.axis == a]

@@ -26,7 +26,7 @@ import physics_generator as pg
 from mtbudget.config import load_config
 from mtbudget.diagnose import DIRECTION_Z, diagnose
 from mtbudget.recording import read_recording, write_recording
-from mtbudget.report_diagnosis import diagnosis_text
+from mtbudget.report_diagnosis import diagnosis_report, diagnosis_text
 from mtbudget.scenario import build_scenario
 from mtbudget.simulate import simulate_recording, stream
 from mtbudget.testing import named_or_confounded, wrong_named
@@ -138,6 +138,8 @@ def test_a_diagnosis_is_checked_against_the_drawn_truth(tmp_path):
     x = next(e for e in d.directions if e["axis"] == "x")
     assert x["accounted"] in ("named", "confounded") and "reversal[x]" in x["by"]
     _every_reported_direction_is_accounted_for(d)
+    md = diagnosis_report(d, read_recording(tmp_path / "base"), tmp_path / "report").read_text()
+    assert "### Approach directions" in md and f"| x | {x['difference']:+.2f} µm" in md
 
 
 # --------------------------------------------------------------------- confounded by the plan, or separated
