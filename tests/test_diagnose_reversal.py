@@ -106,12 +106,18 @@ def test_truth_gives_the_values_drawn_in_the_trial(tmp_path):
     rng = stream(seed, 0, by["cte_uncertainty"])
     dcte = [rng.uniform(-1.0, 1.0, (64, 1))[trial, 0] for _ in "xyz"]  # width max(10 % of 11.5, 2) um/(m*K)
     pos = stream(seed, 0, by["registration"]).normal(0.0, 0.5, (64, 3))[trial]  # mm
+    dT = stream(seed, 0, by["temperature_sensor_calibration"]).normal(0.0, 0.1 / 2, (3, 64, 1))[:, trial, 0]  # K
+    end = stream(seed, 0, by["environmental_variation"]).uniform(-1e-3, 1e-3, (64, 1, 3))[trial, 0] * 1e3  # um
+    hours = (sc.plan.time[-1] - sc.plan.time[0]) / 3600
+    assert drawn["environmental_variation"]["velocity"]["value"] == pytest.approx(end / hours, rel=1e-9)
+    assert named["tracker_drift"]["value"] == pytest.approx(end / hours, rel=1e-9)
     for k, a in enumerate("xyz"):
         assert drawn["backlash"][f"B_{a}"]["value"] == pytest.approx(u[k], rel=1e-9)
         assert drawn["backlash"][f"B_{a}"]["unit"] == "um" and "B/2 short" in drawn["backlash"][f"B_{a}"]["meaning"]
         assert drawn["temperature_drift"][f"rate_{a}"]["value"] == pytest.approx(rate[k], rel=1e-9)
         assert drawn["temperature_drift"][f"scale_rate_{a}"]["value"] == pytest.approx(rate[k] * 11.5, rel=1e-9)
         assert drawn["cte_uncertainty"][f"cte_deviation_{a}"]["value"] == pytest.approx(dcte[k], rel=1e-9)
+        assert drawn["temperature_sensor_calibration"][f"sensor_error_{a}"]["value"] == pytest.approx(dT[k], rel=1e-9)
         assert named[f"thermal_expansion[{a}]"]["value"] == pytest.approx(dcte[k], rel=1e-9)
         assert named[f"scale_following_time[{a}]"]["unit"] == "um/(m*h)"
     assert drawn["registration"]["position_offset"]["value"] == pytest.approx(pos, rel=1e-9)
