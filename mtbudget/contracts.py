@@ -240,6 +240,13 @@ class Source:
         """The source's characteristic standard uncertainty u(x_i) for the GUM-style budget, if it has one."""
         return None
 
+    # Optional: ``drawn(self, sample, context) -> dict``: what this source drew in one trial, for the truth.json of a
+    # simulated recording (mtbudget.simulate.truth_dict).  ``sample`` holds the source's own arrays of that trial
+    # ({target key: float array of the target's shape, internal unit}, what sample_internal gave without the trial
+    # axis); the answer maps a name to {"value": float or list, "unit": display unit, "meaning": one sentence}, and
+    # "effect": the diagnosis candidate's label ("reversal[x]", "tracker_drift") where the draw is a physical effect
+    # a diagnosis can name in the candidate's own parameter and unit, so a diagnosis can be checked against it.
+
 
 _SAMPLE, _SAMPLE_INTERNAL = Source.sample, Source.sample_internal
 

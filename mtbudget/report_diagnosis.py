@@ -80,6 +80,8 @@ def diagnosis_text(d) -> str:
         out.append(f"  final: chi-square per dof {d.final['chi2_per_dof']:.3f}, RMS {_rms(d.final)}")
         if unexplained is None:
             out.append(f"  the final model explains the recording within its {which} uncertainty")
+    for e in getattr(d, "directions", None) or []:
+        out.append(f"  APPROACH DIRECTION ({e['accounted']}): {e['sentence'].replace(' um ', ' ' + pretty('um') + ' ')}")
     if unexplained is not None:
         out += _unexplained_text(unexplained)
     out += _scan_text(getattr(d, "scan", None) or [])
@@ -660,6 +662,13 @@ def diagnosis_report(d, rec, folder) -> Path:
     else:
         doc.p(f"No effect of the library is significant and plausible ({len(d.considered)} candidates tested at a "
               f"family-wise level of {d.settings['alpha']:g}).")
+    if getattr(d, "directions", None):
+        doc.h(3, "Approach directions")
+        doc.p("Every difference between the + and - approaches the mismatch summary reports (beyond 3 standard "
+              "errors) and what accounts for it.")
+        doc.table(["axis", "difference (baseline)", "accounted", "what accounts for it"],
+                  [[e["axis"], f"{e['difference']:+.2f} {pretty(e.get('unit', 'um'))} ({e['z']:.1f} σ)", e["accounted"],
+                    (U(e["sentence"].split(": ", 1)[-1]),)] for e in d.directions])
     _noise_section(doc, getattr(d, "noise", None) or {})
     if getattr(d, "unexplained", None) is not None:
         _unexplained_section(doc, d.unexplained)

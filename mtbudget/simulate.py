@@ -260,21 +260,26 @@ def _as_internal(src: Source, raw, n: int, shapes: dict) -> dict | None:
 
 
 def simulate_block(scenario: Scenario, block: int, n: int, seed: int, active: list | None = None,
-                   shapes: dict | None = None, options: dict | None = None):
+                   shapes: dict | None = None, options: dict | None = None, keep_draws: bool = False):
     """The simulated measurements of one block of ``n`` trials.
 
     Returns (measured tracker points (n, M, 3), true parameters (n, p),
     strategy choices [(source, option index per trial)]) for the ``active``
     sources (default: all the scenario's sources).  options: see :func:`sample_source`.
+    keep_draws: keep each source's own arrays in ``draws`` [(source, {target: (n, ...) array})] (what
+    :func:`truth_dict` asks the sources' ``drawn`` about); off in the engine (the arrays die with the block).
     """
     active = scenario.sources if active is None else active
     shapes = shapes or target_shapes(scenario)
     targets: dict = {}
     summed = set()  # targets whose array is a sum made here (added to in place; a source's own array never is)
     choices = []
+    draws = [] if keep_draws else None
     invoke = caller()
     for src, rng in zip(active, streams(seed, block, active)):
         arr = sample_source(scenario, src, n, rng, shapes, options, invoke)
+        if draws is not None:  # a source's own arrays are never added to in place (below)
+            draws.append((src, arr))
         for k, v in arr.items():
             if k == "strategy":
                 choices.append((src, v.astype(int)))
@@ -299,6 +304,7 @@ def simulate_block(scenario: Scenario, block: int, n: int, seed: int, active: li
     out.measurand_offset = None if offset is None else np.broadcast_to(offset, (n, len(scenario.plan), 3))
     out.ranges = ranges
     out.pose_offset = _read_only(pert["pose"], (n, 6)) if "pose" in pert else None
+    out.draws = draws
     return out
 
 
@@ -349,6 +355,7 @@ class SimulatedBlock(tuple):
     measurand_offset = None
     ranges = None  # (n, M) mm: the ranges of the range stations of [[stations]] (NaN on xyz rows); None without
     pose_offset = None  # (n, 6): what the sources drew on the tracker pose (every station moves by it); None without
+    draws = None  # [(source, its arrays)] with simulate_block(keep_draws=True)
 
 
 def simulate_recording(scenario: Scenario, seed: int | None = None, trial: int = 0, block: int = 64):
@@ -356,7 +363,7 @@ def simulate_recording(scenario: Scenario, seed: int | None = None, trial: int =
     cfg = scenario.config
     seed = cfg.seed if seed is None else int(seed)
     b, i = divmod(int(trial), int(block))
-    sim = simulate_block(scenario, b, block, seed)
+    sim = simulate_block(scenario, b, block, seed, keep_draws=True)
     noise = scenario.noise
     several = {}
     if scenario.stations:  # format 2: the station of every row, each station's stated uncertainties, the ranges
@@ -370,14 +377,63 @@ def simulate_recording(scenario: Scenario, seed: int | None = None, trial: int =
         reference_temperature=cfg.reference_temperature,
         description=cfg.description or f"simulated by mtbudget (seed {seed}, trial {trial})", **several,
     )
-    return rec, truth_dict(scenario, seed, trial, None if sim.pose_offset is None else sim.pose_offset[i], sim[1][i])
+    drawn = [(src, {k: v[i] for k, v in arr.items() if k != "strategy"}) for src, arr in sim.draws]
+    return rec, truth_dict(scenario, seed, trial, None if sim.pose_offset is None else sim.pose_offset[i], sim[1][i],
+                           drawn)
+
+
+def _finite(x):
+    """A float, or None where nothing drawn shows (NaN: JSON has no NaN)."""
+    x = float(x)
+    return x if np.isfinite(x) else None
+
+
+def _add(a, b):
+    return None if a is None or b is None else a + b
+
+
+def drawn_dict(scenario: Scenario, draws) -> tuple[dict, dict]:
+    """(``drawn``, ``diagnosable``) of truth.json from each source's arrays of one trial [(source, {target: array})]:
+    what every source with a ``drawn`` method says it drew, and the sum per diagnosis candidate of the draws that
+    are a physical effect a diagnosis can name (``effect``), with the sources it comes from."""
+    drawn, named = {}, {}
+    for src, arr in draws:
+        if not callable(getattr(src, "drawn", None)):
+            continue
+        got = call(src, "drawn", arr, scenario.context) or {}
+        if not isinstance(got, dict):
+            raise PluginError("drawn must return a dict {name: {value, unit, meaning}}", src.plugin, src.name,
+                              "mtbudget_register_sources", "drawn")
+        out = {}
+        for name, e in got.items():
+            if not isinstance(e, dict) or not {"value", "unit", "meaning"} <= set(e):
+                raise PluginError(f"drawn[{name!r}] must be a dict with value, unit and meaning", src.plugin,
+                                  src.name, "mtbudget_register_sources", "drawn")
+            v = e["value"]
+            v = [_finite(x) for x in v] if isinstance(v, (list, tuple, np.ndarray)) else _finite(v)
+            out[name] = {"value": v, "unit": str(e["unit"]), "meaning": str(e["meaning"]),
+                         **({"effect": e["effect"]} if e.get("effect") else {})}
+            label = e.get("effect")
+            if label:
+                acc = named.setdefault(label, {"value": 0.0 if not isinstance(v, list) else [0.0] * len(v),
+                                               "unit": out[name]["unit"], "sources": []})
+                if acc["unit"] != out[name]["unit"]:
+                    raise PluginError(f"drawn[{name!r}]: {label} is in {acc['unit']} elsewhere, not "
+                                      f"{out[name]['unit']}", src.plugin, src.name, "mtbudget_register_sources", "drawn")
+                acc["value"] = ([_add(a, b) for a, b in zip(acc["value"], v)] if isinstance(v, list) else
+                                _add(acc["value"], v))
+                acc["sources"].append(f"{src.name}.{name}")
+        drawn[src.name] = out
+    return drawn, named
 
 
 def truth_dict(scenario: Scenario, seed: int, trial: int, pose_offset: np.ndarray | None = None,
-               theta: np.ndarray | None = None) -> dict:
+               theta: np.ndarray | None = None, draws: list | None = None) -> dict:
     """What a simulated recording holds, in display units (the ``truth.json`` beside it).  ``theta``: the geometric
     errors of the machine the trial measured (the configuration's machine plus what ``geometric_error_uncertainty``
-    drew; default the configuration's): what ``compensate --check`` and a comparison with the identification need."""
+    drew; default the configuration's): what ``compensate --check`` and a comparison with the identification need.
+    ``draws``: each source's arrays of this trial [(source, {target: array})], for ``drawn`` and ``diagnosable``
+    (:func:`drawn_dict`)."""
     model = scenario.truth
     coefs, sq = model.errors.coefficients(scenario.theta if theta is None else np.asarray(theta, float))
     rotary = {k: sq.pop(k) for k in list(sq) if k[3:4] in ("a", "b", "c") and "(" in k}  # five-axis: the rotary axes' terms, by name
@@ -392,6 +448,7 @@ def truth_dict(scenario: Scenario, seed: int, trial: int, pose_offset: np.ndarra
 
     drift = fixed("tracker_drift", "v_{}", "um/h")
     dpose = np.zeros(6) if pose_offset is None else np.asarray(pose_offset, float)  # where the trial put the stations
+    drawn, diagnosable = drawn_dict(scenario, draws) if draws is not None else ({}, {})
     return {
         "conventions": {
             "thermal": "axis -> CTE in um/(m K): the axis scale reads the nominal position p but moves to p * (1 + CTE * (T_axis - 20 degC)), about the axis zero"
@@ -402,10 +459,15 @@ def truth_dict(scenario: Scenario, seed: int, trial: int, pose_offset: np.ndarra
             "geometric_errors": "the machine this trial measured: the configuration's geometric errors plus what the "
                                 "geometric_error_uncertainty source drew in this trial (the per-verification variation "
                                 "of every coefficient, paper Eq. 18-20), as the Monte Carlo's measurand takes it",
+            "effects": "the simulated physics the configuration enables (the opt-in sources thermal_expansion, reversal, tracker_drift), as configured; what the default sources drew in this trial is in 'drawn' and 'diagnosable'",
+            "drawn": "source -> what it drew in this trial: name -> value in unit, with its meaning (the sources that say so; 'effect' names the diagnosis candidate it is)",
+            "diagnosable": "diagnosis candidate label (reversal[x], thermal_expansion[x], tracker_drift, scale_following_time[x]: the x scale following time, thermal_expansion's declared alternative outside the library) -> the sum of what the sources drew of it in this trial, in the candidate's unit, and the sources; an effect a diagnosis can see only where the plan makes it visible and it exceeds the noise",
             "tracker_pose": "D, L, H in mm and Euler angles a, b, d in rad of the tracker frame in the machine frame (the paper's Eq. 21-22), as simulated (the configured pose plus what the registration source drew in this trial); with several stations, the first's",
             "stations": "with several stations, as simulated: each xyz station's pose as tracker_pose, each range station's position (mm, machine frame) and dead path (mm); the registration source moves every station by the same drawn offset",
         },
         "simulation": {"seed": int(seed), "trial": int(trial)},
+        "drawn": drawn,
+        "diagnosable": diagnosable,
         "effects": {
             "thermal": fixed("thermal_expansion", "cte_{}", "um/(m*K)"),
             "reversal": fixed("reversal", "B_{}", "um"),

@@ -53,6 +53,16 @@ def _axis_ctes(src, ctx) -> dict:
     return {a: scales[a].cte if a in scales else default for a in AXES}
 
 
+def _at(values, weights) -> float:
+    """The scalar ``s`` of ``values = s * weights`` (a source's per-point array of one trial, a known per-point factor):
+    least squares over the points where the factor is not zero; NaN where it is zero everywhere (nothing drawn shows)."""
+    values, weights = np.asarray(values, float).ravel(), np.broadcast_to(np.asarray(weights, float), np.shape(values)).ravel()
+    m = weights != 0
+    if not m.any():
+        return math.nan
+    return float(values[m] @ weights[m] / (weights[m] @ weights[m]))
+
+
 class TemperatureSensorCalibration(Source):
     """Each axis sensor reads with a calibration offset (Eq. 3: u_device = u_calibration / k).
 
@@ -84,6 +94,14 @@ class TemperatureSensorCalibration(Source):
         out = np.empty((3, n, ctx.n_points))
         np.multiply(cte, dT, out=out)
         return {"axis_scale.x": out[0], "axis_scale.y": out[1], "axis_scale.z": out[2]}
+
+    def drawn(self, sample, ctx):
+        cte = _axis_ctes(self, ctx)
+        return {f"sensor_error_{a}": {
+            "value": _at(sample[f"axis_scale.{a}"], cte[a]), "unit": "K",
+            "meaning": f"the true {a}-axis temperature minus what its sensor reads (its calibration error): the {a} "
+                       "scale is off by CTE times it for the whole test, a constant scale error the identified "
+                       "positioning error takes"} for a in AXES}
 
 
 class CTEUncertainty(Source):
@@ -128,6 +146,15 @@ class CTEUncertainty(Source):
         np.multiply(dalpha, dT, out=out)
         return {"axis_scale.x": out[0], "axis_scale.y": out[1], "axis_scale.z": out[2]}
 
+    def drawn(self, sample, ctx):
+        T = _axis_temperatures(ctx)
+        return {f"cte_deviation_{a}": {
+            "value": _at(sample[f"axis_scale.{a}"], T[a] - ctx.reference_temperature) * 1e6, "unit": "um/(m*K)",
+            "meaning": f"the true CTE of the {a} scale minus the nominal one the correction uses: the scale moves by "
+                       f"it times (T_{a} - T_ref) beyond the correction, following its sensor (null: the axis "
+                       "temperature never leaves the reference, nothing of it shows)",
+            "effect": f"thermal_expansion[{a}]"} for a in AXES}
+
 
 class EnvironmentalVariation(Source):
     """ISO/TR 230-9 environmental variation error E_VE (Eq. 14: u = E_VE / (2 sqrt 3)).
@@ -159,6 +186,14 @@ class EnvironmentalVariation(Source):
         for c in range(3):
             np.multiply(end[:, :, c], frac, out=out[:, :, c])
         return {"point_offset": out}
+
+    def drawn(self, sample, ctx):
+        t = ctx.plan.time
+        v = [_at(sample["point_offset"][:, c], t) * 3600.0 * 1e3 for c in range(3)]
+        return {"velocity": {"value": v, "unit": "um/h",
+                             "meaning": "the measured points drift steadily in the machine frame (x, y, z) from the "
+                                        "start of the test: E_VE's share of the environment",
+                             "effect": "tracker_drift"}}
 
 
 class TemperatureDrift(Source):
@@ -192,6 +227,22 @@ class TemperatureDrift(Source):
         np.multiply(cte * rng.normal(0.0, rate, (3, n, 1)), t, out=out)  # the numbers of three (n, 1) draws in turn
         return {"axis_scale.x": out[0], "axis_scale.y": out[1], "axis_scale.z": out[2]}
 
+    def drawn(self, sample, ctx):
+        cte = _axis_ctes(self, ctx)
+        out = {}
+        for a in AXES:
+            scale = _at(sample[f"axis_scale.{a}"], ctx.plan.time)  # 1/s
+            out[f"rate_{a}"] = {"value": scale / cte[a] * 3600.0 if cte[a] else math.nan, "unit": "K/h",
+                                "meaning": f"the rate at which the true {a}-axis temperature drifts away from what "
+                                           "its sensor reads (the sensor does not see it)"}
+            out[f"scale_rate_{a}"] = {
+                "value": scale * 3600.0 * 1e6, "unit": "um/(m*h)",
+                "meaning": f"the {a} scale changing with time by CTE times that rate, about the axis zero: what "
+                           f"thermal_expansion[{a}] declares as its alternative outside the library, the {a} scale "
+                           "following time (p (t - t0) along the axis)",
+                "effect": f"scale_following_time[{a}]"}
+        return out
+
 
 class Backlash(Source):
     """Reversal (backlash) of each axis, rectangular in [0, B_max] (Eq. 15-17): the axis stops B/2 short."""
@@ -220,6 +271,12 @@ class Backlash(Source):
         if not halved:
             out /= 2
         return {"axis_offset.x": out[0], "axis_offset.y": out[1], "axis_offset.z": out[2]}
+
+    def drawn(self, sample, ctx):
+        return {f"B_{a}": {"value": _at(sample[f"axis_offset.{a}"], -ctx.plan.direction[:, i] / 2) * 1e3, "unit": "um",
+                           "meaning": f"the lost motion of the {a} axis: approaching from either side it stops B/2 "
+                                      "short of the target (null: the axis is never approached)",
+                           "effect": f"reversal[{a}]"} for i, a in enumerate(AXES)}
 
 
 class _PerPointNormal(Source):
@@ -341,6 +398,12 @@ class ThermalExpansionEffect(Source):
         rows = self.remembered(_key(self, ctx), lambda: self._prepare(ctx))
         return {k: np.tile(v, (n, 1)) for k, v in rows.items()}
 
+    def drawn(self, sample, ctx):
+        return {f"cte_{a}": {"value": self.value(f"cte_{a}", "1/K") * 1e6, "unit": "um/(m*K)",
+                             "meaning": f"the {a} scale moves to p (1 + CTE (T_{a} - T_ref)) about the axis zero "
+                                        "(fixed: simulated physics)", "effect": f"thermal_expansion[{a}]"}
+                for a in AXES if self.value(f"cte_{a}", "1/K")}
+
 
 class ReversalEffect(Source):
     """Simulated reversal (lost motion) B of each axis: approaching from either side it stops B/2 short."""
@@ -363,6 +426,12 @@ class ReversalEffect(Source):
     def sample_internal(self, n, rng, ctx):
         rows = self.remembered(_key(self, ctx), lambda: self._prepare(ctx))
         return {k: np.tile(v, (n, 1)) for k, v in rows.items()}
+
+    def drawn(self, sample, ctx):
+        return {f"B_{a}": {"value": self.value(f"B_{a}", "um"), "unit": "um",
+                           "meaning": f"the lost motion of the {a} axis: from either side it stops B/2 short (fixed: "
+                                      "simulated physics)", "effect": f"reversal[{a}]"}
+                for a in AXES if self.value(f"B_{a}", "um")}
 
 
 #: a pair of axes -> (index of each, index of the third axis, along which their coupling acts): ``xy`` is a z error

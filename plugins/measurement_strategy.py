@@ -31,6 +31,13 @@ class Registration(Source):
         return {"pose.position": rng.normal(0.0, self.value("u_position", "mm"), (n, 3)),
                 "pose.orientation": rng.normal(0.0, self.value("u_orientation", "rad"), (n, 3))}
 
+    def drawn(self, sample, ctx):
+        return {"position_offset": {"value": [float(v) for v in sample["pose.position"]], "unit": "mm",
+                                    "meaning": "what the registration drew on the tracker's position D, L, H (the "
+                                               "identification estimates the pose anew: no diagnosis names it)"},
+                "orientation_offset": {"value": [float(v) * 1e6 for v in sample["pose.orientation"]], "unit": "urad",
+                                       "meaning": "what the registration drew on the tracker's Euler angles a, b, d"}}
+
 
 @hookimpl
 def mtbudget_register_sources(register):

@@ -138,6 +138,11 @@ class TrackerDriftEffect(Source):
         v = np.array([self.value(f"v_{a}", "mm/s") for a in "xyz"])
         return {"point_offset": np.tile(ctx.plan.time[:, None] * v[None, :], (n, 1, 1))}
 
+    def drawn(self, sample, ctx):
+        return {"velocity": {"value": [self.value(f"v_{a}", "um/h") for a in "xyz"], "unit": "um/h",
+                             "meaning": "the measured points move at this velocity in the machine frame from the start "
+                                        "(fixed: simulated physics)", "effect": "tracker_drift"}}
+
 
 class TrackerRangeOffsetEffect(Source):
     """Simulated zero error of the tracker's distance meter: every range reads ``offset`` long."""
