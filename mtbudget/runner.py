@@ -95,12 +95,18 @@ class RunSettings:
         need(self.adaptive_batch is None or self.adaptive_batch >= 2, "--adaptive-batch",
              f"must be >= 2, got {self.adaptive_batch}")
         need(self.max_trials >= 2, "max_trials", f"must be >= 2, got {self.max_trials}")
-        if self.trials is None:  # adaptive: the rule compares batches, so it always runs two
-            batch = self.adaptive_batch_trials()
-            need(self.max_trials >= 2 * batch, "--max-trials",
-                 f"must be at least two adaptive batches ({2 * batch} trials: two of {batch}, JCGM 101 7.9 compares "
-                 f"batches), got {self.max_trials}; raise it or make the batches smaller (--adaptive-batch)")
         need(1 <= self.ndig <= 4, "ndig", f"must be 1 to 4 significant digits, got {self.ndig}")
+        return self
+
+    def check_limit(self, block: int) -> "RunSettings":
+        """An adaptive run's limit holds the two batches its rule always runs (batches of whole blocks of
+        ``block`` trials, the engine's); the error names the option."""
+        if self.trials is None:
+            batch = self.adaptive_batch_trials(block)
+            if self.max_trials < 2 * batch:
+                raise ConfigError(f"must be at least two adaptive batches ({2 * batch} trials: two of {batch}, JCGM "
+                                  f"101 7.9 compares batches), got {self.max_trials}; raise it or make the batches "
+                                  "smaller (--adaptive-batch)", key="--max-trials")
         return self
 
 
@@ -220,6 +226,7 @@ def _run(config, settings, *, on_chunk, resume_blocks, engine, host, resume_hist
         scenario = config if isinstance(config, Scenario) else build_scenario(
             config if isinstance(config, SimulationConfig) else load_config(config), host, settings.sources)
         engine = Engine(scenario, block=settings.block, seed=settings.seed)
+    settings.check_limit(engine.block)
     scenario = engine.scenario
     spec = make_spec(scenario, engine, settings)
     trials = settings.trials
@@ -543,7 +550,7 @@ def _execute(config, settings, *, source, target, force, histogram_every) -> Run
         cfg = config if isinstance(config, SimulationConfig) else load_config(config)  # a bad config is said first
         _refuse_existing(target, force)
         config_text = cfg.text if cfg.text is not None else cfg.path.read_text() if cfg.path else json.dumps(cfg.source)
-    settings.validate()
+    settings.validate().check_limit(settings.block)  # before the log is opened
     # the chunk size the run uses, logged as such (not None for "automatic"): a resume reuses the same value; a log
     # from before this recorded null, and a resume of it applies the same rule again (chunk_blocks_for)
     scenario = build_scenario(cfg, sources=settings.sources)
