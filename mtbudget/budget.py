@@ -567,6 +567,7 @@ class Evidence:
     components: Callable
     max_interval: Callable
     refers_to: str
+    caveat: str | None = None  # why no verdict is supported whatever the figures say (an a posteriori fit that fails)
 
     @classmethod
     def of(cls, statement) -> "Evidence":
@@ -601,7 +602,16 @@ class Evidence:
                    max_interval=lambda: symmetric_interval(np.sort(post.figure("compensation_max")), p),
                    refers_to="the compensated machine as this recorded verification identified it, given the "
                              "recording's stated noise (only the physics the identified model holds; not the machine "
-                             "in use)")
+                             "in use)",
+                   caveat=_fit_caveat(post))
+
+
+def _fit_caveat(post) -> str | None:
+    """The fit test's warning when the residuals exceed the stated noise (the model leaves out physics the recording
+    shows: the statement does not contain it, so no verdict is supported); None otherwise (residuals below the noise
+    make u conservative, which a verdict can stand on)."""
+    t = (post.data.get("identification") or {}).get("fit_test") or {}
+    return t.get("warning") if t.get("warning") and t.get("p_above", 1.0) < t.get("alpha", 0.0) else None
 
 
 def _xyz(res: Evidence) -> str:
@@ -644,6 +654,10 @@ def conformance(res, tolerance_um: float, characteristic: str = "component") -> 
                 pp["statement"]
     out["refers_to"] = res.refers_to
     out["statement"] += f" The decision refers to {out['refers_to']}."
+    if res.caveat:  # the figures' verdict kept beside it; the statement's is undecided: nothing is proven
+        out["verdict_of_the_figures"], out["verdict"], out["supported"] = out["verdict"], "undecided", False
+        out["statement"] = (f"Undecided: no verdict is supported, because {res.caveat}. What the figures alone would "
+                            f"give: {out['statement']}")
     return out
 
 
@@ -761,7 +775,7 @@ def _conformance(res: Evidence, tolerance_um: float, characteristic: str) -> dic
     return {"characteristic": f"each error component ({_xyz(res)}) at each mesh point after compensation, each on its own",
             "scope": "per point",
             "rule": f"ISO 14253-1 guarded acceptance per point and axis: conformance proven where the {percent(p)} coverage "
-                    f"interval lies within [-T, T] (for a symmetric interval: |mean| <= T - U, U its half-width), "
+                    f"interval lies within [-T, T] (for a symmetric interval: |mean| <= T - h, h its half-width), "
                     f"non-conformance where it lies outside",
             "tolerance": T, "unit": "um", "coverage": p, "U_max": float(U.max()), "U_unit": "um",
             "conforming": int(inside.sum()), "nonconforming": int(outside.sum()),
@@ -769,5 +783,5 @@ def _conformance(res: Evidence, tolerance_um: float, characteristic: str) -> dic
             "verdict": "conforms" if inside.all() else "does not conform" if outside.any() else "undecided",
             "statement": (f"Tolerance ±{T:g} µm on each axis at each point, per point: conformance proven at {int(inside.sum())} of "
                           f"{n} point-axes, non-conformance at {int(outside.sum())}, undecided at "
-                          f"{int(n - inside.sum() - outside.sum())} (largest guard band U = {U.max():.1f} µm, "
+                          f"{int(n - inside.sum() - outside.sum())} (largest guard band, the half-width of the coverage interval, {U.max():.1f} µm, "
                           f"{percent(p)} coverage).")}

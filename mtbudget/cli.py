@@ -366,10 +366,15 @@ def posterior_cmd(recording, example, trials, seed, coverage, noise, max_degree,
         from .report_dcc import write_dcc
 
         paths = posterior_report(post, out, tol, characteristic)
-        dcc = write_dcc(post, Path(out) / "certificate.xml", tol, characteristic)
+        if (p.get("report") or {}).get("date"):
+            dcc = write_dcc(post, Path(out) / "certificate.xml", tol, characteristic)
+            said = f" and {dcc} (the DCC: PTB DCC 3.3.0 XML)"
+        else:  # a certificate's performance date is the measurement's: never the day of this evaluation
+            said = ("; certificate.xml is not written: recording.toml states no [report] date, the date of the "
+                    "measurement, which a certificate gives as its performance date")
+            click.echo(f"note: {said[2:]}", err=True)
         if not as_json:  # stdout stays one JSON object
-            click.echo(f"wrote {paths['markdown']}, {paths['html']}, {paths['json']} and {dcc} (the DCC: PTB DCC "
-                       "3.3.0 XML)")
+            click.echo(f"wrote {paths['markdown']}, {paths['html']}, {paths['json']}{said}")
 
 
 @main.command("compensate")

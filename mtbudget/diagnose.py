@@ -1278,7 +1278,8 @@ def _direction_accounts(plan, mismatch, sel, findings, skipped, untestable, unex
             entry.update(accounted="not explained", by=labels,
                          sentence=f"{head}: NOT ACCOUNTED FOR by a reversal (reversal[{a}]: {why})"
                                   + (f"; the findings {', '.join(labels)} were fitted" if labels else ""))
-        elif findings and entry["reversal"]["p_given_findings"] >= alpha:
+        elif findings and entry["reversal"]["p_given_findings"] >= alpha and not (
+                entry.get("after") and abs(entry["after"]["z"]) > DIRECTION_Z):
             aft = entry.get("after")
             entry.update(accounted="explained by the findings", by=labels,
                          sentence=f"{head}: explained by {', '.join(labels)}: reversal[{a}] adds nothing given "
@@ -1287,7 +1288,11 @@ def _direction_accounts(plan, mismatch, sel, findings, skipped, untestable, unex
                                                        f"{aft['difference']:+.1f} um ({aft['z']:.1f} sigma)" if aft else ""))
         else:
             r = entry["reversal"]
-            if r["p_given_findings"] >= level:
+            aft = entry.get("after")
+            if aft and abs(aft["z"]) > DIRECTION_Z and r["p_given_findings"] >= alpha:
+                why = (f"not significant given them, yet after them the difference is still {aft['difference']:+.1f} "
+                       f"um ({aft['z']:.1f} sigma): what leaves it is not in the library or not separable here")
+            elif r["p_given_findings"] >= level:
                 why = f"not significant at the selection's Bonferroni level {level:.2g}"
             elif r["p_alone"] >= level:
                 why = (f"significant at the selection's level {level:.2g} given them but not alone (p = "

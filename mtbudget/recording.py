@@ -337,6 +337,8 @@ def report_problem(data: dict) -> tuple | None:
             return k, "expected a non-empty string" + (' (a date as "2026-11-25", quoted)' if k == "date" else "")
     if "date" in data:
         try:
+            if not re.fullmatch(r"\d{4}-\d{2}-\d{2}", data["date"].strip()):  # xs:date's form, not ISO's others
+                raise ValueError(data["date"])
             datetime.date.fromisoformat(data["date"].strip())
         except ValueError:
             return "date", f"expected a date YYYY-MM-DD, got {data['date']!r:.40}"

@@ -871,6 +871,19 @@ def posterior_headline(post, tolerance_um: float | None = None, characteristic: 
         warning=((p.get("identification") or {}).get("fit_test") or {}).get("warning"))
 
 
+def _date_said(h: dict) -> str:
+    """The statement's date as the statement in brief gives it: stated, or what the date is when [report] states none
+    (a run: the date it was run, the only date an a priori evaluation has; a recording: not stated, since its date
+    is the measurement's, which the evaluation's date is not)."""
+    f = h["fields"]
+    if f.get("date_stated", True):
+        return md_escape(f["date"])
+    if h.get("kind") == "a posteriori":
+        return (f"not stated (the date of the measurement: [report] date in recording.toml); this evaluation ran on "
+                f"{md_escape(f['date'])}")
+    return md_escape(f["date"]) + " (the date this evaluation was run; [report] date not stated)"
+
+
 def coverage_factor(p: float) -> tuple:
     """(k, what it says) of an expanded uncertainty U = k u at the run's coverage probability p: k = 2 for the
     customary 95 % (about 95.45 % for a normal distribution), else the normal quantile of (1 + p) / 2 to two decimals
@@ -907,8 +920,7 @@ def headline_lines(h: dict) -> list:
     rows += [("decision", md_escape(h["decision"])), ("decision rule", md_escape(h["rule"])),
              ("laboratory", said("laboratory", "laboratory")), ("instrument", said("instrument", "instrument.model, serial, calibration")),
              ("machine", md_escape(h["fields"]["machine"])), ("customer", said("customer", "customer")),
-             ("operator", said("operator", "operator")), ("date", md_escape(h["fields"]["date"]) + ("" if h["fields"].get("date_stated", True) else
-                                                   " (the date this evaluation was run; [report] date not stated)")),
+             ("operator", said("operator", "operator")), ("date", _date_said(h)),
              ("traceability", said("traceability", "traceability")), ("certificate", said("certificate", "certificate"))]
     return ["## Statement in brief", "", "| | |", "| --- | --- |"] + [f"| {k} | {v} |" for k, v in rows] + [""]
 

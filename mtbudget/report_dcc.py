@@ -32,6 +32,7 @@ from pathlib import Path
 import numpy as np
 
 from . import __version__
+from .errors import ConfigError
 from .report import headline, table_frame
 
 DCC_NS = "https://ptb.de/dcc"
@@ -141,6 +142,10 @@ def posterior_dcc_tree(post, tolerance_um: float | None = None, characteristic: 
     from .report import posterior_headline
 
     h = posterior_headline(post, tolerance_um, characteristic)
+    if not h["fields"].get("date_stated"):  # its performance date is the measurement's, never this evaluation's
+        raise ConfigError(f"{post.data['statement_kind']['recording']}: recording.toml states no [report] date (the "
+                          "date of the measurement), which a certificate gives as its performance date; state it, "
+                          "e.g. [report] date = \"2026-11-20\"")
     p = post.data
     k = p["statement_kind"]
     ident = h["fields"].get("certificate") or (
@@ -224,7 +229,7 @@ def statement_tree(h: dict, pts: list | None, *, coverage: float, frame: bool, i
         for j, a in enumerate("xyz"):
             _quantity(data, f"largest expanded uncertainty U ({h['k_text']}) of the {a} error{fw} over the mesh",
                       label=f"U_max_{a}", value=round(k * float(u[:, j].max()), nd), unit=unit, nd=nd)
-            _quantity(data, f"RMS over the mesh of the expanded uncertainty U (k = {k:g}) of the {a} error{fw}",
+            _quantity(data, f"RMS over the mesh of the expanded uncertainty U ({h['k_text']}) of the {a} error{fw}",
                       label=f"U_rms_{a}", value=round(k * float(np.sqrt((u[:, j] ** 2).mean())), nd), unit=unit, nd=nd)
         per = _sub(results, _d("result"))
         mf = "machine_frame" in pts[0]
@@ -232,8 +237,9 @@ def statement_tree(h: dict, pts: list | None, *, coverage: float, frame: bool, i
                            f"uncertainty and {100 * p:g} % coverage interval (JCGM 101)" +
               (f"; x, y, z{fw}; X, Y, Z: the same error in the machine frame at the point's pose" +
                (f" ({100 * p:g} % coverage interval of every trial turned to it)" if "interval" in pts[0]["machine_frame"]
-                else f" (U = {k:g}u from its standard uncertainty, the covariance turned; the Monte Carlo gives it no "
-                     "coverage interval and no distribution is claimed)") if mf else
+                else f" (U = {k:g}u from its standard uncertainty, the covariance turned; its coverage probability is "
+                     f"the normal distribution's for k = {k:g}, assumed: the Monte Carlo gives no interval in this "
+                     "frame)") if mf else
                f"; x, y, z{fw}" if fw else ""))
         lst = _sub(_sub(per, _d("data")), _d("list"))
         for q in pts:
@@ -254,9 +260,10 @@ def statement_tree(h: dict, pts: list | None, *, coverage: float, frame: bool, i
                         _quantity(pl, f"{a} error (machine frame at this pose)", label=f"e_machine_{a}",
                                   value=m["mean"][j], unit=unit, nd=nd, u=m["u"][j],
                                   interval=(m["interval"]["low"][j], m["interval"]["high"][j]), p=p)
-                    else:  # a run: the mean and covariance turned, U = k u, no distribution claimed
-                        _quantity(pl, f"{a} error (machine frame at this pose)", label=f"e_machine_{a}",
-                                  value=m["mean"][j], unit=unit, nd=nd, U=k * m["u"][j], k=k, p=p, distribution=None)
+                    else:  # a run: the mean and covariance turned, U = k u at the normal's p for that k, said so
+                        _quantity(pl, f"{a} error (machine frame at this pose; U = {k:g}u, normal distribution "
+                                      "assumed)", label=f"e_machine_{a}", value=m["mean"][j], unit=unit, nd=nd,
+                                  U=k * m["u"][j], k=k, p=round(_normal_coverage(k), 4))
     else:
         r = _sub(results, _d("result"))
         _text(r, "name", "no per-point statement")
@@ -267,6 +274,13 @@ def statement_tree(h: dict, pts: list | None, *, coverage: float, frame: bool, i
         more(results)
     ET.indent(root, space=" ")
     return ET.ElementTree(root)
+
+
+def _normal_coverage(k: float) -> float:
+    """The coverage probability of +-k standard deviations of a normal distribution (k = 2: 0.9545)."""
+    from statistics import NormalDist
+
+    return 2.0 * NormalDist().cdf(float(k)) - 1.0
 
 
 def _features(results, res):

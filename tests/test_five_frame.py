@@ -242,15 +242,16 @@ def test_the_posterior_labels_every_point_with_its_angles_and_frame(tmp_path):
     # the statement in brief names the frame of its components, the machine frame beside it, as a run's does
     brief = md[md.index("## Statement in brief"):md.index("## Kind of statement")]
     assert "workpiece (table) frame" in brief and "machine\\_frame" in brief and "per machine axis" not in brief
+    post.data["report"] = {"date": "2026-11-20"}  # a certificate needs the measurement's date
     xml = write_dcc(post, tmp_path / "post" / "certificate.xml").read_text()
     assert "e_machine_Y" in xml and "workpiece (table) frame" in xml
 
 
-def test_U_and_the_decision_say_their_frame_and_the_machine_frame_claims_no_distribution(five_run):
+def test_U_and_the_decision_say_their_frame_and_the_machine_frame_says_its_assumption(five_run):
     """U_max is the largest of the table-frame components and says so, with the machine frame's largest U (from
     machine_frame's u, computed here) beside it; a decision names the frame it is decided in (a +-T box is not the
-    same box turned); the DCC's machine-frame values of a run carry U = k u and claim no distribution (the Monte Carlo
-    gave them no interval)."""
+    same box turned); the DCC's machine-frame values of a run carry U = k u with the normal's coverage for that k,
+    and say that it is assumed (the Monte Carlo gave them no interval in that frame)."""
     import xml.etree.ElementTree as ET
 
     from mtbudget.budget import conformance
@@ -270,8 +271,13 @@ def test_U_and_the_decision_say_their_frame_and_the_machine_frame_claims_no_dist
     root = ET.parse(folder / "rep" / "certificate.xml").getroot()
     reals = [r for r in root.iter(f"{{{SI_NS}}}real") if r.find(f"{{{SI_NS}}}label").text.startswith("e_machine_")]
     assert len(reals) == 3 * len(pts)
-    assert all(r.find(f".//{{{SI_NS}}}distribution") is None and r.find(f".//{{{SI_NS}}}coverageFactor").text == "2"
-               for r in reals)
+    from scipy.stats import norm
+
+    p2 = round(2 * norm.cdf(2.0) - 1, 4)  # the normal's coverage of +-2 sigma: the assumption the names state
+    assert all(r.find(f".//{{{SI_NS}}}coverageFactor").text == "2" and
+               float(r.find(f".//{{{SI_NS}}}coverageProbability").text) == p2 == 0.9545 for r in reals)
+    names = [e.text for e in root.iter() if e.text and "machine frame at this pose" in e.text]
+    assert names and all("normal distribution assumed" in t for t in names)
 
 
 def test_a_log_written_before_the_machine_frame_was_logged_gets_it_from_its_configuration(five_run):

@@ -58,7 +58,7 @@ def test_a_posteriori_u_agrees_with_the_identification_covariance_within_5_perce
 def test_posterior_command(tmp_path):
     r = CliRunner().invoke(main, ["posterior", "--example", "null", "--trials", "256", "--json", "--out", str(tmp_path)])
     assert r.exit_code == 0, r.output
-    data = json.loads(r.output)
+    data = json.loads(r.stdout)
     assert data["statement_kind"]["kind"] == "a posteriori"
     md = (tmp_path / "posterior.md").read_text()
     assert md.startswith("# mtbudget a posteriori") and md.count("\n| ") >= 75 + 2  # a row per point

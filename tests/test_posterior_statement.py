@@ -157,14 +157,33 @@ def test_the_dcc_holds_the_posteriors_numbers_in_the_schemas_order(stated):
     assert U == pytest.approx(list(2.0 * u.max(axis=0)), abs=0.51 * 10 ** -nd) and max(U) == h["U_max"]
 
 
-def test_a_failed_fit_is_in_the_statement_in_brief_and_the_dcc(tmp_path):
-    r = CliRunner().invoke(main, ["posterior", "--example", "thermal_x", "--trials", "8", "--out", str(tmp_path)])
+def test_a_failed_fit_is_in_the_statement_in_brief_and_the_dcc_and_no_verdict_is_supported(tmp_path):
+    """thermal_x's fit fails the chi-square test: the warning heads the brief and the DCC, and with a tolerance the
+    decision is undecided (the figures' verdict kept beside it), since the statement leaves out the physics the
+    recording shows.  Without [report] date no certificate is written (its performance date is the measurement's);
+    with one, it is."""
+    rec = tmp_path / "thermal_x"
+    shutil.copytree(example_recording("thermal_x"), rec)
+    out = tmp_path / "out"
+    r = CliRunner().invoke(main, ["posterior", str(rec), "--trials", "8", "--out", str(out), "--tolerance", "200 um"])
     assert r.exit_code == 0, r.output
-    md = (tmp_path / "posterior.md").read_text()
+    assert not (out / "certificate.xml").exists() and "certificate.xml is not written" in r.stderr
+    md = (out / "posterior.md").read_text()
     brief = md[md.index("## Statement in brief"):md.index("## Kind of statement")]
     assert "| WARNING | **the identified model does not fit thermal\\_x" in brief and "diagnose" in brief
     assert "not stated ([report] laboratory)" in brief  # thermal_x's recording.toml has no [report]
-    root = ET.parse(tmp_path / "certificate.xml").getroot()
+    assert "not stated (the date of the measurement" in brief
+    decision = next(ln for ln in brief.splitlines() if ln.startswith("| decision |"))
+    assert "Undecided: no verdict is supported, because the identified model does not fit" in decision
+    r = CliRunner().invoke(main, ["posterior", str(rec), "--trials", "8", "--tolerance", "200 um", "--json"])
+    conf = json.loads(r.stdout)["conformance"]
+    assert conf["verdict"] == "undecided" and conf["supported"] is False and conf["verdict_of_the_figures"] == "conforms"
+    with open(rec / "recording.toml", "a") as fh:
+        fh.write('\n[report]\ndate = "2026-11-20"\n')
+    r = CliRunner().invoke(main, ["posterior", str(rec), "--trials", "8", "--out", str(out)])
+    assert r.exit_code == 0, r.output
+    root = ET.parse(out / "certificate.xml").getroot()
+    assert root.find(".//dcc:beginPerformanceDate", NS).text == "2026-11-20"
     follows_the_schema_structure(root)
     said = {s.find("dcc:name/dcc:content", NS).text: s.find("dcc:declaration/dcc:content", NS).text
             for s in root.iterfind(".//dcc:statement", NS)}
@@ -175,6 +194,8 @@ def test_a_failed_fit_is_in_the_statement_in_brief_and_the_dcc(tmp_path):
 @pytest.mark.parametrize("text, key, msg", [
     ('\n[report]\nlaboratry = "x"\n', "report.laboratry", "did you mean 'laboratory'"),
     ('\n[report]\ndate = "20.11.2026"\n', "report.date", "expected a date YYYY-MM-DD"),
+    ('\n[report]\ndate = "20261120"\n', "report.date", "expected a date YYYY-MM-DD"),
+    ('\n[report]\ndate = "2026-W48-3"\n', "report.date", "expected a date YYYY-MM-DD"),
     ('\n[report]\ncountry = "Germany"\n', "report.country", "ISO 3166-1"),
     ('\n[report]\nlocation = "shop"\n', "report.location", "performanceLocation"),
     ('\n[report]\ncustomer = 5\n', "report.customer", "expected a non-empty string"),
