@@ -112,17 +112,11 @@ def test_check_names_the_sources_the_tables_u_does_not_contain(tmp_path):
 
 # ----------------------------------------------------------------------------- the frame of the per-point measurand
 def small_five(sources=("tracker_noise", "repeatability")):
-    """The bundled CAFXYZ example on a smaller plan: 2 x 2 x 2 linear points at 3 A x 3 C angles, two tools."""
-    raw = copy.deepcopy(load_config(bundled_config("five_axis_cafxyz")).source)
-    raw["mesh"] = {"x": ["-200 mm", "200 mm"], "y": ["-200 mm", "200 mm"], "z": ["-100 mm", "200 mm"],
-                   "step_x": "400 mm", "step_y": "400 mm", "step_z": "300 mm"}
-    raw["rotary"]["A"]["angles"] = ["-90 deg", "0 deg", "60 deg"]
-    raw["rotary"]["C"]["angles"] = ["0 deg", "90 deg", "240 deg"]
-    raw["machine_tool"]["max_degree"] = 1
-    raw["geometric_errors"]["translational"] = ["8 um"]
-    raw["geometric_errors"]["angular"] = ["20 urad"]
-    raw["sources"] = {"enable": list(sources)}
-    return parse_config(raw)
+    """The small CAFXYZ plan of test_fiveaxis_mc with C at 0, 90 and 240 deg (a quarter turn swaps x and y), the
+    tracker's angular noise drawn per trial."""
+    from test_fiveaxis_mc import small_five_axis
+
+    return small_five_axis(sources, c_angles=("0 deg", "90 deg", "240 deg"), steady_tracker=False)
 
 
 def table_orientation(a_deg, c_deg):

@@ -20,17 +20,19 @@ from mtbudget.scenario import build_scenario
 
 
 
-def small_five_axis(sources=("tracker_noise", "repeatability"), **edits):
-    """The bundled CAFXYZ example on a smaller plan: 2 x 2 x 2 linear points at 3 A x 3 C angles, two tools."""
+def small_five_axis(sources=("tracker_noise", "repeatability"), c_angles=("0 deg", "120 deg", "240 deg"),
+                    steady_tracker=True, **edits):
+    """The bundled CAFXYZ example on a smaller plan: 2 x 2 x 2 linear points at 3 A x 3 C angles, two tools;
+    steady_tracker: the tracker's angular noise the same in every trial (angular_sd 0)."""
     raw = copy.deepcopy(load_config(bundled_config("five_axis_cafxyz")).source)
     raw["mesh"] = {"x": ["-200 mm", "200 mm"], "y": ["-200 mm", "200 mm"], "z": ["-100 mm", "200 mm"],
                    "step_x": "400 mm", "step_y": "400 mm", "step_z": "300 mm"}
     raw["rotary"]["A"]["angles"] = ["-90 deg", "0 deg", "60 deg"]
-    raw["rotary"]["C"]["angles"] = ["0 deg", "120 deg", "240 deg"]
+    raw["rotary"]["C"]["angles"] = list(c_angles)
     raw["machine_tool"]["max_degree"] = 1
     raw["geometric_errors"]["translational"] = ["8 um"]
     raw["geometric_errors"]["angular"] = ["20 urad"]
-    raw["sources"] = {"enable": list(sources), "tracker_noise": {"angular_sd": "0 urad"}}
+    raw["sources"] = {"enable": list(sources), **({"tracker_noise": {"angular_sd": "0 urad"}} if steady_tracker else {})}
     for k, v in edits.items():
         raw[k] = v
     return parse_config(raw)
