@@ -417,6 +417,11 @@ def drawn_dict(scenario: Scenario, draws) -> tuple[dict, dict]:
             if label:
                 acc = named.setdefault(label, {"value": 0.0 if not isinstance(v, list) else [0.0] * len(v),
                                                "unit": out[name]["unit"], "sources": []})
+                if isinstance(acc["value"], list) != isinstance(v, list) or (
+                        isinstance(v, list) and len(v) != len(acc["value"])):
+                    raise PluginError(f"drawn[{name!r}]: {label} has another shape elsewhere (a value against a "
+                                      "list, or lists of other lengths)", src.plugin, src.name,
+                                      "mtbudget_register_sources", "drawn")
                 if acc["unit"] != out[name]["unit"]:
                     raise PluginError(f"drawn[{name!r}]: {label} is in {acc['unit']} elsewhere, not "
                                       f"{out[name]['unit']}", src.plugin, src.name, "mtbudget_register_sources", "drawn")

@@ -139,8 +139,14 @@ def test_a_diagnosis_is_checked_against_the_drawn_truth(tmp_path):
     named = truth["diagnosable"]
     assert named["reversal[x]"]["value"] > 1.0 and named["scale_following_time[x]"]["value"] > 1.0
     assert ("reversal", "x") in named_or_confounded(d)
-    present = {tuple(k.rstrip("]").split("[")) if "[" in k else (k, None) for k, v in named.items()}
+    # what the trial drew large enough to show (each in its unit: um, um/(m*K), um/(m*h), um/h), not every key
+    big = {k for k, v in named.items() if np.max(np.abs(np.atleast_1d(np.asarray(v["value"], float)))) > 1.0}
+    assert big == {"reversal[x]", "scale_following_time[x]", "scale_following_time[y]", "reversal[z]"}
+    present = {tuple(k.rstrip("]").split("[")) if "[" in k else (k, None) for k in big}
     assert not wrong_named(d, present)
+    for f in d.findings:  # a reversal of x named as a finding: its estimate is the drawn one within 3 u
+        if (f.candidate.effect, f.candidate.axis) == ("reversal", "x") and f.unit == "um":
+            assert abs(f.estimate[0] - named["reversal[x]"]["value"]) < 3 * f.uncertainty[0]
     x = next(e for e in d.directions if e["axis"] == "x")
     assert x["accounted"] in ("named", "confounded") and "reversal[x]" in x["by"]
     _every_reported_direction_is_accounted_for(d)
@@ -193,3 +199,22 @@ def test_a_direction_difference_no_finding_accounts_for_is_said_so():
     assert ("reversal", "x") not in named_or_confounded(d)
     assert not wrong_named(d, {("reversal", "x")})
     _every_reported_direction_is_accounted_for(d)
+
+
+def test_drawn_effects_of_two_shapes_are_one_line_naming_the_plugin():
+    """Two sources that give one diagnosis effect as a value and as a list cannot be summed: a PluginError naming the
+    source, not a TypeError (the review's case)."""
+    from types import SimpleNamespace
+
+    from mtbudget.errors import PluginError
+    from mtbudget.simulate import drawn_dict
+
+    def source(name, value):
+        return SimpleNamespace(name=name, plugin="test", drawn=lambda sample, ctx: {
+            "b": {"value": value, "unit": "um", "meaning": "a reversal", "effect": "reversal[x]"}})
+
+    scenario = SimpleNamespace(context=None)
+    ok, named = drawn_dict(scenario, [(source("a", 1.0), {}), (source("b", 2.0), {})])
+    assert named["reversal[x]"]["value"] == 3.0
+    with pytest.raises(PluginError, match="has another shape elsewhere"):
+        drawn_dict(scenario, [(source("a", 1.0), {}), (source("b", [2.0, 1.0]), {})])
