@@ -22,7 +22,7 @@ import numpy as np
 
 from .contracts import Group
 from .executors import Executor
-from .outputs import MEAN_SQUARE_OUTPUTS, SCALARS, RunResult
+from .outputs import MEAN_SQUARE_OUTPUTS, SCALARS, RunResult, table_frame
 from .plugins import call
 from .progress import progress_bar
 from .stats import percent, symmetric_interval
@@ -568,6 +568,7 @@ class Evidence:
     max_interval: Callable
     refers_to: str
     caveat: str | None = None  # why no verdict is supported whatever the figures say (an a posteriori fit that fails)
+    frame: bool = False  # the components are in a turning table's frame (five-axis), not the machine's X, Y, Z
 
     @classmethod
     def of(cls, statement) -> "Evidence":
@@ -591,7 +592,8 @@ class Evidence:
                    max_interval=lambda: res.summary("compensation_max")["symmetric"],
                    refers_to=("the compensated machine in use (repeatability, reversal and thermal residual included)"
                               if in_use else "the compensated machine as the verification sees it (not its use: add "
-                                             "the source in_use for a tolerance on positioning in use)"))
+                                             "the source in_use for a tolerance on positioning in use)"),
+                   frame=table_frame(res))
 
     @classmethod
     def of_posterior(cls, post) -> "Evidence":
@@ -603,7 +605,7 @@ class Evidence:
                    refers_to="the compensated machine as this recorded verification identified it, given the "
                              "recording's stated noise (only the physics the identified model holds; not the machine "
                              "in use)",
-                   caveat=_fit_caveat(post))
+                   caveat=_fit_caveat(post), frame=bool(post.points()) and "frame" in post.points()[0])
 
 
 def _fit_caveat(post) -> str | None:
@@ -617,8 +619,7 @@ def _fit_caveat(post) -> str | None:
 def _xyz(res: Evidence) -> str:
     """"x, y, z" of the statement's components, with their frame where it is a turning table's (five-axis): a
     tolerance box +-T is not the same box in another frame, so the decision says which one it is decided in."""
-    pts = res.points()
-    return "x, y, z of the workpiece (table) frame" if pts and "frame" in pts[0] else "x, y, z"
+    return "x, y, z of the workpiece (table) frame" if res.frame else "x, y, z"
 
 
 def conformance(res, tolerance_um: float, characteristic: str = "component") -> dict:

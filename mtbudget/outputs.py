@@ -151,6 +151,20 @@ WORKPIECE_FRAME = ("workpiece (table) frame: x, y, z are the machine's X, Y, Z w
                    "turning with the table (the tracker's frame; ISO 230-1's tool relative to the workpiece)")
 
 
+def table_frame(res) -> bool:
+    """Whether a run's per-point components are in a turning table's frame (a rotary axis carries the workpiece):
+    then x, y, z are not the machine's X, Y, Z at every pose."""
+    if getattr(res, "to_machine", None) is not None:
+        return True
+    code = str(((res.spec or {}).get("config") or {}).get("machine") or "").upper()
+    return bool(getattr(res, "angles", None)) and any(ch in "ABC" for ch in code.partition("F")[0])
+
+
+def frame_word(res) -> str:
+    """" (table frame)" after x, y, z where the components are in a turning table's frame; empty otherwise."""
+    return " (table frame)" if table_frame(res) else ""
+
+
 def machine_frame(mean, cov, R) -> dict:
     """A five-axis point's entries beside its workpiece-frame statement: ``frame`` and ``machine_frame`` (mean R m,
     u from R C R^T, covariance; R the nominal orientation of the table at the point's pose)."""

@@ -12,7 +12,7 @@ from .stats import HISTOGRAM_SHORTEST, decimals_for, percent
 from .units import display, pretty, shown_unit
 
 from .budget import conformance
-from .outputs import KEEP_SAMPLES_TRIALS, MAIN_OUTPUT, SCALARS, RunResult
+from .outputs import KEEP_SAMPLES_TRIALS, MAIN_OUTPUT, SCALARS, RunResult, frame_word, table_frame  # noqa: F401
 
 
 def result_json(res: RunResult) -> dict:
@@ -142,19 +142,6 @@ TABLE_FRAME = ("per axis of the workpiece (table) frame (x, y, z: the machine's 
                "turning with the table; at another pose they are not the machine's X, Y, Z, which are stated beside "
                "them: machine_frame)")
 
-
-def table_frame(res) -> bool:
-    """Whether the run's per-point components are in a turning table's frame (a rotary axis carries the workpiece):
-    then x, y, z are not the machine's X, Y, Z at every pose."""
-    if getattr(res, "to_machine", None) is not None:
-        return True
-    code = str(((res.spec or {}).get("config") or {}).get("machine") or "").upper()
-    return bool(getattr(res, "angles", None)) and any(ch in "ABC" for ch in code.partition("F")[0])
-
-
-def frame_word(res) -> str:
-    """" (table frame)" after x, y, z where the components are in a turning table's frame; empty otherwise."""
-    return " (table frame)" if table_frame(res) else ""
 
 
 def measurand_text(res) -> str:

@@ -24,7 +24,8 @@ from .config import SimulationConfig, load_config, parse_config
 from .engine import Engine
 from .errors import ConfigError, RunLogError
 from .executors import EXECUTORS, Executor, one_blas_thread
-from .outputs import KEEP_SAMPLES_TRIALS, MACHINE_SCALARS, MAIN_OUTPUT, POINT_UNIT, SCALARS, RunResult, accumulate_block
+from .outputs import (KEEP_SAMPLES_TRIALS, MACHINE_SCALARS, MAIN_OUTPUT, POINT_UNIT, SCALARS, RunResult,
+                      accumulate_block, frame_word)
 from .plugins import PluginHost
 from .progress import progress_bar
 from .scenario import Scenario, build_scenario
@@ -165,24 +166,28 @@ def logged_to_machine(header: dict):
         return None
     from .config import parse_config
     from .errors import MtbudgetError
-    from .machine import Configuration, workpiece_rotation
+    from .machine import Configuration
 
     try:
         cfg = parse_config(header["spec"]["config"])
         machine = Configuration.parse(cfg.machine, cfg.plan().rotary or None)
     except (MtbudgetError, KeyError, TypeError, ValueError):
         return None
-    return workpiece_rotation(machine, {r: np.radians(np.asarray(v, float)) for r, v in angles.items()})
+    return _table_orientation(machine, angles)
+
+
+def _table_orientation(machine, angles_deg: dict):
+    """(M0, 3, 3) the nominal orientation of the table frame in the machine frame at each mesh point's pose
+    (``machine.workpiece_rotation`` of the commanded angles, deg); None where no rotary axis carries the workpiece."""
+    from .machine import workpiece_rotation
+
+    return workpiece_rotation(machine, {r: np.radians(np.asarray(v, float)) for r, v in angles_deg.items()})
 
 
 def _to_machine(scenario: Scenario):
     """Five-axis with a rotary table: (M0, 3, 3) the nominal orientation of the table frame, in which the per-point
     components are stated, in the machine frame at each mesh point's pose; None otherwise."""
-    from .machine import workpiece_rotation
-
-    if not scenario.commanded_angles:
-        return None
-    return workpiece_rotation(scenario.truth.config, {r: np.radians(v) for r, v in scenario.commanded_angles.items()})
+    return _table_orientation(scenario.truth.config, scenario.commanded_angles) if scenario.commanded_angles else None
 
 
 def make_spec(scenario: Scenario, engine: Engine, settings: RunSettings) -> dict:
@@ -400,7 +405,7 @@ def _point_axis_names(result: RunResult, n: int) -> list:
         at = "".join(f", {r} = {float(v[i]):g} deg" for r, v in sorted(angles.items()))
         return f" at x, y, z = ({', '.join(f'{v:g}' for v in result.commanded[i])}) mm{at}"
 
-    fw = " (table frame)" if result.to_machine is not None else ""  # a turning table's components (five-axis)
+    fw = frame_word(result)
     return [(f"point #{j // 3}{where(j // 3)}, axis {'xyz'[j % 3]}{fw}", POINT_UNIT) for j in range(n)]
 
 
@@ -579,13 +584,14 @@ def _execute(config, settings, *, source, target, force, histogram_every) -> Run
                          "so that the per-point intervals cover every trial")
     plugins = [{"name": s.plugin, "source": s.name, "package": s.dist_name, "version": s.dist_version}
                for s in eng.sources]
+    to_machine = _to_machine(scenario)
     header = {"spec": spec, "trials": settings.trials, "plugins": plugins, "sources": [s.name for s in eng.sources],
               "outputs": {k: v[0] for k, v in {**SCALARS, **MACHINE_SCALARS}.items()}, "parameter_names": eng.parameter_names,
               "parameter_units": eng.parameter_units, "mesh": scenario.mesh_points.tolist(),
               "mesh_unit": "mm", "commanded": scenario.commanded.tolist(), "weights": scenario.weights_report(),
               **({"commanded_angles": {r: v.tolist() for r, v in scenario.commanded_angles.items()},
                   "commanded_angles_unit": "deg"} if scenario.commanded_angles else {}),
-              **({"workpiece_to_machine": _to_machine(scenario).tolist()} if _to_machine(scenario) is not None else {}),
+              **({"workpiece_to_machine": to_machine.tolist()} if to_machine is not None else {}),
               "settings": {k: (list(getattr(settings, k)) if k == "adaptive_outputs" else getattr(settings, k))
                            for k in RESUMED_SETTINGS}}
     writer = RunLogWriter(target, header, config_text, log_components=keep_vectors, copy=copy, histogram=hist,
