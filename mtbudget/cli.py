@@ -737,7 +737,8 @@ def replay(runlog, verify, as_json):
         return
     res = do_replay(runlog)
     if as_json:
-        click.echo(json.dumps(result_json(res), indent=1))
+        click.echo(json.dumps({**result_json(res), **({"exact_from_log": res.exact_from_log}
+                                                       if res.exact_from_log else {})}, indent=1))
         return
     if not res.complete:
         logged = sum(int(b.get("n", 0)) for b in getattr(res.log, "blocks", []) or [])
@@ -745,6 +746,16 @@ def replay(runlog, verify, as_json):
                 "recomputes the blocks after it)" if logged > res.trials else " it holds")
         click.echo(f"INCOMPLETE run log ({res.log.problem}); results from the {res.trials} trials{upto}:")
     click.echo(budget_text(res))
+    x = res.exact_from_log
+    if x:  # the run's intervals above, by its method; the log holds every value, so the exact ones beside
+        from .stats import decimals_for, percent
+        from .units import pretty
+
+        un, nd = pretty(x["unit"]), decimals_for(res.summary(x["output"])["std"]) + 1
+        click.echo(f"beside the run's histogram intervals: {x['output']} from the order statistics of the {x['n']} "
+                   f"logged trials (JCGM 101 7.7), {percent(x['coverage'])} coverage: symmetric "
+                   f"[{x['symmetric'][0]:.{nd}f}, {x['symmetric'][1]:.{nd}f}] {un}, shortest "
+                   f"[{x['shortest'][0]:.{nd}f}, {x['shortest'][1]:.{nd}f}] {un}")
 
 
 @main.command("diagnose")

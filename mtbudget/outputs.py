@@ -211,6 +211,9 @@ class RunResult:
     #: [[features]]: every merged block's (n, K, C) feature errors, in block order (a resumed block has none: None)
     feature_blocks: list = field(default_factory=list, repr=False, compare=False)
     logged_features: list | None = None  # the features of a complete log (replay)
+    #: replay of a run that histogrammed its scalars: the main output's exact order-statistic intervals from the
+    #: logged values, stated beside the run's ({"output", "unit", "n", "coverage", "symmetric", "shortest"})
+    exact_from_log: dict | None = None
 
     @property
     def not_converged(self) -> int:

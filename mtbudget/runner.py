@@ -29,7 +29,7 @@ from .outputs import (KEEP_SAMPLES_TRIALS, MACHINE_SCALARS, MAIN_OUTPUT, POINT_U
 from .plugins import PluginHost
 from .progress import progress_bar
 from .scenario import Scenario, build_scenario
-from .stats import Accumulator, AdaptiveStop, batch_row, batch_rows
+from .stats import Accumulator, AdaptiveStop, batch_row, batch_rows, shortest_interval, symmetric_interval
 
 DEFAULT_LOG = "mtbudget-run.mcap"
 
@@ -207,6 +207,18 @@ def make_spec(scenario: Scenario, engine: Engine, settings: RunSettings) -> dict
     return spec
 
 
+def scalar_keeping(trials, keep_samples) -> tuple[bool, int | None]:
+    """How a run holds its scalar outputs, as ``Accumulator(keep, ..., keep_until)`` takes it; one rule for a run and
+    its replay, so that a replay states the intervals the run stated (the same method on the same values).
+
+    Every scalar value is kept up to ``KEEP_SAMPLES_TRIALS`` trials (exact order statistics), histogrammed beyond: a
+    fixed run (``trials`` asked for) knows from its start, an adaptive run (``trials`` None) switches at the block that
+    takes it past them (its stopping rule needs only the current batch); ``keep_samples`` True or False overrides."""
+    keep = keep_samples if keep_samples is not None else (trials is None or int(trials) <= KEEP_SAMPLES_TRIALS)
+    keep_until = KEEP_SAMPLES_TRIALS if trials is None and keep_samples is None else None
+    return keep, keep_until
+
+
 def run(config: SimulationConfig | Scenario | str | None = None, settings: RunSettings | None = None, *,
         on_chunk=None, resume_blocks: list | None = None, engine: Engine | None = None,
         host: PluginHost | None = None, resume_histogram: dict | None = None, **overrides) -> RunResult:
@@ -235,11 +247,7 @@ def _run(config, settings, *, on_chunk, resume_blocks, engine, host, resume_hist
     scenario = engine.scenario
     spec = make_spec(scenario, engine, settings)
     trials = settings.trials
-    # every scalar value kept up to KEEP_SAMPLES_TRIALS trials, histogrammed beyond: a fixed run knows from its start,
-    # an adaptive run switches at the block that takes it past them (its stopping rule needs only the current batch)
-    keep = settings.keep_samples if settings.keep_samples is not None else (
-        trials is None or int(trials) <= KEEP_SAMPLES_TRIALS)
-    keep_until = KEEP_SAMPLES_TRIALS if trials is None and settings.keep_samples is None else None
+    keep, keep_until = scalar_keeping(trials, settings.keep_samples)
     acc = Accumulator(keep, keep_vector_samples(settings, len(scenario.mesh_rows)), keep_until)
     if resume_histogram is not None:
         from .runlog import histogram_from_state, moments_from_state
@@ -655,7 +663,10 @@ def replay(path) -> RunResult:
         # before its first), the scalars only
         blocks = [replace(b, point_moments=None, parameter_moments=None, component_moments=None)
                   for b in blocks if state is None or b.block < state["blocks"]]
-    acc = Accumulator(True, all(b.components is not None for b in blocks))
+    # the scalars held as the run held them (its trials and keep_samples, logged in the header), so the intervals are
+    # the run's: a fixed run of more than KEEP_SAMPLES_TRIALS trials stated histogram intervals, and so does its replay
+    keep, keep_until = scalar_keeping(h.get("trials"), (h.get("settings") or {}).get("keep_samples"))
+    acc = Accumulator(keep, all(b.components is not None for b in blocks), keep_until)
     if state is not None:
         acc.moments.update(moments_from_state(state))
     for b in blocks:
@@ -676,6 +687,14 @@ def replay(path) -> RunResult:
         raise RunLogError(f"holds no trial ({log.problem or 'no block was saved'}): the run was stopped before its "
                           f"first block of trials was saved; `mtbudget run --resume {path}` runs it again from its "
                           "configuration and seed", path=path)
+    if not acc.keep and MAIN_OUTPUT in acc.scalar_names:
+        # the log holds every value the run histogrammed: the exact order statistics of the main output, beside
+        y = np.concatenate([np.asarray(b.scalars[MAIN_OUTPUT], float) for b in blocks])
+        y.sort()
+        res.exact_from_log = {"output": MAIN_OUTPUT, "unit": SCALARS[MAIN_OUTPUT][0], "n": int(y.size),
+                              "coverage": res.coverage, "symmetric": symmetric_interval(y, res.coverage),
+                              "shortest": shortest_interval(y, res.coverage),
+                              "method": "order statistics of every logged trial (JCGM 101 7.7.1, 7.7.2)"}
     res.adaptive = logged.get("adaptive")
     res.executor = logged.get("executor")
     res.logged_features = logged.get("features")

@@ -203,6 +203,44 @@ def test_an_adaptive_run_histograms_its_values_beyond_the_fixed_runs_limit_and_d
         assert streamed.summary(o) == fixed.summary(o)
 
 
+@pytest.mark.parametrize("trials", [448, None], ids=["fixed", "adaptive"])
+def test_a_replay_states_the_intervals_its_run_stated_beyond_the_kept_values(small, tmp_path, monkeypatch, trials):
+    """Past KEEP_SAMPLES_TRIALS a run states histogram intervals (bounded memory); its log holds every trial's values,
+    but the replay (and the report built on it) must state what the run stated, by the same method, not exact order
+    statistics the run never printed. The run's JSON is compared with the replay's, output by output; and the exact
+    order statistics of the logged values, computed here with numpy, are not what either states (the check can
+    fail)."""
+    import mtbudget.runner
+
+    monkeypatch.setattr(mtbudget.runner, "KEEP_SAMPLES_TRIALS", 300)
+    log = tmp_path / "long.mcap"
+    kw = dict(adaptive_batch=256, max_trials=2048, ndig=1, adaptive_outputs=("compensation_rms",)) if trials is None \
+        else {}
+    res = execute(small, trials=trials, block=32, attribution_trials=0, log_path=log, **kw)
+    assert res.trials > 300 and not res.acc.keep
+    again = replay(log)
+    assert again.trials == res.trials and not again.acc.keep
+    ran, replayed = result_json(res), result_json(again)
+    for o in ("compensation_rms", "max_residual", "mean_error_after"):
+        assert replayed["outputs"][o] == ran["outputs"][o], o
+        assert ran["outputs"][o]["interval_method"].startswith("the run does not keep every value"), o
+    # JCGM 101 7.7.1 written out here: q = pM if an integer, else floor(pM + 1/2); r = (M - q)/2 if M - q is even,
+    # else (M - q + 1)/2; the interval [y_r, y_(r+q)], 1-based
+    y = np.sort(np.concatenate([b.scalars["compensation_rms"] for b in again.log.block_results()]))
+    M = len(y)
+    q = int(0.95 * M) if float(0.95 * M).is_integer() else math.floor(0.95 * M + 0.5)
+    r = (M - q) // 2 if (M - q) % 2 == 0 else (M - q + 1) // 2
+    exact = (y[r - 1], y[r + q - 1])
+    assert again.exact_from_log["n"] == M == res.trials
+    assert again.exact_from_log["symmetric"] == exact
+    widths = y[q:] - y[:M - q]  # the shortest: the narrowest [y_j, y_(j+q)]
+    assert again.exact_from_log["shortest"][1] - again.exact_from_log["shortest"][0] == pytest.approx(widths.min())
+    assert tuple(ran["outputs"]["compensation_rms"]["symmetric"]) != exact  # the run's are the histogram's
+    out = CliRunner().invoke(main, ["replay", str(log)])
+    assert out.exit_code == 0, out.output
+    assert f"compensation_rms from the order statistics of the {M} logged trials (JCGM 101 7.7), 95 % coverage" in out.output
+
+
 def test_the_adaptive_limit_stops_at_the_end_of_the_batch_that_reaches_it_and_needs_two_batches(small, tmp_path,
                                                                                                  monkeypatch):
     """--max-trials is met at the end of a batch (a limit between batches runs the batch that crosses it: 600 ->
