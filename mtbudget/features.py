@@ -33,10 +33,11 @@ from .units import pretty
 #: upper bounds of the in-use uncertainties of [[features]] (internal unit, display unit, display per internal), by
 #: the rule of every stated uncertainty (mtbudget.recording.UNCERTAINTIES): several times the poorest in use, below a
 #: thousand times the smallest, so a value in the next unit up is refused: a touch probe's P_FTU is 1-20 um; the
-#: axes' temperature change since the verification and a part's temperature are known to 0.1-2 K; a part's CTE to
-#: 0.1-2 um/(m*K)
+#: axes' temperature change since the verification and a part's temperature are known to 0.1-2 K; a metal part's
+#: CTE to 0.1-2 um/(m*K), a polymer part's (70-150 um/(m*K): PA, POM, PEEK) to 5-30 um/(m*K), so up to 50: a value in
+#: mm/(m*K) (1000 um/(m*K) and more) is still refused
 IN_USE_BOUNDS = {"probing_error": (0.1, "um", 1e3), "machine_temperature_change": (10.0, "K", 1.0),
-                 "part_temperature_u": (10.0, "K", 1.0), "part_cte_u": (10e-6, "um/(m*K)", 1e6)}
+                 "part_temperature_u": (10.0, "K", 1.0), "part_cte_u": (50e-6, "um/(m*K)", 1e6)}
 
 
 #: kinds -> (fewest points, unit of the value, one-sided characteristic (value <= T) or two-sided (|deviation| <= T))

@@ -362,7 +362,7 @@ def test_posterior_makes_no_statement_about_an_implausible_identification(tmp_pa
     ("probing_error", "2 mm", "2000 um is not plausible; expected 0 to 100 um"),
     ("machine_temperature_change", "300 K", "300 K is not plausible; expected 0 to 10 K"),
     ("part_temperature_u", "200 K", "200 K is not plausible; expected 0 to 10 K"),
-    ("part_cte_u", "1 mm/(m*K)", "1000 um/(m*K) is not plausible; expected 0 to 10 um/(m*K)"),
+    ("part_cte_u", "1 mm/(m*K)", "1000 um/(m*K) is not plausible; expected 0 to 50 um/(m*K)"),
 ])
 def test_a_features_in_use_uncertainty_obeys_the_same_rule(key, slip, words):
     from mtbudget.engine import Engine
@@ -378,6 +378,9 @@ def test_a_features_in_use_uncertainty_obeys_the_same_rule(key, slip, words):
     feature[key] = {"probing_error": "2 um", "machine_temperature_change": "0.3 K", "part_temperature_u": "0.2 K",
                     "part_cte_u": "1 um/(m*K)"}[key]
     Engine(build_scenario(parse_config(raw, "run.toml")))  # the values in use stand
+    if key == "part_cte_u":  # a polymer part: PA6, CTE about 80 um/(m*K), known to about 15
+        feature.update(part_cte="80 um/(m*K)", part_cte_u="15 um/(m*K)")
+        Engine(build_scenario(parse_config(raw, "run.toml")))
 
 
 def test_identify_warns_on_a_recording_of_several_stations_too(tmp_path):
