@@ -37,7 +37,8 @@ from .units import pretty
 #: axes' temperature change since the verification and a part's temperature are known to 0.1-2 K; a part's CTE to
 #: 0.1-2 um/(m*K)
 IN_USE_BOUNDS = {"probing_error": (0.1, "um", 1e3), "machine_temperature_change": (10.0, "K", 1.0),
-                 "part_temperature_u": (10.0, "K", 1.0), "part_cte_u": (10e-6, "um/(m*K)", 1e6)}
+                 "part_temperature_u": (10.0, "K", 1.0), "part_cte_u": (10e-6, "um/(m*K)", 1e6),
+                 "rotary_repeatability": (500e-6, "urad", 1e6)}  # a rotary axis repeats within 1-50 urad
 
 
 #: kinds -> (fewest points, unit of the value, one-sided characteristic (value <= T) or two-sided (|deviation| <= T))
@@ -63,7 +64,8 @@ INSIDE_SLACK = 1e-6
 PLANE_SLACK = 1e-4
 CIRCLE_SLACK = 1e-2
 #: the in-use sources, in the order of their budget rows (each drawn on its own stream)
-IN_USE = ("probing", "repeatability_in_use", "machine_thermal_drift", "part_temperature", "part_cte")
+IN_USE = ("probing", "repeatability_in_use", "machine_thermal_drift", "part_temperature", "part_cte",
+          "rotary_repeatability_in_use")
 IN_USE_TEXT = {
     "probing": "probing error at each point along its probing direction, normal, u = P_FTU / 3.931 (ISO 230-10)",
     "repeatability_in_use": "the machine's positioning repeatability at each probed point, normal per axis, "
@@ -75,6 +77,9 @@ IN_USE_TEXT = {
                         "about the feature's centre",
     "part_cte": "the part's CTE: its error (normal) times (part_temperature - 20 degC) expands the part about the "
                 "feature's centre",
+    "rotary_repeatability_in_use": "five axes: each rotary axis' positioning repeatability at each probed point, normal "
+                                   "per axis and point, u = the feature's rotary_repeatability, else the run's "
+                                   "[sources.rotary_repeatability] R; the tool point moves as the chain turns it",
 }
 
 MEASURANDS = {
@@ -125,6 +130,9 @@ class FeatureSpec:
     #: tool points in the workpiece (table) frame on a five-axis one (the chain at zero errors, the measurand's tool)
     geometry: np.ndarray | None = None
     table_frame: bool = False  # a rotary axis carries the workpiece: the feature is in the workpiece (table) frame
+    #: five axes: u of each rotary axis' angle at each probed point (rad); stated, or the run's rotary_repeatability
+    #: source's R when ``repeatability`` is true (FeatureSet.of resolves it); None: not stated
+    rotary_repeatability: float | None = None
 
     @property
     def unit(self) -> str:
@@ -148,7 +156,8 @@ class FeatureSpec:
               "machine_thermal_drift": self.machine_temperature_change > 0,
               "part_temperature": self.part_temperature_u > 0 and self.kind in ("distance", "diameter"),
               "part_cte": self.part_cte_u > 0 and self.part_temperature is not None
-              and self.kind in ("distance", "diameter")}
+              and self.kind in ("distance", "diameter"),
+              "rotary_repeatability_in_use": bool(self.angles) and (self.rotary_repeatability or 0.0) > 0}
         return [s for s in IN_USE if on[s]]
 
     def describe(self) -> dict:
@@ -280,12 +289,19 @@ def _parse_one(r: Reader, config, nominal=None) -> FeatureSpec:
                           "difference from 20 degC: state part_temperature too")
 
     part_t = None if not r.has("part_temperature") else r.quantity("part_temperature", "K", absolute_temperature=True)
+    rot = None
+    if r.has("rotary_repeatability"):
+        if not angles:
+            raise ConfigError(f"{r.where('rotary_repeatability')}: machine {config.machine!r} has no rotary axis; "
+                              "only a five-axis feature takes the rotary axes' repeatability")
+        rot = nonneg("rotary_repeatability", "rad", None)
     return FeatureSpec(name.strip(), kind, P_cmd, dirs, tol, assoc, probing_error=nonneg("probing_error", "mm", "0 um"),
                        repeatability=rep, machine_temperature_change=nonneg("machine_temperature_change", "K", "0 K"),
                        part_temperature=part_t, part_temperature_u=nonneg("part_temperature_u", "K", "0 K"),
                        part_cte=r.quantity("part_cte", "1/K", "11.5 um/(m*K)"),
                        part_cte_u=nonneg("part_cte_u", "1/K", "0 um/(m*K)"), centre=centre, datum=datum,
-                       angles=angles, geometry=P, table_frame=bool(angles) and _table_turns(config))
+                       angles=angles, geometry=P, table_frame=bool(angles) and _table_turns(config),
+                       rotary_repeatability=rot)
 
 
 def _table_turns(config) -> bool:
@@ -500,6 +516,9 @@ class FeatureSet:
         # five axes, a turning table: (Nf, 3, 3) the table's nominal orientation at each point's pose (v_machine =
         # R v_workpiece), which turns what acts along the machine's axes into the workpiece frame; None otherwise
         self.to_machine = workpiece_rotation(scenario.truth.config, self.angles) if self.angles else None
+        # five axes: {letter: (Nf, 3) mm/rad} how the nominal tool point moves in the workpiece frame when the axis
+        # turns (the chain at zero errors, central differences of an angle offset)
+        self.turn = _turn_rates(scenario, self.points, self.angles) if self.angles else {}
         self._models: dict = {}
         cfg = scenario.config
         self.rep = float(scenario.drawn.get("machine_tool.repeatability", cfg.repeatability))
@@ -521,6 +540,16 @@ class FeatureSet:
                 raise ConfigError(f"{scenario.config.where('features')}: at a [measurand] tool the verification cannot "
                                   "fully identify, the features are not evaluated yet (what it leaves unidentified is "
                                   "drawn at the mesh only); probe at the verification's tool")
+            for i, f in enumerate(specs):  # five axes: the machine's repeatability includes its rotary axes'
+                if f.angles and f.repeatability and f.rotary_repeatability is None:
+                    src = next((s for s in scenario.sources if s.name == "rotary_repeatability"), None)
+                    if src is None:
+                        raise ConfigError(
+                            f"{scenario.config.where(f'features[{i}].repeatability')}: on a five-axis machine the "
+                            "repeatability at a probed point includes the rotary axes', the R of source "
+                            "rotary_repeatability, which this run does not select; state the feature's "
+                            "rotary_repeatability (e.g. \"10 urad\"; \"0 urad\" leaves it out)")
+                    f.rotary_repeatability = src.value("R", "rad")
             return cls(scenario, specs)
 
         return scenario.cached("features", make)
@@ -563,6 +592,13 @@ class FeatureSet:
         if name == "repeatability_in_use":  # along the machine's axes, turned into the workpiece frame (five axes)
             z = rng.standard_normal((n, Nf, 3))
             return lambda f, sl, S: self._to_workpiece(z[:, sl] * self.rep, sl)
+        if name == "rotary_repeatability_in_use":  # each rotary axis' angle, through the chain's turn rate
+            letters = sorted(self.angles)
+            if not letters:
+                return None
+            z = rng.standard_normal((n, Nf, len(letters)))
+            return lambda f, sl, S: sum(z[:, sl, j, None] * f.rotary_repeatability * self.turn[a][sl][None]
+                                        for j, a in enumerate(letters))
         if name == "machine_thermal_drift":  # the linear axes' scales, at the commanded positions
             z = rng.standard_normal((n, 1, 3))
             return lambda f, sl, S: self._to_workpiece(
@@ -627,6 +663,26 @@ def _nominal_points(scenario, points: np.ndarray, angles: dict) -> np.ndarray:
     truth = scenario.truth
     model = MeasurementModel(truth.config, truth.errors, _probe_plan(scenario, points, angles))
     return model.machine_points(np.zeros((1, truth.n_params)))[0]
+
+
+#: the angle step of the turn rates' central differences (rad): the rotation is exact, the difference's error is
+#: of order step^2 (1e-12 of the rate)
+TURN_STEP = 1e-6
+
+
+def _turn_rates(scenario, points: np.ndarray, angles: dict) -> dict:
+    """{letter: (N, 3) mm/rad} the derivative of the nominal tool point in the workpiece frame with each rotary axis'
+    angle at the probed poses: the chain's own ``axis_offset.<letter>`` input, by central differences."""
+    truth = scenario.truth
+    model = MeasurementModel(truth.config, truth.errors, _probe_plan(scenario, points, angles))
+    zero = np.zeros((1, truth.n_params))
+    n = len(points)
+    out = {}
+    for a in sorted(angles):
+        step = np.full((1, n), TURN_STEP)
+        out[a] = (model.machine_points(zero, {f"axis_offset.{a}": step})[0]
+                  - model.machine_points(zero, {f"axis_offset.{a}": -step})[0]) / (2 * TURN_STEP)
+    return out
 
 
 def _warnings(scenario) -> list:

@@ -149,6 +149,65 @@ def test_machine_thermal_drift_acts_along_the_machine_axes_turned_into_the_table
     assert "workpiece (table) frame" in out["frame"] and out["points"]["angles"]["value"]["C"] == [0.0, 90.0]
 
 
+def rx(deg) -> np.ndarray:
+    return Rotation.from_euler("x", deg, degrees=True).as_matrix()
+
+
+def test_rotary_repeatability_in_use_against_the_turn_of_each_axis_written_here():
+    """The rotary axes' repeatability alone (u = 20 urad per axis and point): a turn dA of A (pivot p_A, about +X) and
+    dC of C (pivot p_C, about +Z) move the table-frame tool point p_C + R_C^T (p_A + R_A^T (P + T - p_A) - p_C) by
+    -dC e_z x (S - p_C) and -dA R_C^T (e_x x (v - p_A)), v the point A leaves (FORMAT-3's chain differentiated here),
+    each independent per point: the distance across C has u^2 = sum over points and axes of (u_dir . rate)^2 u_R^2;
+    the stated 20 urad and `repeatability = true` with the run's rotary_repeatability source (R = 10 urad) each."""
+    from mtbudget.features import FeatureSet
+
+    pA, pC = np.array([0.0, -20.0, -80.0]), np.array([50.0, -20.0, 0.0])
+    tool = np.array([0.0, 0.0, -100.0])
+    v = np.array(P_COMMANDED) + tool  # A at 0: A leaves the point where it is
+    S = np.array([pC + rz(c).T @ (v - pC) for c in (0, 90)])
+    u = (S[1] - S[0]) / np.linalg.norm(S[1] - S[0])
+    rates = [(-np.cross([0, 0, 1.0], S[i] - pC), -rz(c).T @ np.cross([1.0, 0, 0], v - pA)) for i, c in enumerate((0, 90))]
+    per_urad = np.sqrt(sum((u @ r) ** 2 for pair in rates for r in pair)) * 1e-6 * 1e3  # um per urad
+    # u . rate: C 72.12 and 72.11 mm/rad at the two points, A -24.96 and -16.64 mm/rad: 106.3 mm/rad in all
+    assert per_urad == pytest.approx(0.1063, abs=1e-4)
+
+    sc = scenario(five(features=[dict(LENGTH_ACROSS_C, rotary_repeatability="20 urad"),
+                                 dict(LENGTH_ACROSS_C, name="with the run's R", repeatability=True)]))
+    fs = FeatureSet.of(sc)
+    for a, c_rate in zip(("a", "c"), (1, 0)):  # the chain's turn rates equal those written here
+        assert np.allclose(fs.turn[a][:2], [rates[i][c_rate] for i in range(2)], atol=1e-6)
+    e = np.zeros((4096, len(fs.points), 3))
+    vals = fs.block_values(e, seed=3, block=0)
+    col = 2 + list(__import__("mtbudget.features", fromlist=["IN_USE"]).IN_USE).index("rotary_repeatability_in_use")
+    assert vals[:, 0, col].std(ddof=1) == pytest.approx(20 * per_urad, rel=0.06)  # 4096 draws: 1.1 % u of u
+    assert fs.specs[1].rotary_repeatability == pytest.approx(10e-6)  # [sources.rotary_repeatability] R
+    assert vals[:, 1, col].std(ddof=1) == pytest.approx(10 * per_urad, rel=0.06)
+    assert fs.specs[0].in_use() == ["rotary_repeatability_in_use"]
+
+
+def test_repeatability_on_five_axes_without_the_rotary_source_asks_for_it():
+    from mtbudget.features import FeatureSet
+
+    sc = scenario(five(sources={"enable": ["tracker_noise"]}, features=[dict(LENGTH_ACROSS_C, repeatability=True)]))
+    with pytest.raises(ConfigError) as exc:
+        FeatureSet.of(sc)
+    msg = str(exc.value)
+    assert "\n" not in msg and msg.startswith("five.toml: features[0].repeatability: ")
+    assert "features[0].repeatability" in msg and "state the feature's rotary_repeatability" in msg, msg
+
+
+def test_a_three_axis_feature_takes_no_rotary_repeatability():
+    from mtbudget.features import FeatureSet
+    from mtbudget.scenario import build_scenario
+
+    data = tomllib.loads(bundled_config("paper_xfyz").read_text())
+    data["features"] = [{"name": "x", "kind": "distance", "rotary_repeatability": "10 urad",
+                         "points": [["800 mm", "100 mm", "200 mm"], ["1200 mm", "100 mm", "200 mm"]]}]
+    with pytest.raises(ConfigError, match=r"^paper.toml: features\[0\]\.rotary_repeatability: machine 'XFYZ' has no "
+                                          r"rotary axis"):
+        FeatureSet.of(build_scenario(parse_config(data, "paper.toml")))
+
+
 # ------------------------------------------------------------------ bad angles: one line, exit 2
 BASE = str(bundled_config("five_axis_cafxyz"))
 PAPER = str(bundled_config("paper_xfyz"))
