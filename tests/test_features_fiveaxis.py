@@ -149,17 +149,13 @@ def test_machine_thermal_drift_acts_along_the_machine_axes_turned_into_the_table
     assert "workpiece (table) frame" in out["frame"] and out["points"]["angles"]["value"]["C"] == [0.0, 90.0]
 
 
-def rx(deg) -> np.ndarray:
-    return Rotation.from_euler("x", deg, degrees=True).as_matrix()
-
-
 def test_rotary_repeatability_in_use_against_the_turn_of_each_axis_written_here():
     """The rotary axes' repeatability alone (u = 20 urad per axis and point): a turn dA of A (pivot p_A, about +X) and
     dC of C (pivot p_C, about +Z) move the table-frame tool point p_C + R_C^T (p_A + R_A^T (P + T - p_A) - p_C) by
     -dC e_z x (S - p_C) and -dA R_C^T (e_x x (v - p_A)), v the point A leaves (FORMAT-3's chain differentiated here),
     each independent per point: the distance across C has u^2 = sum over points and axes of (u_dir . rate)^2 u_R^2;
     the stated 20 urad and `repeatability = true` with the run's rotary_repeatability source (R = 10 urad) each."""
-    from mtbudget.features import FeatureSet
+    from mtbudget.features import IN_USE, FeatureSet
 
     pA, pC = np.array([0.0, -20.0, -80.0]), np.array([50.0, -20.0, 0.0])
     tool = np.array([0.0, 0.0, -100.0])
@@ -178,7 +174,7 @@ def test_rotary_repeatability_in_use_against_the_turn_of_each_axis_written_here(
         assert np.allclose(fs.turn[a][:2], [rates[i][c_rate] for i in range(2)], atol=1e-6)
     e = np.zeros((4096, len(fs.points), 3))
     vals = fs.block_values(e, seed=3, block=0)
-    col = 2 + list(__import__("mtbudget.features", fromlist=["IN_USE"]).IN_USE).index("rotary_repeatability_in_use")
+    col = 2 + IN_USE.index("rotary_repeatability_in_use")
     assert vals[:, 0, col].std(ddof=1) == pytest.approx(20 * per_urad, rel=0.06)  # 4096 draws: 1.1 % u of u
     assert fs.specs[1].rotary_repeatability == pytest.approx(10e-6)  # [sources.rotary_repeatability] R
     assert vals[:, 1, col].std(ddof=1) == pytest.approx(10 * per_urad, rel=0.06)
