@@ -25,8 +25,9 @@ import numpy as np
 
 from .config import SCHEMA, Reader, to_unit
 from .errors import ConfigError
-from .machine import workpiece_rotation
+from .machine import Configuration, is_rotary, workpiece_rotation
 from .model import MeasurementModel
+from .outputs import WORKPIECE_FRAME
 from .plan import Plan
 from .stats import decimals_for, percent
 from .units import pretty
@@ -167,7 +168,7 @@ class FeatureSpec:
                 "tolerance": self.tolerance, "one_sided": self.one_sided, "association": self.association,
                 "in_use": self.in_use(),
                 **({"angles": {a.upper(): np.degrees(v).tolist() for a, v in sorted(self.angles.items())},
-                    "angles_unit": "deg", "frame": FEATURE_TABLE_FRAME if self.table_frame else "machine frame"}
+                    "angles_unit": "deg", "frame": WORKPIECE_FRAME if self.table_frame else "machine frame"}
                    if self.angles else {})}
 
 
@@ -305,9 +306,9 @@ def _parse_one(r: Reader, config, nominal=None) -> FeatureSpec:
 
 
 def _table_turns(config) -> bool:
-    """Whether a rotary axis carries the workpiece (a letter left of F: the table turns, the workpiece frame is not the
-    machine frame; outputs.table_frame's rule)."""
-    return any(ch in "ABC" for ch in str(config.machine).upper().partition("F")[0])
+    """Whether a rotary axis carries the workpiece (the table turns: the workpiece frame is not the machine frame;
+    machine.workpiece_rotation's rule)."""
+    return any(is_rotary(a) for a in Configuration.parse(config.machine, config.rotary or None).workpiece)
 
 
 def _angles(r: Reader, config, n: int) -> dict:
@@ -851,8 +852,8 @@ def features_text(feats: list | None) -> list:
 
 def frame_note(feats: list) -> str:
     """Where the features are computed, when not in the machine frame (five axes, a turning table)."""
-    frames = sorted({f["frame"] for f in feats if f.get("frame") and f["frame"] != "machine frame"})
-    return f", in the {frames[0]}" if frames else ""
+    return f", in the {FEATURE_TABLE_FRAME}" if any(f.get("frame", "machine frame") != "machine frame"
+                                                   for f in feats) else ""
 
 
 def features_markdown(feats: list | None) -> list:
