@@ -192,6 +192,15 @@ def test_repeatability_on_five_axes_without_the_rotary_source_asks_for_it():
     assert "features[0].repeatability" in msg and "state the feature's rotary_repeatability" in msg, msg
 
 
+def test_a_rotary_repeatability_in_the_next_unit_up_is_refused():
+    """The rule of every stated uncertainty (docs/configuration.md): 1 mrad for 1 urad is refused in one line."""
+    from mtbudget.features import FeatureSet
+
+    with pytest.raises(ConfigError, match=r"^five.toml: features\[0\]\.rotary_repeatability: 1000 urad is not "
+                                          r"plausible; expected 0 to 500 urad$"):
+        FeatureSet.of(scenario(five(features=[dict(LENGTH_ACROSS_C, rotary_repeatability="1 mrad")])))
+
+
 def test_a_three_axis_feature_takes_no_rotary_repeatability():
     from mtbudget.features import FeatureSet
     from mtbudget.scenario import build_scenario
