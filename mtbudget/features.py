@@ -25,7 +25,9 @@ import numpy as np
 
 from .config import SCHEMA, Reader, to_unit
 from .errors import ConfigError
+from .machine import Configuration, is_rotary, workpiece_rotation
 from .model import MeasurementModel
+from .outputs import WORKPIECE_FRAME
 from .plan import Plan
 from .stats import decimals_for, percent
 from .units import pretty
@@ -37,7 +39,8 @@ from .units import pretty
 #: CTE to 0.1-2 um/(m*K), a polymer part's (70-150 um/(m*K): PA, POM, PEEK) to 5-30 um/(m*K), so up to 50: a value in
 #: mm/(m*K) (1000 um/(m*K) and more) is still refused
 IN_USE_BOUNDS = {"probing_error": (0.1, "um", 1e3), "machine_temperature_change": (10.0, "K", 1.0),
-                 "part_temperature_u": (10.0, "K", 1.0), "part_cte_u": (50e-6, "um/(m*K)", 1e6)}
+                 "part_temperature_u": (10.0, "K", 1.0), "part_cte_u": (50e-6, "um/(m*K)", 1e6),
+                 "rotary_repeatability": (500e-6, "urad", 1e6)}  # a rotary axis repeats within 1-50 urad
 
 
 #: kinds -> (fewest points, unit of the value, one-sided characteristic (value <= T) or two-sided (|deviation| <= T))
@@ -63,7 +66,8 @@ INSIDE_SLACK = 1e-6
 PLANE_SLACK = 1e-4
 CIRCLE_SLACK = 1e-2
 #: the in-use sources, in the order of their budget rows (each drawn on its own stream)
-IN_USE = ("probing", "repeatability_in_use", "machine_thermal_drift", "part_temperature", "part_cte")
+IN_USE = ("probing", "repeatability_in_use", "machine_thermal_drift", "part_temperature", "part_cte",
+          "rotary_repeatability_in_use")
 IN_USE_TEXT = {
     "probing": "probing error at each point along its probing direction, normal, u = P_FTU / 3.931 (ISO 230-10)",
     "repeatability_in_use": "the machine's positioning repeatability at each probed point, normal per axis, "
@@ -75,6 +79,9 @@ IN_USE_TEXT = {
                         "about the feature's centre",
     "part_cte": "the part's CTE: its error (normal) times (part_temperature - 20 degC) expands the part about the "
                 "feature's centre",
+    "rotary_repeatability_in_use": "five axes: each rotary axis' positioning repeatability at each probed point, normal "
+                                   "per axis and point, u = the feature's rotary_repeatability, else the run's "
+                                   "[sources.rotary_repeatability] R; the tool point moves as the chain turns it",
 }
 
 MEASURANDS = {
@@ -84,12 +91,20 @@ MEASURANDS = {
                 "invariant to a rigid motion",
     "position": "positional deviation the machine reports for a circle at nominal: twice the distance between the "
                 "least-squares centre of the measured points and the true centre (ISO 1101 position zone diameter), "
-                "um, relative to the machine frame (the rigid part is kept)",
+                "um, relative to the {frame} (the rigid part is kept)",
     "flatness": "flatness the machine reports for a perfectly flat plane: the range of the measured points' "
                 "distances from the associated plane ({association}), um; invariant to a rigid motion",
     "orientation": "angle between the least-squares plane of the measured points and the true plane (a part at "
-                   "nominal), urad, relative to the machine frame (the rigid part is kept)",
+                   "nominal), urad, relative to the {frame} (the rigid part is kept)",
 }
+#: five-axis machines: what every feature's measurand adds (the frame its points and value are in)
+ROTARY_MEASURAND = ("; each point probed at its commanded rotary angles ({angles}), the points and the feature in the "
+                    "{frame}")
+#: the frame of a five-axis machine whose table turns: the one the per-point measurand is stated in (outputs.py)
+FEATURE_TABLE_FRAME = ("workpiece (table) frame (x, y, z: the machine's X, Y, Z with every rotary axis at zero, "
+                       "turning with the table)")
+#: an angle may lie this far outside the angles the verification visited and still count as inside (rad)
+ANGLE_SLACK = 1e-9
 
 
 @dataclass
@@ -111,6 +126,15 @@ class FeatureSpec:
     part_cte_u: float = 0.0  # 1/K
     centre: np.ndarray = field(default=None)  # (3,) mm: the nominal centre the part expands about
     datum: np.ndarray | None = None  # (3,) the plane's true normal (orientation, flatness)
+    #: five-axis machines: {letter: (N,) commanded angle of each rotary axis at each point, rad}; empty on three axes
+    angles: dict = field(default_factory=dict)
+    #: (N, 3) mm the nominal probed points where the part is: the commanded points on a three-axis machine, the nominal
+    #: tool points in the workpiece (table) frame on a five-axis one (the chain at zero errors, the measurand's tool)
+    geometry: np.ndarray | None = None
+    table_frame: bool = False  # a rotary axis carries the workpiece: the feature is in the workpiece (table) frame
+    #: five axes: u of each rotary axis' angle at each probed point (rad); stated, or the run's rotary_repeatability
+    #: source's R when ``repeatability`` is true (FeatureSet.of resolves it); None: not stated
+    rotary_repeatability: float | None = None
 
     @property
     def unit(self) -> str:
@@ -121,7 +145,12 @@ class FeatureSpec:
         return KINDS[self.kind][2]
 
     def measurand(self) -> str:
-        return MEASURANDS[self.kind].format(association=self.association)
+        text = MEASURANDS[self.kind].format(association=self.association,
+                                            frame="workpiece (table) frame" if self.table_frame else "machine frame")
+        if self.angles:
+            text += ROTARY_MEASURAND.format(angles=", ".join(sorted(a.upper() for a in self.angles)),
+                                            frame=FEATURE_TABLE_FRAME if self.table_frame else "machine frame")
+        return text
 
     def in_use(self) -> list:
         """The in-use sources this feature states, in budget order."""
@@ -129,7 +158,8 @@ class FeatureSpec:
               "machine_thermal_drift": self.machine_temperature_change > 0,
               "part_temperature": self.part_temperature_u > 0 and self.kind in ("distance", "diameter"),
               "part_cte": self.part_cte_u > 0 and self.part_temperature is not None
-              and self.kind in ("distance", "diameter")}
+              and self.kind in ("distance", "diameter"),
+              "rotary_repeatability_in_use": bool(self.angles) and (self.rotary_repeatability or 0.0) > 0}
         return [s for s in IN_USE if on[s]]
 
     def describe(self) -> dict:
@@ -137,23 +167,27 @@ class FeatureSpec:
         return {"name": self.name, "kind": self.kind, "unit": self.unit, "measurand": self.measurand(),
                 "points": self.points.tolist(), "points_unit": "mm", "directions": self.directions.tolist(),
                 "tolerance": self.tolerance, "one_sided": self.one_sided, "association": self.association,
-                "in_use": self.in_use()}
+                "in_use": self.in_use(),
+                **({"angles": {a.upper(): np.degrees(v).tolist() for a, v in sorted(self.angles.items())},
+                    "angles_unit": "deg", "frame": WORKPIECE_FRAME if self.table_frame else "machine frame"}
+                   if self.angles else {})}
 
 
 # ------------------------------------------------------------------ parsing
-def parse_features(config) -> list:
-    """The [[features]] of a configuration as :class:`FeatureSpec` s, checked; errors name file and key."""
+def parse_features(config, nominal=None) -> list:
+    """The [[features]] of a configuration as :class:`FeatureSpec` s, checked; errors name file and key.
+
+    ``nominal(points, angles)``: (N, 3) the nominal tool points in the workpiece frame of commanded points (N, 3) mm
+    at commanded angles {letter: (N,) rad} (the chain at zero errors): a five-axis feature's geometry is checked and
+    derived there, where the part is; unused on a three-axis machine (the commanded points are the part's)."""
     data = config.source.get("features", []) if isinstance(config.source, dict) else []
     if not data:
         return []
     if not isinstance(data, list) or not all(isinstance(x, dict) for x in data):
         raise ConfigError(f"{config.where('features')}: expected [[features]] tables")
-    if getattr(config, "rotary", None):
-        raise ConfigError(f"{config.where('features')}: features are evaluated on three-axis machines only for now "
-                          f"(machine {config.machine!r} has rotary axes)")
     out, names = [], set()
     for i, raw in enumerate(data):
-        f = _parse_one(Reader(raw, config.path, f"features[{i}]."), config)
+        f = _parse_one(Reader(raw, config.path, f"features[{i}]."), config, nominal)
         if f.name in names:
             raise ConfigError(f"{config.where(f'features[{i}].name')}: feature {f.name!r} is named twice")
         names.add(f.name)
@@ -161,7 +195,7 @@ def parse_features(config) -> list:
     return out
 
 
-def _parse_one(r: Reader, config) -> FeatureSpec:
+def _parse_one(r: Reader, config, nominal=None) -> FeatureSpec:
     r.check_keys(FEATURE_KEYS, "[[features]]")
     name = r.raw("name")
     if not isinstance(name, str) or not name.strip():
@@ -186,6 +220,10 @@ def _parse_one(r: Reader, config) -> FeatureSpec:
         if not (np.all(p >= lo) and np.all(p <= hi)):
             raise ConfigError(f"{r.where('points')}[{j}]: ({', '.join(f'{v:g}' for v in p)}) mm lies outside the "
                               f"verified volume {_volume(config)}; extrapolating the identified errors is not covered")
+    angles = _angles(r, config, n)
+    # where the part is: the commanded points (three axes), the nominal tool points in the workpiece frame (five axes)
+    G = P if not angles else np.asarray(nominal(P, angles), float)
+    P_cmd, P = P, G
     centre, datum = P.mean(axis=0), None
     if kind == "distance":
         if np.linalg.norm(P[1] - P[0]) < 1e-3:
@@ -253,11 +291,77 @@ def _parse_one(r: Reader, config) -> FeatureSpec:
                           "difference from 20 degC: state part_temperature too")
 
     part_t = None if not r.has("part_temperature") else r.quantity("part_temperature", "K", absolute_temperature=True)
-    return FeatureSpec(name.strip(), kind, P, dirs, tol, assoc, probing_error=nonneg("probing_error", "mm", "0 um"),
+    rot = None
+    if r.has("rotary_repeatability"):
+        if not angles:
+            raise ConfigError(f"{r.where('rotary_repeatability')}: machine {config.machine!r} has no rotary axis; "
+                              "only a five-axis feature takes the rotary axes' repeatability")
+        rot = nonneg("rotary_repeatability", "rad", None)
+    return FeatureSpec(name.strip(), kind, P_cmd, dirs, tol, assoc, probing_error=nonneg("probing_error", "mm", "0 um"),
                        repeatability=rep, machine_temperature_change=nonneg("machine_temperature_change", "K", "0 K"),
                        part_temperature=part_t, part_temperature_u=nonneg("part_temperature_u", "K", "0 K"),
                        part_cte=r.quantity("part_cte", "1/K", "11.5 um/(m*K)"),
-                       part_cte_u=nonneg("part_cte_u", "1/K", "0 um/(m*K)"), centre=centre, datum=datum)
+                       part_cte_u=nonneg("part_cte_u", "1/K", "0 um/(m*K)"), centre=centre, datum=datum,
+                       angles=angles, geometry=P, table_frame=bool(angles) and _table_turns(config),
+                       rotary_repeatability=rot)
+
+
+def _table_turns(config) -> bool:
+    """Whether a rotary axis carries the workpiece (the table turns: the workpiece frame is not the machine frame;
+    machine.workpiece_rotation's rule)."""
+    return any(is_rotary(a) for a in Configuration.parse(config.machine, config.rotary or None).workpiece)
+
+
+def _angles(r: Reader, config, n: int) -> dict:
+    """A feature's ``angles``: {letter: (n,) rad}, the commanded angle of every rotary axis of the machine at each
+    probed point (a list in the order of the points, as a recording's angle columns; one quantity for every point),
+    inside the angles the verification visited (modulo a turn); empty on a three-axis machine, which takes none."""
+    letters = sorted(getattr(config, "rotary", None) or {})
+    if not letters:
+        if r.has("angles"):
+            raise ConfigError(f"{r.where('angles')}: machine {config.machine!r} has no rotary axis; a feature's points "
+                              "take no angles (state angles on a five-axis machine only)")
+        return {}
+    names = ", ".join(a.upper() for a in letters)
+    example = "angles = {" + ", ".join(f'{a.upper()} = ["0 deg", "90 deg", ...]' for a in letters) + "}"
+    if not r.has("angles"):
+        raise ConfigError(f"{r.where('angles')}: missing: machine {config.machine!r} has rotary axes {names}; state "
+                          f"the commanded angle of each at every probed point, e.g. {example} (one per point, in the "
+                          "order of points, or one angle for every point)")
+    raw = r.raw("angles")
+    if not isinstance(raw, dict):
+        raise ConfigError(f"{r.where('angles')}: expected a table of the rotary axes' angles, e.g. {example}")
+    given = {}
+    for k, v in raw.items():
+        if str(k).lower() not in letters:
+            raise ConfigError(f"{r.where('angles')}.{k}: machine {config.machine!r} has no rotary axis {k} (its rotary "
+                              f"axes: {names})")
+        given[str(k).lower()] = (k, v)
+    out = {}
+    for a in letters:
+        if a not in given:
+            raise ConfigError(f"{r.where('angles')}.{a.upper()}: missing: machine {config.machine!r} has a rotary axis "
+                              f"{a.upper()}; state its commanded angle at every probed point (or one for all)")
+        key, v = given[a]
+        where = f"{r.where('angles')}.{key}"
+        if isinstance(v, list):
+            if len(v) != n:
+                raise ConfigError(f"{where}: {len(v)} angles for {n} probed points; state one per point, in the order "
+                                  "of points (or one angle for every point)")
+            th = np.array([to_unit(x, "rad", f"{where}[{j}]") for j, x in enumerate(v)])
+        else:
+            th = np.full(n, to_unit(v, "rad", where))
+        visited = np.asarray(config.rotary_angles[a], float)
+        lo, hi = float(visited.min()), float(visited.max())
+        for j, t in enumerate(th):
+            turns = np.ceil((lo - t) / (2 * np.pi) - ANGLE_SLACK)  # the turn that brings t to lo or just above
+            if not (abs(t) <= 200 * np.pi and t + 2 * np.pi * turns <= hi + ANGLE_SLACK):
+                at = f"{where}[{j}]" if isinstance(v, list) else where
+                raise ConfigError(f"{at}: {np.degrees(t):g} deg lies outside the angles the verification visited, "
+                                  f"[{np.degrees(lo):g}, {np.degrees(hi):g}] deg (modulo a turn); extrapolating the "
+                                  "identified errors is not covered")
+        out[a] = th
+    return out
 
 
 def _volume(config) -> str:
@@ -407,11 +511,16 @@ class FeatureSet:
             self.slices.append(slice(k, k + len(f.points)))
             k += len(f.points)
         self.points = np.concatenate([f.points for f in specs])  # (Nf, 3) commanded
+        self.geometry = np.concatenate([f.geometry for f in specs])  # (Nf, 3) the part's nominal points
+        self.angles = {a: np.concatenate([f.angles[a] for f in specs]) for a in specs[0].angles}  # five axes: rad
         self.n_columns = 2 + len(IN_USE)  # total, verification alone, each in-use source alone
-        tool = scenario.tool
-        n = len(self.points)
-        self.plan = Plan(np.arange(n), np.ones(n, int), np.zeros(n), self.points.copy(), np.ones((n, 3)),
-                         np.tile(np.asarray(tool, float), (n, 1)))
+        self.plan = _probe_plan(scenario, self.points, self.angles)
+        # five axes, a turning table: (Nf, 3, 3) the table's nominal orientation at each point's pose (v_machine =
+        # R v_workpiece), which turns what acts along the machine's axes into the workpiece frame; None otherwise
+        self.to_machine = workpiece_rotation(scenario.truth.config, self.angles) if self.angles else None
+        # five axes: {letter: (Nf, 3) mm/rad} how the nominal tool point moves in the workpiece frame when the axis
+        # turns (the chain at zero errors, central differences of an angle offset)
+        self.turn = _turn_rates(scenario, self.points, self.angles) if self.angles else {}
         self._models: dict = {}
         cfg = scenario.config
         self.rep = float(scenario.drawn.get("machine_tool.repeatability", cfg.repeatability))
@@ -426,13 +535,23 @@ class FeatureSet:
     def of(cls, scenario):
         """The scenario's feature set (built once), or None without [[features]]."""
         def make():
-            specs = parse_features(scenario.config)
+            specs = parse_features(scenario.config, lambda P, angles: _nominal_points(scenario, P, angles))
             if not specs:
                 return None
             if scenario.null_bias is not None or scenario.context.measurand is not None:
                 raise ConfigError(f"{scenario.config.where('features')}: at a [measurand] tool the verification cannot "
                                   "fully identify, the features are not evaluated yet (what it leaves unidentified is "
                                   "drawn at the mesh only); probe at the verification's tool")
+            for i, f in enumerate(specs):  # five axes: the machine's repeatability includes its rotary axes'
+                if f.angles and f.repeatability and f.rotary_repeatability is None:
+                    src = next((s for s in scenario.sources if s.name == "rotary_repeatability"), None)
+                    if src is None:
+                        raise ConfigError(
+                            f"{scenario.config.where(f'features[{i}].repeatability')}: on a five-axis machine the "
+                            "repeatability at a probed point includes the rotary axes', the R of source "
+                            "rotary_repeatability, which this run does not select; state the feature's "
+                            "rotary_repeatability (e.g. \"10 urad\"; \"0 urad\" leaves it out)")
+                    f.rotary_repeatability = src.value("R", "rad")
             return cls(scenario, specs)
 
         return scenario.cached("features", make)
@@ -472,18 +591,33 @@ class FeatureSet:
         if name == "probing":
             z = rng.standard_normal((n, Nf))
             return lambda f, sl, S: (z[:, sl] * (f.probing_error / D2_25))[..., None] * f.directions[None]
-        if name == "repeatability_in_use":
+        if name == "repeatability_in_use":  # along the machine's axes, turned into the workpiece frame (five axes)
             z = rng.standard_normal((n, Nf, 3))
-            return lambda f, sl, S: z[:, sl] * self.rep
-        if name == "machine_thermal_drift":
+            return lambda f, sl, S: self._to_workpiece(z[:, sl] * self.rep, sl)
+        if name == "rotary_repeatability_in_use":  # each rotary axis' angle, through the chain's turn rate
+            letters = sorted(self.angles)
+            if not letters:
+                return None
+            z = rng.standard_normal((n, Nf, len(letters)))
+            return lambda f, sl, S: sum(z[:, sl, j, None] * f.rotary_repeatability * self.turn[a][sl][None]
+                                        for j, a in enumerate(letters))
+        if name == "machine_thermal_drift":  # the linear axes' scales, at the commanded positions
             z = rng.standard_normal((n, 1, 3))
-            return lambda f, sl, S: z * (f.machine_temperature_change * self.cte) * (self.points[sl] - self.x0)[None]
-        z = rng.standard_normal((n, 1, 1))
+            return lambda f, sl, S: self._to_workpiece(
+                z * (f.machine_temperature_change * self.cte) * (self.points[sl] - self.x0)[None], sl)
+        z = rng.standard_normal((n, 1, 1))  # the part expands about its centre, where it is (its nominal points)
         if name == "part_temperature":
-            return lambda f, sl, S: z * (f.part_cte * f.part_temperature_u) * (self.points[sl] - f.centre)[None]
+            return lambda f, sl, S: z * (f.part_cte * f.part_temperature_u) * (self.geometry[sl] - f.centre)[None]
         if name == "part_cte":
-            return lambda f, sl, S: z * (f.part_cte_u * (f.part_temperature - 293.15)) * (self.points[sl] - f.centre)[None]
+            return lambda f, sl, S: z * (f.part_cte_u * (f.part_temperature - 293.15)) * (self.geometry[sl] - f.centre)[None]
         raise KeyError(name)
+
+    def _to_workpiece(self, d: np.ndarray, sl: slice) -> np.ndarray:
+        """Displacements (n, N, 3) along the machine's axes at the points ``sl`` in the workpiece frame the features
+        are computed in (R^T d at each point's pose); unchanged where the frames are the same."""
+        if self.to_machine is None:
+            return d
+        return np.einsum("mji,nmj->nmi", self.to_machine[sl], d)
 
     @staticmethod
     def _value(f: FeatureSpec, S: np.ndarray, d: np.ndarray) -> np.ndarray:
@@ -514,6 +648,43 @@ class FeatureSet:
         cosang = np.abs(n_ @ f.datum)
         sin = np.linalg.norm(np.cross(n_, f.datum[None]), axis=-1)
         return np.arctan2(sin, cosang) * 1e6
+
+
+def _probe_plan(scenario, points: np.ndarray, angles: dict) -> Plan:
+    """The plan of probed points at the measurand's tool: commanded positions and, on a five-axis machine, the
+    commanded angles of each rotary axis with the plan's rotary geometry (the chain evaluates them as the mesh)."""
+    n = len(points)
+    extra = {"angles": dict(angles), "rotary": dict(scenario.plan.rotary)} if angles else {}
+    return Plan(np.arange(n), np.ones(n, int), np.zeros(n), np.array(points, float), np.ones((n, 3)),
+                np.tile(np.asarray(scenario.tool, float), (n, 1)), **extra)
+
+
+def _nominal_points(scenario, points: np.ndarray, angles: dict) -> np.ndarray:
+    """(N, 3) mm: where an error-free machine puts the measurand's tool at commanded points and angles, in the
+    workpiece frame (the truth's chain at zero errors): the part a five-axis feature is probed on."""
+    truth = scenario.truth
+    model = MeasurementModel(truth.config, truth.errors, _probe_plan(scenario, points, angles))
+    return model.machine_points(np.zeros((1, truth.n_params)))[0]
+
+
+#: the angle step of the turn rates' central differences (rad): the rotation is exact, the difference's error is
+#: of order step^2 (1e-12 of the rate)
+TURN_STEP = 1e-6
+
+
+def _turn_rates(scenario, points: np.ndarray, angles: dict) -> dict:
+    """{letter: (N, 3) mm/rad} the derivative of the nominal tool point in the workpiece frame with each rotary axis'
+    angle at the probed poses: the chain's own ``axis_offset.<letter>`` input, by central differences."""
+    truth = scenario.truth
+    model = MeasurementModel(truth.config, truth.errors, _probe_plan(scenario, points, angles))
+    zero = np.zeros((1, truth.n_params))
+    n = len(points)
+    out = {}
+    for a in sorted(angles):
+        step = np.full((1, n), TURN_STEP)
+        out[a] = (model.machine_points(zero, {f"axis_offset.{a}": step})[0]
+                  - model.machine_points(zero, {f"axis_offset.{a}": -step})[0]) / (2 * TURN_STEP)
+    return out
 
 
 def _warnings(scenario) -> list:
@@ -625,6 +796,9 @@ def features_json(spec_features: list | None, samples: np.ndarray | None, covera
         e = {"name": f["name"], "kind": f["kind"], "measurand": f["measurand"] + ("; " + "; ".join(warnings)
                                                                                    if warnings else ""),
              "unit": f["unit"], "points": {"value": f["points"], "unit": "mm"}, "in_use": f["in_use"]}
+        if "angles" in f:  # five axes: each point's commanded angles, and the frame the feature is computed in
+            e["points"]["angles"] = {"value": f["angles"], "unit": f["angles_unit"]}
+            e["frame"] = f["frame"]
         if samples is None or not len(samples):
             e["note"] = "the trials' feature values are not available (a run resumed from a log: rerun it)"
             out.append(e)
@@ -649,7 +823,7 @@ def features_text(feats: list | None) -> list:
     if not feats:
         return []
     lines = ["", "Features probed on the compensated machine (docs/features.md): error of each feature, measured "
-                 "minus true, for a part at nominal"]
+                 "minus true, for a part at nominal" + frame_note(feats)]
     lines.append(f"  {'feature':<22} {'kind':<12} {'unit':<5} {'estimate':>9} {'u (k=1)':>9}   {'interval':>22}  "
                  f"decision for a part at nominal")
     for f in feats:
@@ -677,6 +851,12 @@ def features_text(feats: list | None) -> list:
     return lines
 
 
+def frame_note(feats: list) -> str:
+    """Where the features are computed, when not in the machine frame (five axes, a turning table)."""
+    return f", in the {FEATURE_TABLE_FRAME}" if any(f.get("frame", "machine frame") != "machine frame"
+                                                   for f in feats) else ""
+
+
 def features_markdown(feats: list | None) -> list:
     """The features table of the report (Markdown)."""
     if not feats:
@@ -684,7 +864,7 @@ def features_markdown(feats: list | None) -> list:
     md = ["", "## Features probed on the compensated machine", "",
           "Error of each feature (measured minus true, a part at nominal), from the same Monte Carlo trials: the "
           "verification's state of the machine at every probed point, plus the in-use sources the feature states "
-          "(docs/features.md).", "",
+          "(docs/features.md)" + frame_note(feats) + ".", "",
           "| feature | kind | estimate | u (k = 1) | interval | decision for a part at nominal |", "| --- | --- | --- | --- | --- | --- |"]
     for f in feats:
         if "u" not in f:

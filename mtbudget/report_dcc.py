@@ -293,8 +293,10 @@ def _features(results, res):
     if not feats:
         return
     r = _sub(results, _d("result"))
+    from .features import frame_note
+
     _text(r, "name", "features probed on the compensated machine: error of each feature, measured minus true, for a "
-                     "part at nominal (docs/features.md)")
+                     "part at nominal" + frame_note(feats) + " (docs/features.md)")
     data = _sub(r, _d("data"))
     for f in feats:
         iv, dec = f["interval"], f.get("decision")

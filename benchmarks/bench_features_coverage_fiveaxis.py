@@ -1,0 +1,143 @@
+"""Coverage of five-axis features' 95 % intervals (examples/five_axis_features.toml), the way ISO/TS 15530-4 validates
+a task-specific uncertainty: bench_features_coverage.py's method on the CAFXYZ trunnion machine.
+
+Run:  python benchmarks/bench_features_coverage_fiveaxis.py [--machines 4] [--parts 512] [--trials 2048]
+
+For each of ``--machines`` simulated machines (the example with geometric_errors.seed = 11, 12, ...), mtbudget states
+each feature's 95 % interval of its error (``--trials``, seed 1, 2, ...).  Then ``--parts`` parts at nominal are
+measured on that machine, each after its own verification (the engine's simulator and identification, another seed),
+and the part's true error is computed HERE, apart from mtbudget/features.py: the truth and the identification model
+at a plan of the probed poses built here (commanded positions and angles), the part's nominal points from the chain
+at zero errors, the in-use errors drawn by this script: the probing error along the line or radius in the table frame,
+the linear axes' repeatability turned into the table frame by R_C(c)^T R_A(a)^T written with scipy's rotations, and
+the rotary axes' repeatability by evaluating the nominal chain at the angles plus the drawn turns (exactly, where
+mtbudget linearises); the associations are bench_features_coverage.py's (scipy least squares, numpy lstsq).
+"""
+
+from __future__ import annotations
+
+import argparse
+import copy
+import os
+import sys
+import time
+import tomllib
+from pathlib import Path
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from bench_features_coverage import BAND, points_of, q, value  # noqa: E402
+
+from mtbudget.config import bundled_config, parse_config  # noqa: E402
+from mtbudget.engine import Engine  # noqa: E402
+from mtbudget.identify import scale_vector  # noqa: E402
+from mtbudget.model import MeasurementModel  # noqa: E402
+from mtbudget.plan import Plan  # noqa: E402
+from mtbudget.report import result_json  # noqa: E402
+from mtbudget.runner import RunSettings, run  # noqa: E402
+from mtbudget.scenario import build_scenario  # noqa: E402
+
+
+def angles_of(f, n):
+    out = {}
+    for k, v in f["angles"].items():
+        vals = v if isinstance(v, list) else [v] * n
+        out[k.lower()] = np.array([q(x, "rad") for x in vals])
+    return out
+
+
+def table_rotation(ang):
+    """(N, 3, 3) R with v_machine = R v_table for CAFXYZ (A on the bed about +X, C on A about +Z): R_A(a) R_C(c)."""
+    return np.array([Rotation.from_euler("x", a).as_matrix() @ Rotation.from_euler("z", c).as_matrix()
+                     for a, c in zip(ang["a"], ang["c"])])
+
+
+def part_errors(sc, eng, features, blocks, rng, rotary_R):
+    truth, model = sc.truth, sc.id_model
+    scale = scale_vector(model)
+    tool = np.asarray(sc.tool, float)
+    rep = sc.config.repeatability
+    out = []
+    for b in blocks:
+        theta_hat = eng.run_blocks([b])[0].parameters / scale
+        theta_true = eng.simulate(b)[1]
+        n = len(theta_hat)
+        rows = np.empty((n, len(features)))
+        for k, f in enumerate(features):
+            P = points_of(f)
+            N = len(P)
+            ang = angles_of(f, N)
+
+            def chain(m, theta, angles):
+                plan = Plan(np.arange(N), np.ones(N, int), np.zeros(N), P, np.ones((N, 3)), np.tile(tool, (N, 1)),
+                            angles=angles, rotary=dict(sc.plan.rotary))
+                return MeasurementModel(m.config, m.errors, plan).machine_points(theta)
+
+            zero = np.zeros((1, truth.n_params))
+            S = chain(truth, zero, ang)[0]
+            e = chain(truth, theta_true, ang) - chain(model, theta_hat, ang)
+            M = S[None] - e
+            c = S.mean(axis=0)
+            if f["kind"] == "distance":
+                u = (S[1] - S[0]) / np.linalg.norm(S[1] - S[0])
+                dirs = np.array([-u, u])
+            else:
+                dirs = (S - c) / np.linalg.norm(S - c, axis=1, keepdims=True)
+            if "probing_error" in f:
+                M = M + rng.normal(0, q(f["probing_error"], "mm") / 3.931, (n, N, 1)) * dirs[None]
+            if f.get("repeatability"):
+                R = table_rotation(ang)
+                M = M + np.einsum("mji,nmj->nmi", R, rng.normal(0, rep, (n, N, 3)))
+                for i in range(n):  # the rotary axes turned by their repeatability: the nominal chain at the new angles
+                    turned = {a: v + rng.normal(0, rotary_R, N) for a, v in ang.items()}
+                    M[i] += chain(truth, zero, turned)[0] - S
+            rows[:, k] = [value(f, S, M[i]) for i in range(n)]
+        out.append(rows)
+    return np.concatenate(out)
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--machines", type=int, default=4)
+    ap.add_argument("--parts", type=int, default=512)
+    ap.add_argument("--trials", type=int, default=2048)
+    args = ap.parse_args(argv)
+    text = bundled_config("five_axis_features").read_text()
+    base = tomllib.loads(bundled_config("five_axis_cafxyz").read_text())
+    base.update({k: v for k, v in tomllib.loads(text).items() if k not in ("extends",)})
+    features = base["features"]
+    rotary_R = q(base["sources"]["rotary_repeatability"]["R"], "rad")
+    rng = np.random.default_rng(20261126)
+    hits: dict = {}
+    t0 = time.perf_counter()
+    for m in range(args.machines):
+        data = copy.deepcopy(base)
+        data["geometric_errors"]["seed"] = 11 + m
+        sc = build_scenario(parse_config(data, f"five_axis_features (machine seed {11 + m})"))
+        stated = result_json(run(sc, RunSettings(trials=args.trials, attribution_trials=0, seed=1 + m)))["features"]
+        eng = Engine(sc, block=64, seed=1000 + m)
+        E = part_errors(sc, eng, features, list(range(-(-args.parts // 64))), rng, rotary_R)[: args.parts]
+        for k, (f, s) in enumerate(zip(features, stated)):
+            inside = (E[:, k] >= s["interval"]["low"]) & (E[:, k] <= s["interval"]["high"])
+            hits.setdefault(f["kind"], []).append(inside)
+            print(f"machine {m + 1} ({11 + m}): {f['name']:<16} stated u {s['u']:7.3f} {s['unit']:<4}, part errors' "
+                  f"std {E[:, k].std(ddof=1):7.3f}, coverage {inside.mean():6.1%}", flush=True)
+    print(f"\nEmpirical coverage of the stated 95 % intervals per feature kind ({args.machines} machines x {args.parts} "
+          f"parts, {args.trials} trials per statement; {time.perf_counter() - t0:.0f} s, load {os.getloadavg()[0]:.1f}):")
+    ok = True
+    for kind, h in hits.items():
+        h = np.concatenate(h)
+        c = 100 * h.mean()
+        good = BAND[0] <= c <= BAND[1]
+        ok &= good
+        print(f"  {kind:<12} {c:5.1f} %  of {len(h)} part-features  {'in' if good else 'OUTSIDE'} [{BAND[0]}, {BAND[1]}] %")
+    return 0 if ok else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())

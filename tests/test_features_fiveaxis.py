@@ -1,0 +1,285 @@
+"""Features probed on a five-axis machine ([[features]] with `angles`, docs/features.md "Five-axis machines").
+
+A distance probed across a quarter turn of the C table against the closed form of a pivot offset (the nominal points
+and the error written here from FORMAT-3's equations with scipy's rotations); the engine's feature errors against a
+computation written here from the truth and the identified parameters of the same verifications, trial by trial;
+an in-use source acting along the machine's axes against its closed form in the workpiece frame; missing or wrong
+angles refused in one line (exit 2); the example run printing the features with measurand, unit, k and coverage.
+"""
+
+from __future__ import annotations
+
+import tomllib
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+from scipy.spatial.transform import Rotation
+
+from mtbudget.cli import main
+from mtbudget.config import bundled_config, parse_config
+from mtbudget.errors import ConfigError
+
+P_COMMANDED = [150.0, 0.0, 50.0]  # mm, the example's volume: x, y in [-200, 200], z in [-100, 200]
+LENGTH_ACROSS_C = {"name": "length across C", "kind": "distance",
+                   "points": [["150 mm", "0 mm", "50 mm"], ["150 mm", "0 mm", "50 mm"]],
+                   "angles": {"A": "0 deg", "C": ["0 deg", "90 deg"]}}
+
+
+def five(**extra) -> dict:
+    data = tomllib.loads(bundled_config("five_axis_cafxyz").read_text())
+    data.update(extra)
+    return data
+
+
+def scenario(data):
+    from mtbudget.scenario import build_scenario
+
+    return build_scenario(parse_config(data, "five.toml"))
+
+
+def rz(deg) -> np.ndarray:
+    return Rotation.from_euler("z", deg, degrees=True).as_matrix()
+
+
+# ------------------------------------------------------------------ closed form: a C pivot offset
+def test_a_distance_across_a_table_turn_sees_the_pivot_offset_as_its_closed_form():
+    """C's location errors EXOC, EYOC = delta and nothing else: the tool point in the table frame is
+    p + R_C(c)^T (P + T - p - delta) (FORMAT-3 with A at 0), so the compensated machine (identified as nominal) reports
+    S_i + R_C(c_i)^T delta, and the distance between (150, 0, 50) mm probed at c = 0 and c = 90 deg changes by
+    u . (R_C(90)^T - I) delta = 24.96 um (u the unit vector between the nominal points (150, 0, -50) and (70, -120,
+    -50) mm)."""
+    from mtbudget.features import FeatureSet
+
+    sc = scenario(five(features=[LENGTH_ACROSS_C]))
+    fs = FeatureSet.of(sc)
+    truth = sc.truth
+    pivot = np.array([50.0, -20.0, 0.0])  # [rotary.C] pivot
+    tool = np.array([0.0, 0.0, -100.0])  # the verification's first tool
+    S = np.array([pivot + rz(c).T @ (np.array(P_COMMANDED) + tool - pivot) for c in (0, 90)])
+    assert np.allclose(fs.tool_points, S, atol=1e-9)  # the part, in the table frame
+    assert np.allclose(S, [[150, 0, -50], [70, -120, -50]])
+    delta = np.array([0.020, -0.010, 0.0])  # mm
+    theta = np.zeros((1, truth.n_params))
+    names = truth.errors.names
+    theta[0, names.index("dx(c)[O]")], theta[0, names.index("dy(c)[O]")] = delta[:2]
+    e = fs.evaluate(truth, theta) - fs.evaluate(truth, np.zeros_like(theta))  # true minus identified (nominal)
+    assert np.allclose(e[0], [-rz(c).T @ delta for c in (0, 90)], atol=1e-12)
+    got = fs.block_values(e, seed=1, block=0)[0, 0, 0]
+    M = S + np.array([rz(c).T @ delta for c in (0, 90)])
+    exact = (np.linalg.norm(M[1] - M[0]) - np.linalg.norm(S[1] - S[0])) * 1e3
+    u = (S[1] - S[0]) / np.linalg.norm(S[1] - S[0])
+    assert got == pytest.approx(exact, abs=1e-9)
+    assert got == pytest.approx(u @ (rz(90).T - np.eye(3)) @ delta * 1e3, rel=1e-4)
+    assert got == pytest.approx(24.96, abs=0.01)
+
+
+# ------------------------------------------------------------------ the engine against a computation written here
+def test_engine_five_axis_features_equal_a_computation_from_the_parameters():
+    """One block: each trial's feature errors (a distance across C, a diameter probed by turning C, a position at
+    c = 90 deg) from the truth's and the identified parameters, the chain at a plan of the probed points with their
+    angles built here, and the associations written here (numpy norm, scipy least squares in the table's xy plane)."""
+    from scipy import optimize
+
+    from mtbudget.engine import Engine
+    from mtbudget.identify import scale_vector
+    from mtbudget.model import MeasurementModel
+    from mtbudget.plan import Plan
+
+    bore = {"name": "bore by C", "kind": "diameter", "points": [["150 mm", "-20 mm", "50 mm"]] * 4,
+            "angles": {"A": "0 deg", "C": ["0 deg", "90 deg", "180 deg", "270 deg"]}}
+    at90 = {"name": "bore at C 90", "kind": "position",
+            "points": [["100 mm", "0 mm", "50 mm"], ["0 mm", "100 mm", "50 mm"], ["-100 mm", "0 mm", "50 mm"],
+                       ["0 mm", "-100 mm", "50 mm"]], "angles": {"A": "0 deg", "C": "90 deg"}}
+    sc = scenario(five(features=[LENGTH_ACROSS_C, bore, at90]))
+    eng = Engine(sc, block=8, seed=4)
+    got = eng.run_blocks([0])[0].features[:, :, 0]
+    theta_true = eng.simulate(0)[1]
+    model = sc.id_model
+    theta_hat = eng.run_blocks([0])[0].parameters / scale_vector(model)
+    plans = {"length across C": ([P_COMMANDED] * 2, {"a": [0, 0], "c": [0, 90]}),
+             "bore by C": ([[150, -20, 50]] * 4, {"a": [0] * 4, "c": [0, 90, 180, 270]}),
+             "bore at C 90": ([[100, 0, 50], [0, 100, 50], [-100, 0, 50], [0, -100, 50]], {"a": [0] * 4, "c": [90] * 4})}
+
+    def circle(X):  # geometric least-squares circle in the plane z = const (the table's xy plane at A = 0)
+        r = optimize.least_squares(lambda p: np.hypot(X[:, 0] - p[0], X[:, 1] - p[1]) - p[2],
+                                   [X[:, 0].mean(), X[:, 1].mean(), np.ptp(X[:, 0]) / 2], xtol=1e-15, ftol=1e-15)
+        return r.x
+
+    want = np.empty_like(got)
+    for k, (P, ang) in enumerate(plans.values()):
+        P = np.array(P, float)
+        N = len(P)
+        plan = Plan(np.arange(N), np.ones(N, int), np.zeros(N), P, np.ones((N, 3)), np.tile([0.0, 0.0, -100.0], (N, 1)),
+                    angles={a: np.radians(np.array(v, float)) for a, v in ang.items()}, rotary=dict(sc.plan.rotary))
+        true = MeasurementModel(sc.truth.config, sc.truth.errors, plan)
+        S = true.machine_points(np.zeros((1, sc.truth.n_params)))[0]
+        e = true.machine_points(theta_true) - MeasurementModel(model.config, model.errors, plan).machine_points(theta_hat)
+        for i in range(len(got)):
+            M = S - e[i]
+            if k == 0:
+                want[i, k] = (np.linalg.norm(M[1] - M[0]) - np.linalg.norm(S[1] - S[0])) * 1e3
+            else:
+                a, b = circle(M), circle(S)
+                want[i, k] = 2 * (a[2] - b[2]) * 1e3 if k == 1 else 2 * np.hypot(a[0] - b[0], a[1] - b[1]) * 1e3
+    assert np.allclose(got, want, rtol=0, atol=1e-4), np.abs(got - want).max(axis=0)
+    assert np.abs(want).max(axis=0).min() > 0.1  # every feature moves by more than 0.1 um: not vacuous
+
+
+# ------------------------------------------------------------------ an in-use source along the machine's axes
+def test_machine_thermal_drift_acts_along_the_machine_axes_turned_into_the_table_frame():
+    """The axes' temperature change alone (no verification source): each point moves by alpha dT_a p_a along the
+    machine's axes; at one commanded position probed at c = 0 and 90 deg the same machine-frame displacement d is
+    R^T d in the table frame at each, so the distance changes by ((R_C(90) - I) u) . d, u = 0.832 x 150 mm alpha
+    u(dT) ... : u = alpha u(dT) |((R_C(90) - I) u)_x| 150 mm = 0.718 um (alpha 11.5 um/(m K), u(dT) 0.3 K).  Without
+    the turn, the same displacement at both ends would leave the distance unchanged."""
+    from mtbudget.report import result_json
+    from mtbudget.runner import RunSettings, run
+
+    f = dict(LENGTH_ACROSS_C, machine_temperature_change="0.3 K")
+    res = run(parse_config(five(sources={"enable": []}, features=[f]), "five.toml"),
+              RunSettings(trials=512, attribution_trials=0, seed=5))
+    out = result_json(res)["features"][0]
+    S = np.array([[150, 0, -50], [70, -120, -50]], float)
+    u = (S[1] - S[0]) / np.linalg.norm(S[1] - S[0])
+    c = (rz(90) - np.eye(3)) @ u * np.array(P_COMMANDED)
+    expected = 11.5e-6 * 0.3 * np.linalg.norm(c) * 1e3
+    assert expected == pytest.approx(0.718, abs=0.001)
+    assert out["u"] == pytest.approx(expected, rel=0.1)  # 512 trials: the relative u of u is 3.1 %
+    assert "workpiece (table) frame" in out["frame"] and out["points"]["angles"]["value"]["C"] == [0.0, 90.0]
+
+
+def test_rotary_repeatability_in_use_against_the_turn_of_each_axis_written_here():
+    """The rotary axes' repeatability alone (u = 20 urad per axis and point): a turn dA of A (pivot p_A, about +X) and
+    dC of C (pivot p_C, about +Z) move the table-frame tool point p_C + R_C^T (p_A + R_A^T (P + T - p_A) - p_C) by
+    -dC e_z x (S - p_C) and -dA R_C^T (e_x x (v - p_A)), v the point A leaves (FORMAT-3's chain differentiated here),
+    each independent per point: the distance across C has u^2 = sum over points and axes of (u_dir . rate)^2 u_R^2;
+    the stated 20 urad and `repeatability = true` with the run's rotary_repeatability source (R = 10 urad) each."""
+    from mtbudget.features import IN_USE, FeatureSet
+
+    pA, pC = np.array([0.0, -20.0, -80.0]), np.array([50.0, -20.0, 0.0])
+    tool = np.array([0.0, 0.0, -100.0])
+    v = np.array(P_COMMANDED) + tool  # A at 0: A leaves the point where it is
+    S = np.array([pC + rz(c).T @ (v - pC) for c in (0, 90)])
+    u = (S[1] - S[0]) / np.linalg.norm(S[1] - S[0])
+    rates = [(-np.cross([0, 0, 1.0], S[i] - pC), -rz(c).T @ np.cross([1.0, 0, 0], v - pA)) for i, c in enumerate((0, 90))]
+    per_urad = np.sqrt(sum((u @ r) ** 2 for pair in rates for r in pair)) * 1e-6 * 1e3  # um per urad
+    # u . rate: C 72.12 and 72.11 mm/rad at the two points, A -24.96 and -16.64 mm/rad: 106.3 mm/rad in all
+    assert per_urad == pytest.approx(0.1063, abs=1e-4)
+
+    sc = scenario(five(features=[dict(LENGTH_ACROSS_C, rotary_repeatability="20 urad"),
+                                 dict(LENGTH_ACROSS_C, name="with the run's R", repeatability=True)]))
+    fs = FeatureSet.of(sc)
+    for a, c_rate in zip(("a", "c"), (1, 0)):  # the chain's turn rates equal those written here
+        assert np.allclose(fs.turn[a][:2], [rates[i][c_rate] for i in range(2)], atol=1e-6)
+    e = np.zeros((4096, len(fs.points), 3))
+    vals = fs.block_values(e, seed=3, block=0)
+    col = 2 + IN_USE.index("rotary_repeatability_in_use")
+    assert vals[:, 0, col].std(ddof=1) == pytest.approx(20 * per_urad, rel=0.06)  # 4096 draws: 1.1 % u of u
+    assert fs.specs[1].rotary_repeatability == pytest.approx(10e-6)  # [sources.rotary_repeatability] R
+    assert vals[:, 1, col].std(ddof=1) == pytest.approx(10 * per_urad, rel=0.06)
+    assert fs.specs[0].in_use() == ["rotary_repeatability_in_use"]
+
+
+def test_repeatability_on_five_axes_without_the_rotary_source_asks_for_it():
+    from mtbudget.features import FeatureSet
+
+    sc = scenario(five(sources={"enable": ["tracker_noise"]}, features=[dict(LENGTH_ACROSS_C, repeatability=True)]))
+    with pytest.raises(ConfigError) as exc:
+        FeatureSet.of(sc)
+    msg = str(exc.value)
+    assert "\n" not in msg and msg.startswith("five.toml: features[0].repeatability: ")
+    assert "features[0].repeatability" in msg and "state the feature's rotary_repeatability" in msg, msg
+
+
+def test_a_rotary_repeatability_in_the_next_unit_up_is_refused():
+    """The rule of every stated uncertainty (docs/configuration.md): 1 mrad for 1 urad is refused in one line."""
+    from mtbudget.features import FeatureSet
+
+    with pytest.raises(ConfigError, match=r"^five.toml: features\[0\]\.rotary_repeatability: 1000 urad is not "
+                                          r"plausible; expected 0 to 500 urad$"):
+        FeatureSet.of(scenario(five(features=[dict(LENGTH_ACROSS_C, rotary_repeatability="1 mrad")])))
+
+
+def test_a_three_axis_feature_takes_no_rotary_repeatability():
+    from mtbudget.features import FeatureSet
+    from mtbudget.scenario import build_scenario
+
+    data = tomllib.loads(bundled_config("paper_xfyz").read_text())
+    data["features"] = [{"name": "x", "kind": "distance", "rotary_repeatability": "10 urad",
+                         "points": [["800 mm", "100 mm", "200 mm"], ["1200 mm", "100 mm", "200 mm"]]}]
+    with pytest.raises(ConfigError, match=r"^paper.toml: features\[0\]\.rotary_repeatability: machine 'XFYZ' has no "
+                                          r"rotary axis"):
+        FeatureSet.of(build_scenario(parse_config(data, "paper.toml")))
+
+
+# ------------------------------------------------------------------ bad angles: one line, exit 2
+BASE = str(bundled_config("five_axis_cafxyz"))
+PAPER = str(bundled_config("paper_xfyz"))
+
+
+@pytest.mark.parametrize("base, angles, words", [
+    (BASE, None, "features[0].angles: missing: machine 'CAFXYZ' has rotary axes A, C"),
+    (BASE, '{C = ["0 deg", "90 deg"]}', "features[0].angles.A: missing"),
+    (BASE, '{A = "0 deg", C = ["0 deg"]}', "features[0].angles.C: 1 angles for 2 probed points"),
+    (BASE, '{A = "0 deg", B = "0 deg", C = "0 deg"}', "features[0].angles.B: machine 'CAFXYZ' has no rotary axis B"),
+    (BASE, '{A = "0 deg", C = ["0 deg", "300 deg"]}', "features[0].angles.C[1]: 300 deg lies outside the angles the "
+                                                       "verification visited, [0, 270] deg"),
+    (BASE, '{A = "120 deg", C = "0 deg"}', "features[0].angles.A: 120 deg lies outside"),
+    (BASE, '{A = "0 mm", C = "0 deg"}', "features[0].angles.A"),
+    (BASE, '"0 deg"', "features[0].angles: expected a table of the rotary axes' angles"),
+    (PAPER, '{C = "0 deg"}', "features[0].angles: machine 'XFYZ' has no rotary axis; a feature's points take no angles"),
+])
+def test_missing_or_wrong_angles_are_refused_in_one_line(tmp_path, base, angles, words):
+    pts = ('[["150 mm", "0 mm", "50 mm"], ["150 mm", "0 mm", "100 mm"]]' if base == BASE else
+           '[["800 mm", "100 mm", "200 mm"], ["1200 mm", "100 mm", "200 mm"]]')
+    path = tmp_path / "feat.toml"
+    path.write_text(f'extends = "{base}"\n\n[[features]]\nname = "d"\nkind = "distance"\npoints = {pts}\n'
+                    + (f"angles = {angles}\n" if angles else ""))
+    res = CliRunner().invoke(main, ["run", str(path), "--trials", "2", "--log", str(tmp_path / "r.mcap"), "--quiet"])
+    assert res.exit_code == 2, res.output
+    line = res.output.strip()
+    assert "\n" not in line and "Traceback" not in line and str(path) in line and words in line, line
+
+
+def test_a_minus_90_deg_c_angle_is_the_visited_270_deg():
+    """The chain is periodic in a rotary angle: -90 deg is 270 deg, inside the visited [0, 270] deg."""
+    from mtbudget.features import FeatureSet
+
+    f = dict(LENGTH_ACROSS_C, angles={"A": "0 deg", "C": ["-90 deg", "270 deg"]},
+             points=[["150 mm", "0 mm", "50 mm"], ["150 mm", "0 mm", "100 mm"]])
+    fs = FeatureSet.of(scenario(five(features=[f])))
+    assert np.allclose(fs.tool_points[0, :2], fs.tool_points[1, :2], atol=1e-9)
+
+
+# ------------------------------------------------------------------ the example run, its JSON, report and DCC
+def test_the_five_axis_example_states_its_features_with_measurand_unit_k_coverage_and_frame(tmp_path):
+    """`mtbudget run examples/five_axis_features.toml` prints every feature with its unit, u (k = 1), the interval's
+    coverage, its measurand and the frame; the log's JSON, report and DCC say the same."""
+    from mtbudget.report import result_json, run_report
+    from mtbudget.report_dcc import write_dcc
+    from mtbudget.runner import replay
+
+    log = tmp_path / "f.mcap"
+    res = CliRunner().invoke(main, ["run", str(bundled_config("five_axis_features")), "--trials", "32", "--block",
+                                    "16", "--attribution-trials", "16", "--quiet", "--log", str(log)])
+    assert res.exit_code == 0, res.output
+    table = res.output[res.output.index("Features probed on the compensated machine"):]
+    assert "in the workpiece (table) frame" in table.splitlines()[0]
+    assert "u (k=1)" in table and "95 % coverage" in table
+    for name, kind in (("length across C", "distance"), ("bore by C", "diameter"), ("bore at C 90", "position"),
+                       ("tilted face", "flatness")):
+        row = next(line for line in table.splitlines() if line.strip().startswith(name + " ") and kind in line)
+        assert "µm" in row
+        assert f"{name}: " in table  # its measurand sentence
+    assert "each point probed at its commanded rotary angles (A, C)" in table
+
+    again = replay(log)
+    j = result_json(again)["features"][0]
+    assert j["name"] == "length across C" and j["unit"] == "um" and j["k"] == 1 and j["interval"]["coverage"] == 0.95
+    assert j["points"]["angles"] == {"value": {"A": [0.0, 0.0], "C": [0.0, 90.0]}, "unit": "deg"}
+    assert "workpiece (table) frame" in j["frame"] and "workpiece (table) frame" in j["measurand"]
+    md = run_report(again, tmp_path / "rep")["markdown"].read_text()
+    assert "| length across C | distance |" in md and "in the workpiece (table) frame" in md
+    xml = write_dcc(again, tmp_path / "c.xml").read_text()
+    assert "length across C" in xml and "in the workpiece (table) frame" in xml
