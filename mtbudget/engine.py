@@ -236,7 +236,8 @@ class _StationsResult:
         hold = sc.unidentifiable(model)
         how = strategy_settings(model, strategy or Strategy.one_phase())
         b = identify_stations_batch(model, sc.stations, sc.row_station, meas, ranges, sc.noise.repeatability,
-                                    fixed=fixed, hold=hold, basis=_station_basis(sc, model, fixed, hold), **how["batch"])
+                                    fixed=fixed, hold=hold, basis=_station_basis(sc, model, fixed, hold),
+                                    **how["batch"])
         self.theta, self.converged = b["theta"].copy(), b["converged"].copy()
         self.chi2_per_dof = b["chi2"] / b["dof"]
         res_xyz, res_rng = b["residual_xyz"].copy(), b["residual_range"].copy()

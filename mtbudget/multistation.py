@@ -52,9 +52,9 @@ UM_PER_MM = 1e3
 #: points, whiteners and the chain's adjoint) then stays in cache (measured on one station: 0.101 ms per trial in
 #: calls of 256 trials, 0.108 in calls of 1024, 0.127 in calls of 64); a trial's result does not depend on it
 CHORD_CHUNK = 256
-#: the several-station identification's own step tolerance (um, urad): its solvers iterate until a step of every scaled
-#: unknown is below it (what the tests hold them to: 1e-7 um in the compensated field), as the one-tracker chord iterates
-#: to ``Strategy.chord_tol``; an optimisation strategy's xtol can tighten it, not loosen it (:func:`strategy_settings`)
+#: the several-station identification's own step tolerance (um, urad): its batch iterates until a step of every
+#: scaled unknown is below it (the tests hold it to 1e-7 um in the compensated field), as the one-tracker chord
+#: iterates to ``Strategy.chord_tol``; a strategy's xtol can tighten it, not loosen it (:func:`strategy_settings`)
 STATIONS_XTOL = 1e-7
 RIGID_FREEDOMS = ("translation along X", "translation along Y", "translation along Z", "rotation about X",
                   "rotation about Y", "rotation about Z")
@@ -172,7 +172,8 @@ def phase_masks(model: MeasurementModel, phases) -> list | None:
     for phase in phases:
         unknown = set(phase) - set(GROUPS)
         if unknown:
-            raise IdentificationError(f"unknown parameter group(s) {sorted(unknown)} in strategy phase; expected {GROUPS}")
+            raise IdentificationError(f"unknown parameter group(s) {sorted(unknown)} in strategy phase; "
+                                      f"expected {GROUPS}")
         if "pose" not in phase:
             raise IdentificationError("every phase must include the pose (every station's pose or position is unknown)")
         masks.append(np.array([group_of(par) in phase for par in model.errors.params], bool))
