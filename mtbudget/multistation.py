@@ -1118,17 +1118,20 @@ def linearise(res: MultiIdentification, lt_xyz, lt_range, repeatability: float, 
                          residual_machine=res_m, residual_size=size, residuals_per_row=n_per)
 
 
-def identify_recording_any(rec, max_degree: int = 3) -> tuple[Recording, MultiIdentification]:
+def identify_recording_any(rec, max_degree: int = 3, strategy=None) -> tuple[Recording, MultiIdentification]:
     """Read (a folder) or take a :class:`Recording` of any format and identify it over all its stations.
 
     A format 1 recording is one xyz station (the same minimum as :func:`mtbudget.identify.identify`).  The stated
-    scales' expansion (``[scales]``) is taken as known, as ``compensate`` does.  Returns (recording, result).
+    scales' expansion (``[scales]``) is taken as known, as ``compensate`` does.  strategy: an optimisation strategy
+    (:class:`mtbudget.identify.Strategy`; its phases, with this identification's own tolerance: the same minimum);
+    None: one phase.  Returns (recording, result).
     """
     if not isinstance(rec, Recording):
         rec = read_recording(rec, several_stations=True)
     model = MeasurementModel.for_plan(rec.machine, rec.plan, max_degree=max_degree)
+    phases = None if strategy is None else phase_masks(model, strategy.phases)
     res = identify_stations(model, rec.station_list(), rec.station_ids(), rec.lt, rec.lt_range, rec.repeatability,
-                            fixed=rec.fixed_inputs())
+                            fixed=rec.fixed_inputs(), phases=phases)
     return rec, res
 
 

@@ -263,3 +263,29 @@ def test_with_stated_scales_the_batch_runs_the_phases_by_gauss_newton_to_the_sam
                               fixed=fixed, hold=hold, phases=multi)
         for theta, chi2 in ((one["theta"][i], one["chi2"][i]), (mul["theta"][i], mul["chi2"][i])):
             assert field_um(sc, model, theta, r.theta) < 1e-7 and abs(chi2 / r.chi2 - 1) < 1e-9
+
+
+def test_identify_of_a_four_station_recording_takes_the_strategy():
+    """`mtbudget identify --strategy multi-phase` on a recording of several stations runs the phases (more iterations)
+    and reaches the minimum one phase reaches: the same parameters within 1e-6 um or urad and the same chi2 within
+    1e-9 (measured 9e-10 and 5e-13 on the bundled four-station recording)."""
+    import json
+
+    from click.testing import CliRunner
+
+    from mtbudget.cli import main
+    from mtbudget.config import example_recording
+    from mtbudget.multistation import identify_recording_any
+
+    rec = example_recording("four_stations")
+    _, one = identify_recording_any(rec)
+    _, mul = identify_recording_any(rec, strategy=Strategy.multi_phase())
+    assert one.converged and mul.converged and mul.iterations > one.iterations
+    out = {}
+    for st in ("one-phase", "multi-phase"):
+        res = CliRunner().invoke(main, ["identify", "--example", "four_stations", "--strategy", st, "--json"])
+        assert res.exit_code == 0, res.output
+        out[st] = json.loads(res.stdout)
+    a, b = out["one-phase"], out["multi-phase"]
+    assert abs(a["chi2_per_dof"] / b["chi2_per_dof"] - 1) < 1e-9
+    assert max(abs(x["value"] - y["value"]) for x, y in zip(a["parameters"], b["parameters"])) < 1e-6
