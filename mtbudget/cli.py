@@ -170,7 +170,8 @@ def _print_identification(folder, as_json=False, max_degree=3, strategy="one-pha
     if rec.several_stations:  # all stations at once (docs/recording-format.md, format 2)
         from .multistation import identify_recording_any, summary as station_summary, summary_text
 
-        rec, res = identify_recording_any(rec, max_degree=max_degree)
+        rec, res = identify_recording_any(rec, max_degree=max_degree, strategy=(
+            Strategy.one_phase() if strategy == "one-phase" else Strategy.multi_phase()))
         s = station_summary(rec, res)
         s["thermal_correction"] = rec.thermal_correction
         problems = implausible(res)

@@ -86,7 +86,7 @@ class Engine:
         fs = self.features
         Ff_id = None if fs is None else np.empty((nb * n, len(fs.points), 3))  # identified machine at the features
         um = self._um
-        calls: dict = {}  # one identification call per setting: {call: (model, strategy, the trials' keys)}
+        calls: dict = {}  # one identification call per setting: {key: (model, strategy, [key])}
         # the one-tracker identification's (noise, pose): [tracker], or a [[stations]] list of one laser tracker (its
         # own stated noise and pose; the same problem, so the same identification); None: several stations
         one = sc.one_tracker
@@ -97,17 +97,14 @@ class Engine:
                 settings.update(opts[rem % len(opts)])
                 rem //= len(opts)
             model, strategy = self._identification_setup(settings)
-            # several stations: the identification over all of them takes the model only (its own solver and
-            # tolerances: the strategy's phases, xtol and max_iter do not apply), so the settings that differ in
-            # the strategy alone are one call, not one each (a trial's result does not depend on the trials
-            # identified with it: the same bits, a quarter of the per-call cost with the default sources)
-            call = ("model", id(model)) if one is None else key
-            calls.setdefault(call, (model, strategy, []))[2].append(key)
+            # several stations too: one call per setting (the identification over all stations takes the strategy's
+            # phases, xtol and max_iter with the one-tracker meaning: multistation.strategy_settings)
+            calls.setdefault(key, (model, strategy, []))[2].append(key)
         for model, strategy, group in calls.values():
             idx = np.flatnonzero(np.isin(keys, group))
             if one is None:
                 ranges = np.concatenate([s.ranges for s in sims]) if nb > 1 else sims[0].ranges
-                res = _StationsResult(model, sc, meas[idx], ranges[idx])
+                res = _StationsResult(model, sc, meas[idx], ranges[idx], strategy)
             else:  # [scales]: the stated nominal expansion at the read temperatures is a known input, (1, M) arrays
                 res = identify(model, meas[idx], one[0], strategy, chunk=n, groups=label[idx],
                                fixed=sc.correction or None, iteration_pose=one[1])
@@ -222,28 +219,32 @@ class _StationsResult:
     """The trials of a verification from several stations ([[stations]]: two or more, or any interferometer; one laser
     tracker alone is identified as [tracker] is, ``Scenario.one_tracker``), identified over all their stations at
     once (:func:`mtbudget.multistation.identify_stations_batch`; a trial it cannot finish is solved again by
-    :func:`mtbudget.multistation.identify_stations`, the reference, and counted in ``fallback``).  Holds what the
-    engine reads of an identification: theta, convergence and the paper's Eq. 27 scalars.  Eq. 27 is a mean
+    :func:`mtbudget.multistation.identify_stations`, the reference, and counted in ``fallback``), with the
+    optimisation strategy's phases, xtol and max_iter as the one-tracker identification takes them
+    (:func:`mtbudget.multistation.strategy_settings`).  Holds what the engine reads of an identification: theta,
+    convergence and the paper's Eq. 27 scalars.  Eq. 27 is a mean
     distance between measured and compensated points: it is taken over the laser trackers' rows (an interferometer
     measures a distance, not a point), or over the range residuals when every station is an interferometer."""
 
     points = None  # the machine points at the solution are not kept: the compensated field is evaluated anew
 
-    def __init__(self, model, sc: Scenario, meas: np.ndarray, ranges: np.ndarray):
-        from .multistation import identify_stations, identify_stations_batch, multilaterate
+    def __init__(self, model, sc: Scenario, meas: np.ndarray, ranges: np.ndarray, strategy: Strategy | None = None):
+        from .multistation import identify_stations, identify_stations_batch, multilaterate, strategy_settings
 
         fixed = sc.correction or None
         k, p = len(meas), model.n_params
         hold = sc.unidentifiable(model)
+        how = strategy_settings(model, strategy or Strategy.one_phase())
         b = identify_stations_batch(model, sc.stations, sc.row_station, meas, ranges, sc.noise.repeatability,
-                                    fixed=fixed, hold=hold, basis=_station_basis(sc, model, fixed, hold))
+                                    fixed=fixed, hold=hold, basis=_station_basis(sc, model, fixed, hold),
+                                    **how["batch"])
         self.theta, self.converged = b["theta"].copy(), b["converged"].copy()
         self.chi2_per_dof = b["chi2"] / b["dof"]
         res_xyz, res_rng = b["residual_xyz"].copy(), b["residual_range"].copy()
         self.fallback = b["failed"].copy()
         for i in np.flatnonzero(self.fallback):
             r = identify_stations(model, sc.stations, sc.row_station, meas[i], ranges[i], sc.noise.repeatability,
-                                  fixed=fixed, hold=hold)
+                                  fixed=fixed, hold=hold, **how["reference"])
             self.theta[i], self.converged[i], self.chi2_per_dof[i] = r.x[:p], r.converged, r.chi2_per_dof
             res_xyz[i], res_rng[i] = r.residual_xyz, r.residual_range
         xyz_rows = np.isin(sc.row_station, [st.id for st in sc.stations if st.kind == "xyz"])

@@ -41,7 +41,7 @@ import numpy as np
 
 from . import tracker as lt
 from .errors import IdentificationError
-from .identify import POSE_SCALE, Identifiability, range_basis, scale_vector, whitener
+from .identify import GROUPS, POSE_SCALE, Identifiability, group_of, range_basis, scale_vector, whitener
 from .model import MeasurementModel, iso_parameter
 from .recording import Recording, read_recording
 from .units import display, shown_unit
@@ -52,6 +52,10 @@ UM_PER_MM = 1e3
 #: points, whiteners and the chain's adjoint) then stays in cache (measured on one station: 0.101 ms per trial in
 #: calls of 256 trials, 0.108 in calls of 1024, 0.127 in calls of 64); a trial's result does not depend on it
 CHORD_CHUNK = 256
+#: the several-station identification's own step tolerance (um, urad): its batch iterates until a step of every
+#: scaled unknown is below it (the tests hold it to 1e-7 um in the compensated field), as the one-tracker chord
+#: iterates to ``Strategy.chord_tol``; a strategy's xtol can tighten it, not loosen it (:func:`strategy_settings`)
+STATIONS_XTOL = 1e-7
 RIGID_FREEDOMS = ("translation along X", "translation along Y", "translation along Z", "rotation about X",
                   "rotation about Y", "rotation about Z")
 
@@ -157,6 +161,62 @@ def _scales(model: MeasurementModel, stations) -> np.ndarray:
     for st in stations:
         parts.append(POSE_SCALE if st.kind == "xyz" else np.full(4, UM_PER_MM))
     return np.concatenate(parts)
+
+
+def phase_masks(model: MeasurementModel, phases) -> list | None:
+    """The geometric parameters each phase of an optimisation strategy frees ((p,) bool per phase; ``Strategy.phases``:
+    lists of groups from :data:`mtbudget.identify.GROUPS`), or None for one phase of every group (the default).  Every
+    phase frees every station's own unknowns (a tracker's pose, an interferometer's position and dead path): they are
+    the ``pose`` of the one-tracker strategy, which every phase must name."""
+    masks = []
+    for phase in phases:
+        unknown = set(phase) - set(GROUPS)
+        if unknown:
+            raise IdentificationError(f"unknown parameter group(s) {sorted(unknown)} in strategy phase; "
+                                      f"expected {GROUPS}")
+        if "pose" not in phase:
+            raise IdentificationError("every phase must include the pose (every station's pose or position is unknown)")
+        masks.append(np.array([group_of(par) in phase for par in model.errors.params], bool))
+    if len(masks) == 1 and masks[0].all():
+        return None
+    return masks
+
+
+def strategy_settings(model: MeasurementModel, strategy) -> dict:
+    """An optimisation strategy (:class:`mtbudget.identify.Strategy`) as the several-station identification takes it,
+    with the meaning the one-tracker identification gives it:
+
+    * ``phases``: :func:`phase_masks` (None: one phase); each phase iterates over its parameters and every station's
+      unknowns, the next starting where it stopped, the last on the datum of the whole (:func:`_phase_bases`);
+    * ``chord``: the engine's batched solver (:func:`identify_stations_batch`) iterates to min(xtol, STATIONS_XTOL)
+      within its own step limit, as the one-tracker chord iterates to min(xtol, ``chord_tol``) within ``chord_iter``:
+      a loose xtol does not loosen it, and ``max_iter`` is not its limit;
+    * ``reference``: the Gauss-Newton reference (:func:`identify_stations`, which solves a trial the batch gives up on)
+      takes xtol and max_iter as they are, as the one-tracker's Gauss-Newton (its fallback) does.
+    """
+    masks = phase_masks(model, strategy.phases)
+    return {"batch": {"xtol": min(float(strategy.xtol), STATIONS_XTOL), "phases": masks},
+            "reference": {"xtol": float(strategy.xtol), "max_iter": int(strategy.max_iter), "phases": masks}}
+
+
+def _phase_bases(Q: np.ndarray, masks: list | None, p: int) -> list:
+    """Per phase, the directions Y (r, r_k) (orthonormal, None: all of them) in the coordinates of the basis Q (n, r) of
+    the directions the whole identification iterates along whose geometric part lies on the phase's parameters
+    (``masks``, :func:`phase_masks`): Q Y spans what the phase moves.  A phase moves within the datum of the whole (the
+    directions held at their start stay there), so the last phase ends on that datum with no correction (the
+    one-tracker identification analyses each phase alone and puts the solution on its last phase's datum after)."""
+    if masks is None:
+        return [None]
+    out = []
+    for mask in masks:
+        off = Q[:p][~mask]
+        if not off.size:
+            out.append(None)
+            continue
+        _, s, Vt = np.linalg.svd(off, full_matrices=True)
+        rank = int((s > 1e-10 * max(s.max(), 1.0)).sum())
+        out.append(np.ascontiguousarray(Vt[rank:].T))
+    return out
 
 
 def multilaterate(points: np.ndarray, ranges: np.ndarray) -> tuple[np.ndarray, float]:
@@ -409,8 +469,9 @@ def _station_rows(model, stations, row_station, lt_xyz, lt_range, repeatability,
 
 
 def identify_stations(model: MeasurementModel, stations: list, row_station, lt_xyz, lt_range, repeatability: float,
-                      *, fixed: dict | None = None, max_iter: int = 50, xtol: float = 1e-7, rank_tol: float = 1e-7,
-                      hold: np.ndarray | None = None) -> MultiIdentification:
+                      *, fixed: dict | None = None, max_iter: int = 50, xtol: float = STATIONS_XTOL,
+                      rank_tol: float = 1e-7, hold: np.ndarray | None = None,
+                      phases: list | None = None) -> MultiIdentification:
     """Identify the geometric errors and every station's own unknowns from all stations at once.
 
     stations: :class:`mtbudget.recording.Station` (id, kind, stated uncertainties); row_station (M,) the station of
@@ -419,7 +480,9 @@ def identify_stations(model: MeasurementModel, stations: list, row_station, lt_x
     (``MODEL_INPUTS`` keys, e.g. ``Recording.fixed_inputs()``).  xtol: convergence, largest step of a scaled
     unknown (um, urad).  hold: (p, h) directions of the geometric parameters (scaled, orthonormal) held at their
     start instead of the minimum-norm datum, e.g. what one tracker cannot identify
-    (:meth:`mtbudget.scenario.Scenario.unidentifiable`): see :func:`_free_basis`.
+    (:meth:`mtbudget.scenario.Scenario.unidentifiable`): see :func:`_free_basis`.  phases: the parameters each phase
+    of a multi-phase identification frees (:func:`phase_masks`; None: one phase): Gauss-Newton to xtol or max_iter in
+    each, the next from where it stopped (``converged``: every phase converged; ``iterations``: summed).
     """
     row_station = np.asarray(row_station)
     M = model.n_points
@@ -451,26 +514,33 @@ def identify_stations(model: MeasurementModel, stations: list, row_station, lt_x
         raise IdentificationError(f"too few measurements: {A.shape[0]} residuals for {Q.shape[1]} identifiable "
                                   "unknowns (no redundancy left)")
     cost = float(w @ w)
-    converged = False
-    it = 0
-    for it in range(1, max_iter + 1):
-        y = np.linalg.lstsq(A @ Q, w, rcond=None)[0]
-        z = Q @ y
-        step = 1.0
-        for _ in range(40):
-            x_new = x + step * z / sv
-            w_new, raw_new, A_new = _evaluate(model, fixed, rows, x_new, sv)
-            c_new = float(w_new @ w_new)
-            if c_new <= cost * (1 + 1e-10) + 1e-300:
+    converged_all = True
+    iterations = 0
+    for Y in _phase_bases(Q, phases, model.n_params):
+        Qk = Q if Y is None else Q @ Y
+        converged = False
+        it = 0
+        for it in range(1, max_iter + 1):
+            y = np.linalg.lstsq(A @ Qk, w, rcond=None)[0]
+            z = Qk @ y
+            step = 1.0
+            for _ in range(40):
+                x_new = x + step * z / sv
+                w_new, raw_new, A_new = _evaluate(model, fixed, rows, x_new, sv)
+                c_new = float(w_new @ w_new)
+                if c_new <= cost * (1 + 1e-10) + 1e-300:
+                    break
+                step *= 0.5
+            else:
                 break
-            step *= 0.5
-        else:
-            break
-        small = np.abs(z).max() * step < xtol or cost - c_new <= 1e-15 * cost
-        x, w, raw, A, cost = x_new, w_new, raw_new, A_new, c_new
-        if small:
-            converged = True
-            break
+            small = np.abs(z).max() * step < xtol or cost - c_new <= 1e-15 * cost
+            x, w, raw, A, cost = x_new, w_new, raw_new, A_new, c_new
+            if small:
+                converged = True
+                break
+        converged_all &= converged
+        iterations += it
+    converged, it = converged_all, iterations
     AQ = A @ Q
     H = AQ.T @ AQ
     cov_z = Q @ np.linalg.solve(H, Q.T)
@@ -519,9 +589,9 @@ class Linearisation:
 
 
 def identify_stations_batch(model: MeasurementModel, stations: list, row_station, lt_xyz, lt_range,
-                            repeatability: float, *, fixed: dict | None = None, max_iter: int = 50, xtol: float = 1e-7,
-                            rank_tol: float = 1e-7, hold: np.ndarray | None = None, basis: tuple | None = None,
-                            chord_bias: float = 1e-3) -> dict:
+                            repeatability: float, *, fixed: dict | None = None, max_iter: int = 50,
+                            xtol: float = STATIONS_XTOL, rank_tol: float = 1e-7, hold: np.ndarray | None = None,
+                            basis: tuple | None = None, chord_bias: float = 1e-3, phases: list | None = None) -> dict:
     """:func:`identify_stations` for N trials of one plan at once (the engine's): lt_xyz (N, M, 3), lt_range (N, M).
 
     The same weighted least squares, the same closed-form starts, the same whiteners and the same convergence
@@ -546,17 +616,24 @@ def identify_stations_batch(model: MeasurementModel, stations: list, row_station
 
     A trial gives the same bits whatever trials are identified with it, as long as ``basis`` is given: numpy's
     small products round a lone row differently (a matrix-vector path), so a single trial is evaluated as two.
+
+    phases: the parameters each phase of a multi-phase identification frees (:func:`phase_masks`; None: one phase of
+    everything).  Each phase iterates along its own directions (:func:`_phase_bases`) from where the previous one
+    stopped; as in the one-tracker chord, the chord runs its first stage alone in the earlier phases (they only give the
+    last its start) and the last phase to xtol; the Gauss-Newton path runs every phase to xtol.
     """
     if np.shape(lt_xyz)[0] == 1:  # one trial: as two (see above), the first returned
         two = identify_stations_batch(model, stations, row_station, np.repeat(lt_xyz, 2, axis=0),
                                       np.repeat(lt_range, 2, axis=0), repeatability, fixed=fixed, max_iter=max_iter,
-                                      xtol=xtol, rank_tol=rank_tol, hold=hold, basis=basis)
+                                      xtol=xtol, rank_tol=rank_tol, hold=hold, basis=basis, chord_bias=chord_bias,
+                                      phases=phases)
         return {k: (v[:1] if isinstance(v, np.ndarray) and v.ndim and v.shape[0] == 2 else v) for k, v in two.items()}
     N = np.shape(lt_xyz)[0]
     if basis is not None and len(basis) == 5 and not fixed and N > CHORD_CHUNK:  # the chord's working set in cache
         parts = [identify_stations_batch(model, stations, row_station, lt_xyz[lo:lo + CHORD_CHUNK],
                                          lt_range[lo:lo + CHORD_CHUNK], repeatability, max_iter=max_iter, xtol=xtol,
-                                         rank_tol=rank_tol, hold=hold, basis=basis, chord_bias=chord_bias)
+                                         rank_tol=rank_tol, hold=hold, basis=basis, chord_bias=chord_bias,
+                                         phases=phases)
                  for lo in range(0, N, CHORD_CHUNK)]
         return {k: (np.concatenate([q[k] for q in parts]) if isinstance(v, np.ndarray) and v.ndim and
                     v.shape[0] == len(lt_xyz[:CHORD_CHUNK]) else v) for k, v in parts[0].items()}
@@ -640,7 +717,7 @@ def identify_stations_batch(model: MeasurementModel, stations: list, row_station
     all_trials = np.arange(N)
     if basis is not None and len(basis) == 5 and not fixed:  # the shared chord matrix: no Jacobian per trial
         return _batch_chord(model, blocks, x, evaluate, sv, basis, lt_xyz, lt_range, M, N, p, max_iter, xtol,
-                            chord_bias)
+                            chord_bias, phases)
     x_first = x[0].copy() if basis is None else None  # the first trial's start, where A_first is taken
     w, raw, A = evaluate(x, all_trials)
     A_first = A[0] if basis is None else None
@@ -650,15 +727,33 @@ def identify_stations_batch(model: MeasurementModel, stations: list, row_station
     else:  # given: the same for any grouping of the trials (the engine's, from the noise-free verification)
         Q, rank = basis[:2]
     cost = (w * w).sum(axis=1)
-    converged = np.zeros(N, bool)
     failed = np.zeros(N, bool)
     iterations = np.zeros(N, int)
+    converged_all = np.ones(N, bool)
     # Gauss-Newton with the Jacobian refreshed only when the chord iterations on it have converged: a trial is
     # converged when the first step after a refresh (a full Gauss-Newton step) is below xtol, which is
     # identify_stations' criterion; the chord steps in between cost a residual evaluation each, not a Jacobian
-    a = all_trials
+    Q_all = Q
+    for k, Y in enumerate(_phase_bases(Q_all, phases, p)):
+        Q = Q_all if Y is None else Q_all @ Y
+        converged = np.zeros(N, bool)
+        a = np.flatnonzero(~failed) if k else all_trials
+        _refreshes(a, k, Q, converged, failed, iterations, x, w, raw, A, cost, evaluate, sv, max_iter, xtol)
+        converged_all &= converged
+    converged = converged_all
+    res_xyz, res_rng = _split_residuals(blocks, raw, N, M)
+    return {"theta": x[:, :p], "x": x, "converged": converged, "iterations": iterations, "chi2": cost,
+            "dof": int(w.shape[1] - rank), "failed": failed, "residual_xyz": res_xyz, "residual_range": res_rng,
+            "basis": (Q_all, rank), "jacobian": A_first, "start": x_first,
+            "whiteners": None if A_first is None else [W[0] for _, _, W, _ in blocks]}
+
+
+def _refreshes(a, phase, Q, converged, failed, iterations, x, w, raw, A, cost, evaluate, sv, max_iter, xtol):
+    """:func:`identify_stations_batch`'s Gauss-Newton path on the trials ``a`` along the directions Q, in place (x, w,
+    raw, cost, converged, failed, iterations); A: the Jacobian of every trial at its start (read in the first phase
+    only, later phases evaluate their own)."""
     for refresh in range(max_iter):
-        if refresh:
+        if refresh or phase:
             w_a, raw_a, A_a = evaluate(x[a], a)
             w[a], A = w_a, A_a
             for r_all, r_new in zip(raw, raw_a):
@@ -699,11 +794,6 @@ def identify_stations_batch(model: MeasurementModel, stations: list, row_station
         a = np.flatnonzero(~converged & ~failed)
         if not len(a):
             break
-    res_xyz, res_rng = _split_residuals(blocks, raw, N, M)
-    return {"theta": x[:, :p], "x": x, "converged": converged, "iterations": iterations, "chi2": cost,
-            "dof": int(w.shape[1] - rank), "failed": failed, "residual_xyz": res_xyz, "residual_range": res_rng,
-            "basis": (Q, rank), "jacobian": A_first, "start": x_first,
-            "whiteners": None if A_first is None else [W[0] for _, _, W, _ in blocks]}
 
 
 def chord_basis(batch: dict, model: MeasurementModel, stations: list, row_station, *, hold: np.ndarray | None = None,
@@ -715,7 +805,8 @@ def chord_basis(batch: dict, model: MeasurementModel, stations: list, row_statio
     then rotation about the centroid of its rows' nominal points; :func:`_batch_chord`), as the one-tracker chord
     does, not by its Euler angles: A0's pose columns are replaced by those of that motion, Qr is the basis of the
     directions to iterate along in these coordinates (:func:`_free_basis`, the same ``hold``), Hinv the inverse of
-    (A0 Qr)^T A0 Qr, and J0 (M, 3, p) the chain's nominal Jacobian in the machine frame."""
+    H0 = (A0 Qr)^T A0 Qr, and J0 (M, 3, p) the chain's nominal Jacobian in the machine frame; the fifth element is
+    (J0, the interferometers' nominal beams, H0), H0 for the phases of a multi-phase identification."""
     Q, rank = batch["basis"]
     A0 = batch["jacobian"].copy()
     x0 = batch["start"]
@@ -746,7 +837,8 @@ def chord_basis(batch: dict, model: MeasurementModel, stations: list, row_statio
     _, _, _, null = _null_space(A0, rank_tol)
     Qr = _free_basis(A0, null, hold, rank_tol)
     G0 = A0 @ Qr
-    return Q, rank, Qr, np.linalg.inv(G0.T @ G0), (np.ascontiguousarray(J0.reshape(3 * model.n_points, p)), beams)
+    H0 = G0.T @ G0
+    return Q, rank, Qr, np.linalg.inv(H0), (np.ascontiguousarray(J0.reshape(3 * model.n_points, p)), beams, H0)
 
 
 def _distinct_rows_chain(model: MeasurementModel):
@@ -791,7 +883,8 @@ def _distinct_rows_chain(model: MeasurementModel):
     return hit
 
 
-def _batch_chord(model, blocks, x, evaluate, sv, basis, lt_xyz, lt_range, M, N, p, max_iter, xtol, chord_bias):
+def _batch_chord(model, blocks, x, evaluate, sv, basis, lt_xyz, lt_range, M, N, p, max_iter, xtol, chord_bias,
+                 phases=None):
     """:func:`identify_stations_batch` with one iteration matrix shared by every trial (``basis`` from
     :func:`chord_basis`), as the one-tracker identification (:func:`mtbudget.identify.identify`) does.
 
@@ -808,11 +901,17 @@ def _batch_chord(model, blocks, x, evaluate, sv, basis, lt_xyz, lt_range, M, N, 
     ``chord_bias`` (um or urad) is ``failed``: the caller solves it with :func:`identify_stations`.  Every product is
     taken trial by trial (a trial's bits do not depend on the trials identified with it).  The residuals and
     gradients are compiled (:mod:`mtbudget.kernels_stations`); ``evaluate`` (the batch's numpy residuals) is their
-    reference in the tests."""
+    reference in the tests.
+
+    phases (:func:`phase_masks`): a multi-phase identification, as the one-tracker chord runs it: each earlier phase
+    runs stage 1 alone along its own directions Qr Y (:func:`_phase_bases`), with the shared matrix restricted to them
+    (Y (Y^T H0 Y)^-1 Y^T, in the coordinates of Qr), and gives the next its start; the last runs every stage."""
     from . import kernels_stations as ks
     from .machine import chain_adjoint
 
-    _, rank, Qr, Hinv, (J0, beams0) = basis
+    _, rank, Qr, Hinv, (J0, beams0, H0) = basis
+    # each phase's iteration matrix in the coordinates of Qr: the shared one (one phase of everything: Hinv itself)
+    mats = [Hinv if Y is None else Y @ np.linalg.solve(Y.T @ H0 @ Y, Y.T) for Y in _phase_bases(Qr, phases, p)]
     n_res = sum(3 * len(idx) if st.kind == "xyz" else len(idx) for st, idx, _, _ in blocks)
     P0 = model.machine_points(np.zeros((1, p)))[0]
     chain_at, inv = _distinct_rows_chain(model)  # the chain on the plan's distinct rows; row r is inv[r] of them
@@ -892,16 +991,17 @@ def _batch_chord(model, blocks, x, evaluate, sv, basis, lt_xyz, lt_range, M, N, 
             a0 = angles0[c0][t]
             x[t, c0 + 3:c0 + 6] = a0 + (ang - a0 + np.pi) % (2 * np.pi) - np.pi
 
-    def iterate(chain, beams, pos, tol, predict=False):
+    def iterate(chain, beams, pos, tol, predict=False, mat=mats[-1]):
         """Chord steps on the trials not failed, until each one's step is below tol (``predict``: or the next step,
-        predicted from the contraction of the last two in the energy norm, as the one-tracker chord's first stage)."""
+        predicted from the contraction of the last two in the energy norm, as the one-tracker chord's first stage);
+        ``mat``: the phase's iteration matrix (the last phase's by default)."""
         a = np.flatnonzero(~failed)
         last = np.full(N, np.inf)
         for it in range(max_iter):
             if not len(a):
                 return
             g = gradient(a, chain, beams, pos)  # (na, q)
-            y = (Hinv @ g[..., None])[..., 0]  # trial by trial
+            y = (mat @ g[..., None])[..., 0]  # trial by trial
             z = (Qr @ y[..., None])[..., 0]
             step(a, z)
             residuals(a)
@@ -926,8 +1026,10 @@ def _batch_chord(model, blocks, x, evaluate, sv, basis, lt_xyz, lt_range, M, N, 
     # predicted next step below it, the first stage 2 to 1e-3 (measured on 256 trials of one, three and four stations:
     # every trial within 2.3e-7 of identify_stations' unknowns and 7e-9 um of its compensated field; 6, 13 and 11
     # steps per trial, 10, 14 and 12 with the Euler angles' steps)
-    # stage 1: the shared Jacobian (the chain's and the interferometers' beams of the noise-free verification)
-    iterate(nominal, beams0, lambda a: np.zeros(len(a), np.int64), max(xtol, 1e-2), predict=True)
+    # stage 1: the shared Jacobian (the chain's and the interferometers' beams of the noise-free verification); the
+    # earlier phases of a multi-phase identification run it alone, each along its own directions
+    for mat in mats:
+        iterate(nominal, beams0, lambda a: np.zeros(len(a), np.int64), max(xtol, 1e-2), predict=True, mat=mat)
     todo = np.flatnonzero(~failed)
     for tol in (max(xtol, 1e-3), xtol):  # stage 2, twice: the second from each trial's Jacobian where the first stopped
         todo = np.flatnonzero(~failed)
@@ -1016,17 +1118,20 @@ def linearise(res: MultiIdentification, lt_xyz, lt_range, repeatability: float, 
                          residual_machine=res_m, residual_size=size, residuals_per_row=n_per)
 
 
-def identify_recording_any(rec, max_degree: int = 3) -> tuple[Recording, MultiIdentification]:
+def identify_recording_any(rec, max_degree: int = 3, strategy=None) -> tuple[Recording, MultiIdentification]:
     """Read (a folder) or take a :class:`Recording` of any format and identify it over all its stations.
 
     A format 1 recording is one xyz station (the same minimum as :func:`mtbudget.identify.identify`).  The stated
-    scales' expansion (``[scales]``) is taken as known, as ``compensate`` does.  Returns (recording, result).
+    scales' expansion (``[scales]``) is taken as known, as ``compensate`` does.  strategy: an optimisation strategy
+    (:class:`mtbudget.identify.Strategy`; its phases, with this identification's own tolerance: the same minimum);
+    None: one phase.  Returns (recording, result).
     """
     if not isinstance(rec, Recording):
         rec = read_recording(rec, several_stations=True)
     model = MeasurementModel.for_plan(rec.machine, rec.plan, max_degree=max_degree)
+    phases = None if strategy is None else phase_masks(model, strategy.phases)
     res = identify_stations(model, rec.station_list(), rec.station_ids(), rec.lt, rec.lt_range, rec.repeatability,
-                            fixed=rec.fixed_inputs())
+                            fixed=rec.fixed_inputs(), phases=phases)
     return rec, res
 
 

@@ -176,11 +176,6 @@ def _scales_clause(spec: dict) -> str:
             "(sensor calibration, CTE uncertainty, drift) is in the budget")
 
 
-#: sources whose options the identification over several stations does not take (Gauss-Newton to convergence)
-STATIONS_IDLE = {"convergence_criteria": "does not act with several [[stations]]",
-                 "phase_sequence": "does not act with several [[stations]]"}
-
-
 def _several_stations(spec: dict) -> bool:
     """[[stations]] identified over all stations at once: two or more, or an interferometer.  One laser tracker
     alone states the one-tracker problem and is identified as [tracker] is (``Scenario.one_tracker``)."""
@@ -189,9 +184,10 @@ def _several_stations(spec: dict) -> bool:
 
 
 def _idle_sources(spec: dict, rows: list | None = None) -> dict:
-    """{source: why its row is zero by construction} for this run (and a systematic source that leaves nothing at the
-    mesh points: its sentence under the table says why)."""
-    out = dict(STATIONS_IDLE) if _several_stations(spec) else {}
+    """{source: why its row is zero by construction} for this run: a systematic source that leaves nothing at the mesh
+    points (its sentence under the table says why).  (The optimisation-strategy sources act with several [[stations]]
+    too: multistation.strategy_settings.)"""
+    out = {}
     for r in rows or []:
         if r.get("systematic") and not max(r["u_rms_over_mesh"]) > 1e-6:  # um: nothing but round-off
             out[r["source"]] = "nothing at the mesh points: see how it was bounded, below"
@@ -233,8 +229,8 @@ def _stations_clause(spec: dict) -> str:
                 "apply)")
     kinds = ", ".join(str(st.get("kind")) for st in stations)
     return (f"; verified from {len(stations)} station(s) ({kinds}) measuring the plan one after the other, every "
-            "station's pose (xyz) or position and dead path (range) identified with the errors (Gauss-Newton over all "
-            "stations: the optimisation strategy's phases and tolerance do not apply); the paper's Eq. 27 figures are "
+            "station's pose (xyz) or position and dead path (range) identified with the errors over all stations (the "
+            "optimisation strategy's phases and tolerance apply, as with one tracker); the paper's Eq. 27 figures are "
             "means over the laser trackers' points (an interferometer measures a distance, not a point)")
 
 
@@ -540,11 +536,9 @@ def budget_text(res: RunResult) -> str:
         lines.append(f"Budget of {MAIN_OUTPUT} ({pretty(b['unit'])}), one source at a time on {b['trials']} trials, "
                      f"by {b['basis'].replace('_', ' ')} (an RMS contribution per source, not a standard uncertainty):")
         lines.append(f"  {'source':<32} {'group':<22} {'u(x_i)':>14} {'RMS_i':>8} {'share':>7}")
-        idle = STATIONS_IDLE if _several_stations(res.spec or {}) else {}
         for r in sorted(b["rows"], key=lambda r: -r["contribution"]):
             ux = "-" if r["u_x"] is None else f"{r['u_x']['value']:.3g} {pretty(r['u_x']['unit'])}"
-            lines.append(f"  {r['source']:<32} {r['group']:<22} {ux:>14} {_root_i(r):8.3f} {r['share']:7.1%}"
-                         + (f"  ({idle[r['source']]})" if r["source"] in idle else ""))
+            lines.append(f"  {r['source']:<32} {r['group']:<22} {ux:>14} {_root_i(r):8.3f} {r['share']:7.1%}")
         lines.append(f"  {'interaction (not additive)':<32} {'':<22} {'':>14} "
                      f"{math.copysign(math.sqrt(abs(b['interaction'])), b['interaction']):8.3f} "
                      f"{(b['interaction'] / b['total'] if b['total'] else 0):7.1%}")
@@ -1197,11 +1191,9 @@ def run_report(res: RunResult, folder, tolerance_um: float | None = None, charac
                f"Each source alone on the same {b['trials']} trials; contributions by {b['basis'].replace('_', ' ')}, which add "
                "up for independent sources; RMS_i is a root-mean-square contribution, not a standard uncertainty.", "",
                f"| source | group | u(x_i) | RMS_i [{pretty(b['unit'])}] | share |", "| --- | --- | --- | --- | --- |"]
-        idle = STATIONS_IDLE if _several_stations(res.spec or {}) else {}
         for r in sorted(b["rows"], key=lambda r: -r["contribution"]):
             ux = "-" if r["u_x"] is None else f"{r['u_x']['value']:.3g} {pretty(r['u_x']['unit'])}"
-            note = f" ({idle[r['source']]})" if r["source"] in idle else ""
-            md.append(f"| {r['source']}{note} | {r['group']} | {ux} | {_root_i(r):.3f} | {r['share']:.1%} |")
+            md.append(f"| {r['source']} | {r['group']} | {ux} | {_root_i(r):.3f} | {r['share']:.1%} |")
         md.append(f"| interaction | | | | {b['interaction'] / b['total'] if b['total'] else 0:.1%} |")
         md.append(f"| **total** | | | {_root_total(b):.3f} | 100 % |")
     figs.update({k: v[0] for k, v in (extra_figures or {}).items()})
