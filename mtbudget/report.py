@@ -191,7 +191,17 @@ def _idle_sources(spec: dict, rows: list | None = None) -> dict:
     for r in rows or []:
         if r.get("systematic") and not max(r["u_rms_over_mesh"]) > 1e-6:  # um: nothing but round-off
             out[r["source"]] = "nothing at the mesh points: see how it was bounded, below"
+        elif r.get("source") in STRATEGY_AT_MINIMUM and not max(r["u_rms_over_mesh"]) > 1e-3:
+            out[r["source"]] = STRATEGY_AT_MINIMUM[r["source"]]
     return out
+
+
+#: why the optimisation-strategy rows are about zero where they are (docs/model.md, "What the optimisation-strategy
+#: sources contribute"): said beside the row, so a reader does not take it for a source that was not evaluated
+STRATEGY_AT_MINIMUM = {
+    "phase_sequence": "about zero: one and multi-phase end at the same least-squares minimum (docs/model.md)",
+    "convergence_criteria": "about zero: the identification iterates every trial to the minimum; a loose Gauss-Newton "
+                            "would leave about 1e-4 um (docs/model.md)"}
 
 
 def _station_rows(cfg: dict, tr: dict) -> list:
@@ -336,7 +346,8 @@ def point_lines(res: RunResult) -> list:
         lines.append("    RMS of u over the mesh                          " + "".join(f"{x:9.{nd}f}" for x in mf["u_rms_over_mesh"]))
         lines.append("    largest u                                       " + "".join(f"{x:9.{nd}f}" for x in mf["u_max"]))
     w = sm["worst_point"]
-    lines.append(f"  worst point #{w['point']} at x, y, z = {_vec(w['nominal']['value'], 0)} mm{angles_label(w)}: u = "
+    lines.append(f"  worst point (the largest u = sqrt(u_x^2 + u_y^2 + u_z^2), {float(np.linalg.norm(w['u'])):.{nd}f} {u}) "
+                 f"#{w['point']} at x, y, z = {_vec(w['nominal']['value'], 0)} mm{angles_label(w)}: u = "
                  f"{_vec(w['u'], nd)} {u}{frame_word(res)}, mean (bias) {_vec(w['mean'], nd)} {u}"
                  + (f"; machine frame u = {_vec(pts[w['point']]['machine_frame']['u'], nd)} {u}" if mf is not None else ""))
     if "clause8" in sm:
@@ -1198,6 +1209,9 @@ def run_report(res: RunResult, folder, tolerance_um: float | None = None, charac
         md.append(f"| **total** | | | {_root_total(b):.3f} | 100 % |")
     figs.update({k: v[0] for k, v in (extra_figures or {}).items()})
     captions = {**CAPTIONS, **{k: v[1] for k, v in (extra_figures or {}).items()}}
+    if res.angles is None:  # a three-axis plan: nothing to take the largest over
+        captions["uncertainty_map"] = captions["uncertainty_map"].replace(
+            " (a five-axis plan: the largest over the rotary poses)", "")
     md += ["", "## Figures", ""] + [f"![{md_escape(captions.get(k, k))}]({p.name})" for k, p in figs.items()]
     (folder / "report.md").write_text("\n".join(md) + "\n")
     write_html(md, folder, folder / "report.html", "mtbudget a priori uncertainty evaluation (virtual experiment)")

@@ -256,3 +256,21 @@ def test_the_adaptive_limit_stops_at_the_end_of_the_batch_that_reaches_it_and_ne
     assert out.exit_code == 2 and out.output.count("\n") == 1, out.output
     assert "--max-trials: must be at least two adaptive batches (512 trials: two of 256" in out.output
     assert not list(tmp_path.glob("a.mcap*"))
+
+
+def test_the_worst_point_says_its_criterion_and_the_strategy_rows_say_why_they_are_about_zero(tmp_path):
+    """The worst point is the one of largest sqrt(u_x^2 + u_y^2 + u_z^2), found here from the per-point JSON; the
+    optimisation-strategy rows of the per-point budget, about zero, say why beside them (docs/model.md)."""
+    from mtbudget.config import default_config_path
+
+    res = run(load_config(default_config_path()), trials=64, block=32, attribution_trials=32)
+    text = budget_text(res)
+    pts = result_json(res)["points"]
+    u = np.array([p["u"]["value"] for p in pts])
+    j = int(np.argmax(np.sqrt((u ** 2).sum(axis=1))))
+    line = next(ln for ln in text.splitlines() if ln.strip().startswith("worst point"))
+    assert "(the largest u = sqrt(u_x^2 + u_y^2 + u_z^2), " in line
+    assert f"#{j} " in line and f"{np.sqrt((u[j] ** 2).sum()):.1f}" in line, line
+    rows = [ln for ln in text.splitlines() if ln.strip().startswith(("phase_sequence", "convergence_criteria"))]
+    per_point = [ln for ln in rows if "(0.00, 0.00, 0.00)" in ln]
+    assert len(per_point) == 2 and all("about zero" in ln and "docs/model.md" in ln for ln in per_point), rows
