@@ -79,10 +79,22 @@ IN_USE_TEXT = {
                         "about the feature's centre",
     "part_cte": "the part's CTE: its error (normal) times (part_temperature - 20 degC) expands the part about the "
                 "feature's centre",
-    "rotary_repeatability_in_use": "five axes: each rotary axis' positioning repeatability at each probed point, normal "
-                                   "per axis and point, u = the feature's rotary_repeatability, else the run's "
-                                   "[sources.rotary_repeatability] R; the tool point moves as the chain turns it",
+    "rotary_repeatability_in_use": "five axes: each rotary axis' positioning repeatability, normal, one draw per axis "
+                                   "and positioning (the points probed in a row at one commanded angle of the axis "
+                                   "share it: the axis is held while the linear axes probe), u = the feature's "
+                                   "rotary_repeatability, else the run's [sources.rotary_repeatability] R; the tool "
+                                   "point moves as the chain turns it",
 }
+#: the same with ``reposition = true``: every point its own positioning of every rotary axis
+ROTARY_REPOSITION_TEXT = ("five axes: each rotary axis' positioning repeatability at each probed point, normal per axis "
+                          "and point (reposition = true: every axis re-positioned before every point), u = the "
+                          "feature's rotary_repeatability, else the run's [sources.rotary_repeatability] R; the tool "
+                          "point moves as the chain turns it")
+#: what a five-axis feature's measurand adds when the rotary axes' in-use repeatability is in its budget
+ROTARY_HELD = ("; the rotary axes' repeatability drawn once per positioning: each axis is held while consecutive "
+               "points share its commanded angle (one turn of it for those points)")
+ROTARY_REPOSITIONED = "; every rotary axis re-positioned before every point (reposition = true: its repeatability " \
+                      "drawn at each point)"
 
 MEASURANDS = {
     "distance": "error of the distance between the two probed points (measured minus true, a part at nominal), um; "
@@ -135,6 +147,9 @@ class FeatureSpec:
     #: five axes: u of each rotary axis' angle at each probed point (rad); stated, or the run's rotary_repeatability
     #: source's R when ``repeatability`` is true (FeatureSet.of resolves it); None: not stated
     rotary_repeatability: float | None = None
+    #: five axes: every rotary axis re-positioned before every point (its repeatability drawn per point); false: one
+    #: positioning per run of consecutive points at the same commanded angle of that axis (held while they are probed)
+    reposition: bool = False
 
     @property
     def unit(self) -> str:
@@ -150,7 +165,28 @@ class FeatureSpec:
         if self.angles:
             text += ROTARY_MEASURAND.format(angles=", ".join(sorted(a.upper() for a in self.angles)),
                                             frame=FEATURE_TABLE_FRAME if self.table_frame else "machine frame")
+            if "rotary_repeatability_in_use" in self.in_use():
+                text += ROTARY_REPOSITIONED if self.reposition else ROTARY_HELD
         return text
+
+    def in_use_text(self, source: str) -> str:
+        """The budget row's description of the in-use source ``source`` for this feature."""
+        if source == "rotary_repeatability_in_use" and self.reposition:
+            return ROTARY_REPOSITION_TEXT
+        return IN_USE_TEXT[source]
+
+    def positionings(self) -> dict:
+        """{letter: (N,) int} five axes: the index of the point at which each point's positioning of each rotary axis
+        was made: a new positioning where the commanded angle changes from the previous point (or at every point with
+        ``reposition``), the axis held over the run of points at one angle; the first point is one."""
+        out = {}
+        for a, th in self.angles.items():
+            idx = np.arange(len(th))
+            for j in range(1, len(th)):
+                if not self.reposition and abs(th[j] - th[j - 1]) <= ANGLE_SLACK:
+                    idx[j] = idx[j - 1]
+            out[a] = idx
+        return out
 
     def in_use(self) -> list:
         """The in-use sources this feature states, in budget order."""
@@ -297,13 +333,21 @@ def _parse_one(r: Reader, config, nominal=None) -> FeatureSpec:
             raise ConfigError(f"{r.where('rotary_repeatability')}: machine {config.machine!r} has no rotary axis; "
                               "only a five-axis feature takes the rotary axes' repeatability")
         rot = nonneg("rotary_repeatability", "rad", None)
+    repos = r.raw("reposition", False)
+    if r.has("reposition"):
+        if not angles:
+            raise ConfigError(f"{r.where('reposition')}: machine {config.machine!r} has no rotary axis; only a "
+                              "five-axis feature re-positions its rotary axes")
+        if not isinstance(repos, bool):
+            raise ConfigError(f"{r.where('reposition')}: expected true or false (true: every rotary axis re-positioned "
+                              "before every probed point; false: held over consecutive points at one angle)")
     return FeatureSpec(name.strip(), kind, P_cmd, dirs, tol, assoc, probing_error=nonneg("probing_error", "mm", "0 um"),
                        repeatability=rep, machine_temperature_change=nonneg("machine_temperature_change", "K", "0 K"),
                        part_temperature=part_t, part_temperature_u=nonneg("part_temperature_u", "K", "0 K"),
                        part_cte=r.quantity("part_cte", "1/K", "11.5 um/(m*K)"),
                        part_cte_u=nonneg("part_cte_u", "1/K", "0 um/(m*K)"), centre=centre, datum=datum,
                        angles=angles, geometry=P, table_frame=bool(angles) and _table_turns(config),
-                       rotary_repeatability=rot)
+                       rotary_repeatability=rot, reposition=repos)
 
 
 def _table_turns(config) -> bool:
@@ -513,6 +557,10 @@ class FeatureSet:
         self.points = np.concatenate([f.points for f in specs])  # (Nf, 3) commanded
         self.geometry = np.concatenate([f.geometry for f in specs])  # (Nf, 3) the part's nominal points
         self.angles = {a: np.concatenate([f.angles[a] for f in specs]) for a in specs[0].angles}  # five axes: rad
+        # five axes: {letter: (Nf,) int} the point (index into all features' points) whose positioning of the axis
+        # each point is probed at: one draw of the axis' repeatability per positioning (FeatureSpec.positionings)
+        self.held = {a: np.concatenate([sl.start + f.positionings()[a] for f, sl in zip(specs, self.slices)])
+                     for a in self.angles}
         self.n_columns = 2 + len(IN_USE)  # total, verification alone, each in-use source alone
         self.plan = _probe_plan(scenario, self.points, self.angles)
         # five axes, a turning table: (Nf, 3, 3) the table's nominal orientation at each point's pose (v_machine =
@@ -599,7 +647,9 @@ class FeatureSet:
             if not letters:
                 return None
             z = rng.standard_normal((n, Nf, len(letters)))
-            return lambda f, sl, S: sum(z[:, sl, j, None] * f.rotary_repeatability * self.turn[a][sl][None]
+            # one draw per axis and positioning: a point takes the draw of the point its axis was positioned at
+            zh = np.stack([z[:, self.held[a], j] for j, a in enumerate(letters)], axis=-1)
+            return lambda f, sl, S: sum(zh[:, sl, j, None] * f.rotary_repeatability * self.turn[a][sl][None]
                                         for j, a in enumerate(letters))
         if name == "machine_thermal_drift":  # the linear axes' scales, at the commanded positions
             z = rng.standard_normal((n, 1, 3))
@@ -723,7 +773,7 @@ def feature_budget(engine, total: dict, per_source: dict, n: int) -> dict:
         for s in f.in_use():
             v = float(V[k, 2 + IN_USE.index(s)])
             rows.append({"source": s, "group": "in use", "u_i": float(np.sqrt(v)), "share": v / Vt if Vt > 0 else 0.0,
-                         "description": IN_USE_TEXT[s]})
+                         "description": f.in_use_text(s)})
         inter = Vt - sum(r["u_i"] ** 2 for r in rows)
         out.append({"name": f.name, "unit": f.unit, "trials": n, "u_total": float(np.sqrt(max(Vt, 0))), "rows": rows,
                     "interaction_share": inter / Vt if Vt > 0 else 0.0})

@@ -149,36 +149,107 @@ def test_machine_thermal_drift_acts_along_the_machine_axes_turned_into_the_table
     assert "workpiece (table) frame" in out["frame"] and out["points"]["angles"]["value"]["C"] == [0.0, 90.0]
 
 
-def test_rotary_repeatability_in_use_against_the_turn_of_each_axis_written_here():
-    """The rotary axes' repeatability alone (u = 20 urad per axis and point): a turn dA of A (pivot p_A, about +X) and
-    dC of C (pivot p_C, about +Z) move the table-frame tool point p_C + R_C^T (p_A + R_A^T (P + T - p_A) - p_C) by
-    -dC e_z x (S - p_C) and -dA R_C^T (e_x x (v - p_A)), v the point A leaves (FORMAT-3's chain differentiated here),
-    each independent per point: the distance across C has u^2 = sum over points and axes of (u_dir . rate)^2 u_R^2;
-    the stated 20 urad and `repeatability = true` with the run's rotary_repeatability source (R = 10 urad) each."""
+PIVOT_A, PIVOT_C = np.array([0.0, -20.0, -80.0]), np.array([50.0, -20.0, 0.0])  # [rotary.A], [rotary.C] pivot
+TOOL = np.array([0.0, 0.0, -100.0])  # the verification's first tool
+
+
+def turn_rates_at_a0(P, c_deg):
+    """FORMAT-3's chain with A at 0, differentiated here: a turn dA of A (pivot p_A, about +X) and dC of C (pivot p_C,
+    about +Z) move the table-frame tool point S = p_C + R_C^T (p_A + R_A^T (v - p_A) - p_C), v = P + T, by
+    -dC e_z x (S - p_C) and -dA R_C^T (e_x x (v - p_A)) (A at 0 leaves v where it is): (N, 3) S and the rates."""
+    v = np.asarray(P, float) + TOOL
+    S = np.array([PIVOT_C + rz(c).T @ (vi - PIVOT_C) for vi, c in zip(v, c_deg)])
+    rate_c = np.array([-np.cross([0, 0, 1.0], s - PIVOT_C) for s in S])
+    rate_a = np.array([-rz(c).T @ np.cross([1.0, 0, 0], vi - PIVOT_A) for vi, c in zip(v, c_deg)])
+    return S, rate_a, rate_c
+
+
+def rotary_alone(features, trials=16384, seed=3):
+    """(trials, K) the rotary axes' in-use repeatability alone on ``features`` (no verification error)."""
     from mtbudget.features import IN_USE, FeatureSet
 
-    pA, pC = np.array([0.0, -20.0, -80.0]), np.array([50.0, -20.0, 0.0])
-    tool = np.array([0.0, 0.0, -100.0])
-    v = np.array(P_COMMANDED) + tool  # A at 0: A leaves the point where it is
-    S = np.array([pC + rz(c).T @ (v - pC) for c in (0, 90)])
-    u = (S[1] - S[0]) / np.linalg.norm(S[1] - S[0])
-    rates = [(-np.cross([0, 0, 1.0], S[i] - pC), -rz(c).T @ np.cross([1.0, 0, 0], v - pA)) for i, c in enumerate((0, 90))]
-    per_urad = np.sqrt(sum((u @ r) ** 2 for pair in rates for r in pair)) * 1e-6 * 1e3  # um per urad
-    # u . rate: C 72.12 and 72.11 mm/rad at the two points, A -24.96 and -16.64 mm/rad: 106.3 mm/rad in all
-    assert per_urad == pytest.approx(0.1063, abs=1e-4)
+    fs = FeatureSet.of(scenario(five(features=features)))
+    vals = fs.block_values(np.zeros((trials, len(fs.points), 3)), seed=seed, block=0)
+    return fs, vals[:, :, 2 + IN_USE.index("rotary_repeatability_in_use")]
 
-    sc = scenario(five(features=[dict(LENGTH_ACROSS_C, rotary_repeatability="20 urad"),
-                                 dict(LENGTH_ACROSS_C, name="with the run's R", repeatability=True)]))
-    fs = FeatureSet.of(sc)
-    for a, c_rate in zip(("a", "c"), (1, 0)):  # the chain's turn rates equal those written here
-        assert np.allclose(fs.turn[a][:2], [rates[i][c_rate] for i in range(2)], atol=1e-6)
-    e = np.zeros((4096, len(fs.points), 3))
-    vals = fs.block_values(e, seed=3, block=0)
-    col = 2 + IN_USE.index("rotary_repeatability_in_use")
-    assert vals[:, 0, col].std(ddof=1) == pytest.approx(20 * per_urad, rel=0.06)  # 4096 draws: 1.1 % u of u
+
+def test_rotary_repeatability_in_use_against_the_turn_of_each_axis_written_here():
+    """The rotary axes' repeatability alone on the distance across C (A held at 0 for both ends, C turned from 0 to
+    90 deg): the distance changes by u . (d_1 - d_0), d_i = dA_i rate_A,i + dC_i rate_C,i with the rates of
+    FORMAT-3 written here.  C is positioned twice (two draws), A once (ONE draw, held while both ends are probed):
+    u^2 = u_R^2 [(u . rC_0)^2 + (u . rC_1)^2 + (u . (rA_1 - rA_0))^2] = (0.1023 um/urad x u_R)^2; with
+    `reposition = true` A is positioned at each point too, its two draws independent: (u . rA_0)^2 + (u . rA_1)^2,
+    0.1063 um/urad.  The stated 20 urad and `repeatability = true` with the run's rotary_repeatability source
+    (R = 10 urad) each.  The distance is linear in the draws (the chain's turn rates): normal, so 16384 draws give
+    u's relative standard uncertainty 1/sqrt(2 x 16383) = 0.55 %; the tolerance 2.2 % (4 of them) is well inside
+    the 3.9 % between the held and re-positioned A."""
+    S, ra, rc = turn_rates_at_a0([P_COMMANDED] * 2, (0, 90))
+    u = (S[1] - S[0]) / np.linalg.norm(S[1] - S[0])
+    # u . rate: C 72.12 and 72.11 mm/rad at the two points, A -24.96 and -16.64 mm/rad
+    held = np.sqrt((u @ rc[0]) ** 2 + (u @ rc[1]) ** 2 + (u @ (ra[1] - ra[0])) ** 2) * 1e-3  # um per urad
+    each = np.sqrt((u @ rc[0]) ** 2 + (u @ rc[1]) ** 2 + (u @ ra[0]) ** 2 + (u @ ra[1]) ** 2) * 1e-3
+    assert held == pytest.approx(0.1023, abs=1e-4) and each == pytest.approx(0.1063, abs=1e-4)
+
+    fs, vals = rotary_alone([dict(LENGTH_ACROSS_C, rotary_repeatability="20 urad"),
+                             dict(LENGTH_ACROSS_C, name="with the run's R", repeatability=True),
+                             dict(LENGTH_ACROSS_C, name="re-positioned", rotary_repeatability="20 urad",
+                                  reposition=True)])
+    for a, rate in (("a", ra), ("c", rc)):  # the chain's turn rates equal those written here
+        assert np.allclose(fs.turn[a][:2], rate, atol=1e-6)
+    assert vals[:, 0].std(ddof=1) == pytest.approx(20 * held, rel=0.022)
     assert fs.specs[1].rotary_repeatability == pytest.approx(10e-6)  # [sources.rotary_repeatability] R
-    assert vals[:, 1, col].std(ddof=1) == pytest.approx(10 * per_urad, rel=0.06)
+    assert vals[:, 1].std(ddof=1) == pytest.approx(10 * held, rel=0.022)
+    assert vals[:, 2].std(ddof=1) == pytest.approx(20 * each, rel=0.022)
     assert fs.specs[0].in_use() == ["rotary_repeatability_in_use"]
+    assert "drawn once per positioning" in fs.specs[0].measurand()
+    assert "reposition = true" in fs.specs[2].measurand()
+
+
+def test_a_held_rotary_turn_leaves_a_flatness_probed_at_one_pose_unchanged():
+    """The face probed at one pose (A = -45 deg, C = 0 for all five points): each rotary axis is positioned once and
+    held, its repeatability one small turn of the table for every point, a rigid motion: the measured points stay
+    in one plane and the flatness from this source is 0 (to round-off).  Re-positioned at every point
+    (`reposition = true`) the five turns differ and the face looks unflat."""
+    face = tomllib.loads(bundled_config("five_axis_features").read_text())["features"][3]
+    assert face["name"] == "tilted face" and face["angles"] == {"A": "-45 deg", "C": "0 deg"}
+    face = {k: v for k, v in face.items() if k != "repeatability"}
+    _, vals = rotary_alone([dict(face, rotary_repeatability="10 urad"),
+                            dict(face, name="re-positioned", rotary_repeatability="10 urad", reposition=True)], 4096)
+    assert np.abs(vals[:, 0]).max() < 1e-6  # um
+    assert vals[:, 1].mean() > 0.3
+
+
+def test_a_held_rotary_turn_moves_a_bore_at_one_pose_rigidly_about_the_axes():
+    """The bore at C 90 (four points probed by the linear axes, A = 0 and C = 90 deg held): one turn dC about the C
+    axis and one dA about the A axis move its four table-frame points rigidly, the centre c by dC a + dA b in the
+    bore's plane, a = -(e_z x (c - p_C)) (|a| = r = |c - p_C| in the plane, 53.85 mm) and b = -R_C^T (e_x x
+    (v_c - p_A)) (the tool point at the centre, 30 mm in the plane): the position (twice the centre's offset) is
+    2 |dC a + dA b|, E[position^2] = 4 u_R^2 (|a|^2 + |b|^2) = (1.231 um)^2 at 10 urad.  Its relative standard
+    uncertainty over n draws is sqrt(2 (l1^2 + l2^2)) / ((l1 + l2) sqrt(n)), l the eigenvalues of [a b][a b]^T,
+    here 1.0 % at n = 16384; the tolerance 4 %.  The std of the position against numpy's own 10^6 draws of
+    2 |dC a + dA b|: 0.713 um (per-point draws, the earlier rule, gave 0.469 um)."""
+    bore = {"name": "bore at C 90", "kind": "position", "rotary_repeatability": "10 urad",
+            "points": [["100 mm", "0 mm", "50 mm"], ["0 mm", "100 mm", "50 mm"], ["-100 mm", "0 mm", "50 mm"],
+                       ["0 mm", "-100 mm", "50 mm"]], "angles": {"A": "0 deg", "C": "90 deg"}}
+    P = np.array([[100, 0, 50], [0, 100, 50], [-100, 0, 50], [0, -100, 50]], float)
+    S = turn_rates_at_a0(P, [90] * 4)[0]
+    c = S.mean(axis=0)  # the four points are symmetric about the circle's centre
+    vc = P.mean(axis=0) + TOOL
+    a = -np.cross([0, 0, 1.0], c - PIVOT_C)[:2]
+    b = -(rz(90).T @ np.cross([1.0, 0, 0], vc - PIVOT_A))[:2]
+    assert np.linalg.norm(a) == pytest.approx(np.hypot(*(c - PIVOT_C)[:2])) == pytest.approx(53.85, abs=0.01)
+    R = 10e-6
+    mean_sq = 4 * R ** 2 * (a @ a + b @ b) * 1e6  # um^2
+    lam = np.linalg.eigvalsh(np.outer(a, a) + np.outer(b, b))
+    n = 16384
+    rel = np.sqrt(2 * (lam ** 2).sum()) / lam.sum() / np.sqrt(n)
+    assert rel < 0.011
+    _, vals = rotary_alone([bore], n)
+    assert (vals[:, 0] ** 2).mean() == pytest.approx(mean_sq, rel=4 * rel)
+    z = np.random.default_rng(0).standard_normal((10 ** 6, 2))
+    std = (2 * np.linalg.norm(z[:, :1] * a + z[:, 1:] * b, axis=1) * R * 1e3).std()
+    assert std == pytest.approx(0.713, abs=0.002)
+    assert vals[:, 0].std(ddof=1) == pytest.approx(std, rel=0.03)
 
 
 def test_repeatability_on_five_axes_without_the_rotary_source_asks_for_it():
@@ -211,6 +282,25 @@ def test_a_three_axis_feature_takes_no_rotary_repeatability():
     with pytest.raises(ConfigError, match=r"^paper.toml: features\[0\]\.rotary_repeatability: machine 'XFYZ' has no "
                                           r"rotary axis"):
         FeatureSet.of(build_scenario(parse_config(data, "paper.toml")))
+
+
+@pytest.mark.parametrize("machine, value, words", [
+    ("five", "yes", "features[0].reposition: expected true or false"),
+    ("paper", True, "features[0].reposition: machine 'XFYZ' has no rotary axis"),
+])
+def test_a_bad_reposition_is_refused_in_one_line(machine, value, words):
+    from mtbudget.features import FeatureSet
+    from mtbudget.scenario import build_scenario
+
+    if machine == "five":
+        data = five(features=[dict(LENGTH_ACROSS_C, reposition=value)])
+    else:
+        data = tomllib.loads(bundled_config("paper_xfyz").read_text())
+        data["features"] = [{"name": "x", "kind": "distance", "reposition": value,
+                             "points": [["800 mm", "100 mm", "200 mm"], ["1200 mm", "100 mm", "200 mm"]]}]
+    with pytest.raises(ConfigError) as exc:
+        FeatureSet.of(build_scenario(parse_config(data, "f.toml")))
+    assert str(exc.value).startswith("f.toml: " + words) and "\n" not in str(exc.value), str(exc.value)
 
 
 # ------------------------------------------------------------------ bad angles: one line, exit 2
