@@ -380,6 +380,9 @@ def _angles(r: Reader, config, n: int) -> dict:
         if str(k).lower() not in letters:
             raise ConfigError(f"{r.where('angles')}.{k}: machine {config.machine!r} has no rotary axis {k} (its rotary "
                               f"axes: {names})")
+        if str(k).lower() in given:  # A and a are one axis: which angle is meant cannot be guessed
+            raise ConfigError(f"{r.where('angles')}.{k}: rotary axis {str(k).upper()} is stated twice (as "
+                              f"{given[str(k).lower()][0]} and {k}); state each axis' angles once")
         given[str(k).lower()] = (k, v)
     out = {}
     for a in letters:

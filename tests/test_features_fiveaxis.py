@@ -317,6 +317,8 @@ PAPER = str(bundled_config("paper_xfyz"))
                                                        "verification visited, [0, 270] deg"),
     (BASE, '{A = "120 deg", C = "0 deg"}', "features[0].angles.A: 120 deg lies outside"),
     (BASE, '{A = "0 mm", C = "0 deg"}', "features[0].angles.A"),
+    (BASE, '{A = "0 deg", C = "0 deg", c = "90 deg"}', "features[0].angles.c: rotary axis C is stated twice (as C "
+                                                       "and c)"),
     (BASE, '"0 deg"', "features[0].angles: expected a table of the rotary axes' angles"),
     (PAPER, '{C = "0 deg"}', "features[0].angles: machine 'XFYZ' has no rotary axis; a feature's points take no angles"),
 ])
