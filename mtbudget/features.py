@@ -115,6 +115,11 @@ ROTARY_MEASURAND = ("; each point probed at its commanded rotary angles ({angles
 #: the frame of a five-axis machine whose table turns: the one the per-point measurand is stated in (outputs.py)
 FEATURE_TABLE_FRAME = ("workpiece (table) frame (x, y, z: the machine's X, Y, Z with every rotary axis at zero, "
                        "turning with the table)")
+#: what a feature's JSON ``points`` are, and (five axes) its ``nominal_points``
+COMMANDED_POINTS = ("commanded machine positions of the linear axes (X, Y, Z) at each probed point, in the order of "
+                    "probing (five axes: with the commanded angles of the rotary axes, points.angles)")
+NOMINAL_POINTS = ("the nominal probed points that define the part: where an error-free machine puts the tool at each "
+                  "commanded pose, in the frame stated (the chain at zero errors)")
 #: an angle may lie this far outside the angles the verification visited and still count as inside (rad)
 ANGLE_SLACK = 1e-9
 
@@ -205,7 +210,8 @@ class FeatureSpec:
                 "tolerance": self.tolerance, "one_sided": self.one_sided, "association": self.association,
                 "in_use": self.in_use(),
                 **({"angles": {a.upper(): np.degrees(v).tolist() for a, v in sorted(self.angles.items())},
-                    "angles_unit": "deg", "frame": WORKPIECE_FRAME if self.table_frame else "machine frame"}
+                    "angles_unit": "deg", "frame": WORKPIECE_FRAME if self.table_frame else "machine frame",
+                    "nominal_points": self.geometry.tolist()}
                    if self.angles else {})}
 
 
@@ -848,10 +854,14 @@ def features_json(spec_features: list | None, samples: np.ndarray | None, covera
     for k, f in enumerate(specs):
         e = {"name": f["name"], "kind": f["kind"], "measurand": f["measurand"] + ("; " + "; ".join(warnings)
                                                                                    if warnings else ""),
-             "unit": f["unit"], "points": {"value": f["points"], "unit": "mm"}, "in_use": f["in_use"]}
+             "unit": f["unit"], "points": {"quantity": COMMANDED_POINTS, "value": f["points"], "unit": "mm"},
+             "in_use": f["in_use"]}
         if "angles" in f:  # five axes: each point's commanded angles, and the frame the feature is computed in
             e["points"]["angles"] = {"value": f["angles"], "unit": f["angles_unit"]}
             e["frame"] = f["frame"]
+            if "nominal_points" in f:  # the part's points (a log written before they were stated has none)
+                e["nominal_points"] = {"quantity": NOMINAL_POINTS, "value": f["nominal_points"], "unit": "mm",
+                                       "frame": f["frame"]}
         if samples is None or not len(samples):
             e["note"] = "the trials' feature values are not available (a run resumed from a log: rerun it)"
             out.append(e)
@@ -910,6 +920,38 @@ def frame_note(feats: list) -> str:
                                                    for f in feats) else ""
 
 
+def _num(v: float) -> str:
+    """A coordinate or angle to 0.1 um / 0.0001 deg, without trailing zeros (-0 shown as 0)."""
+    t = f"{v:.4f}".rstrip("0").rstrip(".")
+    return "0" if t in ("-0", "") else t
+
+
+def probed_points(f: dict) -> list:
+    """[(commanded (3,) mm, {letter: deg} or {}, nominal (3,) mm on the part or None)] of a feature's JSON entry."""
+    pts = f["points"]
+    ang = (pts.get("angles") or {}).get("value") or {}
+    nom = (f.get("nominal_points") or {}).get("value")
+    return [(p, {a: v[j] for a, v in sorted(ang.items())}, None if nom is None else nom[j])
+            for j, p in enumerate(pts["value"])]
+
+
+def points_text(f: dict) -> str:
+    """The probed points of a feature's JSON entry as one sentence: commanded position (mm) and angles (deg) of each
+    point, and where it lies on the part when that is another frame (five axes)."""
+    rows = []
+    for j, (p, ang, nom) in enumerate(probed_points(f)):
+        t = f"{j + 1}: ({', '.join(_num(v) for v in p)}) mm"
+        if ang:
+            t += ", " + ", ".join(f"{a} = {_num(v)}°" for a, v in ang.items())
+        if nom is not None:
+            t += f" → ({', '.join(_num(v) for v in nom)}) mm on the part"
+        rows.append(t)
+    five = any(a for _, a, _ in probed_points(f))
+    return ("Probed points (commanded position of the linear axes" + (" and commanded rotary angles" if five else "")
+            + (", and the nominal point on the part in the workpiece (table) frame" if f.get("nominal_points") else "")
+            + "): " + "; ".join(rows))
+
+
 def features_markdown(feats: list | None) -> list:
     """The features table of the report (Markdown)."""
     if not feats:
@@ -931,6 +973,8 @@ def features_markdown(feats: list | None) -> list:
     md.append("")
     for f in feats:
         md.append(f"* **{f['name']}**: {f['measurand']}.")
+        if "points" in f:
+            md.append("  " + points_text(f) + ".")
         if "budget" in f:
             md.append("  Budget (u_i, each source alone): " + ", ".join(
                 f"{r['source']} {r['u_i']:.3g} {pretty(f['unit'])} ({r['share']:.1%})"

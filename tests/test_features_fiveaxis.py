@@ -345,17 +345,24 @@ def test_a_minus_90_deg_c_angle_is_the_visited_270_deg():
 
 
 # ------------------------------------------------------------------ the example run, its JSON, report and DCC
-def test_the_five_axis_example_states_its_features_with_measurand_unit_k_coverage_and_frame(tmp_path):
+@pytest.fixture(scope="module")
+def example_run(tmp_path_factory):
+    """`mtbudget run examples/five_axis_features.toml` (32 trials, a 16-trial budget): its output and its log."""
+    log = tmp_path_factory.mktemp("five_axis_features") / "f.mcap"
+    res = CliRunner().invoke(main, ["run", str(bundled_config("five_axis_features")), "--trials", "32", "--block",
+                                    "16", "--attribution-trials", "16", "--quiet", "--log", str(log)])
+    assert res.exit_code == 0, res.output
+    return res, log
+
+
+def test_the_five_axis_example_states_its_features_with_measurand_unit_k_coverage_and_frame(tmp_path, example_run):
     """`mtbudget run examples/five_axis_features.toml` prints every feature with its unit, u (k = 1), the interval's
     coverage, its measurand and the frame; the log's JSON, report and DCC say the same."""
     from mtbudget.report import result_json, run_report
     from mtbudget.report_dcc import write_dcc
     from mtbudget.runner import replay
 
-    log = tmp_path / "f.mcap"
-    res = CliRunner().invoke(main, ["run", str(bundled_config("five_axis_features")), "--trials", "32", "--block",
-                                    "16", "--attribution-trials", "16", "--quiet", "--log", str(log)])
-    assert res.exit_code == 0, res.output
+    res, log = example_run
     table = res.output[res.output.index("Features probed on the compensated machine"):]
     assert "in the workpiece (table) frame" in table.splitlines()[0]
     assert "u (k=1)" in table and "95 % coverage" in table
@@ -375,3 +382,68 @@ def test_the_five_axis_example_states_its_features_with_measurand_unit_k_coverag
     assert "| length across C | distance |" in md and "in the workpiece (table) frame" in md
     xml = write_dcc(again, tmp_path / "c.xml").read_text()
     assert "length across C" in xml and "in the workpiece (table) frame" in xml
+
+
+def test_the_report_and_the_dcc_list_each_features_commanded_points_angles_and_points_on_the_part(tmp_path,
+                                                                                                    example_run):
+    """The pose is part of the measurand: report.md and the DCC list every probed point of every feature, its
+    commanded position (mm), its commanded angles (deg) and the nominal point on the part in the table frame, the
+    values of the configuration (read here from the example's TOML) and of the closed form (the length across C's
+    ends on the part at (150, 0, -50) and (70, -120, -50) mm, the first test); the JSON labels its points as
+    commanded machine positions and gives the part's nominal points.  The DCC keeps the schema's structure."""
+    import xml.etree.ElementTree as ET
+
+    from test_report_dcc import NS, follows_the_schema_structure
+
+    from mtbudget.report import result_json, run_report
+    from mtbudget.report_dcc import write_dcc
+    from mtbudget.runner import replay
+
+    again = replay(example_run[1])
+    feats = tomllib.loads(bundled_config("five_axis_features").read_text())["features"]
+
+    def mm(v):
+        return float(v.split()[0])
+
+    def deg(f, a, j):
+        v = f["angles"][a]
+        return mm(v[j] if isinstance(v, list) else v)
+
+    j = result_json(again)["features"][0]
+    assert "commanded machine positions" in j["points"]["quantity"]
+    assert np.allclose(j["nominal_points"]["value"], [[150, 0, -50], [70, -120, -50]], atol=1e-9)
+    assert "workpiece (table) frame" in j["nominal_points"]["frame"]
+
+    md = run_report(again, tmp_path / "rep")["markdown"].read_text()
+    lines = {ln.split("**")[1]: md.splitlines()[i + 1] for i, ln in enumerate(md.splitlines())
+             if ln.startswith("* **")}
+    assert "2: (150, 0, 50) mm, A = 0°, C = 90° → (70, -120, -50) mm on the part" in lines["length across C"]
+    for f in feats:
+        line = lines[f["name"]]
+        assert line.startswith("  Probed points (commanded position of the linear axes and commanded rotary angles")
+        for k, p in enumerate(f["points"]):
+            at = f"{k + 1}: ({', '.join(f'{mm(v):g}' for v in p)}) mm, A = {deg(f, 'A', k):g}°, C = {deg(f, 'C', k):g}°"
+            assert at in line, (at, line)
+
+    root = ET.parse(write_dcc(again, tmp_path / "c.xml")).getroot()
+    follows_the_schema_structure(root)
+    result = next(r for r in root.iter(f"{{{NS['dcc']}}}result")
+                  if r.find("dcc:name/dcc:content", NS).text.startswith("probed points of each feature"))
+    lists = result.findall("dcc:data/dcc:list", NS)
+    assert len(lists) == len(feats)
+    for f, fl in zip(feats, lists):
+        assert fl.find("dcc:name/dcc:content", NS).text.startswith(f["name"])
+        pts = fl.findall("dcc:list", NS)
+        assert len(pts) == len(f["points"])
+        for k, (p, pl) in enumerate(zip(f["points"], pts)):
+            got = {q.find("si:real/si:label", NS).text: (float(q.find("si:real/si:value", NS).text),
+                                                          q.find("si:real/si:unit", NS).text)
+                   for q in pl.findall("dcc:quantity", NS)}
+            want = {"commanded_X": (mm(p[0]), r"\milli\metre"), "commanded_Y": (mm(p[1]), r"\milli\metre"),
+                    "commanded_Z": (mm(p[2]), r"\milli\metre"), "commanded_A": (deg(f, "A", k), r"\degree"),
+                    "commanded_C": (deg(f, "C", k), r"\degree")}
+            assert {key: got[key] for key in want} == want
+            assert set(got) == set(want) | {"nominal_x", "nominal_y", "nominal_z"}
+    first = [{q.find("si:real/si:label", NS).text: float(q.find("si:real/si:value", NS).text)
+              for q in pl.findall("dcc:quantity", NS)} for pl in lists[0].findall("dcc:list", NS)]
+    assert [[p[f"nominal_{a}"] for a in "xyz"] for p in first] == [[150, 0, -50], [70, -120, -50]]
