@@ -266,37 +266,56 @@ def _parse_one(r: Reader, config, nominal=None) -> FeatureSpec:
     # where the part is: the commanded points (three axes), the nominal tool points in the workpiece frame (five axes)
     G = P if not angles else np.asarray(nominal(P, angles), float)
     P_cmd, P = P, G
+    # what the checks below are on: the commanded points (three axes), the nominal points where the part is (five)
+    frame = "workpiece (table) frame" if angles and _table_turns(config) else "machine frame"
+    on = "the points" if not angles else f"the nominal points in the {frame} (the tool at the commanded poses)"
     centre, datum = P.mean(axis=0), None
     if kind == "distance":
         if np.linalg.norm(P[1] - P[0]) < 1e-3:
-            raise ConfigError(f"{r.where('points')}: the two points coincide; a distance needs two distinct points")
+            raise ConfigError(f"{r.where('points')}: the two points coincide; a distance needs two distinct points"
+                              if not angles else
+                              f"{r.where('points')}: {on} coincide, at ({', '.join(f'{v:.4g}' for v in P[0])}) mm; "
+                              "a distance needs two distinct points on the part")
     else:
         Q = P - centre
         s = np.linalg.svd(Q, compute_uv=False)
         if s[1] <= 1e-6 * max(s[0], 1e-12):
-            raise ConfigError(f"{r.where('points')}: the points are collinear; a {kind} needs points spanning a "
+            raise ConfigError(f"{r.where('points')}: {on} are collinear; a {kind} needs points spanning a "
                               + ("plane" if kind in ("flatness", "orientation") else "circle"))
         datum = np.linalg.svd(Q)[2][2]
+        state = ("state the commanded points of the nominal {}" if not angles else
+                 f"state commanded poses whose nominal points in the {frame} lie on the nominal {{}}")
+
+        def of(thing):
+            return f"the points of {thing}" if not angles else \
+                f"the nominal points of {thing} in the {frame} (the tool at the commanded poses)"
+
         if kind in ("diameter", "position"):
             if s[2] / np.sqrt(n) > PLANE_SLACK:
-                raise ConfigError(f"{r.where('points')}: the points of a circle must lie in one plane (off it by "
+                raise ConfigError(f"{r.where('points')}: {of('a circle')} must lie in one plane (off it by "
                                   f"{s[2] / np.sqrt(n):.3g} mm RMS)")
             centre, radius = _circle_nominal(P, datum)
             resid = np.abs(np.linalg.norm(P - centre, axis=1) - radius)
             if resid.max() > CIRCLE_SLACK:
-                raise ConfigError(f"{r.where('points')}: the points do not lie on one circle (off by up to "
-                                  f"{resid.max():.3g} mm): state the commanded points of the nominal circle")
+                raise ConfigError(f"{r.where('points')}: {on} do not lie on one circle (off by up to "
+                                  f"{resid.max():.3g} mm): " + state.format("circle"))
         elif s[2] / np.sqrt(n) > PLANE_SLACK:
-            raise ConfigError(f"{r.where('points')}: the points of a plane must lie in one plane (off it by "
-                              f"{s[2] / np.sqrt(n):.3g} mm RMS): state the commanded points of the nominal plane")
+            raise ConfigError(f"{r.where('points')}: {of('a plane')} must lie in one plane (off it by "
+                              f"{s[2] / np.sqrt(n):.3g} mm RMS): " + state.format("plane"))
     if r.has("datum"):
         d = r.raw("datum")
         if kind not in ("orientation", "flatness") or not (isinstance(d, list) and len(d) == 3):
             raise ConfigError(f"{r.where('datum')}: only a plane (orientation, flatness) takes a datum, its nominal "
                               "normal as three plain numbers")
         datum = _unit_vector(d, r.where("datum"))
-        if abs(abs(datum @ np.linalg.svd(P - P.mean(0))[2][2]) - 1) > 1e-6:
-            raise ConfigError(f"{r.where('datum')}: is not the normal of the plane of the commanded points")
+        normal = np.linalg.svd(P - P.mean(0))[2][2]
+        if abs(abs(datum @ normal) - 1) > 1e-6:
+            if not angles:
+                raise ConfigError(f"{r.where('datum')}: is not the normal of the plane of the commanded points")
+            normal = normal if normal[np.argmax(np.abs(normal))] > 0 else -normal
+            raise ConfigError(f"{r.where('datum')}: is not the normal of the plane of {on}, which is "
+                              f"[{', '.join(_num(v) for v in normal)}] (or its opposite): a datum is stated in the "
+                              f"{frame}, where the part is")
     dirs = _directions(r, kind, P, centre, datum)
     tol = None
     if r.has("tolerance"):

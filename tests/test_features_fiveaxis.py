@@ -303,6 +303,48 @@ def test_a_bad_reposition_is_refused_in_one_line(machine, value, words):
     assert str(exc.value).startswith("f.toml: " + words) and "\n" not in str(exc.value), str(exc.value)
 
 
+def test_a_wrong_datum_on_five_axes_names_the_table_frame_and_the_normal_expected_there():
+    """The tilted face is commanded in the machine's plane z = 100 mm at A = -45 deg: on the part (the table frame)
+    its normal is R_A(-45 deg)^T e_z = (0, -0.7071, 0.7071) (A about +X, FORMAT-3's sense, written with scipy); a
+    datum [0, 0, 1] (the commanded plane's normal) is refused in one line that names the nominal points in the
+    workpiece (table) frame and prints that normal, not 'the commanded points'."""
+    from mtbudget.features import FeatureSet
+
+    face = tomllib.loads(bundled_config("five_axis_features").read_text())["features"][3]
+    normal = Rotation.from_euler("x", -45, degrees=True).as_matrix().T @ [0, 0, 1.0]
+    assert np.allclose(normal, [0, -np.sqrt(0.5), np.sqrt(0.5)])
+    with pytest.raises(ConfigError) as exc:
+        FeatureSet.of(scenario(five(features=[dict(face, datum=[0, 0, 1])])))
+    msg = str(exc.value)
+    assert "\n" not in msg and msg.startswith("five.toml: features[0].datum: is not the normal of the plane of the "
+                                              "nominal points in the workpiece (table) frame"), msg
+    shown = np.array([float(v) for v in msg.split("which is [")[1].split("]")[0].split(",")])
+    assert np.allclose(np.abs(shown @ normal), 1, atol=1e-4), msg
+    FeatureSet.of(scenario(five(features=[dict(face, datum=list(normal))])))  # the table frame's normal is taken
+
+
+def test_coinciding_poses_on_five_axes_are_named_in_the_table_frame():
+    """Two probed poses that put the tool at one point of the part: (150, 0, 50) mm at C = 0 and, turned a quarter,
+    the commanded point the table's turn brings to the same table point (p_C + R_C(90) (S - p_C) - T, S = (150, 0,
+    -50) mm): distinct commanded points, one point on the part."""
+    S = np.array([150.0, 0.0, -50.0])
+    P2 = PIVOT_C + rz(90) @ (S - PIVOT_C) - TOOL
+    assert np.allclose(turn_rates_at_a0([P2], [90])[0], S)
+    f = dict(LENGTH_ACROSS_C, points=[["150 mm", "0 mm", "50 mm"], [f"{v:.9f} mm" for v in P2]])
+    with pytest.raises(ConfigError) as exc:
+        scenario_features(f)
+    msg = str(exc.value)
+    assert "\n" not in msg and msg.startswith("five.toml: features[0].points: the nominal points in the workpiece "
+                                              "(table) frame (the tool at the commanded poses) coincide, at (150, 0, "
+                                              "-50) mm"), msg
+
+
+def scenario_features(*features):
+    from mtbudget.features import FeatureSet
+
+    return FeatureSet.of(scenario(five(features=list(features))))
+
+
 # ------------------------------------------------------------------ bad angles: one line, exit 2
 BASE = str(bundled_config("five_axis_cafxyz"))
 PAPER = str(bundled_config("paper_xfyz"))
