@@ -122,6 +122,8 @@ NOMINAL_POINTS = ("the nominal probed points that define the part: where an erro
                   "commanded pose, in the frame stated (the chain at zero errors)")
 #: an angle may lie this far outside the angles the verification visited and still count as inside (rad)
 ANGLE_SLACK = 1e-9
+#: a commanded angle more than this many turns from zero is refused as such (a typing error, not a pose)
+MAX_TURNS = 100
 
 
 @dataclass
@@ -426,9 +428,13 @@ def _angles(r: Reader, config, n: int) -> dict:
         visited = np.asarray(config.rotary_angles[a], float)
         lo, hi = float(visited.min()), float(visited.max())
         for j, t in enumerate(th):
+            at = f"{where}[{j}]" if isinstance(v, list) else where
+            if not abs(t) <= MAX_TURNS * 2 * np.pi:  # also NaN: a commanded angle, not a count of turns
+                raise ConfigError(f"{at}: {np.degrees(t):g} deg is more than {MAX_TURNS} turns from zero; state the "
+                                  f"commanded angle (within +-{MAX_TURNS * 360} deg), e.g. the visited "
+                                  f"[{np.degrees(lo):g}, {np.degrees(hi):g}] deg")
             turns = np.ceil((lo - t) / (2 * np.pi) - ANGLE_SLACK)  # the turn that brings t to lo or just above
-            if not (abs(t) <= 200 * np.pi and t + 2 * np.pi * turns <= hi + ANGLE_SLACK):
-                at = f"{where}[{j}]" if isinstance(v, list) else where
+            if not t + 2 * np.pi * turns <= hi + ANGLE_SLACK:
                 raise ConfigError(f"{at}: {np.degrees(t):g} deg lies outside the angles the verification visited, "
                                   f"[{np.degrees(lo):g}, {np.degrees(hi):g}] deg (modulo a turn); extrapolating the "
                                   "identified errors is not covered")

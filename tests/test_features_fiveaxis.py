@@ -358,6 +358,10 @@ PAPER = str(bundled_config("paper_xfyz"))
     (BASE, '{A = "0 deg", C = ["0 deg", "300 deg"]}', "features[0].angles.C[1]: 300 deg lies outside the angles the "
                                                        "verification visited, [0, 270] deg"),
     (BASE, '{A = "120 deg", C = "0 deg"}', "features[0].angles.A: 120 deg lies outside"),
+    (BASE, '{A = "0 deg", C = ["0 deg", "36090 deg"]}', "features[0].angles.C[1]: 36090 deg is more than 100 turns "
+                                                        "from zero; state the commanded angle (within +-36000 deg)"),
+    (BASE, '{A = "0 deg", C = ["0 deg", "-35700 deg"]}', "features[0].angles.C[1]: -35700 deg lies outside the angles "
+                                                         "the verification visited"),
     (BASE, '{A = "0 mm", C = "0 deg"}', "features[0].angles.A"),
     (BASE, '{A = "0 deg", C = "0 deg", c = "90 deg"}', "features[0].angles.c: rotary axis C is stated twice (as C "
                                                        "and c)"),
