@@ -252,6 +252,64 @@ def test_a_held_rotary_turn_moves_a_bore_at_one_pose_rigidly_about_the_axes():
     assert vals[:, 0].std(ddof=1) == pytest.approx(std, rel=0.03)
 
 
+def table_point(v, a_deg, c_deg):
+    """FORMAT-3's chain at zero errors written with scipy: the table-frame point the tool at machine point v touches
+    with A at a (about +X through p_A, on the bed) and C at c (about +Z through p_C, on A)."""
+    Ra = Rotation.from_euler("x", a_deg, degrees=True).as_matrix()
+    Rc = Rotation.from_euler("z", c_deg, degrees=True).as_matrix()
+    return PIVOT_C + Rc.T @ (PIVOT_A + Ra.T @ (np.asarray(v, float) - PIVOT_A) - PIVOT_C)
+
+
+def test_a_distance_probed_at_two_tilts_of_A_against_the_rotary_geometry_written_here():
+    """(0, 0, 100) mm probed at A = 0 and at A = -45 deg, C = 0 both: on the part (the table frame) the ends are the
+    scipy chain's points S_0 = (0, 0, 0) and S_1 = p_A + R_A(-45)^T (v - p_A).  Two in-use sources alone, 16384
+    draws each, against their propagation written here (both linear in the draws: the distance's error is normal,
+    the relative standard uncertainty of its u 1/sqrt(2 x 16383) = 0.55 %, the tolerance 2.2 %):
+    * the axes' temperature change (u 0.3 K): the same commanded point, the same machine-frame displacement
+      d = alpha dT_z 100 mm e_z at both ends, turned into the table frame at each pose (R = R_A(a) R_C(c),
+      v_machine = R v_table): the distance changes by u . (R_1^T - R_0^T) d, u = alpha 0.3 K 100 mm
+      |u . (R_1^T - I) e_z|;
+    * the rotary axes' repeatability (R = 10 urad): A positioned twice (two draws), C held at 0 for both ends (one
+      draw): u^2 = R^2 [(u . rA_0)^2 + (u . rA_1)^2 + (u . (rC_1 - rC_0))^2], the turn rates dS/da, dS/dc by
+      central differences of the scipy chain (step 1e-4 deg: the second-order error 1e-12 of the rate): 1.077 um
+      (u . rA = -76.19 mm/rad at both ends, u . rC = -49.46 at both: C's held turn cancels); `reposition = true`
+      (every draw independent) 1.285 um.  Thermal 0.256 um."""
+    P = [0.0, 0.0, 100.0]
+    v = np.array(P) + TOOL
+    S = np.array([table_point(v, a, 0) for a in (0, -45)])
+    assert np.allclose(S[0], 0) and np.allclose(S[1], [0, -20 - 60 * np.sqrt(0.5), -80 + 100 * np.sqrt(0.5)])
+    u = (S[1] - S[0]) / np.linalg.norm(S[1] - S[0])
+    R1 = Rotation.from_euler("x", -45, degrees=True).as_matrix()  # R_A(-45) R_C(0)
+    thermal = 11.5e-6 * 0.3 * 100 * abs(u @ (R1.T - np.eye(3)) @ [0, 0, 1.0]) * 1e3  # um
+    h = 1e-4  # deg
+    rate = {ax: np.array([(table_point(v, a + h * (ax == "a"), h * (ax == "c"))
+                           - table_point(v, a - h * (ax == "a"), -h * (ax == "c"))) / np.radians(2 * h)
+                          for a in (0, -45)]) for ax in "ac"}
+    rotary = 10e-6 * np.sqrt((u @ rate["a"][0]) ** 2 + (u @ rate["a"][1]) ** 2
+                             + (u @ (rate["c"][1] - rate["c"][0])) ** 2) * 1e3  # um
+    each = 10e-6 * np.sqrt(sum((u @ rate[ax][i]) ** 2 for ax in "ac" for i in (0, 1))) * 1e3  # reposition = true
+    # u . rate: A -76.19 mm/rad at both ends; C -49.46 at both: C's one held turn leaves the distance unchanged
+    assert thermal == pytest.approx(0.2562, abs=1e-4) and rotary == pytest.approx(1.0774, abs=1e-4)
+    assert each == pytest.approx(1.285, abs=0.001)
+
+    from mtbudget.features import IN_USE, FeatureSet
+
+    f = {"name": "across A", "kind": "distance", "points": [["0 mm", "0 mm", "100 mm"]] * 2,
+         "angles": {"A": ["0 deg", "-45 deg"], "C": "0 deg"}}
+    fs = FeatureSet.of(scenario(five(features=[dict(f, machine_temperature_change="0.3 K"),
+                                               dict(f, name="rotary", rotary_repeatability="10 urad"),
+                                               dict(f, name="re-positioned", rotary_repeatability="10 urad",
+                                                    reposition=True)])))
+    assert np.allclose(fs.tool_points[:2], S, atol=1e-9)
+    for ax in "ac":  # the chain's own turn rates at the tilted pose equal the scipy chain's
+        assert np.allclose(fs.turn[ax][2:4], rate[ax], atol=1e-6)
+    vals = fs.block_values(np.zeros((16384, len(fs.points), 3)), seed=7, block=0)
+    assert vals[:, 0, 2 + IN_USE.index("machine_thermal_drift")].std(ddof=1) == pytest.approx(thermal, rel=0.022)
+    col = 2 + IN_USE.index("rotary_repeatability_in_use")
+    assert vals[:, 1, col].std(ddof=1) == pytest.approx(rotary, rel=0.022)
+    assert vals[:, 2, col].std(ddof=1) == pytest.approx(each, rel=0.022)
+
+
 def test_repeatability_on_five_axes_without_the_rotary_source_asks_for_it():
     from mtbudget.features import FeatureSet
 
