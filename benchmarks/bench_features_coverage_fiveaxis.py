@@ -11,7 +11,12 @@ at a plan of the probed poses built here (commanded positions and angles), the p
 at zero errors, the in-use errors drawn by this script: the probing error along the line or radius in the table frame,
 the linear axes' repeatability turned into the table frame by R_C(c)^T R_A(a)^T written with scipy's rotations, and
 the rotary axes' repeatability by evaluating the nominal chain at the angles plus the drawn turns (exactly, where
-mtbudget linearises); the associations are bench_features_coverage.py's (scipy least squares, numpy lstsq).
+mtbudget linearises), one turn per axis and positioning: a run of consecutive points at one commanded angle of an
+axis is probed with the axis held, so they share its turn; the associations are bench_features_coverage.py's (scipy
+least squares, numpy lstsq).
+
+``--repeatability`` sets ``repeatability = true`` on every feature (the example has it on the tilted face only), so
+the rotary axes' held turns act on the distance across C, the bores and the face alike.
 """
 
 from __future__ import annotations
@@ -49,6 +54,12 @@ def angles_of(f, n):
         vals = v if isinstance(v, list) else [v] * n
         out[k.lower()] = np.array([q(x, "rad") for x in vals])
     return out
+
+
+def positioning_runs(v):
+    """(N,) int: the positioning each point of one axis' commanded angles v is probed at, a new one where the angle
+    changes from the previous point (the axis held over a run of equal angles)."""
+    return np.cumsum(np.r_[True, v[1:] != v[:-1]]) - 1
 
 
 def table_rotation(ang):
@@ -93,9 +104,10 @@ def part_errors(sc, eng, features, blocks, rng, rotary_R):
             if f.get("repeatability"):
                 R = table_rotation(ang)
                 M = M + np.einsum("mji,nmj->nmi", R, rng.normal(0, rep, (n, N, 3)))
-                for i in range(n):  # the rotary axes turned by their repeatability: the nominal chain at the new angles
-                    turned = {a: v + rng.normal(0, rotary_R, N) for a, v in ang.items()}
-                    M[i] += chain(truth, zero, turned)[0] - S
+                runs = {a: positioning_runs(v) for a, v in ang.items()}
+                for i in range(n):  # the rotary axes turned by their repeatability, one turn per axis and positioning:
+                    turned = {a: v + rng.normal(0, rotary_R, runs[a][-1] + 1)[runs[a]] for a, v in ang.items()}
+                    M[i] += chain(truth, zero, turned)[0] - S  # the nominal chain at the turned angles
             rows[:, k] = [value(f, S, M[i]) for i in range(n)]
         out.append(rows)
     return np.concatenate(out)
@@ -106,11 +118,15 @@ def main(argv=None):
     ap.add_argument("--machines", type=int, default=4)
     ap.add_argument("--parts", type=int, default=512)
     ap.add_argument("--trials", type=int, default=2048)
+    ap.add_argument("--repeatability", action="store_true", help="repeatability = true on every feature")
     args = ap.parse_args(argv)
     text = bundled_config("five_axis_features").read_text()
     base = tomllib.loads(bundled_config("five_axis_cafxyz").read_text())
     base.update({k: v for k, v in tomllib.loads(text).items() if k not in ("extends",)})
     features = base["features"]
+    if args.repeatability:
+        for f in features:
+            f["repeatability"] = True
     rotary_R = q(base["sources"]["rotary_repeatability"]["R"], "rad")
     rng = np.random.default_rng(20261126)
     hits: dict = {}

@@ -157,7 +157,7 @@ SCHEMA = {
     # [[features]]: features probed on the compensated machine (docs/features.md; checked by mtbudget.features)
     "features": ("name", "kind", "points", "directions", "tolerance", "association", "datum", "probing_error",
                  "repeatability", "machine_temperature_change", "part_temperature", "part_temperature_u", "part_cte",
-                 "part_cte_u", "angles", "rotary_repeatability"),
+                 "part_cte_u", "angles", "rotary_repeatability", "reposition"),
     # [report]: what a laboratory states on the report and the DCC (all optional, free text; mtbudget.report)
     "report": REPORT_KEYS,
     "report.instrument": REPORT_INSTRUMENT_KEYS,

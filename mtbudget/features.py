@@ -79,10 +79,22 @@ IN_USE_TEXT = {
                         "about the feature's centre",
     "part_cte": "the part's CTE: its error (normal) times (part_temperature - 20 degC) expands the part about the "
                 "feature's centre",
-    "rotary_repeatability_in_use": "five axes: each rotary axis' positioning repeatability at each probed point, normal "
-                                   "per axis and point, u = the feature's rotary_repeatability, else the run's "
-                                   "[sources.rotary_repeatability] R; the tool point moves as the chain turns it",
+    "rotary_repeatability_in_use": "five axes: each rotary axis' positioning repeatability, normal, one draw per axis "
+                                   "and positioning (the points probed in a row at one commanded angle of the axis "
+                                   "share it: the axis is held while the linear axes probe), u = the feature's "
+                                   "rotary_repeatability, else the run's [sources.rotary_repeatability] R; the tool "
+                                   "point moves as the chain turns it",
 }
+#: the same with ``reposition = true``: every point its own positioning of every rotary axis
+ROTARY_REPOSITION_TEXT = ("five axes: each rotary axis' positioning repeatability at each probed point, normal per axis "
+                          "and point (reposition = true: every axis re-positioned before every point), u = the "
+                          "feature's rotary_repeatability, else the run's [sources.rotary_repeatability] R; the tool "
+                          "point moves as the chain turns it")
+#: what a five-axis feature's measurand adds when the rotary axes' in-use repeatability is in its budget
+ROTARY_HELD = ("; the rotary axes' repeatability drawn once per positioning: each axis is held while consecutive "
+               "points share its commanded angle (one turn of it for those points)")
+ROTARY_REPOSITIONED = "; every rotary axis re-positioned before every point (reposition = true: its repeatability " \
+                      "drawn at each point)"
 
 MEASURANDS = {
     "distance": "error of the distance between the two probed points (measured minus true, a part at nominal), um; "
@@ -103,8 +115,15 @@ ROTARY_MEASURAND = ("; each point probed at its commanded rotary angles ({angles
 #: the frame of a five-axis machine whose table turns: the one the per-point measurand is stated in (outputs.py)
 FEATURE_TABLE_FRAME = ("workpiece (table) frame (x, y, z: the machine's X, Y, Z with every rotary axis at zero, "
                        "turning with the table)")
+#: what a feature's JSON ``points`` are, and (five axes) its ``nominal_points``
+COMMANDED_POINTS = ("commanded machine positions of the linear axes (X, Y, Z) at each probed point, in the order of "
+                    "probing (five axes: with the commanded angles of the rotary axes, points.angles)")
+NOMINAL_POINTS = ("the nominal probed points that define the part: where an error-free machine puts the tool at each "
+                  "commanded pose, in the frame stated (the chain at zero errors)")
 #: an angle may lie this far outside the angles the verification visited and still count as inside (rad)
 ANGLE_SLACK = 1e-9
+#: a commanded angle more than this many turns from zero is refused as such (a typing error, not a pose)
+MAX_TURNS = 100
 
 
 @dataclass
@@ -135,6 +154,9 @@ class FeatureSpec:
     #: five axes: u of each rotary axis' angle at each probed point (rad); stated, or the run's rotary_repeatability
     #: source's R when ``repeatability`` is true (FeatureSet.of resolves it); None: not stated
     rotary_repeatability: float | None = None
+    #: five axes: every rotary axis re-positioned before every point (its repeatability drawn per point); false: one
+    #: positioning per run of consecutive points at the same commanded angle of that axis (held while they are probed)
+    reposition: bool = False
 
     @property
     def unit(self) -> str:
@@ -150,7 +172,28 @@ class FeatureSpec:
         if self.angles:
             text += ROTARY_MEASURAND.format(angles=", ".join(sorted(a.upper() for a in self.angles)),
                                             frame=FEATURE_TABLE_FRAME if self.table_frame else "machine frame")
+            if "rotary_repeatability_in_use" in self.in_use():
+                text += ROTARY_REPOSITIONED if self.reposition else ROTARY_HELD
         return text
+
+    def in_use_text(self, source: str) -> str:
+        """The budget row's description of the in-use source ``source`` for this feature."""
+        if source == "rotary_repeatability_in_use" and self.reposition:
+            return ROTARY_REPOSITION_TEXT
+        return IN_USE_TEXT[source]
+
+    def positionings(self) -> dict:
+        """{letter: (N,) int} five axes: the index of the point at which each point's positioning of each rotary axis
+        was made: a new positioning where the commanded angle changes from the previous point (or at every point with
+        ``reposition``), the axis held over the run of points at one angle; the first point is one."""
+        out = {}
+        for a, th in self.angles.items():
+            idx = np.arange(len(th))
+            for j in range(1, len(th)):
+                if not self.reposition and abs(th[j] - th[j - 1]) <= ANGLE_SLACK:
+                    idx[j] = idx[j - 1]
+            out[a] = idx
+        return out
 
     def in_use(self) -> list:
         """The in-use sources this feature states, in budget order."""
@@ -169,7 +212,8 @@ class FeatureSpec:
                 "tolerance": self.tolerance, "one_sided": self.one_sided, "association": self.association,
                 "in_use": self.in_use(),
                 **({"angles": {a.upper(): np.degrees(v).tolist() for a, v in sorted(self.angles.items())},
-                    "angles_unit": "deg", "frame": WORKPIECE_FRAME if self.table_frame else "machine frame"}
+                    "angles_unit": "deg", "frame": WORKPIECE_FRAME if self.table_frame else "machine frame",
+                    "nominal_points": self.geometry.tolist()}
                    if self.angles else {})}
 
 
@@ -224,37 +268,56 @@ def _parse_one(r: Reader, config, nominal=None) -> FeatureSpec:
     # where the part is: the commanded points (three axes), the nominal tool points in the workpiece frame (five axes)
     G = P if not angles else np.asarray(nominal(P, angles), float)
     P_cmd, P = P, G
+    # what the checks below are on: the commanded points (three axes), the nominal points where the part is (five)
+    frame = "workpiece (table) frame" if angles and _table_turns(config) else "machine frame"
+    on = "the points" if not angles else f"the nominal points in the {frame} (the tool at the commanded poses)"
     centre, datum = P.mean(axis=0), None
     if kind == "distance":
         if np.linalg.norm(P[1] - P[0]) < 1e-3:
-            raise ConfigError(f"{r.where('points')}: the two points coincide; a distance needs two distinct points")
+            raise ConfigError(f"{r.where('points')}: the two points coincide; a distance needs two distinct points"
+                              if not angles else
+                              f"{r.where('points')}: {on} coincide, at ({', '.join(f'{v:.4g}' for v in P[0])}) mm; "
+                              "a distance needs two distinct points on the part")
     else:
         Q = P - centre
         s = np.linalg.svd(Q, compute_uv=False)
         if s[1] <= 1e-6 * max(s[0], 1e-12):
-            raise ConfigError(f"{r.where('points')}: the points are collinear; a {kind} needs points spanning a "
+            raise ConfigError(f"{r.where('points')}: {on} are collinear; a {kind} needs points spanning a "
                               + ("plane" if kind in ("flatness", "orientation") else "circle"))
         datum = np.linalg.svd(Q)[2][2]
+        state = ("state the commanded points of the nominal {}" if not angles else
+                 f"state commanded poses whose nominal points in the {frame} lie on the nominal {{}}")
+
+        def of(thing):
+            return f"the points of {thing}" if not angles else \
+                f"the nominal points of {thing} in the {frame} (the tool at the commanded poses)"
+
         if kind in ("diameter", "position"):
             if s[2] / np.sqrt(n) > PLANE_SLACK:
-                raise ConfigError(f"{r.where('points')}: the points of a circle must lie in one plane (off it by "
+                raise ConfigError(f"{r.where('points')}: {of('a circle')} must lie in one plane (off it by "
                                   f"{s[2] / np.sqrt(n):.3g} mm RMS)")
             centre, radius = _circle_nominal(P, datum)
             resid = np.abs(np.linalg.norm(P - centre, axis=1) - radius)
             if resid.max() > CIRCLE_SLACK:
-                raise ConfigError(f"{r.where('points')}: the points do not lie on one circle (off by up to "
-                                  f"{resid.max():.3g} mm): state the commanded points of the nominal circle")
+                raise ConfigError(f"{r.where('points')}: {on} do not lie on one circle (off by up to "
+                                  f"{resid.max():.3g} mm): " + state.format("circle"))
         elif s[2] / np.sqrt(n) > PLANE_SLACK:
-            raise ConfigError(f"{r.where('points')}: the points of a plane must lie in one plane (off it by "
-                              f"{s[2] / np.sqrt(n):.3g} mm RMS): state the commanded points of the nominal plane")
+            raise ConfigError(f"{r.where('points')}: {of('a plane')} must lie in one plane (off it by "
+                              f"{s[2] / np.sqrt(n):.3g} mm RMS): " + state.format("plane"))
     if r.has("datum"):
         d = r.raw("datum")
         if kind not in ("orientation", "flatness") or not (isinstance(d, list) and len(d) == 3):
             raise ConfigError(f"{r.where('datum')}: only a plane (orientation, flatness) takes a datum, its nominal "
                               "normal as three plain numbers")
         datum = _unit_vector(d, r.where("datum"))
-        if abs(abs(datum @ np.linalg.svd(P - P.mean(0))[2][2]) - 1) > 1e-6:
-            raise ConfigError(f"{r.where('datum')}: is not the normal of the plane of the commanded points")
+        normal = np.linalg.svd(P - P.mean(0))[2][2]
+        if abs(abs(datum @ normal) - 1) > 1e-6:
+            if not angles:
+                raise ConfigError(f"{r.where('datum')}: is not the normal of the plane of the commanded points")
+            normal = normal if normal[np.argmax(np.abs(normal))] > 0 else -normal
+            raise ConfigError(f"{r.where('datum')}: is not the normal of the plane of {on}, which is "
+                              f"[{', '.join(_num(v) for v in normal)}] (or its opposite): a datum is stated in the "
+                              f"{frame}, where the part is")
     dirs = _directions(r, kind, P, centre, datum)
     tol = None
     if r.has("tolerance"):
@@ -297,13 +360,21 @@ def _parse_one(r: Reader, config, nominal=None) -> FeatureSpec:
             raise ConfigError(f"{r.where('rotary_repeatability')}: machine {config.machine!r} has no rotary axis; "
                               "only a five-axis feature takes the rotary axes' repeatability")
         rot = nonneg("rotary_repeatability", "rad", None)
+    repos = r.raw("reposition", False)
+    if r.has("reposition"):
+        if not angles:
+            raise ConfigError(f"{r.where('reposition')}: machine {config.machine!r} has no rotary axis; only a "
+                              "five-axis feature re-positions its rotary axes")
+        if not isinstance(repos, bool):
+            raise ConfigError(f"{r.where('reposition')}: expected true or false (true: every rotary axis re-positioned "
+                              "before every probed point; false: held over consecutive points at one angle)")
     return FeatureSpec(name.strip(), kind, P_cmd, dirs, tol, assoc, probing_error=nonneg("probing_error", "mm", "0 um"),
                        repeatability=rep, machine_temperature_change=nonneg("machine_temperature_change", "K", "0 K"),
                        part_temperature=part_t, part_temperature_u=nonneg("part_temperature_u", "K", "0 K"),
                        part_cte=r.quantity("part_cte", "1/K", "11.5 um/(m*K)"),
                        part_cte_u=nonneg("part_cte_u", "1/K", "0 um/(m*K)"), centre=centre, datum=datum,
                        angles=angles, geometry=P, table_frame=bool(angles) and _table_turns(config),
-                       rotary_repeatability=rot)
+                       rotary_repeatability=rot, reposition=repos)
 
 
 def _table_turns(config) -> bool:
@@ -336,6 +407,9 @@ def _angles(r: Reader, config, n: int) -> dict:
         if str(k).lower() not in letters:
             raise ConfigError(f"{r.where('angles')}.{k}: machine {config.machine!r} has no rotary axis {k} (its rotary "
                               f"axes: {names})")
+        if str(k).lower() in given:  # A and a are one axis: which angle is meant cannot be guessed
+            raise ConfigError(f"{r.where('angles')}.{k}: rotary axis {str(k).upper()} is stated twice (as "
+                              f"{given[str(k).lower()][0]} and {k}); state each axis' angles once")
         given[str(k).lower()] = (k, v)
     out = {}
     for a in letters:
@@ -354,9 +428,13 @@ def _angles(r: Reader, config, n: int) -> dict:
         visited = np.asarray(config.rotary_angles[a], float)
         lo, hi = float(visited.min()), float(visited.max())
         for j, t in enumerate(th):
+            at = f"{where}[{j}]" if isinstance(v, list) else where
+            if not abs(t) <= MAX_TURNS * 2 * np.pi:  # also NaN: a commanded angle, not a count of turns
+                raise ConfigError(f"{at}: {np.degrees(t):g} deg is more than {MAX_TURNS} turns from zero; state the "
+                                  f"commanded angle (within +-{MAX_TURNS * 360} deg), e.g. the visited "
+                                  f"[{np.degrees(lo):g}, {np.degrees(hi):g}] deg")
             turns = np.ceil((lo - t) / (2 * np.pi) - ANGLE_SLACK)  # the turn that brings t to lo or just above
-            if not (abs(t) <= 200 * np.pi and t + 2 * np.pi * turns <= hi + ANGLE_SLACK):
-                at = f"{where}[{j}]" if isinstance(v, list) else where
+            if not t + 2 * np.pi * turns <= hi + ANGLE_SLACK:
                 raise ConfigError(f"{at}: {np.degrees(t):g} deg lies outside the angles the verification visited, "
                                   f"[{np.degrees(lo):g}, {np.degrees(hi):g}] deg (modulo a turn); extrapolating the "
                                   "identified errors is not covered")
@@ -513,6 +591,10 @@ class FeatureSet:
         self.points = np.concatenate([f.points for f in specs])  # (Nf, 3) commanded
         self.geometry = np.concatenate([f.geometry for f in specs])  # (Nf, 3) the part's nominal points
         self.angles = {a: np.concatenate([f.angles[a] for f in specs]) for a in specs[0].angles}  # five axes: rad
+        # five axes: {letter: (Nf,) int} the point (index into all features' points) whose positioning of the axis
+        # each point is probed at: one draw of the axis' repeatability per positioning (FeatureSpec.positionings)
+        self.held = {a: np.concatenate([sl.start + f.positionings()[a] for f, sl in zip(specs, self.slices)])
+                     for a in self.angles}
         self.n_columns = 2 + len(IN_USE)  # total, verification alone, each in-use source alone
         self.plan = _probe_plan(scenario, self.points, self.angles)
         # five axes, a turning table: (Nf, 3, 3) the table's nominal orientation at each point's pose (v_machine =
@@ -599,7 +681,9 @@ class FeatureSet:
             if not letters:
                 return None
             z = rng.standard_normal((n, Nf, len(letters)))
-            return lambda f, sl, S: sum(z[:, sl, j, None] * f.rotary_repeatability * self.turn[a][sl][None]
+            # one draw per axis and positioning: a point takes the draw of the point its axis was positioned at
+            zh = np.stack([z[:, self.held[a], j] for j, a in enumerate(letters)], axis=-1)
+            return lambda f, sl, S: sum(zh[:, sl, j, None] * f.rotary_repeatability * self.turn[a][sl][None]
                                         for j, a in enumerate(letters))
         if name == "machine_thermal_drift":  # the linear axes' scales, at the commanded positions
             z = rng.standard_normal((n, 1, 3))
@@ -723,7 +807,7 @@ def feature_budget(engine, total: dict, per_source: dict, n: int) -> dict:
         for s in f.in_use():
             v = float(V[k, 2 + IN_USE.index(s)])
             rows.append({"source": s, "group": "in use", "u_i": float(np.sqrt(v)), "share": v / Vt if Vt > 0 else 0.0,
-                         "description": IN_USE_TEXT[s]})
+                         "description": f.in_use_text(s)})
         inter = Vt - sum(r["u_i"] ** 2 for r in rows)
         out.append({"name": f.name, "unit": f.unit, "trials": n, "u_total": float(np.sqrt(max(Vt, 0))), "rows": rows,
                     "interaction_share": inter / Vt if Vt > 0 else 0.0})
@@ -795,10 +879,14 @@ def features_json(spec_features: list | None, samples: np.ndarray | None, covera
     for k, f in enumerate(specs):
         e = {"name": f["name"], "kind": f["kind"], "measurand": f["measurand"] + ("; " + "; ".join(warnings)
                                                                                    if warnings else ""),
-             "unit": f["unit"], "points": {"value": f["points"], "unit": "mm"}, "in_use": f["in_use"]}
+             "unit": f["unit"], "points": {"quantity": COMMANDED_POINTS, "value": f["points"], "unit": "mm"},
+             "in_use": f["in_use"]}
         if "angles" in f:  # five axes: each point's commanded angles, and the frame the feature is computed in
             e["points"]["angles"] = {"value": f["angles"], "unit": f["angles_unit"]}
             e["frame"] = f["frame"]
+            if "nominal_points" in f:  # the part's points (a log written before they were stated has none)
+                e["nominal_points"] = {"quantity": NOMINAL_POINTS, "value": f["nominal_points"], "unit": "mm",
+                                       "frame": f["frame"]}
         if samples is None or not len(samples):
             e["note"] = "the trials' feature values are not available (a run resumed from a log: rerun it)"
             out.append(e)
@@ -857,6 +945,38 @@ def frame_note(feats: list) -> str:
                                                    for f in feats) else ""
 
 
+def _num(v: float) -> str:
+    """A coordinate or angle to 0.1 um / 0.0001 deg, without trailing zeros (-0 shown as 0)."""
+    t = f"{v:.4f}".rstrip("0").rstrip(".")
+    return "0" if t in ("-0", "") else t
+
+
+def probed_points(f: dict) -> list:
+    """[(commanded (3,) mm, {letter: deg} or {}, nominal (3,) mm on the part or None)] of a feature's JSON entry."""
+    pts = f["points"]
+    ang = (pts.get("angles") or {}).get("value") or {}
+    nom = (f.get("nominal_points") or {}).get("value")
+    return [(p, {a: v[j] for a, v in sorted(ang.items())}, None if nom is None else nom[j])
+            for j, p in enumerate(pts["value"])]
+
+
+def points_text(f: dict) -> str:
+    """The probed points of a feature's JSON entry as one sentence: commanded position (mm) and angles (deg) of each
+    point, and where it lies on the part when that is another frame (five axes)."""
+    rows = []
+    for j, (p, ang, nom) in enumerate(probed_points(f)):
+        t = f"{j + 1}: ({', '.join(_num(v) for v in p)}) mm"
+        if ang:
+            t += ", " + ", ".join(f"{a} = {_num(v)}°" for a, v in ang.items())
+        if nom is not None:
+            t += f" → ({', '.join(_num(v) for v in nom)}) mm on the part"
+        rows.append(t)
+    five = any(a for _, a, _ in probed_points(f))
+    return ("Probed points (commanded position of the linear axes" + (" and commanded rotary angles" if five else "")
+            + (", and the nominal point on the part in the workpiece (table) frame" if f.get("nominal_points") else "")
+            + "): " + "; ".join(rows))
+
+
 def features_markdown(feats: list | None) -> list:
     """The features table of the report (Markdown)."""
     if not feats:
@@ -878,6 +998,8 @@ def features_markdown(feats: list | None) -> list:
     md.append("")
     for f in feats:
         md.append(f"* **{f['name']}**: {f['measurand']}.")
+        if "points" in f:
+            md.append("  " + points_text(f) + ".")
         if "budget" in f:
             md.append("  Budget (u_i, each source alone): " + ", ".join(
                 f"{r['source']} {r['u_i']:.3g} {pretty(f['unit'])} ({r['share']:.1%})"

@@ -41,7 +41,7 @@ SCHEMA_VERSION = "3.3.0"
 SCHEMA_LOCATION = "https://ptb.de/dcc https://ptb.de/dcc/v3.3.0/dcc.xsd"
 #: mtbudget's display units -> D-SI unit strings
 DSI_UNITS = {"µm": r"\micro\metre", "um": r"\micro\metre", "mm": r"\milli\metre", "urad": r"\micro\radian",
-             "µrad": r"\micro\radian"}
+             "µrad": r"\micro\radian", "deg": r"\degree"}
 NOT_STATED = "not stated"
 
 ET.register_namespace("dcc", DCC_NS)
@@ -305,6 +305,38 @@ def _features(results, res):
             name += f"; decision (ISO 14253-1): {dec['statement']}; rule: {dec['rule']}"
         _quantity(data, name, label=f"feature_{f['name']}", value=f["estimate"], unit=DSI_UNITS.get(f["unit"], f["unit"]),
                   nd=decimals_for(f["u"]), u=f["u"], interval=(iv["low"], iv["high"]), p=iv["coverage"])
+    _feature_points(results, feats)
+
+
+def _feature_points(results, feats):
+    """The probed points of every feature, part of its measurand: per point the commanded position of the linear axes
+    (mm) and, on a five-axis machine, the commanded angle of each rotary axis (deg) and the nominal point on the part
+    in the workpiece (table) frame (mm), as quantities without uncertainty (they define the measurand)."""
+    from .features import probed_points
+
+    feats = [f for f in feats if "points" in f]
+    if not feats:
+        return
+    r = _sub(results, _d("result"))
+    _text(r, "name", "probed points of each feature (part of its measurand): commanded positions of the linear axes "
+                     "and commanded angles of the rotary axes, in the order of probing")
+    data = _sub(r, _d("data"))
+    for f in feats:
+        fl = _sub(data, _d("list"))
+        _text(fl, "name", f"{f['name']} ({f['kind']}): {len(f['points']['value'])} probed points")
+        for j, (p, ang, nom) in enumerate(probed_points(f)):
+            pl = _sub(fl, _d("list"))
+            _text(pl, "name", f"point {j + 1}")
+            for a, v in zip("XYZ", p):
+                _quantity(pl, f"commanded {a} position (machine axis)", label=f"commanded_{a}", value=v,
+                          unit=DSI_UNITS["mm"], nd=4)
+            for a, v in ang.items():
+                _quantity(pl, f"commanded {a} angle (rotary axis)", label=f"commanded_{a}", value=v,
+                          unit=DSI_UNITS["deg"], nd=4)
+            if nom is not None:
+                for a, v in zip("xyz", nom):
+                    _quantity(pl, f"nominal {a} of the point on the part, workpiece (table) frame", label=f"nominal_{a}",
+                              value=v, unit=DSI_UNITS["mm"], nd=4)
 
 
 def write_dcc(res, path, tolerance_um: float | None = None, characteristic: str = "component") -> Path:
