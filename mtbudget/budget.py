@@ -25,7 +25,7 @@ from .executors import Executor
 from .outputs import MEAN_SQUARE_OUTPUTS, SCALARS, RunResult, table_frame
 from .plugins import call
 from .progress import progress_bar
-from .stats import percent, symmetric_interval
+from .stats import bound, percent, symmetric_interval
 
 
 class RunReduction:
@@ -721,8 +721,8 @@ def machine_conformance(res, tolerance_um: float) -> dict | None:
                                               "largest |x|, |y|, |z| error"},
             "simultaneous_band": band,
             "statement": (f"Whole machine, tolerance ±{T:g} µm on every component at every point: the largest "
-                          f"|component| over the mesh is at most {hi:.1f} µm with probability {percent(p)} (per axis "
-                          f"{_xyz(res)}: {axes[0]:.1f}, {axes[1]:.1f}, {axes[2]:.1f} µm){P}: the compensated machine "
+                          f"|component| over the mesh is at most {bound(hi, 'up', 1)} µm with probability {percent(p)} (per axis "
+                          f"{_xyz(res)}: {', '.join(bound(a, 'up', 1) for a in axes)} µm; rounded up){P}: the compensated machine "
                           f"{_said(verdict)}.")}
 
 
@@ -762,7 +762,7 @@ def _conformance(res: Evidence, tolerance_um: float, characteristic: str) -> dic
                 "rule": f"ISO 14253-1 guarded acceptance: conformance proven when the upper end of the {percent(p)} coverage "
                         f"interval is within the tolerance; non-conformance when its lower end exceeds it",
                 "tolerance": T, "unit": "um", "coverage": p, "interval": [lo, hi], "verdict": verdict,
-                "statement": f"The largest error over the mesh after compensation lies in [{lo:.1f}, {hi:.1f}] µm "
+                "statement": f"The largest error over the mesh after compensation lies in [{bound(lo, 'down', 1)}, {bound(hi, 'up', 1)}] µm "
                              f"({percent(p)} coverage): against a tolerance of {T:g} µm the compensated machine {_said(verdict)}."}
     pts = res.points()
     if not pts or "interval" not in pts[0]:
@@ -784,5 +784,5 @@ def _conformance(res: Evidence, tolerance_um: float, characteristic: str) -> dic
             "verdict": "conforms" if inside.all() else "does not conform" if outside.any() else "undecided",
             "statement": (f"Tolerance ±{T:g} µm on each axis at each point, per point: conformance proven at {int(inside.sum())} of "
                           f"{n} point-axes, non-conformance at {int(outside.sum())}, undecided at "
-                          f"{int(n - inside.sum() - outside.sum())} (largest guard band, the half-width of the coverage interval, {U.max():.1f} µm, "
+                          f"{int(n - inside.sum() - outside.sum())} (largest guard band, the half-width of the coverage interval, {bound(float(U.max()), 'up', 1)} µm, "
                           f"{percent(p)} coverage).")}

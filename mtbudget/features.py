@@ -29,7 +29,7 @@ from .machine import Configuration, is_rotary, workpiece_rotation
 from .model import MeasurementModel
 from .outputs import WORKPIECE_FRAME
 from .plan import Plan
-from .stats import decimals_for, percent
+from .stats import bound, decimals_for, decimals_of, percent
 from .units import pretty
 
 #: upper bounds of the in-use uncertainties of [[features]] (internal unit, display unit, display per internal), by
@@ -841,7 +841,7 @@ def decision(f: dict, estimate: float, low: float, high: float, p: float) -> dic
         U = max(high, 0.0)
         zone = [None, T - U] if T - U >= 0 else None
         rule = (f"ISO 14253-1 guarded acceptance, one-sided characteristic (value <= T): conformance is proven for a "
-                f"measured value v when v <= T - U, U = {U:.3g} {u} the upper end of the {percent(p)} interval of "
+                f"measured value v when v <= T - U, U = {bound(U, 'up', decimals_of([U]))} {u} (rounded up) the upper end of the {percent(p)} interval of "
                 f"the machine's error of this feature (a conservative guard band: the error of a real part's value "
                 f"is not additive); non-conformance when v > T + U")
         proven = zone is not None and estimate <= zone[1]
@@ -852,15 +852,18 @@ def decision(f: dict, estimate: float, low: float, high: float, p: float) -> dic
         rule = (f"ISO 14253-1 guarded acceptance, two-sided (|deviation from nominal| <= T): a measured deviation d "
                 f"leaves the true deviation in [d - {high:.3g}, d - ({low:.3g})] {u} (the {percent(p)} interval of the "
                 f"error E, true = d - E); conformance is proven when that lies within [-T, T], d in "
-                f"[{lo_z:.3g}, {hi_z:.3g}] {u}" + (" (empty)" if hi_z < lo_z else "")
+                f"[{bound(lo_z, 'up', decimals_of([lo_z, hi_z]))}, {bound(hi_z, 'down', decimals_of([lo_z, hi_z]))}] {u}"
+                + (" (empty)" if hi_z < lo_z else " (rounded inwards)")
                 + "; non-conformance when it lies outside")
         proven = zone is not None and lo_z <= estimate <= hi_z
         refuted = estimate - high > T or estimate - low < -T
     verdict = "conforms" if proven else "does not conform" if refuted else "undecided"
     where = ("no acceptance zone: the machine's " + percent(p) + " error interval is wider than the tolerance, "
              "conformance cannot be proven on it") if zone is None else (
-        "acceptance zone for a measured " + ("value: <= " + f"{zone[1]:.3g} {u}" if f["one_sided"] else
-                                             f"deviation: [{zone[0]:.3g}, {zone[1]:.3g}] {u}"))
+        "acceptance zone for a measured " + ("value: <= " + f"{bound(zone[1], 'down', decimals_of(zone[1:]))} {u}"
+                                             if f["one_sided"] else
+                                             f"deviation: [{bound(zone[0], 'up', decimals_of(zone))}, "
+                                             f"{bound(zone[1], 'down', decimals_of(zone))}] {u} (rounded inwards)"))
     return {"tolerance": T, "unit": u, "coverage": p, "rule": rule, "acceptance_zone": zone,
             "verdict_at_nominal": verdict,
             "statement": f"tolerance {T:g} {u}, {percent(p)} coverage: {where}; a part at nominal (measured value the "

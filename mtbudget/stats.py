@@ -57,6 +57,27 @@ def decimals_for(u: float, ndig: int = 2) -> int:
     return max(0, (ndig - 1) - math.floor(math.log10(abs(u))))
 
 
+def bound(x: float, direction: str, decimals: int) -> str:
+    """``x`` shown to ``decimals`` decimals, rounded towards the safe side of a conformity statement: "up" (an upper
+    bound of an error, a guard band: never shown smaller than it is) or "down" (a lower bound; an acceptance zone's
+    upper limit: never shown wider than it is), as ISO 14253-1 wants a zone rounded inwards.  Decimal arithmetic on
+    the shortest repr, so 15.0 stays 15.0 (a float product 15.0 * 10 may round up to 150.00000000000003)."""
+    from decimal import ROUND_CEILING, ROUND_FLOOR, Decimal
+
+    if not math.isfinite(x):
+        return f"{x}"
+    q = Decimal(1).scaleb(-max(0, int(decimals)))
+    d = Decimal(repr(float(x))).quantize(q, rounding=ROUND_CEILING if direction == "up" else ROUND_FLOOR)
+    return f"{abs(d) if d == 0 else d:f}"  # no "-0.0"
+
+
+def decimals_of(values, sig: int = 3) -> int:
+    """Decimals that show the largest of ``values`` (in magnitude) to ``sig`` significant digits: one precision for
+    the ends of one interval or zone."""
+    m = max((abs(v) for v in values if v is not None and math.isfinite(v)), default=0.0)
+    return 0 if m == 0 else max(0, sig - 1 - math.floor(math.log10(m)))
+
+
 def percent(p: float) -> str:
     """A coverage probability as people read it, never rounded into another one: 0.95 -> "95 %", 0.999 -> "99.9 %"."""
     return f"{100 * p:.6g} %"

@@ -1,0 +1,44 @@
+"""Conformity statements round towards the safe side (ISO 14253-1): an acceptance zone inwards, an upper bound of an
+error or a guard band upwards. Checked against exact decimal arithmetic written here with fractions, and through the
+features' decision text."""
+
+import math
+import re
+from fractions import Fraction
+
+import pytest
+from hypothesis import given, strategies as st
+
+from mtbudget.features import decision
+from mtbudget.stats import bound, decimals_of
+
+
+def _exact(x: float, direction: str, d: int) -> Fraction:
+    """x rounded up or down to d decimals, exactly, from its shortest decimal form."""
+    f, q = Fraction(repr(x)), Fraction(1, 10 ** d)
+    n = f / q
+    return (math.ceil(n) if direction == "up" else math.floor(n)) * q
+
+
+@given(st.floats(-1e6, 1e6, allow_nan=False), st.sampled_from(["up", "down"]), st.integers(0, 4))
+def test_bound_rounds_to_the_side_it_is_asked_for(x, direction, d):
+    shown = Fraction(bound(x, direction, d))
+    assert shown == _exact(x, direction, d)
+    assert (shown >= Fraction(repr(x))) if direction == "up" else (shown <= Fraction(repr(x)))
+
+
+def test_an_exact_value_is_not_moved_and_no_minus_zero():
+    assert bound(15.0, "down", 1) == "15.0" and bound(15.0, "up", 1) == "15.0"  # 15.0 * 10 is 150.00000000000003
+    assert bound(-0.04, "up", 1) == "0.0" and bound(0.04, "down", 1) == "0.0"
+    assert decimals_of([-18.3, 14.96]) == 1 and decimals_of([0.0123]) == 4 and decimals_of([]) == 0
+
+
+def test_a_features_acceptance_zone_is_rounded_inwards_at_one_precision():
+    """T = 20 um, the error's interval [-5.04, 1.7]: the zone for a measured deviation is [-20 + 1.7, 20 - 5.04] =
+    [-18.3, 14.96], shown [-18.3, 14.9] (14.96 shown as 15 would accept parts outside the zone)."""
+    f = {"tolerance": 20.0, "unit": "um", "one_sided": False}
+    d = decision(f, 0.0, -5.04, 1.7, 0.95)
+    lo, hi = map(float, re.search(r"deviation: \[(\S+), (\S+)\] um \(rounded inwards\)", d["statement"]).groups())
+    assert (lo, hi) == (-18.3, 14.9) and d["acceptance_zone"] == pytest.approx([-18.3, 14.96])
+    one = decision({"tolerance": 10.0, "unit": "um", "one_sided": True}, 1.0, 0.2, 2.345, 0.95)
+    assert "value: <= 7.65 um" in one["statement"] and "U = 2.35 um (rounded up)" in one["rule"]
