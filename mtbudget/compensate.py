@@ -637,7 +637,8 @@ def build_table(rec, step: float = DEFAULT_STEP_MM, max_degree: int = 3, referen
             r_mod.note = (f"identified model on the reference line; reversal = the table's B; s = the stated "
                           f"repeatability {s_stated:g} um")
             if not r_rec.figures:
-                r_mod.note += "; at every target of the recording (approached from one side only), B = 0"
+                r_mod.note += ("; at every target of the recording (approached from one side only): B not measured, "
+                               "taken as 0 in A, E and M")
         iso[a] = {"recording": r_rec, "model": r_mod}
         # cross (sag) tables: the deviation of a's line in the other two directions
         for b in AXES:
@@ -1257,11 +1258,15 @@ def _fig(r: Iso230_2, keys=("A", "E", "M", "R", "B", "B_mean")) -> str:
     if not r.figures:
         return r.note
     parts = []
+    one_sided = "approached from one side only" in (r.note or "")  # the model of a recording that measured no B
     for k in keys:
         v = r.figures[k]
         u = r.uncertainty.get(k)
+        if one_sided and k in ("B", "B_mean"):
+            parts.append(f"{k} not measured")
+            continue
         parts.append(f"{k} {v:6.2f}" + (f" ({u:.2f})" if u is not None else ""))
-    return "  ".join(parts) + (f"  [{r.note}]" if r.note and r.source == "recording" else "")
+    return "  ".join(parts) + (f"  [{r.note}]" if r.note else "")
 
 
 def residual_lines(table: CompensationTable) -> list:
@@ -1291,8 +1296,10 @@ def table_text(table: CompensationTable, written: list, exporter, check: dict | 
         ref = ", ".join(f"{b} = {v:g} mm" for b, v in t.reference.items())
         lines.append(f"  {a.upper()}: {len(t.positions)} entries {t.positions[0]:g}..{t.positions[-1]:g} mm, zero at "
                      f"{t.zero_at:g} mm, on the line {ref}; range of the mean deviation {np.ptp(t.deviation):.2f} um, largest u {t.u.max():.2f} um; "
-                     f"reversal B {t.reversal:+.2f} ({t.u_reversal:.2f}) um; between entries (linear interpolation) up "
-                     f"to {t.interpolation:.2f} um")
+                     + (f"reversal B {t.reversal:+.2f} ({t.u_reversal:.2f}) um" if not t.reversal_source.startswith("none")
+                        else "reversal B not measured (the recording approaches its targets from one side only: the "
+                             "directional entries equal the mean)")
+                     + f"; between entries (linear interpolation) up to {t.interpolation:.2f} um")
         if t.note:
             lines.append(f"     note: {t.note}")
     lines += ["", "ISO 230-2 per axis (um; model figures with their standard uncertainty in brackets):"]

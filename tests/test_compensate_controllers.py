@@ -63,6 +63,13 @@ def test_check_of_a_plan_approaching_from_one_side_has_no_traceback(one_sided, t
     targets = np.unique(read_recording(one_sided).plan.nominal[:, 2])
     assert z["model"]["targets_mm"] == pytest.approx(targets) and z["model"]["figures"]["B"] == 0.0
     assert set(body["check"]["axes"]["z"]) >= {"verdict", "max_abs_before_um"}
+    # the text says the reversal was not measured; it never prints a measured-looking 0.00 for Z
+    text = CliRunner().invoke(main, ["compensate", str(one_sided), "--format", "linuxcnc", "--out",
+                                     str(tmp_path / "g")]).output
+    zline = next(ln for ln in text.splitlines() if ln.startswith("  Z: "))
+    assert "reversal B not measured (the recording approaches its targets from one side only" in zline, zline
+    zmodel = next(ln for ln in text.splitlines() if ln.startswith("  Z model"))
+    assert "B not measured" in zmodel and "B   0.00" not in zmodel and "s = the stated repeatability" in zmodel
 
 
 # ----------------------------------------------------------------------------- issue 29: verdicts, --strict
