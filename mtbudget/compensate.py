@@ -676,8 +676,13 @@ def build_table(rec, step: float = DEFAULT_STEP_MM, max_degree: int = 3, referen
                      "rotary axes' location and zero errors (ISO 230-7: " + ", ".join(r["iso"] for r in rotary) +
                      ") are not axis tables: enter them in the controller's kinematic description (neutral-json and "
                      "neutral-csv list them with u)")
+    from .identify import fit_test
+
     ident_summary = {"chi2_per_dof": float(res.chi2_per_dof[0]), "dof": int(res.dof), "points": len(rec),
                      "converged": bool(res.converged[0]),
+                     # the posterior's chi-square test of the fit: a table's u holds only what the model holds
+                     "fit_test": fit_test(float(res.chi2_per_dof[0]), int(res.dof), "estimated", rec.name,
+                                          what="the tables' u", then="before entering the tables"),
                      "not_identifiable": [[{"parameter": n, "iso": iso_name(n.split("[")[0]) if "(" in n else n,
                                             "weight": w} for n, w in c] for c in ident.combinations()]}
     return CompensationTable(rec.name, rec.machine, float(step), functions, squareness, axes, iso, ident_summary,
@@ -1288,6 +1293,7 @@ def table_text(table: CompensationTable, written: list, exporter, check: dict | 
     idn = table.identification
     lines = [f"compensation tables of {table.recording!r} ({table.machine}): chi-square per dof "
              f"{idn['chi2_per_dof']:.3f}, {idn['points']} points, grid step {table.step:g} mm",
+             *([f"WARNING: {idn['fit_test']['warning']}"] if (idn.get("fit_test") or {}).get("warning") else []),
              f"  format {exporter.name}: {exporter.description}",
              *[f"  wrote {p}" for p in written],
              "", ("positioning tables (um, k = 1; zero at the axis' reference point; forward = approach in +; "

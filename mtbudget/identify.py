@@ -330,6 +330,39 @@ def _residual_rms(res, trial: int) -> float:
     return float(np.sqrt(np.mean(r ** 2))) if r.size else float("nan")
 
 
+#: the level of the chi-square test of the fit against the recording's stated noise: below it, the statement warns
+FIT_ALPHA = 1e-3
+
+
+def fit_test(chi2_per_dof: float, dof: int, noise: str, recording: str, what: str = "this statement",
+             then: str = "before signing") -> dict:
+    """The chi-square test of the identification's fit against the recording's stated noise (upper and lower tails of
+    chi2 with ``dof`` degrees of freedom) and, where either tail is below :data:`FIT_ALPHA`, the warning the statement
+    carries: an a posteriori u (or a compensation table's, ``what``) assumes the model holds every physics the recording
+    shows."""
+    from scipy.special import gammainc, gammaincc
+
+    x = chi2_per_dof * dof
+    above, below = float(gammaincc(dof / 2, x / 2)), float(gammainc(dof / 2, x / 2))
+    out = {"p_above": above, "p_below": below, "alpha": FIT_ALPHA, "warning": None}
+    said = f"chi2/dof {chi2_per_dof:.3f} on {dof} degrees of freedom"
+    if above < FIT_ALPHA:
+        out["warning"] = (
+            f"the identified model does not fit {recording} within its stated noise ({said}; P(chi2 >= that) = "
+            f"{above:.2g} < {FIT_ALPHA:g}): the residuals hold more than the noise, most often a physics the model "
+            f"leaves out (thermal, periodic, reversal ...), which {what} does not contain; find it with "
+            f"`mtbudget diagnose {recording}` {then}" +
+            ("" if noise == "estimated" else "; `--noise estimated` scales the noise by sqrt(chi2/dof), which treats "
+                                             "what is left out as noise"))
+    elif below < FIT_ALPHA:
+        out["warning"] = (
+            f"the residuals of {recording} are smaller than its stated noise allows ({said}; P(chi2 <= that) = "
+            f"{below:.2g} < {FIT_ALPHA:g}): the stated noise is larger than the recording shows, so this u is "
+            "conservative; check the stated tracker noise and repeatability")
+    return out
+
+
+
 def implausible(res: "Identification", trial: int = 0) -> list:
     """What in trial ``trial`` of ``res`` no machine tool can show (empty: nothing): one phrase per figure, naming
     it (the chi-square per dof, an ISO 230-1 error function with its value and bound, the pose-only error), worst

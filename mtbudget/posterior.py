@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from .errors import ConfigError, IdentificationError
-from .identify import Noise, identify, implausible
+from .identify import FIT_ALPHA, Noise, fit_test, identify, implausible  # noqa: F401 (FIT_ALPHA: re-exported)
 from .model import MeasurementModel
 from .outputs import WORKPIECE_FRAME
 from .recording import read_recording
@@ -31,36 +31,6 @@ from .scenario import rigid_projector
 from .stats import percent, symmetric_interval
 
 UM = 1000.0  # um per mm
-#: the level of the chi-square test of the fit against the recording's stated noise: below it, the statement warns
-FIT_ALPHA = 1e-3
-
-
-def fit_test(chi2_per_dof: float, dof: int, noise: str, recording: str) -> dict:
-    """The chi-square test of the identification's fit against the recording's stated noise (upper and lower tails of
-    chi2 with ``dof`` degrees of freedom) and, where either tail is below :data:`FIT_ALPHA`, the warning the statement
-    carries: an a posteriori u assumes the model holds every physics the recording shows."""
-    from scipy.special import gammainc, gammaincc
-
-    x = chi2_per_dof * dof
-    above, below = float(gammaincc(dof / 2, x / 2)), float(gammainc(dof / 2, x / 2))
-    out = {"p_above": above, "p_below": below, "alpha": FIT_ALPHA, "warning": None}
-    said = f"chi2/dof {chi2_per_dof:.3f} on {dof} degrees of freedom"
-    if above < FIT_ALPHA:
-        out["warning"] = (
-            f"the identified model does not fit {recording} within its stated noise ({said}; P(chi2 >= that) = "
-            f"{above:.2g} < {FIT_ALPHA:g}): the residuals hold more than the noise, most often a physics the model "
-            "leaves out (thermal, periodic, reversal ...), which this statement does not contain; find it with "
-            f"`mtbudget diagnose {recording}` before signing" +
-            ("" if noise == "estimated" else "; `--noise estimated` scales the noise by sqrt(chi2/dof), which treats "
-                                             "what is left out as noise"))
-    elif below < FIT_ALPHA:
-        out["warning"] = (
-            f"the residuals of {recording} are smaller than its stated noise allows ({said}; P(chi2 <= that) = "
-            f"{below:.2g} < {FIT_ALPHA:g}): the stated noise is larger than the recording shows, so this u is "
-            "conservative; check the stated tracker noise and repeatability")
-    return out
-
-
 @dataclass
 class Posterior:
     """An a posteriori statement with its trials: ``data`` the JSON-able statement (:func:`posterior`), ``components``

@@ -361,3 +361,24 @@ def test_compensate_writes_its_report_with_the_residual_against_U_and_the_check(
     md = (tmp_path / "rep" / "compensation.md").read_text()
     assert "Fit residual at the recording's points" in md and "U (k = 2)" in md and "Round trip" in md
     assert (tmp_path / "rep" / "compensation.html").is_file() and (tmp_path / "rep" / "residual_vs_U.png").is_file()
+
+
+@pytest.mark.parametrize("name, warns", [("null", False), ("thermal_x", True)])
+def test_compensate_carries_the_fit_test_of_its_identification(name, warns, tmp_path):
+    """A table's u holds only what the model holds: where the fit fails the chi-square test against the stated noise
+    (thermal_x: a thermal expansion the model leaves out), the tables say so first; the null recording does not.
+    The test's p-value recomputed here with scipy.stats.chi2."""
+    from scipy import stats
+
+    res = CliRunner().invoke(main, ["compensate", "--example", name, "--format", "neutral-json", "--out",
+                                    str(tmp_path / "t.json"), "--json"])
+    assert res.exit_code == 0, res.output
+    idn = json.loads(res.stdout)["identification"]
+    t = idn["fit_test"]
+    assert t["p_above"] == pytest.approx(stats.chi2.sf(idn["chi2_per_dof"] * idn["dof"], idn["dof"]), rel=1e-6)
+    assert (t["warning"] is not None) == warns == (t["p_above"] < 1e-3)
+    text = CliRunner().invoke(main, ["compensate", "--example", name, "--format", "neutral-json", "--out",
+                                     str(tmp_path / "u.json")]).output
+    assert ("WARNING: the identified model does not fit" in text) == warns
+    if warns:
+        assert "which the tables' u does not contain" in text and "before entering the tables" in text
