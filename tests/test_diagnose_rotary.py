@@ -235,3 +235,57 @@ def test_no_rotary_source_no_rotary_name(tmp_path):
     tested = {c["effect"] + f"[{c['axis']}]" for c in d.to_dict()["considered"]}
     assert {"rotary_reversal[a]", "rotary_reversal[c]", "rotary_periodic_error[a]",
             "rotary_periodic_error[c]"} <= tested
+
+
+# --------------------------------------------------------------------- the full example (about a minute each)
+def _within_3u(f, truth):
+    """Every term of a rotary finding within 3 u of what truth.json says was drawn (the terms the plan sees)."""
+    v = truth["diagnosable"][f.candidate.label]["value"]
+    v = v if isinstance(v, list) else [v]
+    kept = getattr(f.candidate, "kept", None)
+    v = [v[["c1", "s1", "c2", "s2"].index(t)] for t in kept] if kept else v
+    return all(abs(e - t) < 3 * u for e, u, t in zip(f.estimate, f.uncertainty, v))
+
+
+@pytest.mark.slow
+def test_the_full_example_with_a_large_reversal_of_c_names_it_and_explains_the_recording(tmp_path):
+    """The example's plan and every source at its values, but C's reversal drawn in [0, 150] urad and A's off: the
+    reversal of C and both encoder errors named (each within 3 u of truth.json), the recording explained."""
+    rec, truth, _ = _simulate(tmp_path, ("sources.rotary_reversal.B_max=150 urad", "sources.rotary_reversal.axes=c"))
+    d = diagnose(rec)
+    assert d.unexplained is None, diagnosis_text(d)
+    rotary = [f for f in d.findings if f.candidate.effect in ROTARY_EFFECTS]
+    assert "rotary_reversal[c]" in {f.candidate.label for f in rotary}, diagnosis_text(d)
+    assert "rotary_reversal[a]" not in {f.candidate.label for f in rotary}
+    for f in rotary:
+        assert _within_3u(f, truth), (f.candidate.label, f.estimate, f.uncertainty)
+
+
+@pytest.mark.slow
+def test_the_full_example_with_a_large_encoder_error_of_c_names_it(tmp_path):
+    rec, truth, _ = _simulate(tmp_path, ("sources.rotary_encoder.E_max=100 urad", "sources.rotary_encoder.axes=c",
+                                         "sources.rotary_reversal.axes=a"))
+    d = diagnose(rec)
+    f = _finding(d, "rotary_periodic_error[c]")
+    assert f is not None and _within_3u(f, truth), diagnosis_text(d)
+    assert "rotary_periodic_error[a]" not in _rotary_named(d)
+
+
+@pytest.mark.slow
+def test_the_full_example_without_rotary_sources_names_no_rotary_candidate(tmp_path):
+    rec, _, _ = _simulate(tmp_path, ("sources.rotary_reversal.B_max=0 urad", "sources.rotary_encoder.E_max=0 urad"))
+    d = diagnose(rec)
+    assert not _rotary_named(d), diagnosis_text(d)
+
+
+@pytest.mark.slow
+def test_the_example_as_it_is_names_only_rotary_effects_it_drew(tmp_path):
+    """The example unchanged (`mtbudget simulate examples/five_axis_cafxyz.toml`): whatever rotary candidate it names,
+    as a finding or a partial effect, the trial drew (more than 1 urad)."""
+    rec, truth, _ = _simulate(tmp_path)
+    d = diagnose(rec)
+    named = _rotary_named(d)
+    assert named, diagnosis_text(d)
+    for lb in named:
+        v = truth["diagnosable"][lb]["value"]
+        assert any(abs(x) > 1 for x in (v if isinstance(v, list) else [v]) if x is not None), lb
