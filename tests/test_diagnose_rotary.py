@@ -29,7 +29,7 @@ from mtbudget.contracts import DiagnosisContext
 from mtbudget.diagnose import _expand_per_rotary_axis, diagnose
 from mtbudget.model import MeasurementModel
 from mtbudget.recording import read_recording, write_recording
-from mtbudget.report_diagnosis import diagnosis_text
+from mtbudget.report_diagnosis import diagnosis_report, diagnosis_text
 from mtbudget.scenario import build_scenario
 from mtbudget.simulate import simulate_recording, stream
 from plugins.physics import RotaryPeriodicError, RotaryReversal, all_candidates
@@ -202,6 +202,12 @@ def test_a_large_reversal_of_c_is_named_within_3u(tmp_path):
     est, u = f.estimate[0], f.uncertainty[0]
     assert f.unit == "urad" and abs(est - B) < 3 * u, (est, u, B)
     assert "rotary_reversal[a]" not in _rotary_named(d)
+    # the outputs carry it with its unit: the text, the JSON, the Markdown report
+    assert "FOUND rotary_reversal (c)" in diagnosis_text(d) and "µrad" in diagnosis_text(d)
+    j = next(x for x in d.to_dict()["findings"] if x["effect"] == "rotary_reversal")
+    assert j["axis"] == "c" and j["estimate"]["unit"] == "urad"
+    md = diagnosis_report(d, rec, tmp_path / "report").read_text()
+    assert "rotary\\_reversal[c]" in md and "µrad" in md  # Markdown-escaped
 
 
 def test_a_large_encoder_error_of_c_is_named_within_3u(tmp_path):
