@@ -1,6 +1,6 @@
 """Calibration of `mtbudget diagnose` on concealed, simulated recordings: the detection table of docs/diagnose.md.
 
-Run:  python benchmarks/calibrate_diagnose.py [--cases 100] [--only new|library|noise|families|stations]
+Run:  python benchmarks/calibrate_diagnose.py [--cases 100] [--only new|library|noise|families|stations|five_axis]
 
 Each case: a machine with random geometric errors larger than the effect, a
 tracker at a random pose, drifting and cycling temperatures, the example
@@ -28,6 +28,16 @@ interferometers), drawn by the independent numpy generator of tests/test_diagnos
 rotation and spherical noise; not mtbudget's simulator, nor any candidate's columns), each case its own machine
 and station poses (jittered by 100 mm and 0.05 rad about the test's), with a range offset of 25-30 um (random
 sign) on one tracker station chosen at random, or none.
+
+Rows of the rotary candidates (``--only five_axis``): recordings of examples/five_axis_cafxyz.toml drawn by mtbudget's
+simulator with its own options (``--set``; the mesh 2 x 2 x 2 instead of 3 x 3 x 3, the 5 A x 4 C angles and two
+tools kept: 320 points), each case its own seed (every source of the example drawn anew, the machine's geometric
+errors per trial too): nulls (rotary_reversal and rotary_encoder off, every other source at the example's values),
+a reversal of C in [0, 150] urad (C's encoder error off), an encoder error of C with amplitudes in [0, 100] urad
+(C's reversal off).  Counted: a rotary candidate the trial did not draw named as a finding (false naming), or as a
+partial effect of a recording left NOT EXPLAINED (not a finding, counted apart), the drawn one named, and
+z = (estimate - truth) / u per term.
+``--full-mesh`` keeps the example's 3 x 3 x 3 mesh (1080 points, about a minute a case); ``--rows 0`` the nulls only.
 """
 
 from __future__ import annotations
@@ -233,6 +243,72 @@ def physics_rows(n, seed0, variant=1):
               + f" | {ztxt} | {(time.time() - t0) / n:.1f} s |", flush=True)
 
 
+FIVE_AXIS = Path(__file__).resolve().parents[1] / "examples" / "five_axis_cafxyz.toml"
+FIVE_AXIS_SMALL = ("mesh.step_x=400 mm", "mesh.step_y=400 mm", "mesh.step_z=300 mm")
+FIVE_AXIS_ROWS = (
+    ("five-axis null: rotary_reversal and rotary_encoder off", None,
+     ("sources.rotary_reversal.B_max=0 urad", "sources.rotary_encoder.E_max=0 urad")),
+    ("five-axis: rotary_reversal of C, B in [0, 150] urad (C's encoder off)", "rotary_reversal[c]",
+     ("sources.rotary_reversal.B_max=150 urad", "sources.rotary_reversal.axes=c", "sources.rotary_encoder.axes=a")),
+    ("five-axis: rotary_encoder of C, amplitudes in [0, 100] urad (C's reversal off)", "rotary_periodic_error[c]",
+     ("sources.rotary_encoder.E_max=100 urad", "sources.rotary_encoder.axes=c", "sources.rotary_reversal.axes=a")),
+)
+
+
+def five_axis_rows(n, seed0=80_000, full_mesh=False, rows=None):
+    """The rows of the rotary candidates: each over n recordings of the five-axis example (see the module doc);
+    ``full_mesh``: the example's own 3 x 3 x 3 mesh (1080 points, about a minute per case); ``rows``: their indices."""
+    import tempfile
+
+    from mtbudget.config import load_config
+    from mtbudget.diagnose import diagnose
+    from mtbudget.recording import read_recording, write_recording
+    from mtbudget.scenario import build_scenario
+    from mtbudget.simulate import simulate_recording
+
+    rotary = ("rotary_reversal", "rotary_periodic_error")
+    for title, hidden, sets in [r for j, r in enumerate(FIVE_AXIS_ROWS) if rows is None or j in rows]:
+        sc = build_scenario(load_config(FIVE_AXIS, list(() if full_mesh else FIVE_AXIS_SMALL) + list(sets)))
+        title += ", the example's mesh" if full_mesh else ""
+        out, zs, others, t0 = Counter(), [], Counter(), time.time()
+        for k in range(n):
+            rec, truth = simulate_recording(sc, seed0 + k, 0)
+            with tempfile.TemporaryDirectory() as tmp:
+                write_recording(rec, Path(tmp) / "r", truth=truth)
+                d = diagnose(read_recording(Path(tmp) / "r"), data_driven=False)
+            drawn = truth["diagnosable"]
+            names = [f.candidate.label for f in d.findings]
+            partial = [p["effect"] + (f"[{p['axis']}]" if p.get("axis") else "")
+                       for p in ((d.unexplained or {}).get("partial") or [])]
+
+            def was_drawn(lb):
+                v = (drawn.get(lb) or {}).get("value")
+                vals = [x for x in (v if isinstance(v, list) else [v]) if x is not None]
+                return any(abs(x) > 1.0 for x in vals)  # urad
+
+            out["false rotary finding"] += any(lb.startswith(rotary) and not was_drawn(lb) for lb in names)
+            out["false rotary partial"] += any(lb.startswith(rotary) and not was_drawn(lb) for lb in partial)
+            out["unexplained"] += d.unexplained is not None
+            out["any finding"] += bool(names)
+            for lb in names:
+                others[lb] += 1
+            if hidden:
+                f = next((f for f in d.findings if f.candidate.label == hidden), None)
+                out["hidden named"] += f is not None
+                if f is not None:
+                    v = drawn[hidden]["value"]
+                    v = v if isinstance(v, list) else [v]
+                    kept = getattr(f.candidate, "kept", None)
+                    v = [v[["c1", "s1", "c2", "s2"].index(t)] for t in kept] if kept else v
+                    zs += [(e - t) / u for e, u, t in zip(f.estimate, f.uncertainty, v) if u > 0 and t is not None]
+        ztxt = f"z mean {np.mean(zs):+.2f}, sd {np.std(zs, ddof=1):.2f} ({len(zs)} terms)" if len(zs) > 1 else "-"
+        print(f"| {title} | {n} | {out['false rotary finding'] / n:.0%} | {out['false rotary partial'] / n:.0%} | "
+              + (f"{out['hidden named'] / n:.0%}" if hidden else "-")
+              + f" | {out['any finding'] / n:.0%} | {out['unexplained'] / n:.0%} | {ztxt} | "
+              + (", ".join(f"{k} {v}" for k, v in others.most_common()) or "-")
+              + f" | {(time.time() - t0) / n:.1f} s |", flush=True)
+
+
 def want_any(offset, both):
     return bool(offset or both)
 
@@ -241,10 +317,15 @@ def main():
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--cases", type=int, default=100)
     ap.add_argument("--multiple", type=float, default=2.5)
-    ap.add_argument("--only", choices=("all", "new", "library", "noise", "families", "stations", "physics"),
+    ap.add_argument("--only", choices=("all", "new", "library", "noise", "families", "stations", "physics",
+                                       "five_axis"),
                     default="all")
     ap.add_argument("--set", type=int, default=1, choices=(1, 2),
                     help="--only physics: the first set of recordings, or the second (other seeds and magnitudes)")
+    ap.add_argument("--full-mesh", action="store_true",
+                    help="--only five_axis: the example's own mesh (1080 points, about a minute a case), not 2 x 2 x 2")
+    ap.add_argument("--rows", default=None,
+                    help="--only five_axis: which rows, e.g. 0 (the nulls) or 0,2; default all")
     args = ap.parse_args()
     cands = default_host().candidates()
     original = [c for c in cands if c.effect in ORIGINAL]
@@ -254,6 +335,14 @@ def main():
         print("| case | recordings | outcomes | (estimate - truth)/u (boundary: estimate - truth, mm) | per case |")
         print("| --- | --- | --- | --- | --- |")
         physics_rows(n, 60_000 if args.set == 1 else 970_000, args.set)
+        print(f"\n({time.time() - t0:.0f} s)")
+        return
+    if args.only == "five_axis":
+        print("| case | recordings | false rotary finding | false rotary partial | drawn effect named | any finding | "
+              "unexplained | z = (estimate - truth)/u where named | findings (count) | per case |")
+        print("| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |")
+        five_axis_rows(n, full_mesh=args.full_mesh,
+                       rows=None if args.rows is None else {int(x) for x in args.rows.split(",")})
         print(f"\n({time.time() - t0:.0f} s)")
         return
     if args.only != "stations":

@@ -587,6 +587,9 @@ def _diagnose(rec, candidates, alpha, max_set, confound_margin, max_degree, gate
 
     mismatch = locate(ctx, base.residual_machine[0], base.whitened[0])
     steps.done()
+    expanded = _expand_per_rotary_axis(candidates, ctx)
+    steps.more(len(expanded) - len(candidates))
+    candidates = expanded
     skipped, untestable, usable = _candidate_columns(candidates, ctx, lin0,
                                                      lambda raw, frame: _whitened(raw, frame, ctx, Wh), steps)
 
@@ -959,6 +962,21 @@ def _expand_per_station(candidates, ctx):
     return out
 
 
+def _expand_per_rotary_axis(candidates, ctx):
+    """A candidate with a ``per_rotary_axis(ctx)`` method stands for one candidate per rotary axis of the recording
+    (none on a three-axis machine: it is then not listed at all, rather than skipped on every three-axis recording)."""
+    out = []
+    for c in candidates:
+        if not callable(getattr(c, "per_rotary_axis", None)):
+            out.append(c)
+            continue
+        got = _call(c, "per_rotary_axis", ctx)
+        if not isinstance(got, (list, tuple)) or not all(isinstance(x, Candidate) for x in got):
+            _fail(c, f"must return a list of candidates, got {type(got).__name__}", "per_rotary_axis")
+        out += list(got)
+    return out
+
+
 def _diagnose_stations(rec, candidates, alpha, max_set, confound_margin, max_degree, gate_alpha, data_driven, steps):
     """The diagnosis of a recording of several stations (docs/diagnose.md, "Several stations")."""
     from .multistation import identify_stations, linearise
@@ -990,7 +1008,7 @@ def _diagnose_stations(rec, candidates, alpha, max_set, confound_margin, max_deg
     lin0 = _Linear(L.design, L.whitened, L.row)
     mismatch = locate(ctx, L.residual_machine, L.whitened, info)
     steps.done()
-    expanded = _expand_per_station(candidates, ctx)
+    expanded = _expand_per_rotary_axis(_expand_per_station(candidates, ctx), ctx)
     steps.more(len(expanded) - len(candidates))
     skipped, untestable, usable = _candidate_columns(expanded, ctx, lin0, _stations_whitener(L), steps)
 

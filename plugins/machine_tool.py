@@ -575,27 +575,81 @@ class RotaryRepeatability(Source):
         return {f"axis_offset.{r}": normal0(rng, u, (n, ctx.n_points)) for r in _rotary_letters(ctx)}
 
 
+def _rotary_axes_on(src, ctx) -> list:
+    """The rotary axes of the plan a rotary source acts on: its ``axes`` parameter ("all", or letters such as "c" or
+    "a, c"); the others draw as usual (the same random numbers) and get nothing."""
+    want = str(src.parameters.get("axes", "all")).strip().lower()
+    letters = _rotary_letters(ctx)
+    return letters if want in ("", "all") else [r for r in letters if r in want]
+
+
+def _axes_problem(src) -> str | None:
+    """None when the ``axes`` parameter is "all" or rotary letters (a, b, c, separated by commas or spaces)."""
+    want = str(src.parameters.get("axes", "all")).strip().lower()
+    if want in ("", "all") or (set(want) <= set("abc, ") and set(want) & set("abc")):
+        return None
+    return f"parameter 'axes' must be \"all\" or rotary axis letters such as \"c\" or \"a, c\", got {want!r}"
+
+
 class RotaryReversal(Source):
     """Reversal (lost motion) of each rotary axis, rectangular in [0, B_max] per verification: approaching from
     either side the axis stops B/2 short of its commanded angle (the rotary counterpart of ``backlash``).  Default
-    B_max 20 urad (about 4 arcsec)."""
+    B_max 20 urad (about 4 arcsec).  ``axes``: the rotary axes it acts on ("all", or letters such as "c")."""
 
     name = "rotary_reversal"
     group = Group.MACHINE_TOOL
     distribution = "rectangular [0, B_max]"
     targets = ROTARY_TARGETS
-    parameters = {"B_max": Q_(20.0, "urad")}
+    parameters = {"B_max": Q_(20.0, "urad"), "axes": "all"}
     nonnegative = ("B_max",)
+
+    def check(self):
+        return super().check() or _axes_problem(self)
 
     def standard_uncertainty(self):
         return (self.parameters["B_max"] / math.sqrt(12)).to("urad")
 
     def _prepare(self, ctx):
-        return self.value("B_max", "rad"), {r: -ctx.plan.direction_of(r)[None, :] for r in _rotary_letters(ctx)}
+        on = _rotary_axes_on(self, ctx)
+        return self.value("B_max", "rad"), {r: -ctx.plan.direction_of(r)[None, :] * (r in on)
+                                            for r in _rotary_letters(ctx)}
 
     def sample_internal(self, n, rng, ctx):
         bmax, minus_direction = self.remembered(_key(self, ctx), lambda: self._prepare(ctx))
         return {f"axis_offset.{r}": md * (rng.uniform(0, bmax, (n, 1)) / 2) for r, md in minus_direction.items()}
+
+    def drawn(self, sample, ctx):
+        return {f"B_{r}": {"value": _at(sample[f"axis_offset.{r}"], -ctx.plan.direction_of(r) / 2) * 1e6,
+                           "unit": "urad",
+                           "meaning": f"the lost motion of the rotary axis {r.upper()}: approaching from either side "
+                                      "it stops B/2 short of its commanded angle (null: the axis is never "
+                                      "approached, or the source does not act on it)",
+                           "effect": f"rotary_reversal[{r}]"} for r in _rotary_letters(ctx)}
+
+
+#: the Fourier terms of a rotary axis' angular positioning error that ``rotary_encoder`` draws (once and twice per
+#: revolution), in the order and by the names of the error model's ``[c1] [s1] [c2] [s2]`` terms
+ENCODER_TERMS = (("c1", np.cos, 1), ("s1", np.sin, 1), ("c2", np.cos, 2), ("s2", np.sin, 2))
+
+
+def encoder_coefficients(values, angles, sign: float = 1.0) -> list:
+    """The coefficients [c1, s1, c2, s2] (the unit of ``values``) of ``values = sum c_n cos(n theta) + s_n sin(n
+    theta)`` at the commanded ``angles`` (rad), as the angular positioning error about +X, +Y or +Z (ISO 230-1's EAA,
+    EBB, ECC, times ``sign``, the sense of the axis' direction: a source's angle offset turns about the axis'
+    direction): least squares over the points.  NaN for a term the angles do not see (zero at every one of them:
+    sin 2 theta at 0, 90, 180, 270 deg) and for all of them when the angles cannot tell the terms apart (fewer
+    distinct angles than terms)."""
+    th = np.asarray(angles, float).ravel()
+    v = np.asarray(values, float).ravel()
+    X = np.stack([f(n * th) for _, f, n in ENCODER_TERMS], axis=1)
+    X[np.abs(X) < 1e-12] = 0.0
+    seen = np.abs(X).max(axis=0) > 0
+    out = np.full(len(ENCODER_TERMS), math.nan)
+    if not seen.any() or np.linalg.matrix_rank(X[:, seen]) < seen.sum():
+        return out.tolist()
+    beta, *_ = np.linalg.lstsq(X[:, seen], v, rcond=None)
+    out[seen] = beta * sign
+    return out.tolist()
 
 
 class RotaryEncoder(Source):
@@ -603,14 +657,17 @@ class RotaryEncoder(Source):
     revolution; ellipticity: twice): ``E1 sin(theta + phi1) + E2 sin(2 theta + phi2)``, each amplitude rectangular
     in [0, E_max] and each phase uniform, drawn per verification.  A constant part is the zero error the
     verification identifies; what varies with the angle is not (unless ``rotary_harmonics`` models it).  Default
-    E_max 10 urad (about 2 arcsec)."""
+    E_max 10 urad (about 2 arcsec).  ``axes``: the rotary axes it acts on ("all", or letters such as "c")."""
 
     name = "rotary_encoder"
     group = Group.MACHINE_TOOL
     distribution = "two harmonics, amplitudes rectangular [0, E_max], uniform phases"
     targets = ROTARY_TARGETS
-    parameters = {"E_max": Q_(10.0, "urad")}
+    parameters = {"E_max": Q_(10.0, "urad"), "axes": "all"}
     nonnegative = ("E_max",)
+
+    def check(self):
+        return super().check() or _axes_problem(self)
 
     def standard_uncertainty(self):
         # the error at a random angle: each harmonic's amplitude E (rectangular [0, E_max], E[E^2] = E_max^2 / 3)
@@ -618,15 +675,33 @@ class RotaryEncoder(Source):
         return (self.parameters["E_max"] * math.sqrt(2 / 6)).to("urad")
 
     def _prepare(self, ctx):
-        return self.value("E_max", "rad"), {r: ctx.plan.angles[r][None, :] for r in _rotary_letters(ctx)}
+        on = _rotary_axes_on(self, ctx)
+        return self.value("E_max", "rad"), {r: (ctx.plan.angles[r][None, :], float(r in on))
+                                            for r in _rotary_letters(ctx)}
 
     def sample_internal(self, n, rng, ctx):
         emax, angles = self.remembered(_key(self, ctx), lambda: self._prepare(ctx))
         out = {}
-        for r, th in angles.items():
+        for r, (th, on) in angles.items():
             amp = rng.uniform(0, emax, (2, n, 1))
             phase = rng.uniform(0, 2 * np.pi, (2, n, 1))
-            out[f"axis_offset.{r}"] = amp[0] * np.sin(th + phase[0]) + amp[1] * np.sin(2 * th + phase[1])
+            out[f"axis_offset.{r}"] = (amp[0] * np.sin(th + phase[0]) + amp[1] * np.sin(2 * th + phase[1])) * on
+        return out
+
+    def drawn(self, sample, ctx):
+        out = {}
+        for r in _rotary_letters(ctx):
+            sign = float(ctx.plan.rotary[r].sign) if r in (ctx.plan.rotary or {}) else 1.0
+            iso = "E" + "ABC"["abc".index(r)] + r.upper()
+            out[f"harmonics_{r}"] = {
+                "value": [x * 1e6 for x in encoder_coefficients(sample[f"axis_offset.{r}"], ctx.plan.angles[r], sign)],
+                "unit": "urad",
+                "meaning": f"the angular positioning error of the rotary axis {r.upper()} that varies with its angle "
+                           f"(encoder eccentricity and ellipticity) as the coefficients c1, s1, c2, s2 of cos and sin of "
+                           f"once and twice its commanded angle, about +{'XYZ'['abc'.index(r)]} ({iso}[c1] ... as "
+                           "`identify --rotary-harmonics 2` names them); null where the plan's angles do not see a "
+                           "term (sin 2C at 0, 90, 180, 270 deg) or cannot tell the terms apart",
+                "effect": f"rotary_periodic_error[{r}]"}
         return out
 
 SOURCES = (TemperatureSensorCalibration, CTEUncertainty, EnvironmentalVariation, TemperatureDrift, Backlash,

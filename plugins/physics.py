@@ -7,7 +7,7 @@ would tell it from the effects it is easily confused with.  The effect names
 are fixed: thermal_expansion, reversal, tracker_drift, tracker_range_offset,
 tracker_rotation_drift, tracker_range_scale, air_temperature_drift, approximation_degree,
 axis_coupling, spindle_growth, column_tilt, tool_length, axis_coupling_quadratic,
-station_range_offset.
+station_range_offset, rotary_reversal, rotary_periodic_error (one per rotary axis of a five-axis recording).
 
 On a recording of several stations (``ctx.stations``, ``ctx.row_station``:
 :class:`mtbudget.diagnose.StationsDiagnosisContext`) a "tracker" frame
@@ -34,7 +34,7 @@ import numpy as np
 
 from mtbudget.contracts import Candidate
 from mtbudget.hookspecs import hookimpl
-from mtbudget.machine import AXES, AXIS_INDEX, ChainInputs, ErrorModel, chain
+from mtbudget.machine import AXES, AXIS_INDEX, ROTARY_INDEX, ChainInputs, ErrorModel, chain
 from mtbudget.model import between_runs_columns, drift_offset, reversal_offset, thermal_scale
 from mtbudget.units import factor, internal_unit_of
 
@@ -645,6 +645,224 @@ class AxisCouplingQuadratic(Candidate):
         return [float(np.sqrt(np.mean(b**2)))], [float(np.sqrt(np.trace(np.asarray(cov)) / max(len(b), 1)) * f)], "um"
 
 
+# ----------------------------------------------------------------------------- rotary axes (five-axis machines)
+#: the Fourier terms of a rotary axis' angular positioning error the periodic-error candidate fits: once and twice per
+#: revolution, by the error model's names (``ez(c)[c1]`` = ECC[c1] ..., what ``identify --rotary-harmonics 2`` fits)
+ROTARY_TERMS = ("c1", "s1", "c2", "s2")
+
+
+class _PerRotaryAxis(Candidate):
+    """A candidate that stands for one candidate per rotary axis of the recording (:meth:`per_rotary_axis`; none on a
+    three-axis machine)."""
+
+    def per_rotary_axis(self, ctx):
+        out = []
+        for r in sorted(getattr(ctx.plan, "angles", {}) or {}):
+            c = copy.copy(self)
+            c.axis = r
+            c.description = self.describe(r)
+            out.append(c)
+        return out
+
+    def describe(self, r):
+        return self.description
+
+    def _missing(self, ctx):
+        r = self.axis
+        if not r or r not in (getattr(ctx.plan, "angles", {}) or {}):
+            return f"the machine has no rotary axis {(r or '?').upper()}"
+        return None
+
+
+def _positioning_name(r: str) -> str:
+    """The error model's name of a rotary axis' angular positioning error: ez(c), ex(a), ey(b)."""
+    return f"e{AXES[ROTARY_INDEX[r]]}({r})"
+
+
+def _rotary_jacobian(ctx, r: str, harmonics: int):
+    """(error model, J (M, 3, p)): the baseline's error model with ``harmonics`` Fourier terms on the rotary axis
+    ``r`` (the model ``identify --rotary-harmonics`` fits), and the chain's Jacobian of the tool points (workpiece
+    frame, mm per mm or rad) at the baseline's solution."""
+    base = ctx.model.errors
+    em = ErrorModel(ranges=base.ranges, degrees=dict(base.degrees), squareness=base.squareness,
+                    straightness_convention=base.straightness_convention, tool_axis=base.tool_axis,
+                    rotary={**base.rotary, r: max(int(harmonics), int(base.rotary.get(r, 0)))})
+    theta = np.zeros(len(em.params))
+    at = {n: j for j, n in enumerate(em.names)}
+    for j, n in enumerate(base.names):
+        theta[at[n]] = ctx.theta[j]
+    inputs = ctx.model.chain_inputs(ctx.recording.fixed_inputs())
+    _, J = chain(ctx.model.config, em, theta[None], inputs, jacobian=True)
+    return em, J[0]
+
+
+def _turn(ctx, r: str) -> np.ndarray:
+    """(M, 3) displacement of every tool point (workpiece frame, mm) per rad added to the commanded angle of the
+    rotary axis ``r`` (a source's ``axis_offset.<r>``): the chain's column of its zero error times the sense of its
+    direction (the zero error turns about +X, +Y or +Z; an angle offset about the axis' direction)."""
+    em, J = _rotary_jacobian(ctx, r, 0)
+    return J[:, :, em.index(f"{_positioning_name(r)}[O]")] * ctx.model.config.rotary_axis(r).sign
+
+
+def _distinct_angles(ctx, r: str) -> np.ndarray:
+    """The distinct commanded angles (rad, modulo a turn) of the rotary axis ``r``."""
+    th = np.mod(np.asarray(ctx.plan.angles[r], float), 2 * np.pi)
+    return np.unique(np.round(th, 9) % np.round(2 * np.pi, 9))
+
+
+class RotaryReversal(_PerRotaryAxis):
+    """Lost motion of a rotary axis: approaching a commanded angle from either side, the axis stops B/2 short of it
+    (the rotary counterpart of :class:`Reversal`; the approach direction is the recording's ``dir_<axis>`` column)."""
+
+    effect = "rotary_reversal"
+    description = "lost motion of a rotary axis: approaching from either side it stops B/2 short of its commanded angle"
+    parameters = {"B": "urad"}
+    #: a rotary axis' reversal (ISO 230-2 applied to a rotary axis): a direct-drive table a few urad, a new worm-gear
+    #: table 5-15 arcsec (25-75 urad), a worn one or a gear train up to about 100 arcsec (500 urad); a servo
+    #: overshoot slightly negative
+    plausible = {"B": (-20.0, 500.0)}
+    quantity_names = {"B": "a rotary lost motion B"}
+    hints = {"rotary_periodic_error": "Approach the same angles of the rotary axis from both sides (a reversal "
+                                      "changes with the approach direction, an encoder error with the angle only)."}
+
+    def describe(self, r):
+        return (f"lost motion of the rotary axis {r.upper()}: approaching from either side it stops B/2 short of its "
+                "commanded angle (B > 0)")
+
+    def requires(self, ctx):
+        missing = self._missing(ctx)
+        if missing:
+            return missing
+        d = ctx.plan.direction_of(self.axis)
+        if not ((d > 0).any() and (d < 0).any()):
+            return f"the rotary axis {self.axis.upper()} is approached from one side only (dir_{self.axis})"
+        return None
+
+    def columns(self, ctx):
+        return (_turn(ctx, self.axis) * (-ctx.plan.direction_of(self.axis) / 2.0)[:, None])[:, :, None]
+
+    def variables(self, ctx):
+        return [f"dir_{self.axis}"]
+
+    def alternatives(self, ctx):
+        """An angular positioning error that depends on the commanded angle alone, any shape (a table over the
+        plan's distinct angles): where the plan approaches an angle from one side only, that is a reversal too."""
+        th = np.round(np.mod(np.asarray(ctx.plan.angles[self.axis], float), 2 * np.pi), 9)
+        uniq = np.unique(th)
+        if len(uniq) < 2:
+            return []
+        turn = _turn(ctx, self.axis)
+        C = np.stack([turn * (th == a)[:, None] for a in uniq[1:]], axis=2)
+        A = self.axis.upper()
+        return [{"name": f"an angular positioning error of {A} at each angle",
+                 "description": f"the angular positioning error of {A} at each commanded angle (any shape: a "
+                                "calibration table of the axis), which looks like a reversal where an angle is "
+                                "approached from one side only",
+                 "separate": f"Approach the same angles of {A} from both sides.",
+                 "columns": C}]
+
+    def perturbation(self, ctx, beta):
+        return {f"axis_offset.{self.axis}": (-ctx.plan.direction_of(self.axis) * float(beta[0]) / 2.0)[None, :]}
+
+
+class RotaryPeriodicError(_PerRotaryAxis):
+    """The angular positioning error of a rotary axis that varies once and twice per revolution (its encoder's
+    eccentricity and ellipticity, ISO 230-1's ECC of a C axis as a function of the angle): the Fourier terms
+    ``[c1] [s1] [c2] [s2]`` of the error model's angular positioning error, exactly the terms ``identify
+    --rotary-harmonics 2`` adds for it (the chain's own columns; the baseline keeps only the constant, the zero
+    error).  Terms the plan's angles do not see (sin 2C at 0, 90, 180, 270 deg) or cannot tell from the lower ones
+    are left out (their estimate stays 0)."""
+
+    effect = "rotary_periodic_error"
+    description = "the angular positioning error of a rotary axis varies once and twice per revolution (encoder)"
+    parameters = {k: "urad" for k in ROTARY_TERMS}
+    #: a rotary table's positioning accuracy (ISO 230-2 on a rotary axis) 2-20 arcsec (10-100 urad) on a machining
+    #: centre, 50 arcsec on a plain indexer; an encoder ring mounted 10 um eccentric on a 50 mm radius gives 200 urad
+    #: once per revolution: +-250 urad per term
+    plausible = {k: (-250.0, 250.0) for k in ROTARY_TERMS}
+    quantity_names = {k: f"a {k} term of the angular positioning error" for k in ROTARY_TERMS}
+    hints = {"rotary_reversal": "Approach the same angles of the rotary axis from both sides (a reversal changes "
+                                "with the approach direction, an encoder error with the angle only)."}
+
+    def describe(self, r):
+        A, about = r.upper(), "XYZ"[ROTARY_INDEX[r]]
+        return (f"the angular positioning error of the rotary axis {A} (about +{about}, E{'ABC'[ROTARY_INDEX[r]]}{A}) "
+                "varies once and twice per revolution: c1 cos + s1 sin of its angle, c2 cos + s2 sin of twice it "
+                "(encoder eccentricity and ellipticity)")
+
+    def _terms(self, ctx):
+        """(M, 4) the basis of the four terms at the commanded angles, the terms the plan's distinct angles tell
+        apart from the constant and from each other kept, the others zero."""
+        th = np.asarray(ctx.plan.angles[self.axis], float)
+        X = np.stack([np.cos(th), np.sin(th), np.cos(2 * th), np.sin(2 * th)], axis=1)
+        X[np.abs(X) < 1e-12] = 0.0
+        kept = [np.ones(len(th))]
+        for j in range(4):
+            trial = np.stack(kept + [X[:, j]], axis=1)
+            if np.abs(X[:, j]).max() > 0 and np.linalg.matrix_rank(trial, tol=1e-9 * np.sqrt(len(th))) == len(kept) + 1:
+                kept.append(X[:, j])
+            else:
+                X[:, j] = 0.0
+        return X
+
+    def requires(self, ctx):
+        missing = self._missing(ctx)
+        if missing:
+            return missing
+        n = len(_distinct_angles(ctx, self.axis))
+        if n < 3:
+            return (f"the rotary axis {self.axis.upper()} is commanded to {n} distinct angle{'s' if n != 1 else ''}: "
+                    "an error that varies once and twice per revolution needs at least 3")
+        seen = np.abs(self._terms(ctx)).max(axis=0) > 0
+        #: the terms this plan's angles tell apart (the summary gives those only)
+        self.kept = [t for t, k in zip(ROTARY_TERMS, seen) if k]
+        left = [t for t, k in zip(ROTARY_TERMS, seen) if not k]
+        if left:
+            self.description = (self.describe(self.axis) + f"; fitted: {', '.join(self.kept)} ({', '.join(left)} "
+                                f"cannot be told from the others at the plan's {n} angles of {self.axis.upper()})")
+        return None
+
+    def summary(self, beta, cov):
+        """The terms the plan's angles tell apart (c1, s1, c2, s2 or fewer), urad."""
+        f = factor("rad", "urad")
+        kept = getattr(self, "kept", list(ROTARY_TERMS))
+        j = [ROTARY_TERMS.index(t) for t in kept]
+        u = np.sqrt(np.maximum(np.diag(np.atleast_2d(cov)), 0.0))
+        return [float(beta[k]) * f for k in j], [float(u[k]) * f for k in j], "urad"
+
+    def columns(self, ctx):
+        em, J = _rotary_jacobian(ctx, self.axis, 2)
+        name = _positioning_name(self.axis)
+        C = np.stack([J[:, :, em.index(f"{name}[{t}]")] for t in ROTARY_TERMS], axis=2)
+        return C * (np.abs(self._terms(ctx)) > 0)[:, None, :]
+
+    def variables(self, ctx):
+        return []
+
+    def alternatives(self, ctx):
+        """The axis' other error motions once and twice per revolution (radial, axial and tilt motions, ISO 230-1's
+        EXC, EYC, EZC, EAC, EBC of a C axis): terms of the same error model that the library has no candidate for."""
+        em, J = _rotary_jacobian(ctx, self.axis, 2)
+        name = _positioning_name(self.axis)
+        cols = [j for j, p in enumerate(em.params)
+                if p.error.endswith(f"({self.axis})") and p.order > 0 and p.error != name]
+        if not cols:
+            return []
+        A = self.axis.upper()
+        return [{"name": f"error motions of {A} with the angle",
+                 "description": f"the radial, axial or tilt motions of {A} varying once and twice per revolution "
+                                "(bearing run-out, a wobbling table), which can move the points as an angular "
+                                "positioning error does",
+                 "separate": f"Measure points at several radii and heights on the {A} table (an angular positioning "
+                             "error moves them in proportion to their radius, a radial motion alike, a tilt with "
+                             "their height), or calibrate the axis' angle with an autocollimator and polygon.",
+                 "columns": J[:, :, cols]}]
+
+    def perturbation(self, ctx, beta):
+        sign = ctx.model.config.rotary_axis(self.axis).sign
+        return {f"axis_offset.{self.axis}": (self._terms(ctx) @ np.asarray(beta, float) * sign)[None, :]}
+
+
 def all_candidates():
     out = [ThermalExpansion(a) for a in AXES] + [Reversal(a) for a in AXES]
     out += [TrackerDrift(), TrackerRotationDrift(), TrackerRangeOffset(), TrackerRangeScale(), AirTemperatureDrift()]
@@ -652,6 +870,7 @@ def all_candidates():
     out += [SpindleGrowth(), ColumnTilt("x"), ColumnTilt("y"), ToolLength()]
     out += [AxisCouplingQuadratic(p) for p in ("xy", "xz", "yz")]
     out += [StationRangeOffset()]
+    out += [RotaryReversal(), RotaryPeriodicError()]
     return out
 
 
