@@ -809,6 +809,9 @@ def statement_in_brief(*, kind: str, kind_text: str, measurand: str, points: lis
         out["U_text"] = (f"U = {out['U_max']:.{nd}f} {unit} ({k_text}), the largest over the mesh points and axes{where} "
                          f"(U = {k:g}u); RMS over the mesh {out['U_rms']:.{nd}f} {unit}; the largest half-width of the "
                          f"Monte Carlo {percent(coverage)} coverage intervals is {out['half_width_max']:.{nd}f} {unit}")
+        if out["half_width_max"] > out["U_max"]:  # a distribution with longer tails than the normal k assumes
+            out["U_text"] += (f" (larger than U: somewhere the distribution is not normal and U = {k:g}u covers less "
+                              f"than {percent(coverage)}; quote the Monte Carlo intervals, JCGM 101 7.7, not U)")
         if frame and "machine_frame" in pts[0]:  # the same errors in the machine's X, Y, Z at each pose: their U too
             um = max(max(q["machine_frame"]["u"]) for q in pts)
             out["U_machine_max"] = round(k * um, nd)

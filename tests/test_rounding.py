@@ -42,3 +42,21 @@ def test_a_features_acceptance_zone_is_rounded_inwards_at_one_precision():
     assert (lo, hi) == (-18.3, 14.9) and d["acceptance_zone"] == pytest.approx([-18.3, 14.96])
     one = decision({"tolerance": 10.0, "unit": "um", "one_sided": True}, 1.0, 0.2, 2.345, 0.95)
     assert "value: <= 7.65 um" in one["statement"] and "U = 2.35 um (rounded up)" in one["rule"]
+
+
+def _points(u, half):
+    return [{"u": {"value": [u, u, u], "unit": "um"}, "mean": {"value": [0.0, 0.0, 0.0]},
+             "interval": {"low": [-half] * 3, "high": [half] * 3}}]
+
+
+@pytest.mark.parametrize("half, longer", [(1.8, False), (2.6, True)])
+def test_the_brief_says_when_the_monte_carlo_interval_is_wider_than_U(half, longer):
+    """U = 2u = 2.0 um; a 95 % interval of half-width 2.6 um (a distribution with longer tails than the normal) is
+    wider than U: the statement says so and points to the intervals; 1.8 um (shorter tails) is not."""
+    from mtbudget.report import statement_in_brief
+
+    b = statement_in_brief(kind="a priori", kind_text="", measurand="", points=_points(1.0, half), coverage=0.95,
+                           frame=False, statement=None, tolerance_um=None, characteristic="", fields={}, machine="m",
+                           date="2026-11-26", command="mtbudget report")
+    assert b["U_max"] == 2.0 and b["half_width_max"] == half
+    assert ("larger than U: somewhere the distribution is not normal" in b["U_text"]) == longer
