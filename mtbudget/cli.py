@@ -260,6 +260,11 @@ def _print_identification(folder, as_json=False, max_degree=3, strategy="one-pha
         click.echo("  not identifiable from this plan (held at their initial value; ISO 230-1 names, mtbudget's in brackets):")
         for combo in res.identifiability.combinations():
             click.echo("    " + " ".join(f"{w:+.2f}*{iso_parameter(n)} ({n})" for n, w in combo))
+    if summary["not_identifiable"] and (folder / "truth.json").is_file():  # a simulation: its truth is not in the datum
+        click.echo("  truth.json (a simulation) states the drawn values, not these: a parameter in a combination above "
+                   "is identified relative to the datum (its own value minus its weight times the held one's), so "
+                   "compare the compensated machine, which does not depend on the datum: "
+                   f"`mtbudget compensate {folder} --format neutral-json --out tables.json --check`")
     if model.rotary:
         rows = [(iso_parameter(p.name), float(display(v, p.unit, shown_unit(p.unit))),
                  float(display(s_, p.unit, shown_unit(p.unit))), shown_unit(p.unit), j in held)

@@ -42,6 +42,14 @@ def test_simulate_then_identify(tmp_path):
     data = json.loads(res.stdout)
     assert 0.8 < data["chi2_per_dof"] < 1.25
     assert {p["unit"] for p in data["parameters"]} == {"um", "urad"}
+    # a simulation's truth is not in the identification's datum: the text says how to compare, and the command it
+    # names runs
+    text = CliRunner().invoke(main, ["identify", str(out)]).output
+    line = next(ln for ln in text.splitlines() if "truth.json (a simulation)" in ln)
+    cmd = line[line.index("`") + 1:line.rindex("`")].split()[1:]
+    cmd[cmd.index("--out") + 1] = str(tmp_path / "tables.json")
+    ran = CliRunner().invoke(main, cmd)
+    assert ran.exit_code in (0, 1) and "Traceback" not in ran.output and "check" in ran.output.lower(), ran.output
 
 
 def test_bad_recording_is_one_line_error_not_a_traceback(tmp_path):
