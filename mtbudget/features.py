@@ -18,6 +18,7 @@ budget (:func:`feature_budget`) and the reports (:func:`features_json`, :func:`f
 
 from __future__ import annotations
 
+import math
 import zlib
 from dataclasses import dataclass, field
 
@@ -933,13 +934,24 @@ def features_text(feats: list | None) -> list:
         lines.append(f"    {f['name']}: {f['measurand']}")
         if "budget" in f:
             b = f["budget"]
-            lines.append("      budget (u_i, k = 1, each source alone): " + ", ".join(
+            lines.append(f"      budget (u_i in {pretty(f['unit'])}, k = 1, each source alone): " + ", ".join(
                 f"{r['source']} {r['u_i']:.3g}" for r in sorted(b["rows"], key=lambda r: -r["share"]) if r["share"] > 0.001)
-                + f"; interaction {b['interaction_share']:.1%}")
+                + f"; interaction {b['interaction_share']:.1%}" + _sampling_note(b))
         if "decision" in f:
             lines.append(f"      decision: {f['decision']['statement']}")
             lines.append(f"      rule: {f['decision']['rule']}")
     return lines
+
+
+def _sampling_note(b: dict) -> str:
+    """Where a feature budget's interaction is beyond +-10 %: how much of it the budget's own sampling explains (a
+    variance from n trials has a relative standard deviation of about sqrt(2 / (n - 1)), one per source)."""
+    n = int(b.get("trials") or 0)
+    if abs(b.get("interaction_share", 0.0)) <= 0.10 or n < 2:
+        return ""
+    rel = math.sqrt(2.0 / (n - 1))
+    return (f" (each source's variance from {n} trials is uncertain by about {100 * rel:.0f} % of itself, sqrt(2/(n - 1)): "
+            "the shares and the interaction carry that sampling noise; more --attribution-trials narrow it)")
 
 
 def frame_note(feats: list) -> str:

@@ -60,3 +60,12 @@ def test_the_brief_says_when_the_monte_carlo_interval_is_wider_than_U(half, long
                            date="2026-11-26", command="mtbudget report")
     assert b["U_max"] == 2.0 and b["half_width_max"] == half
     assert ("larger than U: somewhere the distribution is not normal" in b["U_text"]) == longer
+
+
+def test_a_feature_budget_with_a_large_interaction_says_how_much_sampling_explains():
+    """sqrt(2 / (n - 1)) at n = 65: 17.7 %, shown 18 %; an interaction within +-10 % gets no note."""
+    from mtbudget.features import _sampling_note
+
+    note = _sampling_note({"trials": 65, "interaction_share": -0.27})
+    assert "from 65 trials is uncertain by about 18 % of itself" in note and "--attribution-trials" in note
+    assert _sampling_note({"trials": 65, "interaction_share": 0.08}) == ""
