@@ -591,7 +591,7 @@ def _pose_map(plt, pts: list, u: np.ndarray, folder: Path, um: str, mframe: bool
         if len(letters) > 1:
             axes[k].set_xticks(range(len(cols)), [f"{v:g}" for v in cols])
             axes[k].set_xlabel(f"{letters[1]} commanded [deg]")
-        axes[k].set_title(f"largest u of the {a.upper() + ' (machine frame)' if mframe else a} error over the linear "
+        axes[k].set_title(f"largest u of the {a.upper() + ' (machine frame)' if mframe else a} error\nover the linear "
                           "points (k = 1)", fontsize=9)
         fig.colorbar(im, ax=axes[k], shrink=0.8, label=f"u [{um}]")
     fig.suptitle("standard uncertainty of the compensated machine at each rotary pose")
@@ -629,8 +629,8 @@ def _figures(res: RunResult, folder):
             ax = fig.add_subplot(1, 3, j + 1, projection="3d")
             sc = ax.scatter(cmd_plot[:, 0], cmd_plot[:, 1], cmd_plot[:, 2], c=u_plot[:, j], cmap="viridis", vmin=0,
                             vmax=vmax, s=45)
-            ax.set_title(f"u of the {a.upper() + ' (machine frame)' if mframe else a} error after compensation (k = 1)",
-                         fontsize=9)
+            ax.set_title(f"u of the {a.upper() + ' (machine frame)' if mframe else a} error\nafter compensation (k = 1)",
+                         fontsize=9)  # two lines: one line was clipped at the figure's left edge
             ax.set_xlabel("x [mm]", labelpad=6)
             ax.set_ylabel("y [mm]", labelpad=6)
             ax.set_zlabel("z [mm]", labelpad=6)
