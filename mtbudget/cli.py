@@ -9,7 +9,7 @@ from pathlib import Path
 import click
 
 from . import __version__
-from .errors import MtbudgetError
+from .errors import MtbudgetError, check_folder, make_folder
 from .executors import AUTO_MAX_WORKERS, AUTO_MIN_TRIALS, AUTO_PARALLEL
 
 
@@ -148,6 +148,7 @@ def simulate(config, out, seed, trial, no_identify, sets):
     from .scenario import build_scenario
     from .simulate import simulate_recording
 
+    check_folder(out, "--out")  # before the simulation: a path that cannot be written is said at once
     cfg = load_config(config, sets)
     rec, truth = simulate_recording(build_scenario(cfg), seed, trial)
     write_recording(rec, out, truth=truth)
@@ -356,6 +357,8 @@ def posterior_cmd(recording, example, trials, seed, coverage, noise, max_degree,
     tol = None if tolerance is None else to_unit(tolerance, "um", "--tolerance")
     if tol is not None and not tol > 0:
         raise click.BadParameter("must be a positive length, e.g. \"20 um\"", param_hint="--tolerance")
+    if out is not None:
+        check_folder(out, "--out")
     folder = example_recording(example) if example else recording
     post = posterior_result(folder, trials=trials, seed=seed, coverage=coverage, noise=noise, max_degree=max_degree)
     p = posterior_json(post, tol, characteristic)
@@ -431,6 +434,9 @@ def compensate(recording, example, fmt, out, step, check, strict, reference, sie
 
     if recording is None and example is None:
         raise click.UsageError("give a RECORDING folder or --example NAME")
+    check_folder(Path(out).parent, "--out")
+    if report_dir is not None:
+        check_folder(report_dir, "--report")
     step_mm = parse_step(step)
     ref_point = parse_reference(reference)
     exporter = find_exporter(fmt)
@@ -604,6 +610,8 @@ def run_cmd(config, trials, seed, coverage, executor, workers, address, attribut
         raise click.BadParameter("the budget needs at least 2 trials per source (or 0 to skip it)",
                                  param_hint="--attribution-trials")
     _refuse_contradictions(trials, executor, workers, address, adaptive_batch, max_trials, resume_path)
+    if log_path is not None:
+        check_folder(Path(log_path).parent, "--log")
     settings = RunSettings(trials=trials or None, seed=seed, coverage=coverage, executor=executor, workers=workers,
                            address=address, attribution_trials=attribution_trials, progress=not quiet,
                            adaptive_batch=adaptive_batch, block=block,
@@ -795,6 +803,8 @@ def diagnose_cmd(recording, example, as_json, report_dir, alpha, max_degree, qui
 
     if recording is None and example is None:
         raise click.UsageError("give a RECORDING folder or --example NAME")
+    if report_dir is not None:
+        check_folder(report_dir, "--report")
     folder = example_recording(example) if example else recording
     rec = read_recording(folder, several_stations=True,  # several stations: every station identified together
                          max_rows=_identify_limit())
@@ -854,6 +864,7 @@ def report(runlog, out, tolerance, characteristic):
     tol = None if tolerance is None else to_unit(tolerance, "um", "--tolerance")
     if tol is not None and not tol > 0:
         raise click.BadParameter("must be a positive length, e.g. \"20 um\"", param_hint="--tolerance")
+    check_folder(out, "--out")
     res = do_replay(runlog)
     note(f"writing the report and its figures into {out}/ ...")
     with working("report and figures"):
@@ -886,7 +897,9 @@ STUDY_FILES = {"placement": "placement.mcap", "verification": "verification.mcap
 
 
 def _fresh_out(out: Path, studies: tuple, force: bool):
-    """Refuse to overwrite a previous study in ``out`` unless --force (as `run` refuses to overwrite a log)."""
+    """Refuse to overwrite a previous study in ``out`` unless --force (as `run` refuses to overwrite a log), and an
+    ``out`` that cannot be created, before the study runs."""
+    check_folder(out, "--out")
     if force:
         return
     for study in studies:
@@ -908,7 +921,7 @@ def _placement(config, tests, out, quiet):
 
     cfg = load_config(config)
     res = placement(build_scenario(cfg), tests=tests, progress=not quiet)
-    out.mkdir(parents=True, exist_ok=True)
+    make_folder(out, "--out")
     with working("writing the placement log, report and figures", not quiet):
         summary = placement_json(res)
         write_placement_log(summary, placement_arrays(res), out / "placement.mcap",
@@ -935,7 +948,7 @@ def _verification(config, trials, out, quiet, attribution_trials):
         from .study import one_tracker
 
         one_tracker(build_scenario(cfg, sources=[]), "the paper's verification study (Figs. 12-15)")
-    out.mkdir(parents=True, exist_ok=True)
+    make_folder(out, "--out")
     try:
         execute(cfg, RunSettings(trials=trials, progress=not quiet, attribution_trials=attribution_trials),
                 log_path=out / "verification.mcap", force=True)

@@ -22,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import RecordingError
+from .errors import RecordingError, make_folder
 from .plan import Plan, Scale, Sensor, T20
 from .units import ABSOLUTE_TEMPERATURE, Q_, display, parse_unit, to_internal, ureg
 
@@ -1118,8 +1118,7 @@ def write_recording(rec: Recording, folder, *, truth: dict | None = None) -> Pat
     """
     import json
 
-    folder = Path(folder)
-    folder.mkdir(parents=True, exist_ok=True)
+    folder = make_folder(folder)
     p = rec.plan
     v3 = rec.format_version == 3 or bool(p.angles)
     v2 = not v3 and (rec.format_version == 2 or bool(rec.stations))

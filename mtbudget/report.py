@@ -8,6 +8,7 @@ from pathlib import Path
 import numpy as np
 
 from .distributions import t_factor
+from .errors import make_folder
 from .stats import HISTOGRAM_SHORTEST, decimals_for, percent
 from .units import display, pretty, shown_unit
 
@@ -1042,8 +1043,7 @@ def compensation_figure(table, folder) -> Path | None:
 
 def compensation_report(table, folder, check: dict | None = None) -> dict:
     """compensation.md and a self-contained compensation.html (with residual_vs_U.png) for a compensation table."""
-    folder = Path(folder)
-    folder.mkdir(parents=True, exist_ok=True)
+    folder = make_folder(folder)
     data = table.to_dict()
     if check is not None:
         data["check"] = check
@@ -1069,8 +1069,7 @@ def run_report(res: RunResult, folder, tolerance_um: float | None = None, charac
 
     extra_figures: name -> (PNG path in ``folder``, caption), e.g. the paper study's figures.
     """
-    folder = Path(folder)
-    folder.mkdir(parents=True, exist_ok=True)
+    folder = make_folder(folder)
     figs = _figures(res, folder)
     data = result_json(res)
     kind = data["statement_kind"]
@@ -1235,8 +1234,7 @@ def posterior_report(post, folder, tolerance_um: float | None = None, characteri
 
     from .posterior import fit_said
 
-    folder = Path(folder)
-    folder.mkdir(parents=True, exist_ok=True)
+    folder = make_folder(folder)
     p = posterior_json(post, tolerance_um, characteristic)
     k, s, i = p["statement_kind"], p["summary"], p["identification"]
     r = s["u_over_u_linear"]
