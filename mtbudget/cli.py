@@ -655,6 +655,10 @@ def run_cmd(config, trials, seed, coverage, executor, workers, address, attribut
         click.echo(json.dumps(result_json(res), indent=1))
     else:
         click.echo(budget_text(res))
+    if res.not_converged:  # on stderr too, where a script that reads --json (or a log of stdout alone) sees it
+        from .report import not_converged_line
+
+        click.echo(f"warning: {not_converged_line(res.not_converged, res.trials)[len('WARNING: '):]}", err=True)
     for n in res.resume_notes:
         click.echo(f"note: resume: {n}", err=True)
     if resume_path is not None:  # an option given with --resume that the logged run overrides: said, not ignored
@@ -867,14 +871,23 @@ def report(runlog, out, tolerance, characteristic):
     check_folder(out, "--out")
     res = do_replay(runlog)
     note(f"writing the report and its figures into {out}/ ...")
+    from .report import no_certificate_line, too_many_not_converged
+
+    refused = too_many_not_converged(res.not_converged, res.trials)
     with working("report and figures"):
         paths = run_report(res, out, tol, characteristic)
-        dcc = write_dcc(res, Path(out) / "certificate.xml", tol, characteristic)
+        dcc = None if refused else write_dcc(res, Path(out) / "certificate.xml", tol, characteristic)
+    if refused:  # as a posteriori without a date: said, the report written, no certificate
+        stale = Path(out) / "certificate.xml"
+        if stale.exists():  # a previous run's certificate in the same folder must not stand for this one
+            stale.unlink()
+        click.echo(f"warning: {no_certificate_line(res.not_converged, res.trials)}", err=True)
     if tol is not None:  # the decision on the console too, not only below the report's tables
         from .budget import conformance
 
         click.echo("decision (ISO 14253-1): " + conformance(res, tol, characteristic)["statement"])
-    click.echo(f"wrote {paths['markdown']}, {paths['html']} and {dcc} (the DCC: PTB DCC 3.3.0 XML)"
+    click.echo(f"wrote {paths['markdown']} and {paths['html']}" +
+               (f" and {dcc} (the DCC: PTB DCC 3.3.0 XML)" if dcc else "; no certificate.xml (see the warning)")
                + ("" if res.complete else " (INCOMPLETE run)"))
 
 

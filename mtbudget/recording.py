@@ -84,6 +84,33 @@ UNCERTAINTIES = {
     "tracker.distance_per_length": ("mm/mm", "um/m", 0.0, 50e-6),
     "machine_tool.repeatability": ("mm", "um", 1e-9, 0.1),
 }
+#: the simulated machine's error magnitudes and physical amplitudes a configuration states ([geometric_errors], its
+#: coefficients, squareness and rotary location, orientation and zero errors, [effects], a rotary axis' pivot is
+#: bounded apart, by the travel), by the rule of UNCERTAINTIES: several times the poorest machine of its kind, below
+#: a thousand times the smallest value in use, so a value written in the next unit up ("8 mm" for "8 um", "50 mrad"
+#: or "50 deg" for "50 urad") is refused, never simulated.  kind -> (internal unit, display unit, the largest
+#: |value|, why).  The sources' parameters declare theirs (``Source.plausible``, mtbudget.contracts).
+MAGNITUDES = {
+    "length error": ("mm", "um", 0.5, "a machine tool's positioning, straightness and rotary location errors are "
+                                      "1-100 um"),
+    "angular error": ("rad", "urad", 1e-3, "a machine tool's angular, squareness, orientation and zero errors are "
+                                           "2-200 urad"),
+    "reversal": ("mm", "um", 0.2, "a linear axis' reversal (backlash) is 1-50 um"),
+    "expansion coefficient": ("1/K", "um/(m*K)", 50e-6, "a machine axis expands by 0-25 um/(m*K): steel 11.5, "
+                                                         "aluminium 23"),
+    "tracker drift": ("mm/s", "um/h", 0.2 / 3600, "a laser tracker drifts by 0-20 um/h"),
+}
+
+
+def magnitude_problem(kind: str, value: float) -> str | None:
+    """None when ``value`` (internal unit) is a plausible ``kind`` (a key of :data:`MAGNITUDES`) of a simulated
+    machine, otherwise what is wrong, with the plausible range and its reason."""
+    unit, disp, high, why = MAGNITUDES[kind]
+    if math.isfinite(value) and abs(value) <= high:
+        return None
+    shown = display(value, unit, disp)
+    return (f"{shown:g} {disp} is not a plausible {kind}; expected at most {display(high, unit, disp):g} {disp} in "
+            f"magnitude ({why}; a value in the next unit up?)")
 ATTACHED_TO = ("x axis", "y axis", "z axis", "air")
 #: keys of recording.toml this version reads (others are kept in Recording.extra)
 KNOWN_KEYS = ("format", "name", "machine", "description", "reference_temperature", "tracker", "machine_tool",

@@ -464,6 +464,25 @@ def _root_total(table: dict) -> float:
     return next(table[k] for k in ("rms_total", "u_total") if k in table)
 
 
+#: a run whose identification did not converge on more than this share of its trials is no statement to sign: its
+#: text and report open with the warning, and no certificate (certificate.xml, the DCC) is written for it
+MAX_NOT_CONVERGED = 0.01
+
+
+def too_many_not_converged(n: int, trials: int) -> bool:
+    """Whether ``n`` trials of ``trials`` whose identification did not converge are more than
+    :data:`MAX_NOT_CONVERGED` of them."""
+    return n > MAX_NOT_CONVERGED * max(trials, 1)
+
+
+def no_certificate_line(n: int, trials: int) -> str:
+    """Why a run with too many trials that did not converge gets no certificate.xml (the report says the same)."""
+    return (f"certificate.xml is not written: the identification of {n} of {trials} trials "
+            f"({100.0 * n / max(trials, 1):.3g} %) did not converge, more than {100 * MAX_NOT_CONVERGED:g} %: the "
+            "numbers describe a verification whose identification fails, not a statement to certify; check the "
+            "configuration's inputs (units, noise, the machine's errors)")
+
+
 def not_converged_line(n: int, trials: int) -> str:
     """What trials whose identification did not converge mean for the run's numbers (text and report alike)."""
     return (f"WARNING: the identification of {n} of {trials} trials ({100.0 * n / max(trials, 1):.3g} %) did not "
@@ -486,7 +505,11 @@ def budget_text(res: RunResult) -> str:
     if res.fallbacks:
         lines.append(f"  note: {res.fallbacks} of {res.trials} trials left the linear range of the fast identification "
                      "and were solved by full Gauss-Newton (the reference solver)")
-    if res.not_converged:
+    if res.not_converged and too_many_not_converged(res.not_converged, res.trials):  # first: before any number
+        lines.insert(0, not_converged_line(res.not_converged, res.trials) + "\n  NOT A STATEMENT TO SIGN: "
+                     f"more than {100 * MAX_NOT_CONVERGED:g} % of the trials did not converge; `mtbudget report` "
+                     "writes no certificate.xml for this run\n")
+    elif res.not_converged:
         lines.append("  " + not_converged_line(res.not_converged, res.trials))
     if res.weights:
         lines.append("  identification weights stated apart from what the run draws ([weights]):")
@@ -765,7 +788,8 @@ def headline(res, tolerance_um: float | None = None, characteristic: str = "comp
         coverage=res.coverage, frame=table_frame(res), statement=res, tolerance_um=tolerance_um,
         characteristic=characteristic, fields=report_fields(res),
         machine=f"machine tool of kinematic chain {cfg.get('machine', 'XFYZ')} (no name stated)", date=run_date(res),
-        command="mtbudget report")
+        command="mtbudget report",
+        warning=not_converged_line(res.not_converged, res.trials) if res.not_converged else None)
 
 
 def statement_in_brief(*, kind: str, kind_text: str, measurand: str, points: list | None, coverage: float,
@@ -1077,8 +1101,10 @@ def run_report(res: RunResult, folder, tolerance_um: float | None = None, charac
           "## Kind of statement", "", md_escape(statement_kind_line(kind)), ""]
     if not res.complete:
         md += ["**INCOMPLETE run: partial results.**", ""]
-    if res.not_converged:
+    if res.not_converged:  # also the first row of the statement in brief (and the DCC's warning statement)
         md += ["**" + md_escape(not_converged_line(res.not_converged, res.trials)) + ".**", ""]
+        if too_many_not_converged(res.not_converged, res.trials):
+            md += ["**" + md_escape(no_certificate_line(res.not_converged, res.trials)) + ".**", ""]
     head = headline(res, tolerance_um, characteristic)
     data["statement"] = head
     md += headline_lines(head)

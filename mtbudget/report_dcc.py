@@ -125,7 +125,14 @@ def certificate_id(res, fields: dict) -> str:
 
 
 def dcc_tree(res, tolerance_um: float | None = None, characteristic: str = "component") -> ET.ElementTree:
-    """The DCC of a run (a RunResult from ``runner.replay``) as an ElementTree."""
+    """The DCC of a run (a RunResult from ``runner.replay``) as an ElementTree; refused for a run whose identification
+    did not converge on more than ``report.MAX_NOT_CONVERGED`` of its trials (a smaller share is its warning
+    statement)."""
+    from .errors import IdentificationError
+    from .report import no_certificate_line, too_many_not_converged
+
+    if too_many_not_converged(res.not_converged, res.trials):
+        raise IdentificationError(no_certificate_line(res.not_converged, res.trials))
     h = headline(res, tolerance_um, characteristic)
     chain = ((res.spec or {}).get("config") or {}).get("machine", "XFYZ")
     return statement_tree(h, res.points(), coverage=float(res.coverage), frame=table_frame(res),

@@ -476,6 +476,8 @@ def select_sources(config: SimulationConfig, host: PluginHost, names: list | Non
         try:
             s.configure(tables[s.name])
         except PluginError as exc:
+            if getattr(exc, "parameter", None):  # an implausible value: the key that states it
+                raise ConfigError(f"{config.where(f'sources.{s.name}.{exc.parameter}')}: {exc.problem}") from None
             raise ConfigError(f"{config.where('sources.' + s.name)}: {exc.reason}") from None
         problem = call(s, "check")
         if problem:
