@@ -1012,7 +1012,7 @@ def parse_config(data: dict, path=None, provenance: list | None = None) -> Simul
         if attr != "cte" and physical[attr] < 0:  # a standard uncertainty (a CTE may be negative)
             raise ConfigError(f"{r.sub(table).where(name)}: a standard uncertainty must not be negative")
         problem = uncertainty_problem(key, physical[attr]) if key in UNCERTAINTIES else (
-            None if abs(physical[attr]) <= 1e-3 else "a CTE beyond 1000 um/(m*K) is not plausible")
+            magnitude_problem("expansion coefficient", physical[attr]))
         if problem:  # the rule of recordings: what `simulate` writes must read back
             raise ConfigError(f"{r.sub(table).where(name)}: {problem}")
     scales = _scales(r, sensors)

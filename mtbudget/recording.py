@@ -96,8 +96,8 @@ MAGNITUDES = {
     "angular error": ("rad", "urad", 1e-3, "a machine tool's angular, squareness, orientation and zero errors are "
                                            "2-200 urad"),
     "reversal": ("mm", "um", 0.2, "a linear axis' reversal (backlash) is 1-50 um"),
-    "expansion coefficient": ("1/K", "um/(m*K)", 50e-6, "a machine axis expands by 0-25 um/(m*K): steel 11.5, "
-                                                         "aluminium 23"),
+    "expansion coefficient": ("1/K", "um/(m*K)", 100e-6, "a machine axis or its scale expands by -1-25 "
+                                                          "um/(m*K): glass ceramic 0, steel 11.5, aluminium 23"),
     "tracker drift": ("mm/s", "um/h", 0.2 / 3600, "a laser tracker drifts by 0-20 um/h"),
 }
 

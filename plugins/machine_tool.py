@@ -390,7 +390,7 @@ class ThermalExpansionEffect(Source):
     distribution = "fixed (simulated physics)"
     targets = ("axis_scale.x", "axis_scale.y", "axis_scale.z")
     parameters = {f"cte_{a}": Q_(0.0, "um/(m*K)") for a in AXES}
-    plausible = {f"cte_{a}": Q_(50.0, "um/(m*K)") for a in AXES}  # steel 11.5, aluminium 23
+    plausible = {f"cte_{a}": Q_(100.0, "um/(m*K)") for a in AXES}  # steel 11.5, aluminium 23
     opt_in = True
 
     def _prepare(self, ctx):

@@ -472,7 +472,8 @@ DOCUMENTED_MACHINE = [("geometric_errors.rotary_zero", "urad", 1000.0),
                       ("geometric_errors.squareness", "urad", 1000.0),
                       ("geometric_errors.rotary_location", "um", 500.0),
                       ("effects.reversal.x", "um", 200.0),
-                      ("effects.thermal.z", "um/(m*K)", 50.0)]
+                      ("effects.thermal.z", "um/(m*K)", 100.0),
+                      ("machine_tool.cte", "um/(m*K)", 100.0)]
 
 
 @pytest.mark.parametrize("factor", [0.99, 1.01])
@@ -629,3 +630,12 @@ def test_a_small_share_that_does_not_converge_is_the_certificates_warning_statem
     said = {s.find("dcc:name/dcc:content", ns).text: s.find("dcc:declaration/dcc:content", ns).text
             for s in root.iterfind(".//dcc:statements/dcc:statement", ns)}
     assert said["warning"].startswith("WARNING: the identification of 1 of 16 trials (6.25 %) did not converge"), said
+
+
+def test_a_cte_stated_through_a_thermal_source_obeys_the_rule_of_its_key():
+    """machine_tool.cte and the thermal sources' linked ``cte`` state one physical input: one bound for both (it was
+    unchecked through the source)."""
+    with pytest.raises(ConfigError, match=r"sources\.cte_uncertainty\.cte: 11500 um/\(m\*K\) is not a plausible "
+                                          r"expansion coefficient; expected at most 100 um/\(m\*K\)"):
+        build_scenario(load_config(SMALL, ["sources.cte_uncertainty.cte=11.5 mm/(m*K)"]))
+    build_scenario(load_config(SMALL, ["sources.cte_uncertainty.cte=23 um/(m*K)"]))  # aluminium
