@@ -20,7 +20,8 @@ from .errors import ConfigError
 from .machine import AXES, COMPONENT_ERRORS, SQUARENESS, Configuration, RotaryAxis, check_code
 from .plan import Plan, Scale, Sensor, build_plan, mesh
 from .recording import (ATTACHED_TO, COLUMNS, CTE_RANGE, MAX_TIME, REPORT_INSTRUMENT_KEYS,
-                        REPORT_KEYS, UNCERTAINTIES, magnitude_problem, report_problem, uncertainty_problem)
+                        REPORT_KEYS, UNCERTAINTIES, magnitude_problem, pivot_problem, report_problem,
+                        uncertainty_problem)
 from .units import ABSOLUTE_TEMPERATURE, to_internal
 
 try:
@@ -513,29 +514,12 @@ def _plausible(kind: str, values, where: str) -> None:
             raise ConfigError(f"{where}{f'[{i}]' if len(values) > 1 else ''}: {problem}")
 
 
-#: a rotary axis' pivot lies at most this many times the largest linear travel (and at least PIVOT_FLOOR) outside
-#: the box of the verified volume and the machine zero: a table or a trunnion sits inside the machine, so a pivot
-#: metres beyond the travel is a unit mistake ("50 m" for "50 mm"), which would put every angle's lever arm in error
-PIVOT_REACH = 5.0
-PIVOT_FLOOR = 1000.0  # mm
-
-
 def _pivots_near(r: "Reader", rotary: dict, ranges: dict) -> None:
-    if not rotary:
-        return
-    lo = np.array([min(ranges[a][0], 0.0) for a in AXES])
-    hi = np.array([max(ranges[a][1], 0.0) for a in AXES])
-    travel = max(ranges[a][1] - ranges[a][0] for a in AXES)
-    reach = max(PIVOT_REACH * travel, PIVOT_FLOOR)
+    """Each rotary axis' pivot near the verified volume ([mesh] and the machine zero: recording.pivot_problem)."""
     for letter, axis in rotary.items():
-        p = np.asarray(axis.pivot, float)
-        outside = float(np.linalg.norm(np.maximum(lo - p, 0.0) + np.maximum(p - hi, 0.0)))
-        if outside > reach:
-            raise ConfigError(f"{r.where(f'rotary.{letter.upper()}.pivot')}: {outside:.6g} mm outside the verified "
-                              f"volume ([mesh] and the machine zero) is not a plausible pivot; expected within "
-                              f"{reach:g} mm of it ({PIVOT_REACH:g} times the largest travel, {travel:g} mm, at least "
-                              f"{PIVOT_FLOOR:g} mm: a rotary table or trunnion sits inside the machine; a value in the "
-                              "next unit up?)")
+        problem = pivot_problem(axis.pivot, [ranges[a][0] for a in AXES], [ranges[a][1] for a in AXES])
+        if problem:
+            raise ConfigError(f"{r.where(f'rotary.{letter.upper()}.pivot')}: {problem}")
 
 
 def _stations(raw: list, path, provenance: list | None = None) -> list:

@@ -102,6 +102,30 @@ MAGNITUDES = {
 }
 
 
+#: a rotary axis' pivot lies at most this many times the largest linear travel (and at least PIVOT_FLOOR mm) outside
+#: the box of the verified volume and the machine zero: a table or a trunnion sits inside the machine, so a pivot
+#: metres beyond the travel is a unit mistake ("50 m" for "50 mm"), which would put every angle's lever arm in error
+PIVOT_REACH = 5.0
+PIVOT_FLOOR = 1000.0  # mm
+
+
+def pivot_problem(pivot, low, high) -> str | None:
+    """None when a rotary axis' ``pivot`` (mm) lies within :data:`PIVOT_REACH` times the largest travel (at least
+    :data:`PIVOT_FLOOR`) of the box from ``low`` to ``high`` (the verified volume's commanded x, y, z, mm) and the
+    machine zero, otherwise what is wrong, with the bound and its reason (configurations and recordings alike)."""
+    lo, hi = np.minimum(np.asarray(low, float), 0.0), np.maximum(np.asarray(high, float), 0.0)
+    travel = float(np.max(np.asarray(high, float) - np.asarray(low, float)))
+    reach = max(PIVOT_REACH * travel, PIVOT_FLOOR)
+    p = np.asarray(pivot, float)
+    outside = float(np.linalg.norm(np.maximum(lo - p, 0.0) + np.maximum(p - hi, 0.0)))
+    if outside <= reach:
+        return None
+    return (f"{outside:.6g} mm outside the verified volume (its commanded x, y, z and the machine zero) is not a "
+            f"plausible pivot; expected within {reach:g} mm of it ({PIVOT_REACH:g} times the largest travel, "
+            f"{travel:g} mm, at least {PIVOT_FLOOR:g} mm: a rotary table or trunnion sits inside the machine; a value "
+            "in the next unit up?)")
+
+
 def magnitude_problem(kind: str, value: float) -> str | None:
     """None when ``value`` (internal unit) is a plausible ``kind`` (a key of :data:`MAGNITUDES`) of a simulated
     machine, otherwise what is wrong, with the plausible range and its reason."""
@@ -582,6 +606,12 @@ def read_recording(folder, *, max_rows: int = MAX_ROWS, max_columns: int = MAX_C
                                  f"deg): its location and zero errors ({lost}) then act as a rigid motion of the "
                                  "tracker and cannot be identified; measure it at three or more angles", csv_path,
                                  column=r)
+    if rotary:  # the rule of a configuration's [rotary.<axis>] pivot, against the recorded travel
+        xyz = np.stack([columns["x"], columns["y"], columns["z"]], axis=1)
+        for r, ax in rotary.items():
+            problem = pivot_problem(ax.pivot, xyz.min(axis=0), xyz.max(axis=0))
+            if problem:
+                raise RecordingError(problem, toml_path, key=f"rotary.{r.upper()}.pivot")
     lt_cols = [columns.get(c, np.full(n, np.nan)) for c in ("lt_x", "lt_y", "lt_z")]
     station = lt_range = None
     if stations:  # format 2, or format 3 with [[stations]]

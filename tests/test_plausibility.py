@@ -639,3 +639,27 @@ def test_a_cte_stated_through_a_thermal_source_obeys_the_rule_of_its_key():
                                           r"expansion coefficient; expected at most 100 um/\(m\*K\)"):
         build_scenario(load_config(SMALL, ["sources.cte_uncertainty.cte=11.5 mm/(m*K)"]))
     build_scenario(load_config(SMALL, ["sources.cte_uncertainty.cte=23 um/(m*K)"]))  # aluminium
+
+
+def test_a_recordings_pivot_is_bounded_by_its_recorded_travel(tmp_path):
+    """The reader holds a recording's [rotary.<axis>] pivot to the configuration's rule, against the commanded x, y,
+    z it recorded; the generated recording (its pivots 50 mm from the table centre) reads."""
+    sys.path.insert(0, str(HERE))
+    from fiveaxis_generator import make_recording
+
+    folder = tmp_path / "r"
+    make_recording(folder, "CAFXYZ", seed=2)
+    rec = read_recording(folder)
+    xyz = rec.plan.nominal
+    travel = float((xyz.max(axis=0) - xyz.min(axis=0)).max())
+    reach = max(5 * travel, 1000.0)
+    text = (folder / "recording.toml").read_text()
+    old = 'pivot = ["50 mm", "-20 mm", "0 mm"]'
+    assert text.count(old) == 1
+    far = max(xyz[:, 0].max(), 0.0) + reach + 10.0  # 10 mm beyond the bound along +x
+    (folder / "recording.toml").write_text(text.replace(old, f'pivot = ["{far:.6f} mm", "-20 mm", "0 mm"]'))
+    with pytest.raises(RecordingError, match=rf"recording\.toml, rotary\.C\.pivot: {reach + 10:g} mm outside the "
+                                             rf"verified volume .* expected within {reach:g} mm"):
+        read_recording(folder)
+    (folder / "recording.toml").write_text(text.replace(old, f'pivot = ["{far - 20:.6f} mm", "-20 mm", "0 mm"]'))
+    read_recording(folder)
