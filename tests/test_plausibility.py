@@ -663,3 +663,19 @@ def test_a_recordings_pivot_is_bounded_by_its_recorded_travel(tmp_path):
         read_recording(folder)
     (folder / "recording.toml").write_text(text.replace(old, f'pivot = ["{far - 20:.6f} mm", "-20 mm", "0 mm"]'))
     read_recording(folder)
+
+
+ROOT = HERE.parent
+SHIPPED = sorted([*ROOT.glob("examples/*.toml"), *ROOT.glob("mtbudget/data/*.toml"), *ROOT.glob("tests/data/*.toml")])
+
+
+@pytest.mark.parametrize("path", SHIPPED, ids=lambda p: f"{p.parent.name}/{p.name}")
+def test_no_value_in_use_is_refused(path):
+    """The bounds refuse no value of a shipped configuration (its sources built too) nor of a bundled recording."""
+    assert len(SHIPPED) >= 11
+    build_scenario(load_config(path))
+
+
+@pytest.mark.parametrize("name", ["null", "thermal_x", "reversal_y", "tracker_drift", "four_stations"])
+def test_no_bundled_recording_is_refused(name):
+    read_recording(example_recording(name), several_stations=True)
