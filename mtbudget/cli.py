@@ -369,8 +369,13 @@ def posterior_cmd(recording, example, trials, seed, coverage, noise, max_degree,
         from .report import posterior_report
         from .report_dcc import write_dcc
 
+        from .report import no_certificate_line, too_many_not_converged
+
         paths = posterior_report(post, out, tol, characteristic)
-        if (p.get("report") or {}).get("date"):
+        if too_many_not_converged(p.get("not_converged", 0), p["trials"]):  # as a run's: no certificate
+            said = "; " + no_certificate_line(p["not_converged"], p["trials"])
+            click.echo(f"warning: {said[2:]}", err=True)
+        elif (p.get("report") or {}).get("date"):
             dcc = write_dcc(post, Path(out) / "certificate.xml", tol, characteristic)
             said = f" and {dcc} (the DCC: PTB DCC 3.3.0 XML)"
         else:  # a certificate's performance date is the measurement's: never the day of this evaluation

@@ -13,7 +13,8 @@ from .stats import HISTOGRAM_SHORTEST, decimals_for, percent
 from .units import display, pretty, shown_unit
 
 from .budget import conformance
-from .outputs import KEEP_SAMPLES_TRIALS, MAIN_OUTPUT, SCALARS, RunResult, frame_word, table_frame  # noqa: F401
+from .outputs import (KEEP_SAMPLES_TRIALS, MAIN_OUTPUT, MAX_NOT_CONVERGED, SCALARS, RunResult,  # noqa: F401
+                      frame_word, no_certificate_line, not_converged_line, table_frame, too_many_not_converged)
 
 
 def result_json(res: RunResult) -> dict:
@@ -464,34 +465,6 @@ def _root_total(table: dict) -> float:
     return next(table[k] for k in ("rms_total", "u_total") if k in table)
 
 
-#: a run whose identification did not converge on more than this share of its trials is no statement to sign: its
-#: text and report open with the warning, and no certificate (certificate.xml, the DCC) is written for it
-MAX_NOT_CONVERGED = 0.01
-
-
-def too_many_not_converged(n: int, trials: int) -> bool:
-    """Whether ``n`` trials of ``trials`` whose identification did not converge are more than
-    :data:`MAX_NOT_CONVERGED` of them."""
-    return n > MAX_NOT_CONVERGED * max(trials, 1)
-
-
-def no_certificate_line(n: int, trials: int) -> str:
-    """Why a run with too many trials that did not converge gets no certificate.xml (the report says the same)."""
-    return (f"certificate.xml is not written: the identification of {n} of {trials} trials "
-            f"({100.0 * n / max(trials, 1):.3g} %) did not converge, more than {100 * MAX_NOT_CONVERGED:g} %: the "
-            "numbers describe a verification whose identification fails, not a statement to certify; check the "
-            "configuration's inputs (units, noise, the machine's errors)")
-
-
-def not_converged_line(n: int, trials: int) -> str:
-    """What trials whose identification did not converge mean for the run's numbers (text and report alike)."""
-    return (f"WARNING: the identification of {n} of {trials} trials ({100.0 * n / max(trials, 1):.3g} %) did not "
-            "converge: they stopped at the iteration limit, away from the solution a verification would report, and "
-            "every number below includes them as they stood, so it describes a verification whose identification "
-            "may fail, not one that succeeds; before signing, check the stated inputs (units, noise, the machine's "
-            "errors) against the machine (`mtbudget run --json`: not_converged)")
-
-
 def budget_text(res: RunResult) -> str:
     lines = []
     status = "" if res.complete else "  (INCOMPLETE: partial results)"
@@ -874,7 +847,9 @@ def posterior_headline(post, tolerance_um: float | None = None, characteristic: 
         tolerance_um=tolerance_um, characteristic=characteristic, fields=p.get("report") or {},
         machine=f"machine tool of kinematic chain {p.get('machine', 'XFYZ')} (no name stated)",
         date=time.strftime("%Y-%m-%d"), command="mtbudget posterior",
-        warning=((p.get("identification") or {}).get("fit_test") or {}).get("warning"))
+        warning="; ".join(w for w in (((p.get("identification") or {}).get("fit_test") or {}).get("warning"),
+                                      not_converged_line(p["not_converged"], p["trials"])
+                                      if p.get("not_converged") else None) if w) or None)
 
 
 def _date_said(h: dict) -> str:

@@ -614,7 +614,7 @@ def test_a_small_share_that_does_not_converge_is_the_certificates_warning_statem
     """At or below the share (1 %) the DCC is written, and says it in its statements (dcc:statement 'warning')."""
     import xml.etree.ElementTree as ET
 
-    import mtbudget.report as report_module
+    import mtbudget.outputs as outputs_module
     from mtbudget.report import too_many_not_converged
     from mtbudget.report_dcc import write_dcc
     from mtbudget.runner import run
@@ -624,7 +624,7 @@ def test_a_small_share_that_does_not_converge_is_the_certificates_warning_statem
     path = write_dcc(res, tmp_path / "ok.xml")
     assert "did not converge" not in path.read_text()
     res.acc.not_converged = 1
-    monkeypatch.setattr(report_module, "MAX_NOT_CONVERGED", 0.1)  # 1 of 16 below the share
+    monkeypatch.setattr(outputs_module, "MAX_NOT_CONVERGED", 0.1)  # 1 of 16 below the share
     root = ET.parse(write_dcc(res, tmp_path / "c.xml")).getroot()
     ns = {"dcc": "https://ptb.de/dcc"}
     said = {s.find("dcc:name/dcc:content", ns).text: s.find("dcc:declaration/dcc:content", ns).text
@@ -679,3 +679,30 @@ def test_no_value_in_use_is_refused(path):
 @pytest.mark.parametrize("name", ["null", "thermal_x", "reversal_y", "tracker_drift", "four_stations"])
 def test_no_bundled_recording_is_refused(name):
     read_recording(example_recording(name), several_stations=True)
+
+
+def test_an_a_posteriori_statement_whose_trials_do_not_converge_gets_no_certificate(tmp_path, monkeypatch):
+    """The recording's own identification as it is, its Monte Carlo trials held to one iteration: the statement says
+    so first, and no certificate.xml is written although recording.toml states its date."""
+    import mtbudget.posterior as posterior_module
+    from mtbudget.identify import Strategy
+
+    real, calls = posterior_module.identify, []
+
+    def trials_limited(model, y, noise, *args, **kwargs):
+        calls.append(1)
+        if len(calls) == 1:  # the recording's identification
+            return real(model, y, noise, *args, **kwargs)
+        return real(model, y, noise, Strategy(max_iter=1, chord_iter=1), *args, **kwargs)
+
+    monkeypatch.setattr(posterior_module, "identify", trials_limited)
+    folder = _copy_null(tmp_path)
+    with (folder / "recording.toml").open("a") as f:
+        f.write('\n[report]\ndate = "2026-11-20"\n')
+    out = tmp_path / "post"
+    res = CliRunner().invoke(main, ["posterior", str(folder), "--trials", "8", "--out", str(out)])
+    assert res.exit_code == 0, res.output
+    assert res.stdout.startswith("WARNING: the identification of 8 of 8 trials (100 %) did not converge"), res.stdout
+    assert "warning: certificate.xml is not written: the identification of 8 of 8 trials" in res.stderr
+    assert not (out / "certificate.xml").exists() and (out / "posterior.md").exists()
+    assert "WARNING: the identification of 8 of 8 trials" in (out / "posterior.md").read_text()
