@@ -9,7 +9,7 @@ from pathlib import Path
 import click
 
 from . import __version__
-from .errors import MtbudgetError
+from .errors import MtbudgetError, check_folder, make_folder
 from .executors import AUTO_MAX_WORKERS, AUTO_MIN_TRIALS, AUTO_PARALLEL
 
 
@@ -148,6 +148,7 @@ def simulate(config, out, seed, trial, no_identify, sets):
     from .scenario import build_scenario
     from .simulate import simulate_recording
 
+    check_folder(out, "--out")  # before the simulation: a path that cannot be written is said at once
     cfg = load_config(config, sets)
     rec, truth = simulate_recording(build_scenario(cfg), seed, trial)
     write_recording(rec, out, truth=truth)
@@ -361,6 +362,8 @@ def posterior_cmd(recording, example, trials, seed, coverage, noise, max_degree,
     tol = None if tolerance is None else to_unit(tolerance, "um", "--tolerance")
     if tol is not None and not tol > 0:
         raise click.BadParameter("must be a positive length, e.g. \"20 um\"", param_hint="--tolerance")
+    if out is not None:
+        check_folder(out, "--out")
     folder = example_recording(example) if example else recording
     post = posterior_result(folder, trials=trials, seed=seed, coverage=coverage, noise=noise, max_degree=max_degree)
     p = posterior_json(post, tol, characteristic)
@@ -371,8 +374,13 @@ def posterior_cmd(recording, example, trials, seed, coverage, noise, max_degree,
         from .report import posterior_report
         from .report_dcc import write_dcc
 
+        from .report import no_certificate_line, too_many_not_converged
+
         paths = posterior_report(post, out, tol, characteristic)
-        if (p.get("report") or {}).get("date"):
+        if too_many_not_converged(p.get("not_converged", 0), p["trials"]):  # as a run's: no certificate
+            said = "; " + no_certificate_line(p["not_converged"], p["trials"])
+            click.echo(f"warning: {said[2:]}", err=True)
+        elif (p.get("report") or {}).get("date"):
             dcc = write_dcc(post, Path(out) / "certificate.xml", tol, characteristic)
             said = f" and {dcc} (the DCC: PTB DCC 3.3.0 XML)"
         else:  # a certificate's performance date is the measurement's: never the day of this evaluation
@@ -436,6 +444,9 @@ def compensate(recording, example, fmt, out, step, check, strict, reference, sie
 
     if recording is None and example is None:
         raise click.UsageError("give a RECORDING folder or --example NAME")
+    check_folder(Path(out).parent, "--out")
+    if report_dir is not None:
+        check_folder(report_dir, "--report")
     step_mm = parse_step(step)
     ref_point = parse_reference(reference)
     exporter = find_exporter(fmt)
@@ -609,6 +620,8 @@ def run_cmd(config, trials, seed, coverage, executor, workers, address, attribut
         raise click.BadParameter("the budget needs at least 2 trials per source (or 0 to skip it)",
                                  param_hint="--attribution-trials")
     _refuse_contradictions(trials, executor, workers, address, adaptive_batch, max_trials, resume_path)
+    if log_path is not None:
+        check_folder(Path(log_path).parent, "--log")
     settings = RunSettings(trials=trials or None, seed=seed, coverage=coverage, executor=executor, workers=workers,
                            address=address, attribution_trials=attribution_trials, progress=not quiet,
                            adaptive_batch=adaptive_batch, block=block,
@@ -652,6 +665,10 @@ def run_cmd(config, trials, seed, coverage, executor, workers, address, attribut
         click.echo(json.dumps(result_json(res), indent=1))
     else:
         click.echo(budget_text(res))
+    if res.not_converged:  # on stderr too, where a script that reads --json (or a log of stdout alone) sees it
+        from .report import not_converged_line
+
+        click.echo(f"warning: {not_converged_line(res.not_converged, res.trials)[len('WARNING: '):]}", err=True)
     for n in res.resume_notes:
         click.echo(f"note: resume: {n}", err=True)
     if resume_path is not None:  # an option given with --resume that the logged run overrides: said, not ignored
@@ -800,6 +817,8 @@ def diagnose_cmd(recording, example, as_json, report_dir, alpha, max_degree, qui
 
     if recording is None and example is None:
         raise click.UsageError("give a RECORDING folder or --example NAME")
+    if report_dir is not None:
+        check_folder(report_dir, "--report")
     folder = example_recording(example) if example else recording
     rec = read_recording(folder, several_stations=True,  # several stations: every station identified together
                          max_rows=_identify_limit())
@@ -859,16 +878,26 @@ def report(runlog, out, tolerance, characteristic):
     tol = None if tolerance is None else to_unit(tolerance, "um", "--tolerance")
     if tol is not None and not tol > 0:
         raise click.BadParameter("must be a positive length, e.g. \"20 um\"", param_hint="--tolerance")
+    check_folder(out, "--out")
     res = do_replay(runlog)
     note(f"writing the report and its figures into {out}/ ...")
+    from .report import no_certificate_line, too_many_not_converged
+
+    refused = too_many_not_converged(res.not_converged, res.trials)
     with working("report and figures"):
         paths = run_report(res, out, tol, characteristic)
-        dcc = write_dcc(res, Path(out) / "certificate.xml", tol, characteristic)
+        dcc = None if refused else write_dcc(res, Path(out) / "certificate.xml", tol, characteristic)
+    if refused:  # as a posteriori without a date: said, the report written, no certificate
+        stale = Path(out) / "certificate.xml"
+        if stale.exists():  # a previous run's certificate in the same folder must not stand for this one
+            stale.unlink()
+        click.echo(f"warning: {no_certificate_line(res.not_converged, res.trials)}", err=True)
     if tol is not None:  # the decision on the console too, not only below the report's tables
         from .budget import conformance
 
         click.echo("decision (ISO 14253-1): " + conformance(res, tol, characteristic)["statement"])
-    click.echo(f"wrote {paths['markdown']}, {paths['html']} and {dcc} (the DCC: PTB DCC 3.3.0 XML)"
+    click.echo(f"wrote {paths['markdown']} and {paths['html']}" +
+               (f" and {dcc} (the DCC: PTB DCC 3.3.0 XML)" if dcc else "; no certificate.xml (see the warning)")
                + ("" if res.complete else " (INCOMPLETE run)"))
 
 
@@ -891,7 +920,9 @@ STUDY_FILES = {"placement": "placement.mcap", "verification": "verification.mcap
 
 
 def _fresh_out(out: Path, studies: tuple, force: bool):
-    """Refuse to overwrite a previous study in ``out`` unless --force (as `run` refuses to overwrite a log)."""
+    """Refuse to overwrite a previous study in ``out`` unless --force (as `run` refuses to overwrite a log), and an
+    ``out`` that cannot be created, before the study runs."""
+    check_folder(out, "--out")
     if force:
         return
     for study in studies:
@@ -913,7 +944,7 @@ def _placement(config, tests, out, quiet):
 
     cfg = load_config(config)
     res = placement(build_scenario(cfg), tests=tests, progress=not quiet)
-    out.mkdir(parents=True, exist_ok=True)
+    make_folder(out, "--out")
     with working("writing the placement log, report and figures", not quiet):
         summary = placement_json(res)
         write_placement_log(summary, placement_arrays(res), out / "placement.mcap",
@@ -940,7 +971,7 @@ def _verification(config, trials, out, quiet, attribution_trials):
         from .study import one_tracker
 
         one_tracker(build_scenario(cfg, sources=[]), "the paper's verification study (Figs. 12-15)")
-    out.mkdir(parents=True, exist_ok=True)
+    make_folder(out, "--out")
     try:
         execute(cfg, RunSettings(trials=trials, progress=not quiet, attribution_trials=attribution_trials),
                 log_path=out / "verification.mcap", force=True)

@@ -33,7 +33,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import MtbudgetError
+from .errors import MtbudgetError, make_folder
 from .machine import AXES, AXIS_INDEX, COMPONENT_ERRORS, ChainInputs, Configuration, chain, parse_error_name
 from .model import SQUARENESS_ISO, iso_name, iso_parameter  # noqa: F401  (the one map lives in model; re-exported)
 
@@ -798,10 +798,7 @@ def export(table: CompensationTable, exporter, path) -> list:
     if refusal:
         raise CompensationError(f"format {exporter.name!r}: {refusal}")
     path = Path(path)
-    try:
-        path.parent.mkdir(parents=True, exist_ok=True)  # as report, diagnose --report and simulate do
-    except OSError as exc:
-        raise CompensationError(f"--out: cannot create folder {str(path.parent)!r} ({exc.strerror})") from None
+    make_folder(path.parent, "--out")  # as report, diagnose --report and simulate do
     written = call(exporter, "write", table, path)
     return [Path(p) for p in (written or [])]
 

@@ -20,7 +20,8 @@ from .errors import ConfigError
 from .machine import AXES, COMPONENT_ERRORS, SQUARENESS, Configuration, RotaryAxis, check_code
 from .plan import Plan, Scale, Sensor, build_plan, mesh
 from .recording import (ATTACHED_TO, COLUMNS, CTE_RANGE, MAX_TIME, REPORT_INSTRUMENT_KEYS,
-                        REPORT_KEYS, UNCERTAINTIES, report_problem, uncertainty_problem)
+                        REPORT_KEYS, UNCERTAINTIES, magnitude_problem, pivot_problem, report_problem,
+                        uncertainty_problem)
 from .units import ABSOLUTE_TEMPERATURE, to_internal
 
 try:
@@ -503,6 +504,24 @@ def _rotary(r: "Reader", code: str) -> tuple[dict, dict]:
     return geometry, angles
 
 
+def _plausible(kind: str, values, where: str) -> None:
+    """Each of ``values`` (internal unit) a plausible ``kind`` of a simulated machine (recording.MAGNITUDES: the rule
+    of every stated uncertainty), else one line naming the key (and the entry of a list)."""
+    values = list(values)
+    for i, v in enumerate(values):
+        problem = magnitude_problem(kind, float(v))
+        if problem:
+            raise ConfigError(f"{where}{f'[{i}]' if len(values) > 1 else ''}: {problem}")
+
+
+def _pivots_near(r: "Reader", rotary: dict, ranges: dict) -> None:
+    """Each rotary axis' pivot near the verified volume ([mesh] and the machine zero: recording.pivot_problem)."""
+    for letter, axis in rotary.items():
+        problem = pivot_problem(axis.pivot, [ranges[a][0] for a in AXES], [ranges[a][1] for a in AXES])
+        if problem:
+            raise ConfigError(f"{r.where(f'rotary.{letter.upper()}.pivot')}: {problem}")
+
+
 def _stations(raw: list, path, provenance: list | None = None) -> list:
     """The [[stations]] tables (keys already checked against the schema)."""
     if len(raw) > MAX_STATIONS:
@@ -667,7 +686,8 @@ def given_with_set(exc: ConfigError, provenance) -> ConfigError:
             walk(v, here)
 
     walk(provenance[0][1], [])
-    if any(f": {f}:" in message or f": {f}." in message or message.endswith(f": {f}") for f in forms):
+    if any(f": {f}:" in message or f": {f}." in message or f": {f}[" in message or message.endswith(f": {f}")
+           for f in forms):
         return ConfigError(f"{message} (given with --set)")
     return exc
 
@@ -804,6 +824,7 @@ def parse_config(data: dict, path=None, provenance: list | None = None) -> Simul
             raise ConfigError(f"{m.where(key)}: the mesh step must be positive")
         if (ranges[a][1] - ranges[a][0]) / step[a] > MAX_MESH_POINTS:
             raise ConfigError(f"{m.where(key)}: more than {MAX_MESH_POINTS} steps along {a}")
+    _pivots_near(r, rotary, ranges)
     n_mesh = int(np.prod([round((ranges[a][1] - ranges[a][0]) / step[a]) + 1 for a in AXES]))
     n_mesh *= int(np.prod([len(v) for v in rotary_angles.values()])) if rotary_angles else 1
     if n_mesh > MAX_MESH_POINTS:
@@ -874,12 +895,14 @@ def parse_config(data: dict, path=None, provenance: list | None = None) -> Simul
                 raise ConfigError(f"{co.where(name)}: expected a list of coefficients, e.g. [\"2 um\", \"-1 um\"]")
             unit = "mm" if name[0] == "d" else "rad"
             coefs[name] = [to_unit(v, unit, co.where(name)) for v in vals]
+            _plausible("length error" if unit == "mm" else "angular error", coefs[name], co.where(name))
         geometric["coefficients"] = coefs
         sq = ge.sub("squareness")
         geometric["squareness"] = {k: sq.quantity(k, "rad") for k in sq.data}
         for k in geometric["squareness"]:
             if k not in SQUARENESS:
                 raise ConfigError(f"{sq.where(k)}: unknown squareness; expected one of {SQUARENESS}")
+            _plausible("angular error", [geometric["squareness"][k]], sq.where(k))
     else:
         for key, unit, default in (("translational", "mm", ["8 um", "3 um", "1.5 um"]),
                                    ("angular", "rad", ["10 urad", "5 urad", "2.5 urad"])):
@@ -890,11 +913,15 @@ def parse_config(data: dict, path=None, provenance: list | None = None) -> Simul
         geometric["squareness"] = ge.quantity("squareness", "rad", "30 urad")
         if min(geometric["translational"] + geometric["angular"] + [geometric["squareness"]]) < 0:
             raise ConfigError(f"{ge.where('')[:-1]}: a standard deviation must not be negative")
+        _plausible("length error", geometric["translational"], ge.where("translational"))
+        _plausible("angular error", geometric["angular"], ge.where("angular"))
+        _plausible("angular error", [geometric["squareness"]], ge.where("squareness"))
     for key, unit, default in (("rotary_location", "mm", "20 um"), ("rotary_orientation", "rad", "30 urad"),
                                ("rotary_zero", "rad", "30 urad")):
         geometric[key] = ge.quantity(key, unit, default)
         if geometric[key] < 0:
             raise ConfigError(f"{ge.where(key)}: a standard deviation must not be negative")
+        _plausible("length error" if unit == "mm" else "angular error", [geometric[key]], ge.where(key))
     if ge.has("rotary"):  # explicit location and zero errors by their ISO 230-7 names
         from .model import parameter_from_iso
 
@@ -906,6 +933,7 @@ def parse_config(data: dict, path=None, provenance: list | None = None) -> Simul
                 raise ConfigError(f"{rt.where(iso)}: not a location or zero error of this machine's rotary axes "
                                   f"(ISO 230-7 names such as EXOC, EYOC, EAOC, EBOC, ECOC for C)")
             named[internal] = rt.quantity(iso, "mm" if internal[0] == "d" else "rad")
+            _plausible("length error" if internal[0] == "d" else "angular error", [named[internal]], rt.where(iso))
         geometric["rotary"] = named
     tref = r.quantity("reference_temperature", "K", "20 degC", absolute_temperature=True)
     sensors = []
@@ -953,11 +981,14 @@ def parse_config(data: dict, path=None, provenance: list | None = None) -> Simul
         for a in effects[kind]:
             if a not in AXES:
                 raise ConfigError(f"{eff.where(kind)}.{a}: unknown axis; expected x, y or z")
+            _plausible("expansion coefficient" if kind == "thermal" else "reversal", [effects[kind][a]],
+                       eff.sub(kind).where(a))
     if eff.has("drift"):
         dv = eff.raw("drift")
         if not (isinstance(dv, list) and len(dv) == 3):
             raise ConfigError(f"{eff.where('drift')}: expected [vx, vy, vz], e.g. [\"4 um/h\", \"0 um/h\", \"0 um/h\"]")
         effects["drift"] = np.array([to_unit(v, "mm/s", eff.where("drift")) for v in dv])
+        _plausible("tracker drift", effects["drift"], eff.where("drift"))
     physical = {}
     for key, (unit, attr, default) in PHYSICAL_INPUTS.items():
         table, name = key.split(".")
@@ -965,7 +996,7 @@ def parse_config(data: dict, path=None, provenance: list | None = None) -> Simul
         if attr != "cte" and physical[attr] < 0:  # a standard uncertainty (a CTE may be negative)
             raise ConfigError(f"{r.sub(table).where(name)}: a standard uncertainty must not be negative")
         problem = uncertainty_problem(key, physical[attr]) if key in UNCERTAINTIES else (
-            None if abs(physical[attr]) <= 1e-3 else "a CTE beyond 1000 um/(m*K) is not plausible")
+            magnitude_problem("expansion coefficient", physical[attr]))
         if problem:  # the rule of recordings: what `simulate` writes must read back
             raise ConfigError(f"{r.sub(table).where(name)}: {problem}")
     scales = _scales(r, sensors)

@@ -125,6 +125,13 @@ class Source:
     excludes: tuple = ()
     #: parameters that must not be negative (standard uncertainties, widths, bounds)
     nonnegative: tuple = ()
+    #: parameter -> the largest plausible magnitude of its value (a pint Quantity of its dimension, shown in the
+    #: bound's unit), by the rule of every stated value (mtbudget.recording.UNCERTAINTIES and MAGNITUDES): several
+    #: times the poorest machine or instrument in use and below a thousand times the smallest value in use, so a value
+    #: written in the next unit up ("20 mrad" for "20 urad", "3 mm" for "3 um") is refused where it is set
+    #: (:meth:`configure`), in one line naming the parameter.  Leave out a parameter ``links`` ties to a physical
+    #: input: the configuration's key bounds it.
+    plausible: dict = {}
     #: temperature parameters that are absolute temperatures (a default in degC or degF alone is one too);
     #: every other temperature parameter is a difference, which refuses "0.1 degC" (pint: 273.25 K)
     absolute_temperatures: tuple = ()
@@ -181,7 +188,27 @@ class Source:
                                           f"scale (read as {new.to('K').magnitude:.6g} K); write \"{new.magnitude:g} "
                                           f"{delta}\" or give it in K", self.plugin or None, self.name)
             self.parameters[k] = new
+            problem = self.plausibility_problem(k)
+            if problem:
+                err = PluginError(f"parameter {k!r}: {problem}", self.plugin or None, self.name)
+                err.parameter, err.problem = k, problem  # the scenario names the key sources.<name>.<parameter>
+                raise err
         return self
+
+    def plausibility_problem(self, key: str) -> str | None:
+        """None when parameter ``key`` is within its :attr:`plausible` bound (or has none), otherwise what is wrong:
+        the value, the plausible range and why, in the bound's unit."""
+        bound, v = self.plausible.get(key), self.parameters.get(key)
+        if bound is None or not isinstance(v, pint.Quantity):
+            return None
+        unit = bound.units
+        value = float(v.to(unit).magnitude)
+        high = float(bound.magnitude)
+        if np.isfinite(value) and abs(value) <= high:
+            return None
+        shown = f"{unit:~P}".replace("µ", "u") if str(unit) != "dimensionless" else ""  # as the user types it
+        return (f"{value:g} {shown} is not plausible; expected at most {high:g} {shown} in magnitude (several times "
+                f"the poorest in use; a value in the next unit up?)").replace("  ", " ").replace(" )", ")")
 
     def check(self) -> str | None:
         """None when the parameters are valid, otherwise what is wrong (one sentence, naming the parameter)."""

@@ -117,3 +117,49 @@ class PluginError(MtbudgetError, RuntimeError):
     def _compose(self) -> str:
         where = self._location()
         return "; ".join(where) + ": " + self.reason if where else self.reason
+
+
+class OutputError(MtbudgetError, ValueError):
+    """An output folder or file cannot be created where the user asked (a parent that is a file, a read-only or
+    missing file system): one line naming the option and the path, never a traceback."""
+
+
+def _named(path, what: str | None) -> str:
+    return f"{what} {str(path)!r}" if what else repr(str(path))
+
+
+def check_folder(path, what: str | None = None) -> None:
+    """Refuse, before any computation and without creating anything, a folder ``path`` that cannot be created or
+    written: one of its existing ancestors is a file, or the nearest existing one is not writable.  ``what``: the
+    option that names it ("--out"), said in the message.  :func:`make_folder` creates it when the output is ready."""
+    import os
+    from pathlib import Path
+
+    p = Path(path)
+    if p.exists() and not p.is_dir():
+        raise OutputError(f"{_named(p, what)}: cannot create the folder: a file of that name is there")
+    node = p
+    while not node.exists():
+        parent = node.parent
+        if parent == node:
+            break
+        node = parent
+    if node.exists() and not node.is_dir():
+        raise OutputError(f"{_named(p, what)}: cannot create the folder: {str(node)!r} is a file, not a folder")
+    if node.exists() and not os.access(node, os.W_OK | os.X_OK):
+        raise OutputError(f"{_named(p, what)}: cannot create the folder: {str(node)!r} is not writable")
+
+
+def make_folder(path, what: str | None = None):
+    """Create the folder ``path`` (and its parents) for an output; an OSError (a parent that is a file, a read-only
+    or special file system such as /proc) becomes one :class:`OutputError` line naming ``what`` and the path.  The
+    one place every command creates an output folder (simulate, run --log, report, posterior, compensate, diagnose
+    --report, the studies)."""
+    from pathlib import Path
+
+    p = Path(path)
+    try:
+        p.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise OutputError(f"{_named(p, what)}: cannot create the folder ({exc.strerror or type(exc).__name__})") from None
+    return p

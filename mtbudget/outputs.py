@@ -281,3 +281,31 @@ class RunResult:
         s = self.summary(MAIN_OUTPUT)
         return {"trials": self.acc.n, "mean": s["mean"], "std": s["std"], "low": s["symmetric"][0],
                 "high": s["symmetric"][1], "output": MAIN_OUTPUT, "unit": SCALARS[MAIN_OUTPUT][0]}
+
+
+#: a run whose identification did not converge on more than this share of its trials is no statement to sign: its
+#: text and report open with the warning, and no certificate (certificate.xml, the DCC) is written for it
+MAX_NOT_CONVERGED = 0.01
+
+
+def too_many_not_converged(n: int, trials: int) -> bool:
+    """Whether ``n`` trials of ``trials`` whose identification did not converge are more than
+    :data:`MAX_NOT_CONVERGED` of them."""
+    return n > MAX_NOT_CONVERGED * max(trials, 1)
+
+
+def no_certificate_line(n: int, trials: int) -> str:
+    """Why a run with too many trials that did not converge gets no certificate.xml (the report says the same)."""
+    return (f"certificate.xml is not written: the identification of {n} of {trials} trials "
+            f"({100.0 * n / max(trials, 1):.3g} %) did not converge, more than {100 * MAX_NOT_CONVERGED:g} %: the "
+            "numbers describe a verification whose identification fails, not a statement to certify; check the "
+            "configuration's inputs (units, noise, the machine's errors)")
+
+
+def not_converged_line(n: int, trials: int) -> str:
+    """What trials whose identification did not converge mean for the run's numbers (text and report alike)."""
+    return (f"WARNING: the identification of {n} of {trials} trials ({100.0 * n / max(trials, 1):.3g} %) did not "
+            "converge: they stopped at the iteration limit, away from the solution a verification would report, and "
+            "every number below includes them as they stood, so it describes a verification whose identification "
+            "may fail, not one that succeeds; before signing, check the stated inputs (units, noise, the machine's "
+            "errors) against the machine (`mtbudget run --json`: not_converged)")

@@ -196,7 +196,10 @@ def posterior_text(p: dict) -> str:
     k, s, i = p["statement_kind"], p["summary"], p["identification"]
     r = s["u_over_u_linear"]
     warn = (i.get("fit_test") or {}).get("warning")
-    return "\n".join(([f"WARNING: {warn}."] if warn else []) + [
+    from .outputs import not_converged_line
+
+    nc = [not_converged_line(p["not_converged"], p["trials"]) + "."] if p.get("not_converged") else []
+    return "\n".join(nc + ([f"WARNING: {warn}."] if warn else []) + [
         f"Kind of statement: A POSTERIORI, the {k['name']} (recording {k['recording']}): {k['what']}.",
         f"Measurand: {p['measurand']} ({p['not_identifiable']} combination(s) not identifiable).",
         f"Identification: chi2/dof {i['chi2_per_dof']:.3f} on {i['dof']} degrees of freedom ({fit_said(i)}); "

@@ -22,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import RecordingError
+from .errors import RecordingError, make_folder
 from .plan import Plan, Scale, Sensor, T20
 from .units import ABSOLUTE_TEMPERATURE, Q_, display, parse_unit, to_internal, ureg
 
@@ -84,6 +84,57 @@ UNCERTAINTIES = {
     "tracker.distance_per_length": ("mm/mm", "um/m", 0.0, 50e-6),
     "machine_tool.repeatability": ("mm", "um", 1e-9, 0.1),
 }
+#: the simulated machine's error magnitudes and physical amplitudes a configuration states ([geometric_errors], its
+#: coefficients, squareness and rotary location, orientation and zero errors, [effects], a rotary axis' pivot is
+#: bounded apart, by the travel), by the rule of UNCERTAINTIES: several times the poorest machine of its kind, below
+#: a thousand times the smallest value in use, so a value written in the next unit up ("8 mm" for "8 um", "50 mrad"
+#: or "50 deg" for "50 urad") is refused, never simulated.  kind -> (internal unit, display unit, the largest
+#: |value|, why).  The sources' parameters declare theirs (``Source.plausible``, mtbudget.contracts).
+MAGNITUDES = {
+    "length error": ("mm", "um", 0.5, "a machine tool's positioning, straightness and rotary location errors are "
+                                      "1-100 um"),
+    "angular error": ("rad", "urad", 1e-3, "a machine tool's angular, squareness, orientation and zero errors are "
+                                           "2-200 urad"),
+    "reversal": ("mm", "um", 0.2, "a linear axis' reversal (backlash) is 1-50 um"),
+    "expansion coefficient": ("1/K", "um/(m*K)", 100e-6, "a machine axis or its scale expands by -1-25 "
+                                                          "um/(m*K): glass ceramic 0, steel 11.5, aluminium 23"),
+    "tracker drift": ("mm/s", "um/h", 0.2 / 3600, "a laser tracker drifts by 0-20 um/h"),
+}
+
+
+#: a rotary axis' pivot lies at most this many times the largest linear travel (and at least PIVOT_FLOOR mm) outside
+#: the box of the verified volume and the machine zero: a table or a trunnion sits inside the machine, so a pivot
+#: metres beyond the travel is a unit mistake ("50 m" for "50 mm"), which would put every angle's lever arm in error
+PIVOT_REACH = 5.0
+PIVOT_FLOOR = 1000.0  # mm
+
+
+def pivot_problem(pivot, low, high) -> str | None:
+    """None when a rotary axis' ``pivot`` (mm) lies within :data:`PIVOT_REACH` times the largest travel (at least
+    :data:`PIVOT_FLOOR`) of the box from ``low`` to ``high`` (the verified volume's commanded x, y, z, mm) and the
+    machine zero, otherwise what is wrong, with the bound and its reason (configurations and recordings alike)."""
+    lo, hi = np.minimum(np.asarray(low, float), 0.0), np.maximum(np.asarray(high, float), 0.0)
+    travel = float(np.max(np.asarray(high, float) - np.asarray(low, float)))
+    reach = max(PIVOT_REACH * travel, PIVOT_FLOOR)
+    p = np.asarray(pivot, float)
+    outside = float(np.linalg.norm(np.maximum(lo - p, 0.0) + np.maximum(p - hi, 0.0)))
+    if outside <= reach:
+        return None
+    return (f"{outside:.6g} mm outside the verified volume (its commanded x, y, z and the machine zero) is not a "
+            f"plausible pivot; expected within {reach:g} mm of it ({PIVOT_REACH:g} times the largest travel, "
+            f"{travel:g} mm, at least {PIVOT_FLOOR:g} mm: a rotary table or trunnion sits inside the machine; a value "
+            "in the next unit up?)")
+
+
+def magnitude_problem(kind: str, value: float) -> str | None:
+    """None when ``value`` (internal unit) is a plausible ``kind`` (a key of :data:`MAGNITUDES`) of a simulated
+    machine, otherwise what is wrong, with the plausible range and its reason."""
+    unit, disp, high, why = MAGNITUDES[kind]
+    if math.isfinite(value) and abs(value) <= high:
+        return None
+    shown = display(value, unit, disp)
+    return (f"{shown:g} {disp} is not a plausible {kind}; expected at most {display(high, unit, disp):g} {disp} in "
+            f"magnitude ({why}; a value in the next unit up?)")
 ATTACHED_TO = ("x axis", "y axis", "z axis", "air")
 #: keys of recording.toml this version reads (others are kept in Recording.extra)
 KNOWN_KEYS = ("format", "name", "machine", "description", "reference_temperature", "tracker", "machine_tool",
@@ -555,6 +606,12 @@ def read_recording(folder, *, max_rows: int = MAX_ROWS, max_columns: int = MAX_C
                                  f"deg): its location and zero errors ({lost}) then act as a rigid motion of the "
                                  "tracker and cannot be identified; measure it at three or more angles", csv_path,
                                  column=r)
+    if rotary:  # the rule of a configuration's [rotary.<axis>] pivot, against the recorded travel
+        xyz = np.stack([columns["x"], columns["y"], columns["z"]], axis=1)
+        for r, ax in rotary.items():
+            problem = pivot_problem(ax.pivot, xyz.min(axis=0), xyz.max(axis=0))
+            if problem:
+                raise RecordingError(problem, toml_path, key=f"rotary.{r.upper()}.pivot")
     lt_cols = [columns.get(c, np.full(n, np.nan)) for c in ("lt_x", "lt_y", "lt_z")]
     station = lt_range = None
     if stations:  # format 2, or format 3 with [[stations]]
@@ -1118,8 +1175,7 @@ def write_recording(rec: Recording, folder, *, truth: dict | None = None) -> Pat
     """
     import json
 
-    folder = Path(folder)
-    folder.mkdir(parents=True, exist_ok=True)
+    folder = make_folder(folder)
     p = rec.plan
     v3 = rec.format_version == 3 or bool(p.angles)
     v2 = not v3 and (rec.format_version == 2 or bool(rec.stations))

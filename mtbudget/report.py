@@ -8,11 +8,13 @@ from pathlib import Path
 import numpy as np
 
 from .distributions import t_factor
+from .errors import make_folder
 from .stats import HISTOGRAM_SHORTEST, decimals_for, percent
 from .units import display, pretty, shown_unit
 
 from .budget import conformance
-from .outputs import KEEP_SAMPLES_TRIALS, MAIN_OUTPUT, SCALARS, RunResult, frame_word, table_frame  # noqa: F401
+from .outputs import (KEEP_SAMPLES_TRIALS, MAIN_OUTPUT, MAX_NOT_CONVERGED, SCALARS, RunResult,  # noqa: F401
+                      frame_word, no_certificate_line, not_converged_line, table_frame, too_many_not_converged)
 
 
 def result_json(res: RunResult) -> dict:
@@ -474,15 +476,6 @@ def _root_total(table: dict) -> float:
     return next(table[k] for k in ("rms_total", "u_total") if k in table)
 
 
-def not_converged_line(n: int, trials: int) -> str:
-    """What trials whose identification did not converge mean for the run's numbers (text and report alike)."""
-    return (f"WARNING: the identification of {n} of {trials} trials ({100.0 * n / max(trials, 1):.3g} %) did not "
-            "converge: they stopped at the iteration limit, away from the solution a verification would report, and "
-            "every number below includes them as they stood, so it describes a verification whose identification "
-            "may fail, not one that succeeds; before signing, check the stated inputs (units, noise, the machine's "
-            "errors) against the machine (`mtbudget run --json`: not_converged)")
-
-
 def budget_text(res: RunResult) -> str:
     lines = []
     status = "" if res.complete else "  (INCOMPLETE: partial results)"
@@ -496,7 +489,11 @@ def budget_text(res: RunResult) -> str:
     if res.fallbacks:
         lines.append(f"  note: {res.fallbacks} of {res.trials} trials left the linear range of the fast identification "
                      "and were solved by full Gauss-Newton (the reference solver)")
-    if res.not_converged:
+    if res.not_converged and too_many_not_converged(res.not_converged, res.trials):  # first: before any number
+        lines.insert(0, not_converged_line(res.not_converged, res.trials) + "\n  NOT A STATEMENT TO SIGN: "
+                     f"more than {100 * MAX_NOT_CONVERGED:g} % of the trials did not converge; `mtbudget report` "
+                     "writes no certificate.xml for this run\n")
+    elif res.not_converged:
         lines.append("  " + not_converged_line(res.not_converged, res.trials))
     if res.weights:
         lines.append("  identification weights stated apart from what the run draws ([weights]):")
@@ -775,7 +772,8 @@ def headline(res, tolerance_um: float | None = None, characteristic: str = "comp
         coverage=res.coverage, frame=table_frame(res), statement=res, tolerance_um=tolerance_um,
         characteristic=characteristic, fields=report_fields(res),
         machine=f"machine tool of kinematic chain {cfg.get('machine', 'XFYZ')} (no name stated)", date=run_date(res),
-        command="mtbudget report")
+        command="mtbudget report",
+        warning=not_converged_line(res.not_converged, res.trials) if res.not_converged else None)
 
 
 def statement_in_brief(*, kind: str, kind_text: str, measurand: str, points: list | None, coverage: float,
@@ -863,7 +861,9 @@ def posterior_headline(post, tolerance_um: float | None = None, characteristic: 
         tolerance_um=tolerance_um, characteristic=characteristic, fields=p.get("report") or {},
         machine=f"machine tool of kinematic chain {p.get('machine', 'XFYZ')} (no name stated)",
         date=time.strftime("%Y-%m-%d"), command="mtbudget posterior",
-        warning=((p.get("identification") or {}).get("fit_test") or {}).get("warning"))
+        warning="; ".join(w for w in (((p.get("identification") or {}).get("fit_test") or {}).get("warning"),
+                                      not_converged_line(p["not_converged"], p["trials"])
+                                      if p.get("not_converged") else None) if w) or None)
 
 
 def _date_said(h: dict) -> str:
@@ -1056,8 +1056,7 @@ def compensation_figure(table, folder) -> Path | None:
 
 def compensation_report(table, folder, check: dict | None = None) -> dict:
     """compensation.md and a self-contained compensation.html (with residual_vs_U.png) for a compensation table."""
-    folder = Path(folder)
-    folder.mkdir(parents=True, exist_ok=True)
+    folder = make_folder(folder)
     data = table.to_dict()
     if check is not None:
         data["check"] = check
@@ -1083,8 +1082,7 @@ def run_report(res: RunResult, folder, tolerance_um: float | None = None, charac
 
     extra_figures: name -> (PNG path in ``folder``, caption), e.g. the paper study's figures.
     """
-    folder = Path(folder)
-    folder.mkdir(parents=True, exist_ok=True)
+    folder = make_folder(folder)
     figs = _figures(res, folder)
     data = result_json(res)
     kind = data["statement_kind"]
@@ -1092,8 +1090,10 @@ def run_report(res: RunResult, folder, tolerance_um: float | None = None, charac
           "## Kind of statement", "", md_escape(statement_kind_line(kind)), ""]
     if not res.complete:
         md += ["**INCOMPLETE run: partial results.**", ""]
-    if res.not_converged:
+    if res.not_converged:  # also the first row of the statement in brief (and the DCC's warning statement)
         md += ["**" + md_escape(not_converged_line(res.not_converged, res.trials)) + ".**", ""]
+        if too_many_not_converged(res.not_converged, res.trials):
+            md += ["**" + md_escape(no_certificate_line(res.not_converged, res.trials)) + ".**", ""]
     head = headline(res, tolerance_um, characteristic)
     data["statement"] = head
     md += headline_lines(head)
@@ -1252,8 +1252,7 @@ def posterior_report(post, folder, tolerance_um: float | None = None, characteri
 
     from .posterior import fit_said
 
-    folder = Path(folder)
-    folder.mkdir(parents=True, exist_ok=True)
+    folder = make_folder(folder)
     p = posterior_json(post, tolerance_um, characteristic)
     k, s, i = p["statement_kind"], p["summary"], p["identification"]
     r = s["u_over_u_linear"]

@@ -125,7 +125,14 @@ def certificate_id(res, fields: dict) -> str:
 
 
 def dcc_tree(res, tolerance_um: float | None = None, characteristic: str = "component") -> ET.ElementTree:
-    """The DCC of a run (a RunResult from ``runner.replay``) as an ElementTree."""
+    """The DCC of a run (a RunResult from ``runner.replay``) as an ElementTree; refused for a run whose identification
+    did not converge on more than ``outputs.MAX_NOT_CONVERGED`` of its trials (a smaller share is its warning
+    statement)."""
+    from .errors import IdentificationError
+    from .report import no_certificate_line, too_many_not_converged
+
+    if too_many_not_converged(res.not_converged, res.trials):
+        raise IdentificationError(no_certificate_line(res.not_converged, res.trials))
     h = headline(res, tolerance_um, characteristic)
     chain = ((res.spec or {}).get("config") or {}).get("machine", "XFYZ")
     return statement_tree(h, res.points(), coverage=float(res.coverage), frame=table_frame(res),
@@ -139,8 +146,11 @@ def posterior_dcc_tree(post, tolerance_um: float | None = None, characteristic: 
     """The DCC of an a posteriori statement (:class:`mtbudget.posterior.Posterior`): the same certificate as a run's
     (:func:`statement_tree`), its kind of statement the recording and its digest, its per-point estimate, u and
     interval, its U and decision, and the chi-square test's warning where the fit fails it."""
-    from .report import posterior_headline
+    from .errors import IdentificationError
+    from .report import no_certificate_line, posterior_headline, too_many_not_converged
 
+    if too_many_not_converged(post.data.get("not_converged", 0), post.data["trials"]):
+        raise IdentificationError(no_certificate_line(post.data["not_converged"], post.data["trials"]))
     h = posterior_headline(post, tolerance_um, characteristic)
     if not h["fields"].get("date_stated"):  # its performance date is the measurement's, never this evaluation's
         raise ConfigError(f"{post.data['statement_kind']['recording']}: recording.toml states no [report] date (the "

@@ -8,6 +8,7 @@ import html
 import math
 from pathlib import Path
 
+from .errors import make_folder
 from .report import md_escape
 from .units import display, pretty
 
@@ -584,8 +585,7 @@ def diagnosis_report(d, rec, folder) -> Path:
 
     from . import __version__
 
-    folder = Path(folder)
-    folder.mkdir(parents=True, exist_ok=True)
+    folder = make_folder(folder)
     _residual_figure(d, rec, folder / "residuals.png")
     doc = _Doc()
     doc.h(1, "Diagnosis of ", U(d.recording))

@@ -7,6 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .errors import make_folder
 from .report import angles_label, write_html
 from .units import factor
 
@@ -31,7 +32,7 @@ def placement_figures(res: dict, folder: Path) -> dict:
     import matplotlib.pyplot as plt
     from scipy import stats
 
-    folder.mkdir(parents=True, exist_ok=True)
+    folder = make_folder(folder)
     figs = {}
     for name, d in res["directions"].items():
         loc, err = d["best_location"], d["max_error_um"]
@@ -100,7 +101,7 @@ def verification_figures(res, init: np.ndarray, final: np.ndarray, mesh_pts: np.
     import matplotlib.pyplot as plt
     from scipy import stats
 
-    folder.mkdir(parents=True, exist_ok=True)
+    folder = make_folder(folder)
     figs = {}
     for name, data, fig_no in (("initial", init, 12), ("final", final, 14)):
         fig, axes = plt.subplots(1, 4, figsize=(15, 3.6))
@@ -245,7 +246,7 @@ def readings_text(r: dict) -> str:
 
 def readings_report(r: dict, folder: Path) -> Path:
     """readings.md and readings.json in ``folder``: the side-by-side tables of study.paper_readings."""
-    folder.mkdir(parents=True, exist_ok=True)
+    folder = make_folder(folder)
     (folder / "readings.md").write_text("# The paper's figures, every reading\n\n" + readings_text(r) + "\n")
     (folder / "readings.json").write_text(json.dumps(r, indent=1, default=float))
     return folder / "readings.md"
@@ -291,7 +292,7 @@ def stations_figure(r: dict, folder: Path) -> Path:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    folder.mkdir(parents=True, exist_ok=True)
+    folder = make_folder(folder)
     fig, axes = plt.subplots(3, 1, figsize=(9, 7), sharex=True)
     for a, ax in enumerate(axes):
         for v in r["variants"]:
@@ -412,7 +413,7 @@ def station_placement_figure(r: dict, folder: Path) -> Path:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    folder.mkdir(parents=True, exist_ok=True)
+    folder = make_folder(folder)
     cand = np.array([cd["place"][:3] for cd in r["candidates"]])
     mesh = np.asarray(r["mesh_points"])
     n = len(r["per_k"])

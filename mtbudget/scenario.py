@@ -40,7 +40,7 @@ from . import tracker as lt
 from .model import MeasurementModel
 from .plan import Plan
 from .plugins import PluginHost, call, default_host
-from .recording import UNCERTAINTIES, uncertainty_problem
+from .recording import UNCERTAINTIES, magnitude_problem, uncertainty_problem
 from .units import Q_, to_internal
 
 #: keys of the [sources] table that are not source names
@@ -476,6 +476,8 @@ def select_sources(config: SimulationConfig, host: PluginHost, names: list | Non
         try:
             s.configure(tables[s.name])
         except PluginError as exc:
+            if getattr(exc, "parameter", None):  # an implausible value: the key that states it
+                raise ConfigError(f"{config.where(f'sources.{s.name}.{exc.parameter}')}: {exc.problem}") from None
             raise ConfigError(f"{config.where('sources.' + s.name)}: {exc.reason}") from None
         problem = call(s, "check")
         if problem:
@@ -509,7 +511,8 @@ def _resolve_links(config: SimulationConfig, sources: list, tables: dict) -> dic
             here = f"sources.{s.name}.{param}"
             where = config.where(here)
             value = to_internal(tables[s.name][param], unit, where=where, error=ConfigError)
-            problem = uncertainty_problem(key, value) if key in UNCERTAINTIES else None
+            problem = uncertainty_problem(key, value) if key in UNCERTAINTIES else (  # machine_tool.cte
+                magnitude_problem("expansion coefficient", value))
             if problem:  # the rule of the key it states ([tracker], [machine_tool]), whichever key states it
                 raise ConfigError(f"{where}: {problem}")
             if key in stated_by and not np.isclose(value, drawn[key], rtol=1e-12, atol=0.0):

@@ -75,6 +75,7 @@ class TemperatureSensorCalibration(Source):
     distribution = "normal (Type B, Eq. 3)"
     targets = ("axis_scale.x", "axis_scale.y", "axis_scale.z")
     parameters = {"u_calibration": Q_(0.1, "K"), "k": Q_(2.0), "cte": Q_(11.5, "um/(m*K)")}
+    plausible = {"u_calibration": Q_(2.0, "K")}  # sensors are calibrated to 0.01-0.3 K
     links = {"cte": "machine_tool.cte"}
     nonnegative = ("u_calibration", "k")
 
@@ -117,6 +118,7 @@ class CTEUncertainty(Source):
     distribution = "rectangular (Eq. 10)"
     targets = ("axis_scale.x", "axis_scale.y", "axis_scale.z")
     parameters = {"cte": Q_(11.5, "um/(m*K)"), "fraction": Q_(0.10), "floor": Q_(0.002, "um/(mm*K)")}
+    plausible = {"fraction": Q_(1.0), "floor": Q_(50.0, "um/(m*K)")}  # a CTE known to 1-30 %; 2 um/(m*K)
     links = {"cte": "machine_tool.cte"}
     nonnegative = ("fraction", "floor")
 
@@ -169,6 +171,7 @@ class EnvironmentalVariation(Source):
     distribution = "rectangular (Eq. 14)"
     targets = ("point_offset",)
     parameters = {"E_VE": Q_(2.0, "um")}
+    plausible = {"E_VE": Q_(100.0, "um")}  # ISO 230-3 EVE: 1-20 um
     nonnegative = ("E_VE",)
 
     def standard_uncertainty(self):
@@ -209,6 +212,7 @@ class TemperatureDrift(Source):
     distribution = "normal rate"
     targets = ("axis_scale.x", "axis_scale.y", "axis_scale.z")
     parameters = {"rate": Q_(0.2, "K/h"), "cte": Q_(11.5, "um/(m*K)")}
+    plausible = {"rate": Q_(5.0, "K/h")}  # a workshop drifts by 0.1-1 K/h
     links = {"cte": "machine_tool.cte"}
     nonnegative = ("rate",)
 
@@ -253,6 +257,7 @@ class Backlash(Source):
     targets = ("axis_offset.x", "axis_offset.y", "axis_offset.z")
     parameters = {"B_max": Q_(3.0, "um")}
     nonnegative = ("B_max",)
+    plausible = {"B_max": Q_(200.0, "um")}  # a linear axis' backlash: 1-50 um
 
     def standard_uncertainty(self):
         return (self.parameters["B_max"] / math.sqrt(12)).to("um")
@@ -310,6 +315,7 @@ class ControlError(_PerPointNormal):
     group = Group.MACHINE_TOOL
     key = "C"
     parameters = {"C": Q_(0.5, "um")}
+    plausible = {"C": Q_(100.0, "um")}  # a servo error of 0.1-10 um
     nonnegative = ("C",)
 
 
@@ -325,6 +331,7 @@ class GeometricErrorUncertainty(Source):
     distribution = "normal or beta (Eq. 18-20)"
     targets = ("geometry.translational", "geometry.angular")
     parameters = {"translational": Q_(0.5, "um"), "angular": Q_(0.5, "urad"), "shape": "normal", "beta_a": Q_(2.0)}
+    plausible = {"translational": Q_(100.0, "um"), "angular": Q_(200.0, "urad")}  # 0.1-20 um, 0.1-40 urad
     nonnegative = ("translational", "angular", "beta_a")
 
     def check(self):
@@ -383,6 +390,7 @@ class ThermalExpansionEffect(Source):
     distribution = "fixed (simulated physics)"
     targets = ("axis_scale.x", "axis_scale.y", "axis_scale.z")
     parameters = {f"cte_{a}": Q_(0.0, "um/(m*K)") for a in AXES}
+    plausible = {f"cte_{a}": Q_(100.0, "um/(m*K)") for a in AXES}  # steel 11.5, aluminium 23
     opt_in = True
 
     def _prepare(self, ctx):
@@ -413,6 +421,7 @@ class ReversalEffect(Source):
     distribution = "fixed (simulated physics)"
     targets = ("axis_offset.x", "axis_offset.y", "axis_offset.z")
     parameters = {f"B_{a}": Q_(0.0, "um") for a in AXES}
+    plausible = {f"B_{a}": Q_(200.0, "um") for a in AXES}  # a reversal of 1-50 um
     opt_in = True
 
     def _prepare(self, ctx):
@@ -464,6 +473,7 @@ class AxisCouplingEffect(Source):
     distribution = "fixed (simulated physics)"
     targets = ("point_offset",)
     parameters = {"xy": Q_(0.0, "um"), "xz": Q_(0.0, "um"), "yz": Q_(0.0, "um")}
+    plausible = {k: Q_(500.0, "um") for k in ("xy", "xz", "yz")}  # coupling errors of 1-100 um
     opt_in = True
 
     def _prepare(self, ctx):
@@ -525,6 +535,7 @@ class InUse(Source):
     targets = ("measurand_offset",)
     parameters = {"R": Q_(1.5, "um"), "B_max": Q_(3.0, "um"), "u_cte": Q_(0.577, "um/(m*K)"),
                   "temperature_range": Q_(2.0, "K")}
+    plausible = {"B_max": Q_(200.0, "um"), "u_cte": Q_(50.0, "um/(m*K)"), "temperature_range": Q_(50.0, "K")}
     links = {"R": "machine_tool.repeatability"}
     nonnegative = ("R", "B_max", "u_cte", "temperature_range")
     #: it changes the measurand (the machine in use): off unless enabled (docs/measurand.md, "In use")
@@ -565,6 +576,7 @@ class RotaryRepeatability(Source):
     distribution = "normal"
     targets = ROTARY_TARGETS
     parameters = {"R": Q_(10.0, "urad")}
+    plausible = {"R": Q_(500.0, "urad")}  # a rotary axis repeats within 1-50 urad ([[features]] the same)
     nonnegative = ("R",)
 
     def standard_uncertainty(self):
@@ -601,6 +613,7 @@ class RotaryReversal(Source):
     distribution = "rectangular [0, B_max]"
     targets = ROTARY_TARGETS
     parameters = {"B_max": Q_(20.0, "urad"), "axes": "all"}
+    plausible = {"B_max": Q_(1000.0, "urad")}  # a rotary axis' reversal: 2-200 urad
     nonnegative = ("B_max",)
 
     def check(self):
@@ -664,6 +677,7 @@ class RotaryEncoder(Source):
     distribution = "two harmonics, amplitudes rectangular [0, E_max], uniform phases"
     targets = ROTARY_TARGETS
     parameters = {"E_max": Q_(10.0, "urad"), "axes": "all"}
+    plausible = {"E_max": Q_(1000.0, "urad")}  # an angle encoder's error: 1-200 urad
     nonnegative = ("E_max",)
 
     def check(self):
@@ -728,6 +742,7 @@ class SpindleGrowthEffect(Source):
     distribution = "fixed (simulated physics)"
     targets = ("point_offset",)
     parameters = {"growth": Q_(0.0, "um/K"), "rate": Q_(0.0, "um/h"), "sensor": "T_z"}
+    plausible = {"growth": Q_(200.0, "um/K"), "rate": Q_(500.0, "um/h")}  # a spindle grows 1-50 um/K
     opt_in = True
 
     def _prepare(self, ctx):
@@ -752,6 +767,7 @@ class ColumnTiltEffect(Source):
     distribution = "fixed (simulated physics)"
     targets = ("point_offset",)
     parameters = {"tilt_x": Q_(0.0, "urad/K"), "tilt_y": Q_(0.0, "urad/K"), "sensor": "T_z"}
+    plausible = {"tilt_x": Q_(200.0, "urad/K"), "tilt_y": Q_(200.0, "urad/K")}  # a column tilts 1-50 urad/K
     opt_in = True
 
     def _prepare(self, ctx):
@@ -776,6 +792,7 @@ class ToolLengthErrorEffect(Source):
     distribution = "fixed (simulated physics)"
     targets = ("point_offset",)
     parameters = {"error": Q_(0.0, "um"), "tool": Q_(2.0)}
+    plausible = {"error": Q_(2000.0, "um")}  # a tool length error of 1-500 um
     opt_in = True
 
     def _prepare(self, ctx):
@@ -805,6 +822,7 @@ class AxisPolynomialEffect(Source):
     distribution = "fixed (simulated physics)"
     targets = ("point_offset",)
     parameters = {"amplitude": Q_(0.0, "um"), "direction": "z", "px": Q_(1.0), "py": Q_(2.0), "pz": Q_(0.0)}
+    plausible = {"amplitude": Q_(500.0, "um")}  # errors of 1-100 um
     opt_in = True
 
     def _prepare(self, ctx):

@@ -22,6 +22,7 @@ class Registration(Source):
     distribution = "normal"
     targets = ("pose.position", "pose.orientation")
     parameters = {"u_position": Q_(0.5, "mm"), "u_orientation": Q_(100.0, "urad")}
+    plausible = {"u_position": Q_(10.0, "mm"), "u_orientation": Q_(10.0, "mrad")}  # 0.1-2 mm, 20-2000 urad
     nonnegative = ("u_position", "u_orientation")
 
     def standard_uncertainty(self):

@@ -33,6 +33,7 @@ class TrackerNoise(Source):
     links = {"angular_mean": "tracker.angular", "distance": "tracker.distance",
              "distance_per_length": "tracker.distance_per_length"}
     nonnegative = ("angular_mean", "angular_sd", "distance", "distance_per_length")
+    plausible = {"angular_sd": Q_(200.0, "urad")}  # the spread of the angular u between trackers: 0.5-5 urad
 
     def standard_uncertainty(self):
         return self.parameters["angular_mean"]
@@ -72,6 +73,7 @@ class SMRCentring(Source):
     distribution = "normal, perpendicular to the beam"
     targets = ("tracker_offset",)
     parameters = {"u_SMR": Q_(2.0, "um")}
+    plausible = {"u_SMR": Q_(50.0, "um")}  # an SMR is centred to 0.5-12 um
     nonnegative = ("u_SMR",)
 
     def standard_uncertainty(self):
@@ -114,6 +116,7 @@ class SoftwarePointUncertainty(Source):
     distribution = "normal"
     targets = ("tracker_offset",)
     parameters = {"u_MS": Q_(1.0, "um")}
+    plausible = {"u_MS": Q_(50.0, "um")}  # software: 0.1-5 um
     nonnegative = ("u_MS",)
 
     def standard_uncertainty(self):
@@ -132,6 +135,7 @@ class TrackerDriftEffect(Source):
     distribution = "fixed (simulated physics)"
     targets = ("point_offset",)
     parameters = {f"v_{a}": Q_(0.0, "um/h") for a in "xyz"}
+    plausible = {f"v_{a}": Q_(200.0, "um/h") for a in "xyz"}  # a tracker drifts by 0-20 um/h
     opt_in = True
 
     def sample_internal(self, n, rng, ctx):
@@ -152,6 +156,7 @@ class TrackerRangeOffsetEffect(Source):
     distribution = "fixed (simulated physics)"
     targets = ("spherical_noise.range",)
     parameters = {"offset": Q_(0.0, "um")}
+    plausible = {"offset": Q_(500.0, "um")}  # a range offset of 1-50 um
     opt_in = True
 
     def sample_internal(self, n, rng, ctx):
@@ -170,6 +175,7 @@ class AirTemperatureDriftEffect(Source):
     distribution = "fixed (simulated physics)"
     targets = ("point_offset",)
     parameters = {"sensitivity": Q_(0.0, "um/K")}
+    plausible = {"sensitivity": Q_(200.0, "um/K")}  # about 1 um/(m*K) of path: 1-30 um/K
     opt_in = True
 
     def sample_internal(self, n, rng, ctx):

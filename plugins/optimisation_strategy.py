@@ -63,6 +63,7 @@ class ModelForm(Source):
     distribution = "normal, per coefficient of the next Legendre degree"
     targets = ("geometry.translational", "geometry.angular")
     parameters = {"translational": Q_(2.0, "um"), "angular": Q_(10.0, "urad")}
+    plausible = {"translational": Q_(500.0, "um"), "angular": Q_(1000.0, "urad")}  # 0.5-100 um, 2-200 urad
     nonnegative = ("translational", "angular")
     #: it makes the simulated machine one degree richer: off unless enabled (docs/measurand.md, "Model form")
     opt_in = True
@@ -121,6 +122,7 @@ class ModelFormPeriodic(Source):
     targets = ("point_offset", "measurand_offset")
     parameters = {"lead_x": Q_(10.0, "mm"), "lead_y": Q_(10.0, "mm"), "lead_z": Q_(5.0, "mm"),
                   "u_x": Q_(1.0, "um"), "u_y": Q_(1.0, "um"), "u_z": Q_(1.0, "um")}
+    plausible = {**{f"lead_{a}": Q_(100.0, "mm") for a in "xyz"}, **{f"u_{a}": Q_(100.0, "um") for a in "xyz"}}
     nonnegative = ("u_x", "u_y", "u_z")
     #: it makes the simulated machine richer than any identification model: off unless enabled (docs/measurand.md)
     opt_in = True
@@ -209,6 +211,7 @@ class ModelFormCoupling(Source):
     distribution = "normal per coefficient of the cross terms P_i(u_a) P_j(u_b), per trial and pair"
     targets = ("point_offset", "measurand_offset")
     parameters = {"xy": Q_(1.0, "um"), "xz": Q_(1.0, "um"), "yz": Q_(1.0, "um"), "degree": Q_(2)}
+    plausible = {k: Q_(500.0, "um") for k in ("xy", "xz", "yz")}  # coupling errors of 1-100 um
     nonnegative = ("xy", "xz", "yz")
     opt_in = True
     systematic = "model form"

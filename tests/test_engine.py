@@ -176,9 +176,11 @@ def test_fallbacks_to_gauss_newton_are_counted_and_logged(small, tmp_path):
     from mtbudget.runner import execute, replay
 
     raw = copy.deepcopy(load_config(SMALL).source)
-    raw["geometric_errors"] = {"seed": 3, "translational": ["2.4 mm", "0.9 mm", "0.45 mm"],
-                               "angular": ["3000 urad", "1500 urad", "750 urad"], "squareness": "9000 urad"}
-    big = execute(parse_config(raw), trials=32, block=16, attribution_trials=0, log_path=tmp_path / "big.mcap")
+    cfg = parse_config(raw)
+    # beyond what a configuration accepts (recording.MAGNITUDES: a value in the next unit up is refused), set on the
+    # parsed configuration: the engine's fallback, not a plausible machine, is under test
+    cfg.geometric.update(seed=3, translational=[2.4, 0.9, 0.45], angular=[3000e-6, 1500e-6, 750e-6], squareness=9000e-6)
+    big = execute(cfg, trials=32, block=16, attribution_trials=0, log_path=tmp_path / "big.mcap")
     assert big.fallbacks == 32 and result_json(big)["fallbacks"] == 32
     assert "solved by full Gauss-Newton" in budget_text(big)
     assert replay(tmp_path / "big.mcap").fallbacks == 32

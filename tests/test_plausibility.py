@@ -420,3 +420,289 @@ def test_a_tight_instrument_with_unmodelled_drift_is_not_called_a_unit_slip():
     assert implausible(res(5e3, 0.010)) == []
     assert "chi-square per dof" in implausible(res(5e3, 2.0))[0]
     assert "chi-square per dof" in implausible(res(1e6, 0.004))[0]
+
+
+# ----------------------------------------------------------------------------- 5. the machine's values, same rule
+FIVE = Path(__file__).parent.parent / "examples" / "five_axis_cafxyz.toml"
+
+#: a value in the next unit up of a value in use, the key the one line names and the words it says (the new-user
+#: trial's slips first); each is refused by the configuration and by --set
+MACHINE_SLIPS = [
+    ("geometric_errors.rotary_zero", '"50 deg"', "geometric_errors.rotary_zero", "not a plausible angular error"),
+    ("geometric_errors.rotary_zero", '"50 mrad"', "geometric_errors.rotary_zero", "not a plausible angular error"),
+    ("geometric_errors.translational", '["8 mm", "3 um"]', r"geometric_errors.translational\[0\]",
+     "8000 um is not a plausible length error"),
+    ("geometric_errors.angular", '["20 urad", "8 mrad"]', r"geometric_errors.angular\[1\]",
+     "not a plausible angular error"),
+    ("geometric_errors.rotary_location", '"30 mm"', "geometric_errors.rotary_location", "not a plausible length error"),
+    ("geometric_errors.rotary_orientation", '"50 mrad"', "geometric_errors.rotary_orientation", "angular error"),
+    ("geometric_errors.squareness", '"30 deg"', "geometric_errors.squareness", "not a plausible angular error"),
+    ("effects.reversal.y", '"8 mm"', "effects.reversal.y", "8000 um is not a plausible reversal"),
+    ("effects.thermal.x", '"11.5 mm/(m*K)"', "effects.thermal.x", "not a plausible expansion coefficient"),
+    ("effects.drift", '["4 mm/h", "0 um/h", "0 um/h"]', r"effects.drift\[0\]", "4000 um/h is not a plausible"),
+    ("rotary.C.pivot", '["50 m", "-20 mm", "0 mm"]', "rotary.C.pivot", "is not a plausible pivot"),
+]
+
+
+@pytest.mark.parametrize("key, slip, named, words", MACHINE_SLIPS)
+def test_a_machine_value_in_the_next_unit_up_is_refused_in_one_line(key, slip, named, words):
+    with pytest.raises(ConfigError) as info:
+        load_config(FIVE, [f"{key}={slip}"])
+    msg = str(info.value)
+    assert re.match(rf"^{re.escape(str(FIVE))}: {named}: .*{re.escape(words)}.*; expected .*\(given with --set\)$",
+                    msg), msg
+    assert "\n" not in msg and "(" in msg.split("expected", 1)[1]  # the range and, in brackets, why
+
+
+def test_the_trial_slips_exit_2_in_one_line_before_any_computation(tmp_path):
+    """The new-user trial: rotary_zero = "50 deg" in the five-axis example sat 7 minutes and gave a certificate."""
+    cfg = tmp_path / "x.toml"
+    cfg.write_text(FIVE.read_text().replace('rotary_zero = "50 urad"', 'rotary_zero = "50 deg"', 1))
+    res = CliRunner().invoke(main, ["run", str(cfg), "--trials", "4", "--log", str(tmp_path / "x.mcap")])
+    lines = [ln for ln in res.output.splitlines() if ln.strip()]
+    assert res.exit_code == 2 and len(lines) == 1, res.output
+    assert lines[0].startswith(f"error: {cfg}: geometric_errors.rotary_zero: 872665 urad is not a plausible")
+    assert not (tmp_path / "x.mcap").exists()
+
+
+#: the bounds as docs/configuration.md states them ("Plausible values of the simulated machine"), in display units,
+#: written apart from the code's table: key to --set, unit, bound
+DOCUMENTED_MACHINE = [("geometric_errors.rotary_zero", "urad", 1000.0),
+                      ("geometric_errors.rotary_orientation", "urad", 1000.0),
+                      ("geometric_errors.squareness", "urad", 1000.0),
+                      ("geometric_errors.rotary_location", "um", 500.0),
+                      ("effects.reversal.x", "um", 200.0),
+                      ("effects.thermal.z", "um/(m*K)", 100.0),
+                      ("machine_tool.cte", "um/(m*K)", 100.0)]
+
+
+@pytest.mark.parametrize("factor", [0.99, 1.01])
+@pytest.mark.parametrize("key, unit, bound", DOCUMENTED_MACHINE)
+def test_the_documented_machine_bounds(key, unit, bound, factor):
+    value = f'"{-factor * bound if key.startswith("effects") else factor * bound:g} {unit}"'  # signed: |value|
+    if factor < 1:
+        load_config(FIVE, [f"{key}={value}"])
+    else:
+        with pytest.raises(ConfigError, match=rf"{re.escape(key)}: .* is not a plausible"):
+            load_config(FIVE, [f"{key}={value}"])
+
+
+def test_explicit_coefficients_and_iso_named_rotary_errors_obey_it(tmp_path):
+    raw = load_config(SMALL).source
+    raw["geometric_errors"] = {"coefficients": {"dx(x)": ["8 um", "0.8 um"], "ex(y)": ["20 urad"]},
+                               "squareness": {"sxy": "30 urad"}}
+    parse_config(copy.deepcopy(raw), SMALL)  # in use
+    for table, name, slip, words in (("coefficients", "dx(x)", ["8 um", "0.8 mm"], r"dx\(x\)\[1\]: 800 um"),
+                                     ("coefficients", "ex(y)", ["20 mrad"], r"ex\(y\): 20000 urad"),
+                                     ("squareness", "sxy", "30 mrad", "sxy: 30000 urad")):
+        bad = copy.deepcopy(raw)
+        bad["geometric_errors"][table][name] = slip
+        with pytest.raises(ConfigError, match=rf"small\.toml: geometric_errors\.{table}\.{words} is not a plausible"):
+            parse_config(bad, SMALL)
+    with pytest.raises(ConfigError, match=r"geometric_errors\.rotary\.ECOC: 50000 urad is not a plausible"):
+        load_config(FIVE, ['geometric_errors.rotary.ECOC=50 mrad'])
+    load_config(FIVE, ['geometric_errors.rotary.ECOC=50 urad', 'geometric_errors.rotary.EXOC=30 um'])
+
+
+def test_a_pivot_is_bounded_by_the_travel():
+    """The five-axis example's linear travel is 400 mm at most (x, y: -200..200 mm): a pivot up to 5 x 400 = 2000 mm
+    outside the box of the mesh and the machine zero stands, farther is refused, whatever its direction."""
+    load_config(FIVE, ['rotary.C.pivot=["2190 mm", "-20 mm", "0 mm"]'])  # 1990 mm beyond x = 200 mm
+    with pytest.raises(ConfigError, match=r"rotary\.C\.pivot: 2010 mm outside the verified volume .* within 2000 mm"):
+        load_config(FIVE, ['rotary.C.pivot=["2210 mm", "-20 mm", "0 mm"]'])
+    d = 2010.0 / np.sqrt(3)  # the distance to the box's corner, not per coordinate
+    with pytest.raises(ConfigError, match=r"rotary\.A\.pivot: 2010 mm outside"):
+        load_config(FIVE, [f'rotary.A.pivot=["{200 + d:.6f} mm", "{200 + d:.6f} mm", "{200 + d:.6f} mm"]'])
+
+
+# ----------------------------------------------------------------------------- 6. the sources' own bounds
+def test_every_source_bound_follows_the_rule():
+    """Every ``plausible`` bound names a parameter, has its dimension, and obeys the rule for the default in use:
+    at least 3 times it (several times what is in use) and below 1000 times it (the next unit up is refused)."""
+    import pint
+
+    from mtbudget.contracts import Source
+
+    classes, seen = [Source], []
+    while classes:
+        c = classes.pop()
+        seen.append(c)
+        classes.extend(c.__subclasses__())
+    bounded = [c for c in seen if c.__dict__.get("plausible")]
+    assert len(bounded) >= 20, [c.__name__ for c in bounded]
+    names = {c.name for c in bounded}
+    assert {"rotary_encoder", "rotary_reversal", "backlash", "reversal", "thermal_expansion"} <= names, names
+    for c in bounded:
+        for k, bound in c.plausible.items():
+            assert k in c.parameters and k not in c.links, (c.name, k)
+            default = c.parameters[k]
+            assert isinstance(default, pint.Quantity) and bound.dimensionality == default.dimensionality, (c.name, k)
+            d = abs(float(default.to(bound.units).magnitude))
+            if d:
+                assert 3 * d <= bound.magnitude < 1000 * d, (c.name, k, d, bound)
+            assert c().plausibility_problem(k) is None
+
+
+@pytest.mark.parametrize("source, param, slip, shown", [
+    ("rotary_encoder", "E_max", "10 deg", "174533 urad is not plausible; expected at most 1000 urad"),
+    ("rotary_reversal", "B_max", "20 mrad", "20000 urad is not plausible; expected at most 1000 urad"),
+    ("backlash", "B_max", "3 mm", "3000 um is not plausible; expected at most 200 um"),
+])
+def test_a_source_parameter_in_the_next_unit_up_is_refused_naming_its_key(source, param, slip, shown):
+    with pytest.raises(ConfigError) as info:
+        build_scenario(load_config(FIVE, [f"sources.{source}.{param}={slip}"]))
+    assert str(info.value) == (f"{FIVE}: sources.{source}.{param}: {shown} in magnitude (several times the poorest "
+                               "in use; a value in the next unit up?) (given with --set)")
+
+
+def test_a_plugin_authors_bound_is_checked_where_the_parameter_is_set():
+    from mtbudget.contracts import Source
+    from mtbudget.errors import PluginError
+    from mtbudget.units import Q_
+
+    class Wobble(Source):
+        name = "wobble"
+        parameters = {"amplitude": Q_(2.0, "um")}
+        plausible = {"amplitude": Q_(100.0, "um")}
+
+    assert Wobble(amplitude="-90 um").parameters["amplitude"].magnitude == -90
+    with pytest.raises(PluginError, match=r"source 'wobble': parameter 'amplitude': -2000 um is not plausible"):
+        Wobble(amplitude="-2 mm")
+
+
+# ----------------------------------------------------------------------------- 7. a run that does not converge
+@pytest.fixture
+def iteration_limit_of_one(monkeypatch):
+    """The identification held to one iteration (and one chord step): no trial reaches its minimum."""
+    import dataclasses
+
+    import mtbudget.engine as engine_module
+
+    real = engine_module.identify
+
+    def limited(model, meas, x0, strategy, *args, **kwargs):
+        return real(model, meas, x0, dataclasses.replace(strategy, max_iter=1, chord_iter=1), *args, **kwargs)
+
+    monkeypatch.setattr(engine_module, "identify", limited)
+
+
+def test_a_run_that_does_not_converge_says_so_first_and_gets_no_certificate(tmp_path, iteration_limit_of_one):
+    log, out = tmp_path / "x.mcap", tmp_path / "rep"
+    out.mkdir()
+    (out / "certificate.xml").write_text("<a previous run's certificate/>")
+    res = CliRunner().invoke(main, ["run", str(SMALL), "--trials", "16", "--attribution-trials", "0", "--log", str(log),
+                                    "--quiet"])
+    assert res.exit_code == 0, res.output
+    assert res.stdout.startswith("WARNING: the identification of 16 of 16 trials (100 %) did not converge"), res.stdout
+    assert "NOT A STATEMENT TO SIGN" in res.stdout.splitlines()[1]
+    assert "warning: the identification of 16 of 16 trials" in res.stderr
+    rep = CliRunner().invoke(main, ["report", str(log), "--out", str(out)])
+    assert rep.exit_code == 0, rep.output
+    assert "warning: certificate.xml is not written: the identification of 16 of 16 trials" in rep.stderr
+    assert not (out / "certificate.xml").exists()  # nor a previous one standing for this run
+    md = (out / "report.md").read_text()
+    assert "| WARNING | **WARNING: the identification of 16 of 16 trials" in md and "certificate.xml is not written" in md
+    from mtbudget.errors import IdentificationError
+    from mtbudget.report_dcc import write_dcc
+    from mtbudget.runner import replay
+
+    with pytest.raises(IdentificationError, match="certificate.xml is not written"):
+        write_dcc(replay(log), tmp_path / "c.xml")
+
+
+def test_a_small_share_that_does_not_converge_is_the_certificates_warning_statement(tmp_path, monkeypatch):
+    """At or below the share (1 %) the DCC is written, and says it in its statements (dcc:statement 'warning')."""
+    import xml.etree.ElementTree as ET
+
+    import mtbudget.outputs as outputs_module
+    from mtbudget.report import too_many_not_converged
+    from mtbudget.report_dcc import write_dcc
+    from mtbudget.runner import run
+
+    assert not too_many_not_converged(1, 100) and too_many_not_converged(2, 100) and too_many_not_converged(1, 16)
+    res = run(load_config(SMALL), trials=16, block=8, attribution_trials=0)
+    path = write_dcc(res, tmp_path / "ok.xml")
+    assert "did not converge" not in path.read_text()
+    res.acc.not_converged = 1
+    monkeypatch.setattr(outputs_module, "MAX_NOT_CONVERGED", 0.1)  # 1 of 16 below the share
+    root = ET.parse(write_dcc(res, tmp_path / "c.xml")).getroot()
+    ns = {"dcc": "https://ptb.de/dcc"}
+    said = {s.find("dcc:name/dcc:content", ns).text: s.find("dcc:declaration/dcc:content", ns).text
+            for s in root.iterfind(".//dcc:statements/dcc:statement", ns)}
+    assert said["warning"].startswith("WARNING: the identification of 1 of 16 trials (6.25 %) did not converge"), said
+
+
+def test_a_cte_stated_through_a_thermal_source_obeys_the_rule_of_its_key():
+    """machine_tool.cte and the thermal sources' linked ``cte`` state one physical input: one bound for both (it was
+    unchecked through the source)."""
+    with pytest.raises(ConfigError, match=r"sources\.cte_uncertainty\.cte: 11500 um/\(m\*K\) is not a plausible "
+                                          r"expansion coefficient; expected at most 100 um/\(m\*K\)"):
+        build_scenario(load_config(SMALL, ["sources.cte_uncertainty.cte=11.5 mm/(m*K)"]))
+    build_scenario(load_config(SMALL, ["sources.cte_uncertainty.cte=23 um/(m*K)"]))  # aluminium
+
+
+def test_a_recordings_pivot_is_bounded_by_its_recorded_travel(tmp_path):
+    """The reader holds a recording's [rotary.<axis>] pivot to the configuration's rule, against the commanded x, y,
+    z it recorded; the generated recording (its pivots 50 mm from the table centre) reads."""
+    sys.path.insert(0, str(HERE))
+    from fiveaxis_generator import make_recording
+
+    folder = tmp_path / "r"
+    make_recording(folder, "CAFXYZ", seed=2)
+    rec = read_recording(folder)
+    xyz = rec.plan.nominal
+    travel = float((xyz.max(axis=0) - xyz.min(axis=0)).max())
+    reach = max(5 * travel, 1000.0)
+    text = (folder / "recording.toml").read_text()
+    old = 'pivot = ["50 mm", "-20 mm", "0 mm"]'
+    assert text.count(old) == 1
+    far = max(xyz[:, 0].max(), 0.0) + reach + 10.0  # 10 mm beyond the bound along +x
+    (folder / "recording.toml").write_text(text.replace(old, f'pivot = ["{far:.6f} mm", "-20 mm", "0 mm"]'))
+    with pytest.raises(RecordingError, match=rf"recording\.toml, rotary\.C\.pivot: {reach + 10:g} mm outside the "
+                                             rf"verified volume .* expected within {reach:g} mm"):
+        read_recording(folder)
+    (folder / "recording.toml").write_text(text.replace(old, f'pivot = ["{far - 20:.6f} mm", "-20 mm", "0 mm"]'))
+    read_recording(folder)
+
+
+ROOT = HERE.parent
+SHIPPED = sorted([*ROOT.glob("examples/*.toml"), *ROOT.glob("mtbudget/data/*.toml"), *ROOT.glob("tests/data/*.toml")])
+
+
+@pytest.mark.parametrize("path", SHIPPED, ids=lambda p: f"{p.parent.name}/{p.name}")
+def test_no_value_in_use_is_refused(path):
+    """The bounds refuse no value of a shipped configuration (its sources built too) nor of a bundled recording."""
+    assert len(SHIPPED) >= 11
+    build_scenario(load_config(path))
+
+
+@pytest.mark.parametrize("name", ["null", "thermal_x", "reversal_y", "tracker_drift", "four_stations"])
+def test_no_bundled_recording_is_refused(name):
+    read_recording(example_recording(name), several_stations=True)
+
+
+def test_an_a_posteriori_statement_whose_trials_do_not_converge_gets_no_certificate(tmp_path, monkeypatch):
+    """The recording's own identification as it is, its Monte Carlo trials held to one iteration: the statement says
+    so first, and no certificate.xml is written although recording.toml states its date."""
+    import mtbudget.posterior as posterior_module
+    from mtbudget.identify import Strategy
+
+    real, calls = posterior_module.identify, []
+
+    def trials_limited(model, y, noise, *args, **kwargs):
+        calls.append(1)
+        if len(calls) == 1:  # the recording's identification
+            return real(model, y, noise, *args, **kwargs)
+        return real(model, y, noise, Strategy(max_iter=1, chord_iter=1), *args, **kwargs)
+
+    monkeypatch.setattr(posterior_module, "identify", trials_limited)
+    folder = _copy_null(tmp_path)
+    with (folder / "recording.toml").open("a") as f:
+        f.write('\n[report]\ndate = "2026-11-20"\n')
+    out = tmp_path / "post"
+    res = CliRunner().invoke(main, ["posterior", str(folder), "--trials", "8", "--out", str(out)])
+    assert res.exit_code == 0, res.output
+    assert res.stdout.startswith("WARNING: the identification of 8 of 8 trials (100 %) did not converge"), res.stdout
+    assert "warning: certificate.xml is not written: the identification of 8 of 8 trials" in res.stderr
+    assert not (out / "certificate.xml").exists() and (out / "posterior.md").exists()
+    assert "WARNING: the identification of 8 of 8 trials" in (out / "posterior.md").read_text()
