@@ -376,7 +376,9 @@ def posterior_cmd(recording, example, trials, seed, coverage, noise, max_degree,
 
         from .report import no_certificate_line, too_many_not_converged
 
+        make_folder(out, "--out")  # a folder that cannot be made (as root, /proc passes the early check) names --out
         paths = posterior_report(post, out, tol, characteristic)
+        _remove_stale_certificate(out)  # written again below if this statement gives one
         if too_many_not_converged(p.get("not_converged", 0), p["trials"]):  # as a run's: no certificate
             said = "; " + no_certificate_line(p["not_converged"], p["trials"])
             click.echo(f"warning: {said[2:]}", err=True)
@@ -389,6 +391,15 @@ def posterior_cmd(recording, example, trials, seed, coverage, noise, max_degree,
             click.echo(f"note: {said[2:]}", err=True)
         if not as_json:  # stdout stays one JSON object
             click.echo(f"wrote {paths['markdown']}, {paths['html']}, {paths['json']}{said}")
+
+
+def _remove_stale_certificate(out) -> None:
+    """A certificate.xml left in an output folder by an earlier statement must not stand for this one: removed
+    before a statement that writes none (``report`` of a run that did not converge, ``posterior`` without a [report]
+    date or with too many trials not converged)."""
+    stale = Path(out) / "certificate.xml"
+    if stale.exists():
+        stale.unlink()
 
 
 @main.command("compensate")
@@ -885,12 +896,11 @@ def report(runlog, out, tolerance, characteristic):
 
     refused = too_many_not_converged(res.not_converged, res.trials)
     with working("report and figures"):
+        make_folder(out, "--out")
         paths = run_report(res, out, tol, characteristic)
         dcc = None if refused else write_dcc(res, Path(out) / "certificate.xml", tol, characteristic)
     if refused:  # as a posteriori without a date: said, the report written, no certificate
-        stale = Path(out) / "certificate.xml"
-        if stale.exists():  # a previous run's certificate in the same folder must not stand for this one
-            stale.unlink()
+        _remove_stale_certificate(out)
         click.echo(f"warning: {no_certificate_line(res.not_converged, res.trials)}", err=True)
     if tol is not None:  # the decision on the console too, not only below the report's tables
         from .budget import conformance

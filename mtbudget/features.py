@@ -988,7 +988,8 @@ def points_text(f: dict) -> str:
         rows.append(t)
     five = any(a for _, a, _ in probed_points(f))
     return ("Probed points (commanded position of the linear axes" + (" and commanded rotary angles" if five else "")
-            + (", and the nominal point on the part in the workpiece (table) frame" if f.get("nominal_points") else "")
+            + (f", and the nominal point on the part in the {f['nominal_points'].get('frame', WORKPIECE_FRAME)}"
+               if f.get("nominal_points") else "")
             + "): " + "; ".join(rows))
 
 

@@ -91,11 +91,12 @@ UNCERTAINTIES = {
 #: or "50 deg" for "50 urad") is refused, never simulated.  kind -> (internal unit, display unit, the largest
 #: |value|, why).  The sources' parameters declare theirs (``Source.plausible``, mtbudget.contracts).
 MAGNITUDES = {
-    "length error": ("mm", "um", 0.5, "a machine tool's positioning, straightness and rotary location errors are "
-                                      "1-100 um"),
+    "length error": ("mm", "um", 2.0, "a machine tool's positioning, straightness and rotary location errors are "
+                                      "1-100 um per metre of travel: up to about 1 mm on an uncompensated 10 m gantry"),
     "angular error": ("rad", "urad", 1e-3, "a machine tool's angular, squareness, orientation and zero errors are "
                                            "2-200 urad"),
-    "reversal": ("mm", "um", 0.2, "a linear axis' reversal (backlash) is 1-50 um"),
+    "reversal": ("mm", "um", 0.5, "a linear axis' reversal (backlash) is 1-50 um, up to 250 um on a large "
+                                  "rack-and-pinion gantry"),
     "expansion coefficient": ("1/K", "um/(m*K)", 100e-6, "a machine axis or its scale expands by -1-25 "
                                                           "um/(m*K): glass ceramic 0, steel 11.5, aluminium 23"),
     "tracker drift": ("mm/s", "um/h", 0.2 / 3600, "a laser tracker drifts by 0-20 um/h"),
@@ -165,6 +166,17 @@ STATION_KEYS = ("id", "kind", "angular", "distance", "distance_per_length", "des
 MIN_STATION_POINTS = {"xyz": 3, "range": 4}
 #: plausible nominal CTE of an axis scale (1/K): glass ceramics and Invar near 0, steel 11.5, aluminium 23
 CTE_RANGE = (-2e-6, 30e-6)
+
+
+def cte_problem(cte: float) -> str | None:
+    """None when ``cte`` (1/K) is a plausible expansion coefficient of a machine's axis or scale (:data:`CTE_RANGE`:
+    glass ceramic about 0, steel 11.5, aluminium 23 um/(m*K)); otherwise what is wrong.  The one rule of every key
+    that states it: [scales.<axis>] cte in a configuration and a recording, [machine_tool] cte and the sources'
+    cte linked to it."""
+    if math.isfinite(cte) and CTE_RANGE[0] <= cte <= CTE_RANGE[1]:
+        return None
+    return (f"{cte * 1e6:g} um/(m*K) is not a plausible expansion coefficient of a machine's axis or scale (expected "
+            f"{CTE_RANGE[0] * 1e6:g} to {CTE_RANGE[1] * 1e6:g} um/(m*K): glass ceramic 0, steel 11.5, aluminium 23)")
 
 #: bytes that are common non-UTF-8 characters of real exports (Latin-1 / Windows-1252)
 _LATIN1_HINTS = {0xB5: "µ (micro)", 0xB0: "° (degree)", 0xB2: "² (squared)", 0xB3: "³ (cubed)", 0xE4: "ä", 0xF6: "ö",
@@ -493,9 +505,8 @@ def _scales(meta, path, sensors) -> dict:
             raise RecordingError("missing key 'cte', the nominal expansion coefficient of the scale "
                                  "(for example \"11.5 um/(m*K)\")", path, key=f"{where}.cte")
         cte = _quantity(t["cte"], path=path, key=f"{where}.cte", dim=None, unit="1/K")
-        if not CTE_RANGE[0] <= cte <= CTE_RANGE[1]:
-            raise RecordingError(f"{t['cte']!r:.60} is not a plausible expansion coefficient of a scale (expected "
-                                 f"{CTE_RANGE[0] * 1e6:g} to {CTE_RANGE[1] * 1e6:g} um/(m*K))", path, key=f"{where}.cte")
+        if cte_problem(cte):
+            raise RecordingError(cte_problem(cte), path, key=f"{where}.cte")
         x0 = _quantity(t.get("fixed_point", "0 mm"), path=path, key=f"{where}.fixed_point", dim=None, unit="mm")
         if abs(x0) > MAX_LENGTH:
             raise RecordingError(f"{t['fixed_point']!r:.60} is not a plausible position (at most {MAX_LENGTH:g} mm)",

@@ -344,8 +344,9 @@ def _feature_points(results, feats):
                 _quantity(pl, f"commanded {a} angle (rotary axis)", label=f"commanded_{a}", value=v,
                           unit=DSI_UNITS["deg"], nd=4)
             if nom is not None:
+                nf = (f.get("nominal_points") or {}).get("frame", "workpiece (table) frame")  # a head-side: machine
                 for a, v in zip("xyz", nom):
-                    _quantity(pl, f"nominal {a} of the point on the part, workpiece (table) frame", label=f"nominal_{a}",
+                    _quantity(pl, f"nominal {a} of the point on the part, {nf}", label=f"nominal_{a}",
                               value=v, unit=DSI_UNITS["mm"], nd=4)
 
 

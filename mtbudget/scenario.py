@@ -40,7 +40,7 @@ from . import tracker as lt
 from .model import MeasurementModel
 from .plan import Plan
 from .plugins import PluginHost, call, default_host
-from .recording import UNCERTAINTIES, magnitude_problem, uncertainty_problem
+from .recording import UNCERTAINTIES, cte_problem, uncertainty_problem
 from .units import Q_, to_internal
 
 #: keys of the [sources] table that are not source names
@@ -511,8 +511,7 @@ def _resolve_links(config: SimulationConfig, sources: list, tables: dict) -> dic
             here = f"sources.{s.name}.{param}"
             where = config.where(here)
             value = to_internal(tables[s.name][param], unit, where=where, error=ConfigError)
-            problem = uncertainty_problem(key, value) if key in UNCERTAINTIES else (  # machine_tool.cte
-                magnitude_problem("expansion coefficient", value))
+            problem = uncertainty_problem(key, value) if key in UNCERTAINTIES else cte_problem(value)  # machine_tool.cte
             if problem:  # the rule of the key it states ([tracker], [machine_tool]), whichever key states it
                 raise ConfigError(f"{where}: {problem}")
             if key in stated_by and not np.isclose(value, drawn[key], rtol=1e-12, atol=0.0):

@@ -171,7 +171,7 @@ class EnvironmentalVariation(Source):
     distribution = "rectangular (Eq. 14)"
     targets = ("point_offset",)
     parameters = {"E_VE": Q_(2.0, "um")}
-    plausible = {"E_VE": Q_(100.0, "um")}  # ISO 230-3 EVE: 1-20 um
+    plausible = {"E_VE": Q_(1000.0, "um")}  # ISO 230-3 EVE: 1-20 um; steel over 10 m at 2 K: 230 um
     nonnegative = ("E_VE",)
 
     def standard_uncertainty(self):
@@ -257,7 +257,7 @@ class Backlash(Source):
     targets = ("axis_offset.x", "axis_offset.y", "axis_offset.z")
     parameters = {"B_max": Q_(3.0, "um")}
     nonnegative = ("B_max",)
-    plausible = {"B_max": Q_(200.0, "um")}  # a linear axis' backlash: 1-50 um
+    plausible = {"B_max": Q_(500.0, "um")}  # a linear axis' backlash: 1-50 um, 250 um on a large gantry
 
     def standard_uncertainty(self):
         return (self.parameters["B_max"] / math.sqrt(12)).to("um")
@@ -421,7 +421,7 @@ class ReversalEffect(Source):
     distribution = "fixed (simulated physics)"
     targets = ("axis_offset.x", "axis_offset.y", "axis_offset.z")
     parameters = {f"B_{a}": Q_(0.0, "um") for a in AXES}
-    plausible = {f"B_{a}": Q_(200.0, "um") for a in AXES}  # a reversal of 1-50 um
+    plausible = {f"B_{a}": Q_(500.0, "um") for a in AXES}  # a reversal of 1-50 um, 250 um on a large gantry
     opt_in = True
 
     def _prepare(self, ctx):
@@ -592,7 +592,15 @@ def _rotary_axes_on(src, ctx) -> list:
     "a, c"); the others draw as usual (the same random numbers) and get nothing."""
     want = str(src.parameters.get("axes", "all")).strip().lower()
     letters = _rotary_letters(ctx)
-    return letters if want in ("", "all") else [r for r in letters if r in want]
+    if want in ("", "all"):
+        return letters
+    missing = sorted(set(want) & set("abc") - set(letters))
+    if missing:  # a letter the machine does not have: the source would act on nothing, said as a mistake
+        from mtbudget.errors import ConfigError
+
+        raise ConfigError(f"sources.{src.name}.axes: the machine has no rotary axis {', '.join(m.upper() for m in missing)} "
+                          f"(its rotary axes: {', '.join(r.upper() for r in letters) or 'none'})")
+    return [r for r in letters if r in want]
 
 
 def _axes_problem(src) -> str | None:

@@ -122,7 +122,8 @@ class ModelFormPeriodic(Source):
     targets = ("point_offset", "measurand_offset")
     parameters = {"lead_x": Q_(10.0, "mm"), "lead_y": Q_(10.0, "mm"), "lead_z": Q_(5.0, "mm"),
                   "u_x": Q_(1.0, "um"), "u_y": Q_(1.0, "um"), "u_z": Q_(1.0, "um")}
-    plausible = {**{f"lead_{a}": Q_(100.0, "mm") for a in "xyz"}, **{f"u_{a}": Q_(100.0, "um") for a in "xyz"}}
+    #: a ball screw's lead is 5-50 mm, a rack-and-pinion's period pi m z 300-500 mm
+    plausible = {**{f"lead_{a}": Q_(2000.0, "mm") for a in "xyz"}, **{f"u_{a}": Q_(100.0, "um") for a in "xyz"}}
     nonnegative = ("u_x", "u_y", "u_z")
     #: it makes the simulated machine richer than any identification model: off unless enabled (docs/measurand.md)
     opt_in = True

@@ -295,3 +295,15 @@ def test_the_example_as_it_is_names_only_rotary_effects_it_drew(tmp_path):
     for lb in named:
         v = truth["diagnosable"][lb]["value"]
         assert any(abs(x) > 1 for x in (v if isinstance(v, list) else [v]) if x is not None), lb
+
+
+def test_a_rotary_source_on_an_axis_the_machine_does_not_have_is_refused_in_one_line(tmp_path):
+    """CAFXYZ has A and C: `axes = "b"` would act on nothing (its row zero, its u printed): one line, exit 2."""
+    from click.testing import CliRunner
+
+    from mtbudget.cli import main
+
+    res = CliRunner().invoke(main, ["run", str(EXAMPLE), "--trials", "4", "--attribution-trials", "0", "--quiet",
+                                    "--set", "sources.rotary_reversal.axes=c, b", "--log", str(tmp_path / "x.mcap")])
+    assert res.exit_code == 2 and res.output.count("\n") == 1, res.output
+    assert "sources.rotary_reversal.axes: the machine has no rotary axis B (its rotary axes: A, C)" in res.output

@@ -551,3 +551,24 @@ def test_the_report_and_the_dcc_list_each_features_commanded_points_angles_and_p
     first = [{q.find("si:real/si:label", NS).text: float(q.find("si:real/si:value", NS).text)
               for q in pl.findall("dcc:quantity", NS)} for pl in lists[0].findall("dcc:list", NS)]
     assert [[p[f"nominal_{a}"] for a in "xyz"] for p in first] == [[150, 0, -50], [70, -120, -50]]
+
+
+def test_a_head_side_machine_states_its_features_points_in_the_machine_frame(tmp_path):
+    """YFXZAC: the rotary axes carry the tool, the part stays in the machine frame; the report and the DCC must not
+    call its nominal points the workpiece (table) frame (they did, from a fixed label)."""
+    from mtbudget.report import result_json, run_report
+    from mtbudget.report_dcc import write_dcc
+    from mtbudget.runner import replay
+
+    log = tmp_path / "h.mcap"
+    res = CliRunner().invoke(main, ["run", str(bundled_config("five_axis_features")), "--set", "machine=YFXZAC",
+                                    "--trials", "16", "--block", "16", "--attribution-trials", "0", "--quiet",
+                                    "--log", str(log)])
+    assert res.exit_code == 0, res.output
+    again = replay(log)
+    j = result_json(again)["features"][0]
+    assert j["frame"] == "machine frame" == j["nominal_points"]["frame"]
+    md = run_report(again, tmp_path / "rep")["markdown"].read_text()
+    xml = write_dcc(again, tmp_path / "c.xml").read_text()
+    assert "nominal point on the part in the machine frame" in md and "workpiece (table) frame" not in md
+    assert "of the point on the part, machine frame" in xml and "of the point on the part, workpiece" not in xml

@@ -224,3 +224,16 @@ def test_the_report_table_is_read_and_written_back(tmp_path):
     again = read_recording(write_recording(rec, tmp_path / "again"))
     assert again.report == rec.report
     assert read_recording(example_recording("null")).report == {}
+
+
+def test_a_statement_without_a_certificate_leaves_no_earlier_certificate_in_its_folder(tmp_path, stated):
+    """The folder of a dated statement holds its certificate.xml; an undated recording's statement into the same
+    folder writes none and must not leave the earlier one standing for it."""
+    _, out, _ = stated
+    folder = tmp_path / "again"
+    shutil.copytree(out, folder)
+    assert (folder / "certificate.xml").exists()
+    r = CliRunner().invoke(main, ["posterior", str(example_recording("null")), "--trials", "16", "--out", str(folder),
+                                  "--quiet"])
+    assert r.exit_code == 0, r.output
+    assert "certificate.xml is not written" in r.output and not (folder / "certificate.xml").exists()
