@@ -155,6 +155,11 @@ def main(argv=None):
             hits.setdefault(f["kind"], []).append(inside)
             print(f"machine {m + 1} ({7 + m}): {f['name']:<22} stated u {s['u']:8.3f} {s['unit']:<4}, part errors' "
                   f"std {E[:, k].std(ddof=1):8.3f}, coverage {inside.mean():6.1%}", flush=True)
+    return coverage_summary(hits, args, t0)
+
+
+def coverage_summary(hits: dict, args, t0: float) -> int:
+    """Print each feature kind's empirical coverage against BAND; 0 when every kind is inside it (both benchmarks)."""
     print(f"\nEmpirical coverage of the stated 95 % intervals per feature kind ({args.machines} machines x {args.parts} "
           f"parts, {args.trials} trials per statement; {time.perf_counter() - t0:.0f} s, load {os.getloadavg()[0]:.1f}):")
     ok = True

@@ -36,7 +36,7 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from bench_features_coverage import BAND, points_of, q, value  # noqa: E402
+from bench_features_coverage import coverage_summary, points_of, q, value  # noqa: E402
 
 from mtbudget.config import bundled_config, parse_config  # noqa: E402
 from mtbudget.engine import Engine  # noqa: E402
@@ -143,16 +143,7 @@ def main(argv=None):
             hits.setdefault(f["kind"], []).append(inside)
             print(f"machine {m + 1} ({11 + m}): {f['name']:<16} stated u {s['u']:7.3f} {s['unit']:<4}, part errors' "
                   f"std {E[:, k].std(ddof=1):7.3f}, coverage {inside.mean():6.1%}", flush=True)
-    print(f"\nEmpirical coverage of the stated 95 % intervals per feature kind ({args.machines} machines x {args.parts} "
-          f"parts, {args.trials} trials per statement; {time.perf_counter() - t0:.0f} s, load {os.getloadavg()[0]:.1f}):")
-    ok = True
-    for kind, h in hits.items():
-        h = np.concatenate(h)
-        c = 100 * h.mean()
-        good = BAND[0] <= c <= BAND[1]
-        ok &= good
-        print(f"  {kind:<12} {c:5.1f} %  of {len(h)} part-features  {'in' if good else 'OUTSIDE'} [{BAND[0]}, {BAND[1]}] %")
-    return 0 if ok else 1
+    return coverage_summary(hits, args, t0)
 
 
 if __name__ == "__main__":

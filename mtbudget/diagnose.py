@@ -948,33 +948,28 @@ def _stations_whitener(L, scale=None):
     return whiten
 
 
-def _expand_per_station(candidates, ctx):
-    """A candidate with a ``per_station(ctx)`` method stands for one candidate per station of the recording."""
+def _expand(candidates, ctx, method: str):
+    """A candidate with a ``method(ctx)`` (``per_station``: one candidate per station of the recording;
+    ``per_rotary_axis``: one per rotary axis, none on a three-axis machine, where it is then not listed at all rather
+    than skipped on every three-axis recording) stands for the candidates that method returns."""
     out = []
     for c in candidates:
-        if not callable(getattr(c, "per_station", None)):
+        if not callable(getattr(c, method, None)):
             out.append(c)
             continue
-        got = _call(c, "per_station", ctx)
+        got = _call(c, method, ctx)
         if not isinstance(got, (list, tuple)) or not all(isinstance(x, Candidate) for x in got):
-            _fail(c, f"must return a list of candidates, got {type(got).__name__}", "per_station")
+            _fail(c, f"must return a list of candidates, got {type(got).__name__}", method)
         out += list(got)
     return out
+
+
+def _expand_per_station(candidates, ctx):
+    return _expand(candidates, ctx, "per_station")
 
 
 def _expand_per_rotary_axis(candidates, ctx):
-    """A candidate with a ``per_rotary_axis(ctx)`` method stands for one candidate per rotary axis of the recording
-    (none on a three-axis machine: it is then not listed at all, rather than skipped on every three-axis recording)."""
-    out = []
-    for c in candidates:
-        if not callable(getattr(c, "per_rotary_axis", None)):
-            out.append(c)
-            continue
-        got = _call(c, "per_rotary_axis", ctx)
-        if not isinstance(got, (list, tuple)) or not all(isinstance(x, Candidate) for x in got):
-            _fail(c, f"must return a list of candidates, got {type(got).__name__}", "per_rotary_axis")
-        out += list(got)
-    return out
+    return _expand(candidates, ctx, "per_rotary_axis")
 
 
 def _diagnose_stations(rec, candidates, alpha, max_set, confound_margin, max_degree, gate_alpha, data_driven, steps):
