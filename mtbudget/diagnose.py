@@ -59,7 +59,9 @@ Noise and the fit gate (docs/diagnose.md, "Noise and the fit gate"):
 * **Noise is estimated.**  The three variance components (tracker range,
   tracker transverse, machine repeatability) are estimated by REML from the
   error contrasts left after a saturated static model (one free position per
-  point and tool: what repeated measurements of the same point disagree by)
+  point and tool: what repeated measurements of the same point disagree by;
+  the identification's model added where those groups do not span it, as on a
+  five-axis plan whose groups hold every commanded angle)
   plus every testable candidate.  A static unmodelled error cannot inflate
   them.  When a component differs from the stated one (beyond 3 standard
   errors and by more than 25 %), selection and the gate use the estimate.
