@@ -59,7 +59,9 @@ Noise and the fit gate (docs/diagnose.md, "Noise and the fit gate"):
 * **Noise is estimated.**  The three variance components (tracker range,
   tracker transverse, machine repeatability) are estimated by REML from the
   error contrasts left after a saturated static model (one free position per
-  point and tool: what repeated measurements of the same point disagree by)
+  point and tool: what repeated measurements of the same point disagree by;
+  the identification's model added where those groups do not span it, as on a
+  five-axis plan whose groups hold every commanded angle)
   plus every testable candidate.  A static unmodelled error cannot inflate
   them.  When a component differs from the stated one (beyond 3 standard
   errors and by more than 25 %), selection and the gate use the estimate.
@@ -1698,6 +1700,26 @@ def _complement(X: np.ndarray, tol: float = 1e-9) -> np.ndarray:
     return U[:, rank:]
 
 
+def _saturated_complement(X: np.ndarray, A: np.ndarray, tol: float = 1e-8) -> np.ndarray:
+    """Orthonormal basis of the error contrasts of the saturated model X (one free position per group of repeated
+    points, plus the candidates), the model's own design A nested in it.
+
+    A lack-of-fit test and the REML of the error contrasts need the model inside the saturated model: the residuals
+    are orthogonal to A, and only then does the complement of X carry (M - rank X) dof of pure noise and the rest
+    (rank X - rank A) of misfit.  A three-axis plan's groups (nominal point and tool) already span A (every column of
+    the model is a function of the point); a five-axis plan's do not: a group is a linear position and tool at every
+    commanded angle, and the rotary axes' location and zero errors and the tracker turning with the table move its
+    points differently.  Left out, the lack of fit had rank X - rank A dof but more than that in expectation (on the
+    example's 320-point plan 47 dof counted, 73 free): F about 1.4 in nulls.  A is added only when it is not
+    already in the span of X, so a nested plan's basis is computed exactly as before."""
+    N = _complement(X)
+    if A.shape[1] and N.shape[1]:
+        Q = np.linalg.qr(A)[0]
+        if float(np.max(np.abs(N.T @ Q))) > tol:
+            N = _complement(np.concatenate([X, A], axis=1))
+    return N
+
+
 def _components(rec, P):
     """Unwhitened covariance components (M, 3, 3) at the tracker points P: tracker range, tracker transverse,
     repeatability along the beam and across it, each at its stated value (or at a reference value when it is
@@ -1754,7 +1776,7 @@ def _estimate_noise(rec, ctx, Wh, A0, w, cand_cols) -> dict:
     groups = _point_groups(rec.plan)
     Clib = np.concatenate(cand_cols, axis=1) if cand_cols else np.zeros((3 * M, 0))
     Z = _group_design(groups, Wh)
-    N = _complement(np.concatenate([Z, Clib], axis=1))
+    N = _saturated_complement(np.concatenate([Z, Clib], axis=1), A0)
     replicates = N.shape[1] >= MIN_PURE_ERROR_DOF
     if not replicates:
         N = _complement(np.concatenate([A0, Clib], axis=1))
@@ -1860,7 +1882,7 @@ def _gate(lin, f_all, k_chosen, est, pure, usable, gate_alpha) -> dict:
     if pure is not None:
         Clib = [u[1] for u in usable]
         X = np.concatenate([pure] + Clib, axis=1)
-        N = _complement(X)
+        N = _saturated_complement(X, lin.Q0)
         chi2_pe, df_pe = float(np.sum((N.T @ lin.w) ** 2)), N.shape[1]
         df_lof = dof - df_pe
         if df_lof > 0 and df_pe > 0:
