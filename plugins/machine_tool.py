@@ -643,8 +643,8 @@ class RotaryReversal(Source):
         return {f"B_{r}": {"value": _at(sample[f"axis_offset.{r}"], -ctx.plan.direction_of(r) / 2) * 1e6,
                            "unit": "urad",
                            "meaning": f"the lost motion of the rotary axis {r.upper()}: approaching from either side "
-                                      "it stops B/2 short of its commanded angle (null: the axis is never "
-                                      "approached, or the source does not act on it)",
+                                      "it stops B/2 short of its commanded angle (0: the source does not act on "
+                                      "it, its `axes`; null: the axis is never approached)",
                            "effect": f"rotary_reversal[{r}]"} for r in _rotary_letters(ctx)}
 
 
