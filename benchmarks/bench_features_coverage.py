@@ -139,22 +139,32 @@ def main(argv=None):
     base = tomllib.loads(bundled_config("paper_features").read_text())
     features = base["features"]
     rng = np.random.default_rng(20261125)
+    return coverage_by_machine(base, "paper_features", 7, args,
+                               lambda sc, eng, blocks: part_errors(sc, eng, features, blocks, rng), width=22)
+
+
+def coverage_by_machine(base: dict, name: str, seed0: int, args, errors_of, width: int) -> int:
+    """For each of ``args.machines`` machines (geometric error seeds seed0, seed0 + 1, ...): its statement of
+    ``base``'s features (``args.trials`` trials), the true errors of ``args.parts`` parts measured on it
+    (``errors_of(scenario, engine, blocks)``, the benchmark's own code), and how many fall in the stated intervals;
+    then :func:`coverage_summary` (both benchmarks)."""
+    features = base["features"]
     hits: dict = {}
     t0 = time.perf_counter()
     for m in range(args.machines):
         data = copy.deepcopy(base)
-        data["geometric_errors"]["seed"] = 7 + m
-        sc = build_scenario(parse_config(data, f"paper_features (machine seed {7 + m})"))
+        data["geometric_errors"]["seed"] = seed0 + m
+        sc = build_scenario(parse_config(data, f"{name} (machine seed {seed0 + m})"))
         # each machine's statement from its own seed: statements drawn from one seed share their noise draws, and a
         # feature that hardly depends on the machine (a flatness) would get the same u, by the same chance, on all
         stated = result_json(run(sc, RunSettings(trials=args.trials, attribution_trials=0, seed=1 + m)))["features"]
         eng = Engine(sc, block=64, seed=1000 + m)  # the parts' verifications: another seed, independent draws
-        E = part_errors(sc, eng, features, list(range(-(-args.parts // 64))), rng)[: args.parts]
+        E = errors_of(sc, eng, list(range(-(-args.parts // 64))))[: args.parts]
         for k, (f, s) in enumerate(zip(features, stated)):
             inside = (E[:, k] >= s["interval"]["low"]) & (E[:, k] <= s["interval"]["high"])
             hits.setdefault(f["kind"], []).append(inside)
-            print(f"machine {m + 1} ({7 + m}): {f['name']:<22} stated u {s['u']:8.3f} {s['unit']:<4}, part errors' "
-                  f"std {E[:, k].std(ddof=1):8.3f}, coverage {inside.mean():6.1%}", flush=True)
+            print(f"machine {m + 1} ({seed0 + m}): {f['name']:<{width}} stated u {s['u']:8.3f} {s['unit']:<4}, part "
+                  f"errors' std {E[:, k].std(ddof=1):8.3f}, coverage {inside.mean():6.1%}", flush=True)
     return coverage_summary(hits, args, t0)
 
 

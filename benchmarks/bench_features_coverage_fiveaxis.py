@@ -22,10 +22,8 @@ the rotary axes' held turns act on the distance across C, the bores and the face
 from __future__ import annotations
 
 import argparse
-import copy
 import os
 import sys
-import time
 import tomllib
 from pathlib import Path
 
@@ -36,16 +34,12 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from bench_features_coverage import coverage_summary, points_of, q, value  # noqa: E402
+from bench_features_coverage import coverage_by_machine, points_of, q, value  # noqa: E402
 
-from mtbudget.config import bundled_config, parse_config  # noqa: E402
-from mtbudget.engine import Engine  # noqa: E402
+from mtbudget.config import bundled_config  # noqa: E402
 from mtbudget.identify import scale_vector  # noqa: E402
 from mtbudget.model import MeasurementModel  # noqa: E402
 from mtbudget.plan import Plan  # noqa: E402
-from mtbudget.report import result_json  # noqa: E402
-from mtbudget.runner import RunSettings, run  # noqa: E402
-from mtbudget.scenario import build_scenario  # noqa: E402
 
 
 def angles_of(f, n):
@@ -129,21 +123,8 @@ def main(argv=None):
             f["repeatability"] = True
     rotary_R = q(base["sources"]["rotary_repeatability"]["R"], "rad")
     rng = np.random.default_rng(20261126)
-    hits: dict = {}
-    t0 = time.perf_counter()
-    for m in range(args.machines):
-        data = copy.deepcopy(base)
-        data["geometric_errors"]["seed"] = 11 + m
-        sc = build_scenario(parse_config(data, f"five_axis_features (machine seed {11 + m})"))
-        stated = result_json(run(sc, RunSettings(trials=args.trials, attribution_trials=0, seed=1 + m)))["features"]
-        eng = Engine(sc, block=64, seed=1000 + m)
-        E = part_errors(sc, eng, features, list(range(-(-args.parts // 64))), rng, rotary_R)[: args.parts]
-        for k, (f, s) in enumerate(zip(features, stated)):
-            inside = (E[:, k] >= s["interval"]["low"]) & (E[:, k] <= s["interval"]["high"])
-            hits.setdefault(f["kind"], []).append(inside)
-            print(f"machine {m + 1} ({11 + m}): {f['name']:<16} stated u {s['u']:7.3f} {s['unit']:<4}, part errors' "
-                  f"std {E[:, k].std(ddof=1):7.3f}, coverage {inside.mean():6.1%}", flush=True)
-    return coverage_summary(hits, args, t0)
+    return coverage_by_machine(base, "five_axis_features", 11, args,
+                               lambda sc, eng, blocks: part_errors(sc, eng, features, blocks, rng, rotary_R), width=16)
 
 
 if __name__ == "__main__":
