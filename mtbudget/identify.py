@@ -644,6 +644,21 @@ def datum_parameters(model: MeasurementModel, null: np.ndarray, active: np.ndarr
     return held
 
 
+def phase_actives(model, phases, pose_why: str) -> list:
+    """The geometric parameters each phase of a strategy frees ((p,) bool per phase), each phase checked: its groups
+    from :data:`GROUPS`, and the pose among them (``pose_why``: why it is always unknown).  The one reading of
+    ``Strategy.phases`` for one tracker and several stations (``multistation.phase_masks``)."""
+    out = []
+    for phase in phases:
+        unknown = set(phase) - set(GROUPS)
+        if unknown:
+            raise IdentificationError(f"unknown parameter group(s) {sorted(unknown)} in strategy phase; expected {GROUPS}")
+        if "pose" not in phase:
+            raise IdentificationError(f"every phase must include the pose ({pose_why})")
+        out.append(np.array([group_of(par) in phase for par in model.errors.params], bool))
+    return out
+
+
 def _phase(model, cache, active, rank_tol):
     """(identifiability, basis Q) of the active parameters: the SVDs, once per model, mask and rank tolerance."""
     key = ("phase", active.tobytes(), float(rank_tol))
@@ -776,13 +791,7 @@ def identify(
 
     # identifiability of each phase (depends on the plan only: computed once per model, see _plan_cache)
     phases = []
-    for phase in strategy.phases:
-        unknown = set(phase) - set(GROUPS)
-        if unknown:
-            raise IdentificationError(f"unknown parameter group(s) {sorted(unknown)} in strategy phase; expected {GROUPS}")
-        if "pose" not in phase:
-            raise IdentificationError("every phase must include the pose (the tracker pose is always unknown)")
-        active = np.array([group_of(par) in phase for par in model.errors.params])
+    for active in phase_actives(model, strategy.phases, "the tracker pose is always unknown"):
         ident, Q = _phase(model, cache, active, strategy.rank_tol)
         if not ident.pose_identifiable:
             raise IdentificationError("the plan's points do not fix the tracker pose (all points on a line)")

@@ -41,7 +41,7 @@ import numpy as np
 
 from . import tracker as lt
 from .errors import IdentificationError
-from .identify import GROUPS, POSE_SCALE, Identifiability, group_of, range_basis, scale_vector, whitener
+from .identify import POSE_SCALE, Identifiability, phase_actives, range_basis, scale_vector, whitener
 from .model import MeasurementModel, iso_parameter
 from .recording import Recording, read_recording
 from .units import display, shown_unit
@@ -168,15 +168,7 @@ def phase_masks(model: MeasurementModel, phases) -> list | None:
     lists of groups from :data:`mtbudget.identify.GROUPS`), or None for one phase of every group (the default).  Every
     phase frees every station's own unknowns (a tracker's pose, an interferometer's position and dead path): they are
     the ``pose`` of the one-tracker strategy, which every phase must name."""
-    masks = []
-    for phase in phases:
-        unknown = set(phase) - set(GROUPS)
-        if unknown:
-            raise IdentificationError(f"unknown parameter group(s) {sorted(unknown)} in strategy phase; "
-                                      f"expected {GROUPS}")
-        if "pose" not in phase:
-            raise IdentificationError("every phase must include the pose (every station's pose or position is unknown)")
-        masks.append(np.array([group_of(par) in phase for par in model.errors.params], bool))
+    masks = phase_actives(model, phases, "every station's pose or position is unknown")
     if len(masks) == 1 and masks[0].all():
         return None
     return masks
